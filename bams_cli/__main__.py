@@ -1,0 +1,3 @@
+from bams_cli.cli import main
+
+main()

@@ -1,0 +1,296 @@
+"""The ``bams-cli`` command line: parse flags, call one pipeline function, print.
+
+The only module that imports typer. Errors the user can fix (``BamsError``) are caught at
+one boundary, ``main``, and printed as one line with exit code 1.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from bams_cli import __version__, console, pipeline
+from bams_cli.errors import BamsError
+
+app = typer.Typer(
+    name="bams-cli",
+    help=(
+        "Find rare failures of an autonomous system and estimate how often they happen, "
+        "with Bayesian adaptive multifidelity sampling (BAMS).\n\n"
+        "Every step reads and writes Parquet state in a workspace folder:\n\n"
+        "init -> embed-reduce -> select (random) -> \\[simulate] -> ingest-results -> fit -> "
+        "select -> ... -> estimate -> report"
+    ),
+    rich_markup_mode="rich",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+DEFAULT_WORKSPACE = "./bams-workspace"
+
+Workspace = Annotated[
+    Path,
+    typer.Option(
+        "--workspace",
+        "-w",
+        envvar="BAMS_WORKSPACE",
+        help="Study folder holding settings.toml and the Parquet state.",
+        show_default=True,
+    ),
+]
+Json = Annotated[
+    bool, typer.Option("--json", help="Print a JSON summary (for CI logs) instead of tables.")
+]
+Wait = Annotated[
+    bool,
+    typer.Option("--wait", help="Wait for another command's workspace lock instead of failing."),
+]
+
+
+def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Register a subcommand whose BamsErrors become one stderr line and exit code 1."""
+
+    def register(fn: Callable[..., None]) -> Callable[..., None]:
+        @functools.wraps(fn)
+        def boundary(*args: Any, **kwargs: Any) -> None:
+            try:
+                fn(*args, **kwargs)
+            except BamsError as exc:
+                console.error(str(exc))
+                raise typer.Exit(1) from None
+
+        app.command(name)(boundary)
+        return fn
+
+    return register
+
+
+def _floats(text: str | None, flag: str) -> list[float] | None:
+    if text is None:
+        return None
+    try:
+        return [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise BamsError(
+            f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1"
+        ) from None
+
+
+def _show(summary: dict[str, Any], json_out: bool, title: str) -> None:
+    if json_out:
+        console.print_json(summary)
+    else:
+        console.kv_table(title, summary)
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.out.print(f"bams-cli {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="Show the version and exit."
+        ),
+    ] = False,
+) -> None:
+    """bams-cli: rate-informed discovery of rare failures."""
+
+
+@command()
+def init(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    gamma: Annotated[
+        str | None,
+        typer.Option("--gamma", help="Failure threshold(s) on the metric f, comma-separated."),
+    ] = None,
+    costs: Annotated[
+        str | None,
+        typer.Option("--costs", help="Cost per fidelity level, level 0 first (must be 1)."),
+    ] = None,
+    level_names: Annotated[
+        str | None, typer.Option("--level-names", help="Names for the levels, comma-separated.")
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", help="Seed recorded and used by every step.")
+    ] = None,
+    dim: Annotated[int | None, typer.Option("--dim", help="Reduced embedding dimension.")] = None,
+    settings_from: Annotated[
+        Path | None,
+        typer.Option("--settings-from", help="Start from this settings.toml (flags override it)."),
+    ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="Overwrite an existing settings.toml.")
+    ] = False,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Create a study workspace and its settings file.
+
+    [bold]Example[/]: bams-cli init -w study --gamma 0.56 --costs 1,0.1 --seed 0
+    """
+    summary = pipeline.init(
+        workspace,
+        gammas=_floats(gamma, "--gamma"),
+        costs=_floats(costs, "--costs"),
+        level_names=level_names.split(",") if level_names else None,
+        seed=seed,
+        dim=dim,
+        settings_from=settings_from,
+        force=force,
+        wait=wait,
+    )
+    _show(summary, json_out, "workspace created")
+
+
+@command("embed-reduce")
+def embed_reduce(
+    segments: Annotated[
+        Path, typer.Argument(help="Parquet file of segments: segment_id + embedding.")
+    ],
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    method: Annotated[
+        str,
+        typer.Option("--method", help="pca (streaming IncrementalPCA), autoencoder, or identity."),
+    ] = "pca",
+    dim: Annotated[
+        int | None, typer.Option("--dim", help="Reduced dimension [default: settings, 12].")
+    ] = None,
+    standardize: Annotated[
+        bool,
+        typer.Option(
+            "--standardize/--no-standardize", help="Scale each input column to unit variance."
+        ),
+    ] = True,
+    columns: Annotated[
+        str | None,
+        typer.Option("--columns", help="Glob of numeric embedding columns, e.g. 'emb_*'."),
+    ] = None,
+    embedding_column: Annotated[
+        str | None,
+        typer.Option("--embedding-column", help="The list column holding the embedding."),
+    ] = None,
+    id_column: Annotated[str | None, typer.Option("--id-column", help="Segment id column.")] = None,
+    apply: Annotated[
+        bool,
+        typer.Option(
+            "--apply", help="Map new segments with the saved reducer and add them to the pool."
+        ),
+    ] = False,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Rows read per batch.")] = 8192,
+    sample_size: Annotated[
+        int,
+        typer.Option(
+            "--sample-size", help="Rows sampled to train the autoencoder and measure error."
+        ),
+    ] = 20_000,
+    force: Annotated[
+        bool, typer.Option("--force", help="Refit the reducer over an existing pool.")
+    ] = False,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Reduce segment embeddings to a few dimensions and store the pool.
+
+    [bold]Example[/]: bams-cli embed-reduce -w study sample_data/av_like/segments.parquet --dim 12
+    """
+    if method not in {"pca", "autoencoder", "identity"}:
+        raise BamsError(f"--method {method!r}: choose pca, autoencoder or identity")
+    with console.progress(not json_out) as bar:
+        summary = pipeline.embed_reduce(
+            workspace,
+            segments,
+            apply=apply,
+            method=method,
+            dim=dim,
+            standardize=standardize,
+            columns=columns,
+            embedding_column=embedding_column,
+            id_column=id_column,
+            batch_size=batch_size,
+            sample_size=sample_size,
+            force=force,
+            wait=wait,
+            progress=bar,
+        )
+    _show(summary, json_out, "embed-reduce")
+
+
+@command("ingest-results")
+def ingest_results(
+    results: Annotated[
+        Path, typer.Argument(help="Parquet or CSV: segment_id, fidelity, value (+ extra columns).")
+    ],
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    replace: Annotated[
+        bool,
+        typer.Option("--replace", help="Supersede logged values that disagree with this file."),
+    ] = False,
+    allow_unselected: Annotated[
+        bool, typer.Option("--allow-unselected", help="Accept results for pairs no batch selected.")
+    ] = False,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Append simulation results to the observation log.
+
+    [bold]Example[/]: bams-cli ingest-results -w study results-0001.parquet
+    """
+    summary = pipeline.ingest_results(
+        workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
+    )
+    if json_out:
+        console.print_json(summary)
+        return
+    if summary.get("already_ingested"):
+        console.note(summary["message"])
+    else:
+        pend = summary.pop("pending")
+        console.kv_table("ingest-results", summary)
+        summary["pending"] = pend
+    pend = summary["pending"]
+    if pend["count"]:
+        rows = [[r["segment_id"], r["fidelity"], r["batch"]] for r in pend["first"]]
+        console.rows_table(
+            f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
+        )
+    else:
+        console.note("nothing pending: every selected segment has a result")
+
+
+@command()
+def simulate(
+    handoff: Annotated[
+        Path, typer.Argument(help="A hand-off list (Parquet or CSV): segment_id, fidelity.")
+    ],
+    truth: Annotated[
+        Path, typer.Option("--truth", help="Ground truth: segment_id, value_0, value_1, ...")
+    ],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Results file to write (.parquet or .csv).")
+    ],
+    json_out: Json = False,
+) -> None:
+    """[yellow]Sample data and demos only:[/] answer a hand-off list from ground truth.
+
+    Stands in for the simulation team so the loop can run end to end on sample data.
+
+    [bold]Example[/]: bams-cli simulate study/batches/batch-0001.parquet
+    --truth sample_data/toy2d/truth.parquet -o results-0001.parquet
+    """
+    _show(pipeline.simulate(handoff, truth, output), json_out, "simulate (sample data only)")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()

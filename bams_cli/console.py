@@ -1,0 +1,78 @@
+"""Everything the user sees: rich tables, progress bars, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+out = Console()
+err = Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def error(message: str) -> None:
+    """One line on stderr: what failed, expected vs got, and the fix."""
+    err.print(f"[bold red]error:[/] {message}", markup=True)
+
+
+def note(message: str) -> None:
+    err.print(message, markup=False)
+
+
+def print_json(summary: Mapping[str, Any]) -> None:
+    sys.stdout.write(json.dumps(summary, indent=2, default=str) + "\n")
+
+
+def kv_table(title: str, rows: Mapping[str, Any]) -> None:
+    table = Table(title=title, show_header=False, title_justify="left")
+    table.add_column("key", style="bold")
+    table.add_column("value")
+    for key, value in rows.items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        elif isinstance(value, list | dict):
+            value = json.dumps(value, default=str)
+        table.add_row(key, str(value))
+    out.print(table)
+
+
+def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
+    table = Table(title=title, title_justify="left")
+    for col in columns:
+        table.add_column(
+            col, justify="right" if col not in {"segment_id", "name", "level"} else "left"
+        )
+    for row in rows:
+        table.add_row(*[f"{v:.6g}" if isinstance(v, float) else str(v) for v in row])
+    out.print(table)
+
+
+@contextmanager
+def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] | None]:
+    """A ``progress(phase, done, total)`` callback drawing one rich bar per phase."""
+    if not enabled or not err.is_terminal:
+        yield None
+        return
+    bars = Progress(
+        TextColumn("{task.description:<14}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err,
+        transient=True,
+    )
+    tasks: dict[str, Any] = {}
+
+    def update(phase: str, done: int, total: int) -> None:
+        if phase not in tasks:
+            tasks[phase] = bars.add_task(phase, total=total)
+        bars.update(tasks[phase], completed=done, total=total)
+
+    with bars:
+        yield update

@@ -1,0 +1,54 @@
+"""Errors the tool raises on purpose. Each prints as one line at the CLI boundary."""
+
+from __future__ import annotations
+
+
+class BamsError(Exception):
+    """Base class: a problem the user can fix; printed as one line, exit code 1."""
+
+
+class InputError(BamsError):
+    """An input file has a bad value; the message names the file, column and row."""
+
+    def __init__(
+        self, file: object, message: str, *, column: str | None = None, row: int | None = None
+    ):
+        where = str(file)
+        if column is not None:
+            where += f": column {column!r}"
+        if row is not None:
+            where += f", row {row}"
+        super().__init__(f"{where}: {message}")
+        self.file, self.column, self.row = str(file), column, row
+
+
+class SchemaError(InputError):
+    """A table lacks a required column or has one of the wrong type."""
+
+
+class DuplicateError(InputError):
+    """A key that must be unique appears more than once."""
+
+
+class ConflictError(BamsError):
+    """New results disagree with results already in the observation log."""
+
+
+class WorkspaceError(BamsError):
+    """The workspace is missing, not initialised, or in a state the command cannot use."""
+
+
+class WorkspaceLockedError(WorkspaceError):
+    """Another command holds the workspace lock."""
+
+
+class StaleStateError(WorkspaceError):
+    """A derived state file (model, scores) is older than what it was derived from."""
+
+
+class PendingBatchError(WorkspaceError):
+    """A selected batch has not been ingested yet."""
+
+
+class SettingsError(BamsError):
+    """The settings file or a flag holds an invalid value."""

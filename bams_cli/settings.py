@@ -1,0 +1,138 @@
+"""Study settings: gammas, fidelity levels and costs, seed, embedding dimension.
+
+Precedence, stated once: a command-line flag beats the workspace's ``settings.toml``,
+which beats the defaults below. Only ``bams-cli init`` (and flags given to it) writes the
+settings file; other commands read it and may override a value for one run.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from bams_cli.errors import SettingsError
+
+SETTINGS_FILE = "settings.toml"
+
+HEADER = """\
+# bams-cli study settings. Edit by hand or with `bams-cli init --force`.
+# gammas: failure thresholds (a segment fails when its metric f <= gamma); the first one
+#         drives selection, every one is scored and estimated.
+# levels: fidelity levels, level 0 = the high-fidelity simulator with cost 1; cheaper
+#         simulators follow with their cost in units of one level-0 run.
+"""
+
+
+@dataclass(frozen=True)
+class Level:
+    """One fidelity level: a simulator and what one run of it costs."""
+
+    name: str
+    cost: float
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The study's settings, as written in ``settings.toml``."""
+
+    gammas: tuple[float, ...] = (0.0,)
+    levels: tuple[Level, ...] = (Level("high", 1.0),)
+    seed: int = 0
+    embedding_dim: int = 12
+    id_column: str = "segment_id"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def costs(self) -> tuple[float, ...]:
+        return tuple(level.cost for level in self.levels)
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.levels)
+
+    def validate(self) -> Settings:
+        if not self.gammas:
+            raise SettingsError("settings: gammas is empty; give at least one with --gamma")
+        if any(not math.isfinite(g) for g in self.gammas):
+            raise SettingsError(f"settings: gammas must be finite numbers, got {list(self.gammas)}")
+        if not self.levels:
+            raise SettingsError("settings: no fidelity levels; give costs with --costs 1,0.1")
+        if self.levels[0].cost != 1.0:
+            raise SettingsError(
+                f"settings: level 0 must cost 1 (costs are in units of one level-0 run), "
+                f"got {self.levels[0].cost}"
+            )
+        for i, level in enumerate(self.levels):
+            if not (math.isfinite(level.cost) and level.cost > 0):
+                raise SettingsError(f"settings: level {i} cost must be > 0, got {level.cost}")
+        if self.embedding_dim < 1:
+            raise SettingsError(f"settings: embedding_dim must be >= 1, got {self.embedding_dim}")
+        return self
+
+    def to_toml(self) -> str:
+        doc: dict[str, Any] = {
+            "study": {
+                "gammas": list(self.gammas),
+                "seed": self.seed,
+                "embedding_dim": self.embedding_dim,
+                "id_column": self.id_column,
+            },
+            "levels": [asdict(level) for level in self.levels],
+        }
+        if self.extra:
+            doc["extra"] = self.extra
+        return HEADER + "\n" + tomli_w.dumps(doc)
+
+    @classmethod
+    def from_toml(cls, text: str, source: str = SETTINGS_FILE) -> Settings:
+        try:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SettingsError(f"{source}: not valid TOML ({exc})") from None
+        study = doc.get("study", {})
+        try:
+            levels = tuple(
+                Level(str(lv["name"]), float(lv["cost"])) for lv in doc.get("levels", [])
+            )
+            settings = cls(
+                gammas=tuple(float(g) for g in study.get("gammas", [])),
+                levels=levels,
+                seed=int(study.get("seed", 0)),
+                embedding_dim=int(study.get("embedding_dim", 12)),
+                id_column=str(study.get("id_column", "segment_id")),
+                extra=dict(doc.get("extra", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SettingsError(f"{source}: malformed entry ({exc})") from None
+        return settings.validate()
+
+    def with_overrides(self, **overrides: Any) -> Settings:
+        """Flag > settings file: apply the flags that were given (None means not given)."""
+        given = {k: v for k, v in overrides.items() if v is not None}
+        return replace(self, **given).validate()
+
+
+def levels_from_costs(costs: list[float], names: list[str] | None = None) -> tuple[Level, ...]:
+    """Build levels from a cost list; level 0 is named "high", the others "low1", "low2" ..."""
+    if names is None:
+        names = ["high"] + [f"low{i}" for i in range(1, len(costs))]
+    if len(names) != len(costs):
+        raise SettingsError(f"--level-names has {len(names)} names for {len(costs)} costs")
+    return tuple(Level(n, float(c)) for n, c in zip(names, costs, strict=True))
+
+
+def load_settings(workspace: Path) -> Settings:
+    path = workspace / SETTINGS_FILE
+    if not path.exists():
+        from bams_cli.errors import WorkspaceError
+
+        raise WorkspaceError(
+            f"{workspace}: no {SETTINGS_FILE}; create the study with "
+            f"`bams-cli init -w {workspace} --gamma ... --costs ...`"
+        )
+    return Settings.from_toml(path.read_text(), source=str(path))

@@ -1,0 +1,1 @@
+"""Workspace state: Parquet schemas and atomic reads and writes."""

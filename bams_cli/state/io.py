@@ -1,0 +1,175 @@
+"""Atomic, metadata-stamped writes and strict reads of workspace files.
+
+Every write goes to a temporary file in the destination folder, is fsynced, and is then
+renamed over the target, so a crash leaves either the old file or the new one, never half
+of one. A command that writes several files stages them all in one ``Transaction`` and
+renames them only after every step has succeeded: a failing command leaves the workspace
+exactly as it was.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+import shlex
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bams_cli import __version__
+from bams_cli.errors import InputError, SchemaError
+
+META_PREFIX = "bams."
+
+
+def command_line() -> str:
+    """The command line of this process, as recorded in every file it writes."""
+    argv = list(sys.argv)
+    if argv:
+        argv[0] = Path(argv[0]).name
+    return shlex.join(argv)
+
+
+def stamp(table: pa.Table, schema_version: int, extra: dict[str, Any] | None = None) -> pa.Table:
+    """Attach the tool's key-value metadata (schema version, tool version, command, time)."""
+    meta = dict(table.schema.metadata or {})
+    fields = {
+        "schema_version": str(schema_version),
+        "tool_version": __version__,
+        "command": command_line(),
+        "written_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    }
+    for key, value in (extra or {}).items():
+        fields[key] = value if isinstance(value, str) else json.dumps(value)
+    for key, value in fields.items():
+        meta[(META_PREFIX + key).encode()] = str(value).encode()
+    return table.replace_schema_metadata(meta)
+
+
+def read_metadata(path: Path) -> dict[str, str]:
+    """The tool's metadata of a Parquet file, without the ``bams.`` prefix."""
+    meta = pq.read_schema(path).metadata or {}
+    out = {}
+    for key, value in meta.items():
+        k = key.decode()
+        if k.startswith(META_PREFIX):
+            out[k[len(META_PREFIX) :]] = value.decode()
+    return out
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class Transaction:
+    """Stage files next to their targets; rename them all on commit, remove them on failure."""
+
+    def __init__(self) -> None:
+        self._staged: list[tuple[Path, Path]] = []
+
+    def _temp_for(self, target: Path) -> Path:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target.parent / f".tmp-{target.name}-{os.getpid()}-{len(self._staged)}"
+
+    def _finish(self, tmp: Path, target: Path) -> Path:
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        self._staged.append((tmp, target))
+        return target
+
+    def write_parquet(self, target: Path, table: pa.Table) -> Path:
+        tmp = self._temp_for(target)
+        pq.write_table(table, tmp, compression="zstd")
+        return self._finish(tmp, target)
+
+    def write_bytes(self, target: Path, data: bytes) -> Path:
+        tmp = self._temp_for(target)
+        tmp.write_bytes(data)
+        return self._finish(tmp, target)
+
+    def write_text(self, target: Path, text: str) -> Path:
+        return self.write_bytes(target, text.encode())
+
+    def write_with(self, target: Path, writer: Any) -> Path:
+        """Stage a file produced by ``writer(tmp_path)`` (e.g. ``np.savez``, ``csv``)."""
+        tmp = self._temp_for(target)
+        writer(tmp)
+        return self._finish(tmp, target)
+
+    def commit(self) -> list[Path]:
+        folders = set()
+        for tmp, target in self._staged:
+            os.replace(tmp, target)
+            folders.add(target.parent)
+        for folder in folders:
+            _fsync_dir(folder)
+        done = [target for _, target in self._staged]
+        self._staged.clear()
+        return done
+
+    def rollback(self) -> None:
+        for tmp, _ in self._staged:
+            tmp.unlink(missing_ok=True)
+        self._staged.clear()
+
+
+@contextmanager
+def transaction() -> Iterator[Transaction]:
+    """``with transaction() as tx: tx.write_parquet(...)``: all files land, or none."""
+    tx = Transaction()
+    try:
+        yield tx
+    except BaseException:
+        tx.rollback()
+        raise
+    tx.commit()
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_table(path: Path, *, what: str = "table") -> pa.Table:
+    """Read a Parquet or CSV file the user handed over; unreadable -> one-line InputError."""
+    if not path.exists():
+        raise InputError(path, f"{what} file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".csv":
+            import pyarrow.csv as pacsv
+
+            return pacsv.read_csv(path)
+        return pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as exc:
+        kind = "CSV" if suffix == ".csv" else "Parquet"
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(path, f"cannot read as {kind} ({first})") from None
+
+
+def require_columns(table: pa.Table, columns: list[str], source: object) -> None:
+    missing = [c for c in columns if c not in table.column_names]
+    if missing:
+        raise SchemaError(
+            source,
+            f"missing required column(s) {', '.join(map(repr, missing))}; "
+            f"found {', '.join(map(repr, table.column_names))}",
+            column=missing[0],
+        )

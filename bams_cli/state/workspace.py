@@ -1,0 +1,207 @@
+"""The workspace folder: where each state file lives and how it is read back.
+
+```
+<workspace>/
+  settings.toml            study settings (human-readable)
+  reducer.npz              fitted embedding reducer (arrays only, no pickle)
+  segments.parquet         reduced pool: segment_id, z0..z{d-1}, pass-through columns
+  observations.parquet     append-only observation log
+  model.json               fitted GP hyperparameters (human-readable)
+  scores.parquet           per-segment posterior mean, sd and failure probabilities
+  batches/batch-NNNN.parquet (+ .csv)   hand-off lists
+  estimates/plan-NNNN.parquet (+ handoff csv), estimates/estimate-NNNN.json
+  report/                  report.html, summary.json, summary.md
+```
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bams_cli.errors import SchemaError, StaleStateError, WorkspaceError
+from bams_cli.settings import SETTINGS_FILE, Settings, load_settings
+from bams_cli.state import schemas
+from bams_cli.state.io import read_metadata
+
+REDUCER_FILE = "reducer.npz"
+MODEL_FILE = "model.json"
+COORD = re.compile(r"^z(\d+)$")
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Paths and readers for one study folder."""
+
+    root: Path
+
+    # ---- paths -------------------------------------------------------------------------
+    @property
+    def settings_path(self) -> Path:
+        return self.root / SETTINGS_FILE
+
+    @property
+    def reducer_path(self) -> Path:
+        return self.root / REDUCER_FILE
+
+    @property
+    def segments_path(self) -> Path:
+        return schemas.SEGMENTS.path(self.root)
+
+    @property
+    def observations_path(self) -> Path:
+        return schemas.OBSERVATIONS.path(self.root)
+
+    @property
+    def model_path(self) -> Path:
+        return self.root / MODEL_FILE
+
+    @property
+    def scores_path(self) -> Path:
+        return schemas.SCORES.path(self.root)
+
+    @property
+    def batches_dir(self) -> Path:
+        return self.root / "batches"
+
+    @property
+    def estimates_dir(self) -> Path:
+        return self.root / "estimates"
+
+    @property
+    def report_dir(self) -> Path:
+        return self.root / "report"
+
+    # ---- existence -----------------------------------------------------------------------
+    def require_initialised(self) -> Settings:
+        if not self.root.is_dir():
+            raise WorkspaceError(
+                f"{self.root}: no such workspace; create it with `bams-cli init -w {self.root}`"
+            )
+        return load_settings(self.root)
+
+    def require_segments(self) -> None:
+        if not self.segments_path.exists():
+            raise WorkspaceError(
+                f"{self.segments_path}: no segment pool yet; run "
+                f"`bams-cli embed-reduce -w {self.root} SEGMENTS.parquet` first"
+            )
+
+    # ---- segments ------------------------------------------------------------------------
+    def read_segments(self, columns: list[str] | None = None) -> pa.Table:
+        self.require_segments()
+        table = pq.read_table(self.segments_path, columns=columns)
+        return schemas.SEGMENTS.check(table, self.segments_path)
+
+    def coordinate_columns(self, table: pa.Table | None = None) -> list[str]:
+        names = (
+            table.column_names if table is not None else pq.read_schema(self.segments_path).names
+        )
+        coords = sorted((n for n in names if COORD.match(n)), key=lambda n: int(n[1:]))
+        if not coords:
+            raise SchemaError(self.segments_path, "no coordinate columns z0, z1, ...", column="z0")
+        return coords
+
+    def read_pool(self) -> tuple[np.ndarray, np.ndarray]:
+        """Segment ids and reduced coordinates: (ids of shape (N,), X of shape (N, d))."""
+        coords = self.coordinate_columns()
+        table = self.read_segments([schemas.SEGMENT_ID, *coords])
+        ids = table.column(schemas.SEGMENT_ID).to_numpy(zero_copy_only=False)
+        X = np.column_stack([table.column(c).to_numpy() for c in coords]).astype(np.float64)
+        return ids, X
+
+    # ---- observations --------------------------------------------------------------------
+    def read_observations(self, *, active_only: bool = True) -> pl.DataFrame:
+        if not self.observations_path.exists():
+            return pl.from_arrow(schemas.OBSERVATIONS.schema.empty_table())  # type: ignore[return-value]
+        table = schemas.OBSERVATIONS.check(
+            pq.read_table(self.observations_path), self.observations_path
+        )
+        df = pl.from_arrow(table)
+        assert isinstance(df, pl.DataFrame)
+        return df.filter(pl.col("active")) if active_only else df
+
+    def observations_hash(self) -> str:
+        """Content hash of the active observations: what a model was fitted on."""
+        obs = self.read_observations().select(schemas.SEGMENT_ID, "fidelity", "value")
+        digest = hashlib.sha256()
+        for sid, lvl, val in obs.sort([schemas.SEGMENT_ID, "fidelity", "value"]).iter_rows():
+            digest.update(f"{sid}\x1f{lvl}\x1f{val!r}\x1e".encode())
+        return digest.hexdigest()[:16]
+
+    # ---- batches -------------------------------------------------------------------------
+    def batch_numbers(self) -> list[int]:
+        if not self.batches_dir.is_dir():
+            return []
+        found = []
+        for p in self.batches_dir.glob("batch-*.parquet"):
+            m = re.fullmatch(r"batch-(\d+)\.parquet", p.name)
+            if m:
+                found.append(int(m.group(1)))
+        return sorted(found)
+
+    def read_batch(self, n: int) -> pl.DataFrame:
+        path = schemas.batch_path(self.root, n)
+        table = schemas.BATCH.check(pq.read_table(path), path)
+        df = pl.from_arrow(table)
+        assert isinstance(df, pl.DataFrame)
+        return df.with_columns(pl.lit(n, dtype=pl.Int64).alias("batch"))
+
+    def read_batches(self) -> pl.DataFrame:
+        frames = [
+            self.read_batch(n).select(schemas.SEGMENT_ID, "fidelity", "batch", "cost", "strategy")
+            for n in self.batch_numbers()
+        ]
+        if not frames:
+            return pl.DataFrame(
+                schema={
+                    schemas.SEGMENT_ID: pl.String,
+                    "fidelity": pl.Int64,
+                    "batch": pl.Int64,
+                    "cost": pl.Float64,
+                    "strategy": pl.String,
+                }
+            )
+        return pl.concat(frames)
+
+    def pending(self) -> pl.DataFrame:
+        """Selected (segment, fidelity) pairs with no active observation yet."""
+        picks = self.read_batches()
+        obs = self.read_observations().select(schemas.SEGMENT_ID, "fidelity").unique()
+        return picks.join(obs, on=[schemas.SEGMENT_ID, "fidelity"], how="anti")
+
+    # ---- model ---------------------------------------------------------------------------
+    def read_model(self) -> dict[str, Any]:
+        if not self.model_path.exists():
+            raise WorkspaceError(
+                f"{self.model_path}: no fitted model; run `bams-cli fit -w {self.root}`"
+            )
+        return json.loads(self.model_path.read_text())
+
+    def require_fresh_model(self) -> dict[str, Any]:
+        """The model, refusing it if the observation log changed since it was fitted."""
+        model = self.read_model()
+        current = self.observations_hash()
+        if model.get("observations_hash") != current:
+            raise StaleStateError(
+                f"{self.model_path}: fitted on an older observation log "
+                f"({model.get('observations_hash')} != {current}); run `bams-cli fit -w {self.root}`"
+            )
+        if (
+            not self.scores_path.exists()
+            or read_metadata(self.scores_path).get("observations_hash") != current
+        ):
+            raise StaleStateError(
+                f"{self.scores_path}: missing or older than the observation log; "
+                f"run `bams-cli fit -w {self.root}`"
+            )
+        return model

@@ -1,0 +1,104 @@
+"""Shared fixtures: tiny sample pools, initialised workspaces, a CLI runner."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from bams_cli.cli import app
+from bams_cli.core import synthetic
+from bams_cli.state import schemas
+from bams_cli.state.io import transaction
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def invoke(runner: CliRunner, *args: str):
+    """Run the CLI in-process; returns the click Result (exit_code, stdout, stderr)."""
+    return runner.invoke(app, [str(a) for a in args], catch_exceptions=False)
+
+
+def tree_hash(root: Path) -> dict[str, str]:
+    """Content hash of every file under root, to prove a failing command changed nothing."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def write_toy(folder: Path, n: int = 400, seed: int = 0) -> tuple[Path, Path]:
+    pool = synthetic.toy2d(n, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    seg = folder / "segments.parquet"
+    truth = folder / "truth.parquet"
+    pq.write_table(
+        pa.table({"segment_id": pool.ids, "x0": pool.features[:, 0], "x1": pool.features[:, 1]}),
+        seg,
+    )
+    pq.write_table(
+        pa.table(
+            {"segment_id": pool.ids, "value_0": pool.truth[:, 0], "value_1": pool.truth[:, 1]}
+        ),
+        truth,
+    )
+    return seg, truth
+
+
+@pytest.fixture
+def toy_files(tmp_path: Path) -> tuple[Path, Path]:
+    return write_toy(tmp_path / "data")
+
+
+@pytest.fixture
+def toy_ws(tmp_path: Path, runner: CliRunner, toy_files) -> Path:
+    """An initialised workspace with a reduced 400-segment toy2d pool."""
+    ws = tmp_path / "ws"
+    seg, _ = toy_files
+    r = invoke(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2")
+    assert r.exit_code == 0, r.output
+    r = invoke(
+        runner,
+        "embed-reduce",
+        "-w",
+        ws,
+        seg,
+        "--columns",
+        "x*",
+        "--method",
+        "identity",
+        "--no-standardize",
+    )
+    assert r.exit_code == 0, r.output
+    return ws
+
+
+def write_batch(
+    ws: Path, n: int, ids: list[str], levels: list[int], strategy: str = "random"
+) -> Path:
+    """Write a hand-off list as `select` would (for tests of the steps after it)."""
+    k = len(ids)
+    table = pa.table(
+        {
+            "segment_id": ids,
+            "fidelity": np.asarray(levels, dtype=np.int64),
+            "cost": np.where(np.asarray(levels) == 0, 1.0, 0.1),
+            "delta_j": np.zeros(k),
+            "cluster": np.zeros(k, dtype=np.int64),
+            "rank": np.arange(k, dtype=np.int64),
+            "strategy": [strategy] * k,
+        }
+    )
+    path = schemas.batch_path(ws, n)
+    with transaction() as tx:
+        tx.write_parquet(path, schemas.BATCH.conform(table))
+    return path

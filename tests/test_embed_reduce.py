@@ -1,0 +1,189 @@
+"""embed-reduce: layouts, methods, --apply, and bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from scipy.linalg import subspace_angles
+from sklearn.decomposition import PCA
+
+from bams_cli.core import synthetic
+from bams_cli.state.io import read_metadata
+from bams_cli.state.workspace import Workspace
+from tests.conftest import invoke, tree_hash
+
+
+def _av_files(folder: Path, n: int = 600, layout: str = "list") -> Path:
+    pool = synthetic.av_like(n, seed=3)
+    folder.mkdir(parents=True, exist_ok=True)
+    E = pool.features[:, :40]  # keep tests quick: 40 embedding columns
+    cols: dict = {"segment_id": pool.ids}
+    if layout == "list":
+        cols["emb"] = pa.FixedSizeListArray.from_arrays(pa.array(E.ravel()), E.shape[1])
+    else:
+        for j in range(E.shape[1]):
+            cols[f"emb_{j:03d}"] = E[:, j]
+    cols["difficulty"] = pool.extra["difficulty"]
+    cols["scenario"] = ["intersection" if i % 3 else "highway" for i in range(n)]
+    path = folder / f"segments-{layout}.parquet"
+    pq.write_table(pa.table(cols), path, row_group_size=128)
+    return path
+
+
+@pytest.fixture
+def av_ws(tmp_path, runner) -> Path:
+    ws = tmp_path / "ws"
+    assert (
+        invoke(
+            runner, "init", "-w", ws, "--gamma", "0.3", "--costs", "1,0.15625", "--dim", "6"
+        ).exit_code
+        == 0
+    )
+    return ws
+
+
+@pytest.mark.parametrize("layout", ["list", "columns"])
+def test_pca_matches_batch_pca_and_passes_columns_through(av_ws, runner, tmp_path, layout):
+    seg = _av_files(tmp_path / "d", layout=layout)
+    args = ["--columns", "emb_*"] if layout == "columns" else []
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--batch-size", "100", *args)
+    assert r.exit_code == 0, r.output
+    ws = Workspace(av_ws)
+    ids, Z = ws.read_pool()
+    assert Z.shape == (600, 6) and ids[0] == "seg-000000"
+    table = ws.read_segments()
+    assert table.column("scenario").to_pylist()[:3] == ["highway", "intersection", "intersection"]
+    assert read_metadata(ws.segments_path)["schema_version"] == "1"
+    # Streaming IncrementalPCA spans (nearly) the same subspace as full-batch PCA.
+    E = synthetic.av_like(600, seed=3).features[:, :40]
+    S = (E - E.mean(0)) / E.std(0, ddof=1)
+    ref = PCA(6).fit(S)
+    W = np.linalg.lstsq(S, Z, rcond=None)[0]  # the linear map the reducer applied
+    np.testing.assert_allclose(S @ W, Z, atol=1e-6)
+    angles = subspace_angles(W, ref.components_.T)
+    # IncrementalPCA in batches of 100 is approximate where eigenvalues 6 and 7 are close
+    assert np.max(angles) < 0.2 and np.median(angles) < 0.02
+    # and explain as much variance as exact PCA
+    explained = np.sum(Z**2) / np.sum(S**2)
+    assert explained == pytest.approx(ref.explained_variance_ratio_.sum(), rel=1e-3)
+
+
+def test_apply_maps_fitted_segments_identically(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d")
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg).exit_code == 0
+    ws = Workspace(av_ws)
+    ids, Z = ws.read_pool()
+    # re-apply to the same rows under new ids: identical coordinates
+    t = pq.read_table(seg)
+    new_ids = pa.array([f"new-{i}" for i in range(t.num_rows)])
+    again = tmp_path / "again.parquet"
+    pq.write_table(t.set_column(0, "segment_id", new_ids), again)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, again, "--apply")
+    assert r.exit_code == 0, r.output
+    ids2, Z2 = ws.read_pool()
+    assert len(ids2) == 1200
+    np.testing.assert_array_equal(Z2[600:], Z)
+
+
+def test_apply_rejects_ids_already_in_pool(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d")
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg).exit_code == 0
+    before = tree_hash(av_ws)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--apply")
+    assert r.exit_code == 1
+    assert "column 'segment_id', row 1: segment id 'seg-000000' is already in the pool" in r.stderr
+    assert tree_hash(av_ws) == before
+
+
+@pytest.mark.slow
+def test_autoencoder_reports_error_beside_pca(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d", n=400)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", "autoencoder", "--json")
+    assert r.exit_code == 0, r.output
+    import json
+
+    summary = json.loads(r.stdout)
+    err = summary["reconstruction_error"]
+    assert {"pca", "pca_heldout", "autoencoder_heldout"} <= set(err)
+    assert 0 < err["autoencoder_heldout"] < 1.0  # standardised units: far below the variance, 1
+    _, Z = Workspace(av_ws).read_pool()
+    assert Z.shape == (400, 6) and np.all(np.abs(Z) <= 1)  # tanh bottleneck
+
+
+def _write(path: Path, cols: dict) -> Path:
+    pq.write_table(pa.table(cols), path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("cols", "args", "needle"),
+    [
+        (
+            {"segment_id": ["a", "b", "a"], "e0": [1.0, 2, 3], "e1": [1.0, 0, 1]},
+            ["--columns", "e*"],
+            "column 'segment_id', row 3: segment id 'a' appears again (first at row 1)",
+        ),
+        (
+            {"segment_id": ["a", "b", "c"], "e0": [1.0, float("nan"), 3], "e1": [1.0, 0, 1]},
+            ["--columns", "e*"],
+            "column 'e0', row 2: non-finite or missing value",
+        ),
+        (
+            {"id": ["a", "b", "c"], "e0": [1.0, 2, 3]},
+            ["--columns", "e*"],
+            "column 'segment_id': no id column 'segment_id'",
+        ),
+        (
+            {"segment_id": ["a", "b", "c"], "e0": [1.0, 2, 3]},
+            ["--columns", "z*"],
+            "--columns 'z*' matches no column",
+        ),
+        (
+            {"segment_id": ["a", "b", "c"], "e0": [1.0, 2, 3]},
+            [],
+            "cannot tell which column holds the embedding",
+        ),
+        (
+            {"segment_id": ["a", "b", "c"], "emb": [[1.0, 2.0], [1.0], [0.0, 1.0]]},
+            [],
+            "column 'emb', row 2: embedding has 1 values, expected 2",
+        ),
+    ],
+)
+def test_bad_segments_fail_cleanly(av_ws, runner, tmp_path, cols, args, needle):
+    src = _write(tmp_path / "bad.parquet", cols)
+    before = tree_hash(av_ws)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, src, "--dim", "1", *args)
+    assert r.exit_code == 1
+    assert needle in r.stderr, r.stderr
+    assert tree_hash(av_ws) == before
+
+
+def test_integer_ids_are_accepted_as_strings(av_ws, runner, tmp_path):
+    src = _write(
+        tmp_path / "ints.parquet",
+        {"segment_id": [10, 11, 12], "e0": [1.0, 2, 4], "e1": [0.0, 1, 1]},
+    )
+    r = invoke(runner, "embed-reduce", "-w", av_ws, src, "--columns", "e*", "--dim", "1")
+    assert r.exit_code == 0, r.output
+    ids, _ = Workspace(av_ws).read_pool()
+    assert list(ids) == ["10", "11", "12"]
+
+
+def test_refit_needs_force(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d")
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg).exit_code == 0
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg)
+    assert r.exit_code == 1 and "--force" in r.stderr
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg, "--force").exit_code == 0
+
+
+def test_uninitialised_workspace_is_not_created(runner, tmp_path):
+    ws = tmp_path / "nothing-here"
+    r = invoke(runner, "embed-reduce", "-w", ws, tmp_path / "x.parquet")
+    assert r.exit_code == 1 and "no such workspace" in r.stderr
+    assert not ws.exists()

@@ -1,0 +1,158 @@
+"""ingest-results: the append-only log, idempotence, and every bad-input path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from bams_cli.state.workspace import Workspace
+from tests.conftest import invoke, tree_hash, write_batch
+
+IDS = ["t000000", "t000001", "t000002", "t000003"]
+
+
+def _results(path: Path, rows: list[tuple], extra: dict | None = None) -> Path:
+    cols = {
+        "segment_id": [r[0] for r in rows],
+        "fidelity": [r[1] for r in rows],
+        "value": [r[2] for r in rows],
+    }
+    cols.update(extra or {})
+    if path.suffix == ".csv":
+        import pyarrow.csv as pacsv
+
+        pacsv.write_csv(pa.table(cols), path)
+    else:
+        pq.write_table(pa.table(cols), path)
+    return path
+
+
+@pytest.fixture
+def ws(toy_ws: Path) -> Path:
+    write_batch(toy_ws, 1, IDS, [0, 0, 1, 1])
+    return toy_ws
+
+
+def test_ingest_appends_and_keeps_extra_columns(ws, runner, tmp_path):
+    res = _results(
+        tmp_path / "r1.parquet",
+        [(IDS[0], 0, 1.5), (IDS[1], 0, 0.3)],
+        extra={"sim_version": ["v7", "v7"]},
+    )
+    r = invoke(runner, "ingest-results", "-w", ws, res, "--json")
+    assert r.exit_code == 0, r.output
+    log = Workspace(ws).read_observations()
+    assert log.height == 2
+    assert log["batch"].to_list() == [1, 1]
+    assert log["source_file"].to_list() == ["r1.parquet"] * 2
+    assert '"sim_version": "v7"' in log["extra"][0]
+    assert '"count": 2' in r.stdout  # two picks of batch 1 still pending
+
+
+def test_reingest_same_file_changes_nothing(ws, runner, tmp_path):
+    res = _results(tmp_path / "r1.parquet", [(IDS[0], 0, 1.5)])
+    assert invoke(runner, "ingest-results", "-w", ws, res).exit_code == 0
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 0
+    assert "already ingested" in r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_csv_results_are_accepted(ws, runner, tmp_path):
+    res = _results(tmp_path / "r.csv", [(IDS[2], 1, 0.7), (IDS[3], 1, 2.0)])
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 0, r.output
+    assert Workspace(ws).read_observations()["fidelity"].to_list() == [1, 1]
+
+
+def test_conflict_needs_replace_and_keeps_history(ws, runner, tmp_path):
+    assert (
+        invoke(
+            runner, "ingest-results", "-w", ws, _results(tmp_path / "a.parquet", [(IDS[0], 0, 1.5)])
+        ).exit_code
+        == 0
+    )
+    clash = _results(tmp_path / "b.parquet", [(IDS[0], 0, 9.0)])
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, clash)
+    assert r.exit_code == 1
+    assert "b.parquet: column 'value', row 1" in r.stderr and "--replace" in r.stderr
+    assert tree_hash(ws) == before
+    r = invoke(runner, "ingest-results", "-w", ws, clash, "--replace")
+    assert r.exit_code == 0, r.output
+    full = Workspace(ws).read_observations(active_only=False)
+    assert full.height == 2  # nothing is lost: the old value stays, inactive
+    assert full.filter(full["active"])["value"].to_list() == [9.0]
+
+
+@pytest.mark.parametrize(
+    ("rows", "needle"),
+    [
+        (
+            [(IDS[0], 0, 1.0), ("nope", 0, 1.0)],
+            "column 'segment_id', row 2: segment id 'nope' is not in the pool",
+        ),
+        (
+            [(IDS[0], 0, 1.0), (IDS[1], 2, 1.0)],
+            "column 'fidelity', row 2: fidelity 2 is not a configured level",
+        ),
+        ([(IDS[0], 0, float("nan"))], "column 'value', row 1: value must be a finite number"),
+        ([(IDS[0], 0, float("inf"))], "column 'value', row 1: value must be a finite number"),
+        (
+            [(IDS[0], 0, 1.0), (IDS[1], 0, 1.0), (IDS[0], 0, 1.0)],
+            "column 'segment_id', row 3: ('t000000', fidelity 0) appears again",
+        ),
+        ([(IDS[0], 0.5, 1.0)], "column 'fidelity', row 1: fidelity must be an integer level"),
+        (
+            [("t000009", 0, 1.0)],
+            "row 1: 1 (segment_id, fidelity) pairs were never selected (t000009); pass --allow-unselected",
+        ),
+    ],
+)
+def test_bad_results_fail_in_one_line_and_change_nothing(ws, runner, tmp_path, rows, needle):
+    res = _results(tmp_path / "bad.parquet", rows)
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1
+    assert needle in r.stderr
+    assert r.stderr.count("\n") == 1 and "bad.parquet" in r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_missing_column_and_unreadable_file(ws, runner, tmp_path):
+    p = tmp_path / "nocol.parquet"
+    pq.write_table(pa.table({"segment_id": [IDS[0]], "value": [1.0]}), p)
+    r = invoke(runner, "ingest-results", "-w", ws, p)
+    assert r.exit_code == 1 and "missing required column(s) 'fidelity'" in r.stderr
+    junk = tmp_path / "junk.parquet"
+    junk.write_bytes(b"not parquet")
+    r = invoke(runner, "ingest-results", "-w", ws, junk)
+    assert r.exit_code == 1 and "junk.parquet: cannot read as Parquet" in r.stderr
+
+
+def test_allow_unselected(ws, runner, tmp_path):
+    res = _results(tmp_path / "u.parquet", [("t000009", 0, 1.0)])
+    r = invoke(runner, "ingest-results", "-w", ws, res, "--allow-unselected")
+    assert r.exit_code == 0, r.output
+    log = Workspace(ws).read_observations()
+    assert log["batch"].to_list() == [None]
+
+
+def test_pending_listed_until_ingested(ws, runner, tmp_path):
+    assert Workspace(ws).pending().height == 4
+    invoke(
+        runner,
+        "ingest-results",
+        "-w",
+        ws,
+        _results(tmp_path / "a.parquet", [(IDS[0], 0, 1.0), (IDS[2], 1, 1.0)]),
+    )
+    pend = Workspace(ws).pending()
+    assert sorted(zip(pend["segment_id"], pend["fidelity"], strict=True)) == [
+        (IDS[1], 0),
+        (IDS[3], 1),
+    ]
