@@ -1,0 +1,494 @@
+"""Tests of the multifidelity GP (bams_cli/core/gp.py).
+
+Reference values come from independent computations written here (a direct Matern
+function, dense np.linalg.solve) or from scikit-learn, never from the module under test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pickle
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+from threadpoolctl import threadpool_limits
+
+from bams_cli.core.gp import (
+    MFGP,
+    GPFitError,
+    Hyperparameters,
+    _cholesky,
+    _failure_probability,
+    _MAPObjective,
+    _pack,
+    _Priors,
+    _standardise,
+    fit_mfgp,
+)
+
+# ----------------------------------------------------------------- reference model
+
+
+def ref_matern52(A, B, ell, s2):
+    """Matern-5/2 ARD written from GPML eq. 4.17 with explicit differences."""
+    r = np.sqrt((((A[:, None, :] - B[None, :, :]) / ell) ** 2).sum(-1))
+    return s2 * (1 + math.sqrt(5) * r + 5.0 / 3.0 * r**2) * np.exp(-math.sqrt(5) * r)
+
+
+def ref_kaug(A, la, B, lb, hp):
+    """k_aug((x, a), (x', b)) = k0 + [a == b >= 1] k_a, entry by entry."""
+    K = ref_matern52(A, B, hp.lengthscales0, hp.outputscale0)
+    for i in range(len(A)):
+        for j in range(len(B)):
+            if la[i] == lb[j] and la[i] >= 1:
+                l = la[i]
+                K[i, j] += ref_matern52(
+                    A[i : i + 1], B[j : j + 1], hp.lengthscales[l - 1], hp.outputscales[l - 1]
+                )[0, 0]
+    return K
+
+
+def ref_same(A, la, B, lb):
+    return np.array(
+        [
+            [bool(np.all(A[i] == B[j]) and la[i] == lb[j]) for j in range(len(B))]
+            for i in range(len(A))
+        ]
+    )
+
+
+def random_hp(rng, d, n_levels):
+    L = n_levels - 1
+    return Hyperparameters(
+        mean=float(rng.normal()),
+        outputscale0=float(rng.uniform(0.5, 2.0)),
+        lengthscales0=rng.uniform(0.5, 2.0, d),
+        outputscales=rng.uniform(0.05, 0.5, L),
+        lengthscales=rng.uniform(0.5, 3.0, (L, d)),
+        noise=rng.uniform(0.01, 0.1, n_levels),
+    )
+
+
+def mf_data(rng, d, n_levels, n=24):
+    """Observations with repeats of one (x, l) and one x observed at every level."""
+    X = rng.normal(size=(n, d))
+    levels = rng.integers(0, n_levels, n)
+    X[1] = X[0]
+    levels[1] = levels[0]  # a repeat: same (x, l), distinct observation
+    for l in range(n_levels):
+        X[2 + l] = X[0]
+        levels[2 + l] = l  # the same x at every level
+    y = np.sin(X).sum(1) + 0.3 * levels + 0.1 * rng.normal(size=n)
+    return X, levels, y
+
+
+# -------------------------------------------------- 1. one level against sklearn
+
+
+@pytest.mark.parametrize("d", [1, 3])
+@pytest.mark.parametrize("mean", [0.0, 1.7])
+def test_one_level_equals_sklearn(d, mean):
+    rng = np.random.default_rng(d)
+    X = rng.uniform(-2, 2, (30, d))
+    y = np.cos(2 * X).sum(1) + 0.1 * rng.normal(size=30) + mean
+    Xt = rng.uniform(-2.5, 2.5, (17, d))
+    hp = Hyperparameters(
+        mean=mean,
+        outputscale0=1.3,
+        lengthscales0=rng.uniform(0.3, 1.5, d),
+        outputscales=np.zeros(0),
+        lengthscales=np.zeros((0, d)),
+        noise=np.array([0.05]),
+    )
+    model = fit_mfgp(X, np.zeros(30, int), y, 1, rng=rng, fixed=hp)
+
+    # sklearn has a zero prior mean: give it y - mean and add the mean back. Its
+    # predictive variance includes the WhiteKernel noise; ours is theta0's.
+    kernel = ConstantKernel(1.3, "fixed") * Matern(
+        length_scale=hp.lengthscales0, length_scale_bounds="fixed", nu=2.5
+    ) + WhiteKernel(0.05, "fixed")
+    sk = GaussianProcessRegressor(kernel, alpha=0.0, optimizer=None, normalize_y=False)
+    sk.fit(X, y - mean)
+    sk_mu, sk_cov = sk.predict(Xt, return_cov=True)
+
+    mu, sigma2 = model.predict_theta0(Xt)
+    np.testing.assert_allclose(mu, sk_mu + mean, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(sigma2, np.diag(sk_cov) - 0.05, rtol=1e-8)
+    np.testing.assert_allclose(
+        model.cov_theta0(Xt, Xt), sk_cov - 0.05 * np.eye(17), rtol=1e-8, atol=1e-12
+    )
+    np.testing.assert_allclose(model.obs_var(Xt, np.zeros(17, int)), np.diag(sk_cov), rtol=1e-8)
+    np.testing.assert_allclose(
+        model.log_marginal_likelihood, sk.log_marginal_likelihood_value_, rtol=1e-10
+    )
+
+
+# ----------------------------------------- 2. multifidelity against dense algebra
+
+
+@pytest.mark.parametrize("n_levels", [2, 3])
+@pytest.mark.parametrize("d", [1, 2])
+def test_multifidelity_posterior_equals_dense(n_levels, d):
+    rng = np.random.default_rng(10 * n_levels + d)
+    X, levels, y = mf_data(rng, d, n_levels)
+    hp = random_hp(rng, d, n_levels)
+    model = fit_mfgp(X, levels, y, n_levels, rng=rng, fixed=hp)
+
+    K = ref_kaug(X, levels, X, levels, hp) + np.diag(hp.noise[levels])
+    solve = lambda B: np.linalg.solve(K, B)  # noqa: E731
+    Xp = np.vstack([rng.normal(size=(5, d)), X[:2]])  # includes an observed point
+    Xc = np.vstack([rng.normal(size=(4, d)), X[0], X[0], X[5]])
+    lc = np.r_[rng.integers(0, n_levels, 4), levels[0], 1, levels[5]]
+    Xc[1], lc[1] = Xc[0], (lc[0] + 1) % n_levels  # same x, another level
+
+    k0_p = ref_matern52(Xp, X, hp.lengthscales0, hp.outputscale0)
+    mu_ref = hp.mean + k0_p @ solve(y - hp.mean)
+    cov_pp = ref_matern52(Xp, Xp, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(k0_p.T)
+    kc = ref_kaug(X, levels, Xc, lc, hp)
+    cov_pc = ref_matern52(Xp, Xc, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(kc)
+    same = ref_same(Xc, lc, Xc, lc)
+    cov_cc = ref_kaug(Xc, lc, Xc, lc, hp) + same * hp.noise[lc][:, None] - kc.T @ solve(kc)
+
+    mu, sigma2 = model.predict_theta0(Xp)
+    np.testing.assert_allclose(mu, mu_ref, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(sigma2, np.diag(cov_pp), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(model.cov_theta0(Xp, Xp), cov_pp, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(model.cov_theta0_obs(Xp, Xc, lc), cov_pc, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(model.cov_obs_obs(Xc, lc, Xc, lc), cov_cc, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(model.obs_var(Xc, lc), np.diag(cov_cc), rtol=1e-8, atol=1e-10)
+    # An explicit `same` replaces the default: here no pair is the same observation.
+    no_noise = cov_cc - same * hp.noise[lc][:, None]
+    np.testing.assert_allclose(
+        model.cov_obs_obs(Xc, lc, Xc, lc, same=np.zeros((7, 7), bool)), no_noise, atol=1e-10
+    )
+    # Rectangular blocks agree with the square one.
+    np.testing.assert_allclose(
+        model.cov_obs_obs(Xc[:3], lc[:3], Xc[2:], lc[2:]), cov_cc[:3, 2:], rtol=1e-8, atol=1e-10
+    )
+
+
+def test_noise_only_on_true_diagonal_of_training_covariance():
+    # Two observations of the same (x, 0) are distinct: their covariance is s0, not s0 + tau^2.
+    # A model that put noise on every identical pair would shrink toward the repeats' mean
+    # differently; check against the dense reference with repeats only.
+    rng = np.random.default_rng(3)
+    X = np.repeat(rng.normal(size=(3, 2)), 2, axis=0)
+    levels = np.zeros(6, int)
+    y = rng.normal(size=6)
+    hp = random_hp(rng, 2, 1)
+    model = MFGP(X, levels, y, 1, hp)
+    K = ref_matern52(X, X, hp.lengthscales0, hp.outputscale0) + hp.noise[0] * np.eye(6)
+    x = X[:1]
+    k = ref_matern52(x, X, hp.lengthscales0, hp.outputscale0)
+    np.testing.assert_allclose(
+        model.predict_theta0(x)[0], hp.mean + k @ np.linalg.solve(K, y - hp.mean), rtol=1e-10
+    )
+
+
+# ---------------------------------------------------------- 3. analytic gradient
+
+
+@pytest.mark.parametrize("n_levels", [1, 2, 3])
+def test_gradient_matches_central_differences(n_levels):
+    rng = np.random.default_rng(n_levels)
+    d = 3
+    X, levels, y = mf_data(rng, d, n_levels, n=30)
+    ybar, ystd = _standardise(y)
+    priors = _Priors.for_data(X, n_levels)
+    objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, priors)
+    h = 1e-6
+    with threadpool_limits(limits=1, user_api="blas"):  # as fit_mfgp runs it; faster
+        for _ in range(4):
+            theta = priors.sample_start(rng)
+            _, grad = objective(theta)
+            fd = np.array(
+                [
+                    (objective(theta + h * e)[0] - objective(theta - h * e)[0]) / (2 * h)
+                    for e in np.eye(theta.size)
+                ]
+            )
+            np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+def test_uncached_squared_differences_give_same_objective(monkeypatch):
+    import bams_cli.core.gp as gp
+
+    rng = np.random.default_rng(0)
+    X, levels, y = mf_data(rng, 3, 2)
+    priors = _Priors.for_data(X, 2)
+    theta = priors.sample_start(rng)
+    f_cached, g_cached = _MAPObjective(X, levels, y, 2, priors)(theta)
+    monkeypatch.setattr(gp, "_MAX_DIFF_ELEMENTS", 0)
+    f_loop, g_loop = _MAPObjective(X, levels, y, 2, priors)(theta)
+    assert f_loop == pytest.approx(f_cached, rel=1e-12)
+    np.testing.assert_allclose(g_loop, g_cached, rtol=1e-9, atol=1e-12)
+
+
+# ------------------------------------------------------------------ fit behaviour
+
+
+def test_fit_reports_map_objective_and_beats_prior_mode():
+    rng = np.random.default_rng(5)
+    X, levels, y = mf_data(rng, 2, 2, n=40)
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=3)
+    ybar, ystd = _standardise(y)
+    priors = _Priors.for_data(X, 2)
+    objective = _MAPObjective(X, levels, (y - ybar) / ystd, 2, priors)
+    hp = model.hyperparameters
+    v = ystd**2
+    theta = _pack(
+        dataclasses.replace(
+            hp,
+            outputscale0=hp.outputscale0 / v,
+            outputscales=hp.outputscales / v,
+            noise=hp.noise / v,
+        )
+    )
+    f_fit, grad = objective(theta)
+    # log_posterior is the MAP objective in natural units (shift n log std(y)).
+    assert model.log_posterior == pytest.approx(-f_fit - len(y) * math.log(ystd), abs=1e-6)
+    assert f_fit < objective(priors.mode)[0] - 1.0
+    # The GLS mean is what the model uses: refitting the mean cannot raise the likelihood.
+    for dm in (-0.05, 0.05):
+        shifted = MFGP(X, levels, y, 2, dataclasses.replace(hp, mean=hp.mean + dm))
+        assert shifted.log_marginal_likelihood < model.log_marginal_likelihood
+
+
+def test_fit_is_equivariant_to_output_scale():
+    rng = np.random.default_rng(8)
+    X, levels, y = mf_data(rng, 2, 2, n=30)
+    a = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(1), restarts=3).hyperparameters
+    scaled = fit_mfgp(X, levels, 1000.0 * y + 5.0, 2, rng=np.random.default_rng(1), restarts=3)
+    b = scaled.hyperparameters
+    assert b.mean == pytest.approx(1000.0 * a.mean + 5.0, rel=1e-5)
+    assert b.outputscale0 == pytest.approx(1e6 * a.outputscale0, rel=1e-5)
+    np.testing.assert_allclose(b.lengthscales0, a.lengthscales0, rtol=1e-5)
+    np.testing.assert_allclose(b.noise, 1e6 * a.noise, rtol=1e-4)
+    np.testing.assert_allclose(b.outputscales, 1e6 * a.outputscales, rtol=1e-5)
+
+
+@pytest.mark.parametrize("n_levels", [1, 3])
+def test_fit_shapes_and_levels_without_data(n_levels):
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(20, 3))
+    levels = np.zeros(20, int) if n_levels == 1 else rng.integers(0, 2, 20)  # level 2 unused
+    y = np.sin(X).sum(1)
+    model = fit_mfgp(X, levels, y, n_levels, rng=rng, restarts=2)
+    hp = model.hyperparameters
+    L = n_levels - 1
+    assert hp.outputscales.shape == (L,)
+    assert hp.lengthscales.shape == (L, 3)
+    assert hp.noise.shape == (n_levels,)
+    assert model.lengthscales0.shape == (3,)
+    assert model.n_levels == n_levels
+    np.testing.assert_array_equal(model.n_obs_per_level, np.bincount(levels, minlength=n_levels))
+    assert np.all(np.isfinite(model.predict_theta0(X)[0]))
+
+
+def test_fit_is_reproducible_given_rng():
+    rng = np.random.default_rng(4)
+    X, levels, y = mf_data(rng, 2, 2)
+    a = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(7), restarts=3).hyperparameters
+    b = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(7), restarts=3).hyperparameters
+    assert a == b
+
+
+# ------------------------------------------------------------- 4. prior recovery
+
+
+def draw_from_prior(seed, hp, d):
+    """n = 200, two levels: 70 level-0 sites (30 observed twice), 100 level-1 obs."""
+    rng = np.random.default_rng(seed)
+    U = rng.normal(size=(70, d))
+    X = np.vstack([U, U[:30], U[:40], rng.normal(size=(60, d))])
+    levels = np.r_[np.zeros(100, int), np.ones(100, int)]
+    K = ref_kaug(X, levels, X, levels, hp) + np.diag(hp.noise[levels])
+    y = hp.mean + np.linalg.cholesky(K) @ rng.normal(size=200)
+    return X, levels, y
+
+
+@pytest.mark.slow
+def test_map_recovers_hyperparameters_of_data_drawn_from_the_prior():
+    """Fitted theta0 lengthscales and both noise variances land within a factor 2.5 of the
+    truth on every seed, and within a factor 1.5 on average over seeds (no bias).
+
+    Repeats at level 0 are part of the design: without them, a level-0 noise of 5% of
+    the signal variance is not identifiable from 100 scattered points in 4-d (the
+    likelihood is flat over 1e-4..1e-2 and the prior decides), which is the data's
+    limit, not the fit's.
+    """
+    d = 4
+    truth = Hyperparameters(
+        mean=1.0,
+        outputscale0=2.0,
+        lengthscales0=np.array([0.8, 1.2, 2.0, 3.0]),
+        outputscales=np.array([0.3]),
+        lengthscales=np.full((1, d), 2.0),
+        noise=np.array([0.05, 0.2]),
+    )
+    log_err_ell, log_err_noise = [], []
+    for seed in range(5):
+        X, levels, y = draw_from_prior(seed, truth, d)
+        hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed)).hyperparameters
+        log_err_ell.append(np.log(hp.lengthscales0 / truth.lengthscales0))
+        log_err_noise.append(np.log(hp.noise / truth.noise))
+    err_ell, err_noise = np.array(log_err_ell), np.array(log_err_noise)
+    assert np.all(np.abs(err_ell) < math.log(2.5)), np.exp(err_ell)
+    assert np.all(np.abs(err_noise) < math.log(2.5)), np.exp(err_noise)
+    assert np.all(np.abs(err_ell.mean(0)) < math.log(1.5)), np.exp(err_ell.mean(0))
+    assert np.all(np.abs(err_noise.mean(0)) < math.log(1.5)), np.exp(err_noise.mean(0))
+
+
+# -------------------------------------------------------------------- 5. toy2d
+
+
+def toy_f(X):
+    """Paper appendix (synthetic experiments): ||(|x0| - c, x1 - c)||_1, c = 1.95."""
+    return np.abs(np.abs(X[:, 0]) - 1.95) + np.abs(X[:, 1] - 1.95)
+
+
+def test_cheap_level_lowers_heldout_error_on_toy2d():
+    ratios = []
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        X0, X1, Xt = rng.normal(size=(15, 2)), rng.normal(size=(100, 2)), rng.normal(size=(2000, 2))
+        y0, y1 = toy_f(X0), toy_f(X1) + 0.1 * rng.normal(size=100)
+        single = fit_mfgp(X0, np.zeros(15, int), y0, 1, rng=np.random.default_rng(seed))
+        multi = fit_mfgp(
+            np.vstack([X0, X1]),
+            np.r_[np.zeros(15, int), np.ones(100, int)],
+            np.r_[y0, y1],
+            2,
+            rng=np.random.default_rng(seed),
+        )
+        rmse = [
+            np.sqrt(np.mean((m.predict_theta0(Xt)[0] - toy_f(Xt)) ** 2)) for m in (single, multi)
+        ]
+        ratios.append(rmse[1] / rmse[0])
+    # Measured ratios 0.26..0.79 (mean 0.5); a GP that ignored level 1, or let its noise
+    # swamp level 0, would sit near or above 1.
+    assert max(ratios) < 0.95, ratios
+    assert np.mean(ratios) < 0.7, ratios
+
+
+# ------------------------------------------------------- 6. numerical failure
+
+
+def test_jitter_rescues_duplicates_without_noise():
+    rng = np.random.default_rng(0)
+    X = np.repeat(rng.normal(size=(5, 2)), 2, axis=0)
+    y = np.repeat(rng.normal(size=5), 2)
+    hp = dataclasses.replace(random_hp(rng, 2, 1), noise=np.array([0.0]))
+    model = MFGP(X, np.zeros(10, int), y, 1, hp)
+    assert model.jitter > 0.0
+    mu, sigma2 = model.predict_theta0(X)
+    np.testing.assert_allclose(mu, y, atol=1e-3)
+    assert np.all(sigma2 >= 0.0) and np.all(sigma2 < 1e-3)
+
+
+def test_indefinite_matrix_raises_with_remedy():
+    with pytest.raises(GPFitError, match="jitter.*noise variance"):
+        _cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
+
+
+def test_overflowing_inputs_raise_with_remedy():
+    X = np.array([[1e160], [-1e160], [0.0]])
+    hp = Hyperparameters(0.0, 1.0, np.ones(1), np.zeros(0), np.zeros((0, 1)), np.array([0.1]))
+    with pytest.raises(GPFitError, match="non-finite entries.*rescale X"):
+        MFGP(X, np.zeros(3, int), np.zeros(3), 1, hp)
+
+
+@pytest.mark.parametrize(
+    ("column", "match"), [("y", "y has 1 non-finite value.*row 3"), ("X", "X has .*row 3")]
+)
+def test_nonfinite_data_raise_naming_the_row(column, match):
+    rng = np.random.default_rng(0)
+    X, y = rng.normal(size=(6, 2)), rng.normal(size=6)
+    if column == "y":
+        y[3] = np.nan
+    else:
+        X[3, 1] = np.inf
+    with pytest.raises(GPFitError, match=match):
+        fit_mfgp(X, np.zeros(6, int), y, 1, rng=rng)
+
+
+def test_levels_out_of_range_raise():
+    rng = np.random.default_rng(0)
+    with pytest.raises(GPFitError, match=r"levels must lie in \[0, 2\)"):
+        fit_mfgp(rng.normal(size=(4, 1)), np.array([0, 1, 2, 0]), np.zeros(4), 2, rng=rng)
+    with pytest.raises(ValueError):
+        Hyperparameters(0.0, 1.0, np.ones(1), np.ones(1), np.ones((1, 1)), np.array([0.1]))
+
+
+# ------------------------------------------------------------------ 7. score()
+
+
+@pytest.mark.parametrize("n_levels", [1, 2])
+def test_score_chunked_equals_unchunked_and_p_is_phi(n_levels):
+    rng = np.random.default_rng(11)
+    X, levels, y = mf_data(rng, 2, n_levels)
+    model = MFGP(X, levels, y, n_levels, random_hp(rng, 2, n_levels))
+    Xp = rng.normal(size=(103, 2))
+    gammas = np.array([-0.5, 0.0, 1.0])
+    mu, sd, p = model.score(Xp, gammas, chunk_size=10**6)
+    mu7, sd7, p7 = model.score(Xp, gammas, chunk_size=7)
+    np.testing.assert_allclose(mu7, mu, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(sd7, sd, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(p7, p, rtol=1e-12, atol=1e-14)
+    assert p.shape == (103, 3)
+    np.testing.assert_allclose(p, ndtr((gammas[None, :] - mu[:, None]) / sd[:, None]), rtol=1e-14)
+    mu_ref, s2_ref = model.predict_theta0(Xp)
+    np.testing.assert_allclose(mu, mu_ref, rtol=1e-13)
+    np.testing.assert_allclose(sd**2, s2_ref, rtol=1e-12)
+
+
+def test_failure_probability_with_zero_sd_is_an_indicator():
+    mu = np.array([0.0, 1.0, 2.0, 1.0])
+    sd = np.array([0.0, 0.0, 0.0, 1.0])
+    p = _failure_probability(mu, sd, np.array([1.0]))
+    np.testing.assert_array_equal(p[:3, 0], [1.0, 1.0, 0.0])
+    assert p[3, 0] == pytest.approx(0.5)
+    assert not np.isnan(p).any()
+
+
+# ------------------------------------------------------------ serialisation
+
+
+def test_hyperparameters_json_round_trip():
+    rng = np.random.default_rng(0)
+    for n_levels in (1, 3):
+        hp = random_hp(rng, 4, n_levels)
+        back = Hyperparameters.from_dict(json.loads(json.dumps(hp.to_dict())))
+        assert back == hp
+        assert back.lengthscales.shape == (n_levels - 1, 4)
+
+
+def test_model_pickles():
+    rng = np.random.default_rng(0)
+    X, levels, y = mf_data(rng, 2, 2)
+    model = MFGP(X, levels, y, 2, random_hp(rng, 2, 2))
+    clone = pickle.loads(pickle.dumps(model))
+    Xp = rng.normal(size=(9, 2))
+    np.testing.assert_array_equal(clone.score(Xp, [0.0])[2], model.score(Xp, [0.0])[2])
+    np.testing.assert_array_equal(
+        clone.cov_obs_obs(Xp, np.ones(9, int), Xp, np.ones(9, int)),
+        model.cov_obs_obs(Xp, np.ones(9, int), Xp, np.ones(9, int)),
+    )
+
+
+def test_mfgp_satisfies_posterior_protocol():
+    from bams_cli.core.posterior import Posterior
+
+    rng = np.random.default_rng(0)
+    X, levels, y = mf_data(rng, 2, 2)
+    model = MFGP(X, levels, y, 2, random_hp(rng, 2, 2))
+    posterior: Posterior = model  # mypy checks the structural match
+    assert posterior.n_levels == 2
+    np.testing.assert_array_equal(posterior.lengthscales0, model.hyperparameters.lengthscales0)
+    for name in ("predict_theta0", "cov_theta0_obs", "cov_obs_obs", "obs_var"):
+        assert callable(getattr(posterior, name))
