@@ -1,0 +1,350 @@
+"""Pick functions of the baseline strategies the paper compares BAMS with (section 4).
+
+Each returns the batch as two int arrays (pool index, level), in pick order, whose total
+cost fsum(costs[level]) never exceeds the budget m, with no (index, level) pair twice and no
+segment twice. They pick; what happens downstream (GP or not, which estimator) is the
+caller's business:
+
+========  =====================================================  ========================
+strategy  picks                                                  downstream
+========  =====================================================  ========================
+mc        uniform over segments, level 0                         plain Monte Carlo
+mc-gp     uniform over segments, level 0                         GP scores the pool
+mcm-gp    uniform over segments, levels split by cost            GP scores the pool
+ds        without replacement, P ~ difficulty weight, level 0    IS by difficulty
+ds-gp     as ds                                                  GP scores the pool
+ce        cross-entropy: diagonal Gaussian fitted to the elite,  CE importance scores
+          samples mapped to the nearest unobserved segment
+========  =====================================================  ========================
+
+(BAS is BAMS restricted to level 0: ``select.select_batch(..., levels=[0])``.)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.stats import rankdata
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+Strategy = Literal["mc", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce"]
+STRATEGIES: tuple[str, ...] = ("mc", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
+
+
+def _n_affordable(cost: float, budget: float) -> int:
+    """Largest k with fsum([cost] * k) <= budget."""
+    k = int(budget // cost)
+    while k > 0 and math.fsum([cost] * k) > budget:
+        k -= 1
+    while math.fsum([cost] * (k + 1)) <= budget:
+        k += 1
+    return k
+
+
+def _available(n_pool: int, observed_level0_mask: BoolArray | None) -> BoolArray:
+    if observed_level0_mask is None:
+        return np.ones(n_pool, dtype=bool)
+    mask = np.asarray(observed_level0_mask, dtype=bool)
+    if mask.shape != (n_pool,):
+        raise ValueError(f"observed_level0_mask must have shape ({n_pool},); got {mask.shape}")
+    return ~mask
+
+
+def level_split(
+    costs: Sequence[float], budget: float, shares: Sequence[float] | None = None
+) -> IntArray:
+    """How many picks each level gets in a mixed-fidelity random batch.
+
+    Each level l receives the budget share shares[l] (default: equal shares, 1 / (L + 1)),
+    and buys floor(share_l m / c_l) picks, so cheap levels get proportionally more picks.
+    The rounding leftover is then spent greedily, one pick at a time, on the most expensive
+    level that still fits (level 0 first), so at most min_l c_l of the budget is left.
+
+    Parameters
+    ----------
+    costs : sequence of float, length L + 1
+    budget : float
+    shares : sequence of float, length L + 1, optional
+        Non-negative; normalised to sum 1.
+
+    Returns
+    -------
+    counts : int ndarray of shape (L + 1,)
+
+    Examples
+    --------
+    >>> level_split([1.0, 5 / 32], 15.0).tolist()   # 7 at level 0, 51 at level 1
+    [7, 51]
+    """
+    c_arr = np.asarray(costs, dtype=np.float64)
+    L1 = len(c_arr)
+    w = np.full(L1, 1.0 / L1) if shares is None else np.asarray(shares, dtype=np.float64)
+    if w.shape != (L1,) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"shares must be {L1} non-negative numbers, not all 0; got {shares}")
+    w = w / w.sum()
+    counts = np.array([_n_affordable(c, share * budget) for c, share in zip(c_arr, w, strict=True)])
+    used = [float(c) for c, k in zip(c_arr, counts, strict=True) for _ in range(k)]
+    for lev in np.argsort(-c_arr, kind="stable"):
+        while math.fsum([*used, float(c_arr[lev])]) <= budget:
+            used.append(float(c_arr[lev]))
+            counts[lev] += 1
+    return counts
+
+
+def pick_uniform(
+    n_pool: int,
+    costs: Sequence[float],
+    budget: float,
+    *,
+    rng: np.random.Generator,
+    mixed: bool = False,
+    observed_level0_mask: BoolArray | None = None,
+    level_shares: Sequence[float] | None = None,
+) -> tuple[IntArray, IntArray]:
+    """Uniform picks over unobserved segments: MC / MC-GP (level 0) and MCM-GP (mixed).
+
+    Single fidelity: floor(m / c_0) distinct segments with level 0 unobserved, uniformly
+    without replacement. Mixed (``mixed=True``): ``level_split`` decides how many picks
+    each level gets; all picks are distinct segments, drawn uniformly without replacement
+    (level-0 picks only among segments whose level 0 is unobserved).
+
+    Parameters
+    ----------
+    n_pool : int
+    costs : sequence of float, length L + 1
+    budget : float
+    rng : numpy.random.Generator
+    mixed : bool
+    observed_level0_mask : bool ndarray of shape (n_pool,), optional
+    level_shares : sequence of float, optional
+        Budget shares per level for ``mixed``; default equal.
+
+    Returns
+    -------
+    index : int ndarray of shape (r,)
+    level : int ndarray of shape (r,)
+    """
+    free0 = _available(n_pool, observed_level0_mask)
+    c_arr = np.asarray(costs, dtype=np.float64)
+    counts = (
+        level_split(costs, budget, level_shares)
+        if mixed
+        else np.array([_n_affordable(c_arr[0], budget)] + [0] * (len(c_arr) - 1))
+    )
+    # Level 0 first (it has the narrower pool), then the other levels from what is left.
+    taken = np.zeros(n_pool, dtype=bool)
+    idx_out: list[IntArray] = []
+    lev_out: list[IntArray] = []
+    for lev, k in enumerate(counts):
+        pool = np.flatnonzero((free0 if lev == 0 else np.ones(n_pool, dtype=bool)) & ~taken)
+        k = min(int(k), len(pool))
+        pick = rng.choice(pool, size=k, replace=False) if k else np.zeros(0, dtype=np.int64)
+        taken[pick] = True
+        idx_out.append(pick.astype(np.int64))
+        lev_out.append(np.full(k, lev, dtype=np.int64))
+    return np.concatenate(idx_out), np.concatenate(lev_out)
+
+
+def difficulty_weights(
+    difficulty: FloatArray, *, transform: Literal["linear", "rank"] = "linear", floor: float = 1e-3
+) -> FloatArray:
+    """Sampling weights from a per-segment difficulty score (higher = more likely to fail).
+
+    - ``transform="linear"`` (default): w = d - min(d) + floor * (max(d) - min(d)), i.e.
+      proportional to the score shifted to start at a small positive floor. A score that
+      already is a failure probability keeps its proportions (up to the shift by its min).
+    - ``transform="rank"``: w = rank(d) / n (ties averaged), for scores on an arbitrary
+      scale (logits, negative TTC): only their order matters.
+
+    The floor keeps every segment drawable. Constant scores give uniform weights.
+
+    Parameters
+    ----------
+    difficulty : ndarray of shape (n,)
+    transform : {"linear", "rank"}
+    floor : float
+
+    Returns
+    -------
+    w : ndarray of shape (n,), positive, summing to 1
+    """
+    d = np.asarray(difficulty, dtype=np.float64)
+    if not np.all(np.isfinite(d)):
+        bad = np.flatnonzero(~np.isfinite(d))
+        raise ValueError(
+            f"difficulty has {len(bad)} non-finite values (first at row {bad[0]}); "
+            "fill or drop them"
+        )
+    if transform == "rank":
+        w = rankdata(d) / len(d)
+    elif transform == "linear":
+        span = d.max() - d.min() if len(d) else 0.0
+        w = np.ones_like(d) if span == 0 else d - d.min() + floor * span
+    else:
+        raise ValueError(f"transform must be 'linear' or 'rank'; got {transform!r}")
+    return w / w.sum()
+
+
+def pick_difficulty(
+    difficulty: FloatArray,
+    costs: Sequence[float],
+    budget: float,
+    *,
+    rng: np.random.Generator,
+    observed_level0_mask: BoolArray | None = None,
+    transform: Literal["linear", "rank"] = "linear",
+) -> tuple[IntArray, IntArray]:
+    """DS / DS-GP picks: level 0, without replacement, P proportional to difficulty weight.
+
+    Successive sampling: each draw takes an unpicked, level-0-unobserved segment with
+    probability proportional to ``difficulty_weights`` among those left.
+
+    Parameters
+    ----------
+    difficulty : ndarray of shape (n_pool,)
+    costs : sequence of float
+    budget : float
+    rng : numpy.random.Generator
+    observed_level0_mask : bool ndarray of shape (n_pool,), optional
+    transform : {"linear", "rank"}
+
+    Returns
+    -------
+    index : int ndarray of shape (r,)
+    level : int ndarray of shape (r,)   (all 0)
+    """
+    difficulty = np.asarray(difficulty, dtype=np.float64)
+    free = np.flatnonzero(_available(len(difficulty), observed_level0_mask))
+    k = min(_n_affordable(float(costs[0]), budget), len(free))
+    if k == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    w = difficulty_weights(difficulty, transform=transform)[free]
+    pick = rng.choice(free, size=k, replace=False, p=w / w.sum())
+    return pick.astype(np.int64), np.zeros(k, dtype=np.int64)
+
+
+def pick_cross_entropy(
+    X: FloatArray,
+    observed_index: IntArray,
+    observed_value: FloatArray,
+    costs: Sequence[float],
+    budget: float,
+    *,
+    rng: np.random.Generator,
+    n_elite: int = 5,
+    var_floor: float = 1e-6,
+) -> tuple[IntArray, IntArray]:
+    """CE picks: sample a diagonal Gaussian fitted to the elite, snap to the nearest segment.
+
+    Paper appendix "Setup for the cross-entropy method": the sampling distribution is a
+    Gaussian with diagonal covariance over the embedding; its mean and variance are fitted
+    to the ``n_elite`` observed level-0 segments with the most dangerous (lowest) metric;
+    each sample is mapped to the nearest segment (Euclidean, in X) that is unobserved at
+    level 0 and not yet picked. The elite is refitted from all level-0 observations at every
+    call, so no state is carried between batches. With fewer than two observations the
+    picks are uniform (CE has nothing to fit yet). ``var_floor`` (times the pool's
+    per-dimension variance) stops the Gaussian from collapsing onto one point.
+
+    Parameters
+    ----------
+    X : ndarray of shape (n_pool, d)
+    observed_index : int ndarray of shape (n_obs,)
+        Pool indices with a level-0 observation.
+    observed_value : ndarray of shape (n_obs,)
+        Their level-0 metric f.
+    costs : sequence of float
+    budget : float
+    rng : numpy.random.Generator
+    n_elite : int
+    var_floor : float
+
+    Returns
+    -------
+    index : int ndarray of shape (r,)
+    level : int ndarray of shape (r,)   (all 0)
+    """
+    X = np.asarray(X, dtype=np.float64)
+    n_pool = len(X)
+    observed_index = np.asarray(observed_index, dtype=np.int64)
+    observed_value = np.asarray(observed_value, dtype=np.float64)
+    observed = np.zeros(n_pool, dtype=bool)
+    observed[observed_index] = True
+    free = np.flatnonzero(~observed)
+    k = min(_n_affordable(float(costs[0]), budget), len(free))
+    if k == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if len(observed_index) < 2:
+        return pick_uniform(n_pool, costs, budget, rng=rng, observed_level0_mask=observed)
+
+    elite = observed_index[np.argsort(observed_value, kind="stable")[: max(n_elite, 2)]]
+    mean = X[elite].mean(axis=0)
+    var = X[elite].var(axis=0) + var_floor * X.var(axis=0)
+    tree = cKDTree(X[free])
+    taken = np.zeros(len(free), dtype=bool)
+    out: list[int] = []
+    while len(out) < k:
+        z = mean + np.sqrt(var) * rng.standard_normal(len(mean))
+        # Nearest free segment not taken yet: widen the neighbour query until one is found.
+        n_q = 8
+        while True:
+            _, nn = tree.query(z, k=min(n_q, len(free)))
+            nn = np.atleast_1d(nn)
+            fresh = nn[~taken[nn]]
+            if len(fresh) or n_q >= len(free):
+                break
+            n_q *= 4
+        if not len(fresh):  # every free segment taken (cannot happen while len(out) < k)
+            break
+        taken[fresh[0]] = True
+        out.append(int(free[fresh[0]]))
+    return np.array(out, dtype=np.int64), np.zeros(len(out), dtype=np.int64)
+
+
+def pick_baseline(
+    strategy: Strategy,
+    *,
+    n_pool: int,
+    costs: Sequence[float],
+    budget: float,
+    rng: np.random.Generator,
+    observed_level0_mask: BoolArray | None = None,
+    difficulty: FloatArray | None = None,
+    X: FloatArray | None = None,
+    observed_index: IntArray | None = None,
+    observed_value: FloatArray | None = None,
+) -> tuple[IntArray, IntArray]:
+    """Dispatch to the pick function of ``strategy`` (see the module table).
+
+    Returns
+    -------
+    index : int ndarray of shape (r,)
+    level : int ndarray of shape (r,)
+    """
+    if strategy in ("mc", "mc-gp", "mcm-gp"):
+        return pick_uniform(
+            n_pool,
+            costs,
+            budget,
+            rng=rng,
+            mixed=strategy == "mcm-gp",
+            observed_level0_mask=observed_level0_mask,
+        )
+    if strategy in ("ds", "ds-gp"):
+        if difficulty is None:
+            raise ValueError(f"strategy {strategy!r} needs a difficulty score per segment")
+        return pick_difficulty(
+            difficulty, costs, budget, rng=rng, observed_level0_mask=observed_level0_mask
+        )
+    if strategy == "ce":
+        if X is None or observed_index is None or observed_value is None:
+            raise ValueError("strategy 'ce' needs X, observed_index and observed_value")
+        return pick_cross_entropy(X, observed_index, observed_value, costs, budget, rng=rng)
+    raise ValueError(f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}")

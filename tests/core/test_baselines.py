@@ -1,0 +1,137 @@
+"""Tests of the baseline pick functions (bams_cli.core.baselines)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bams_cli.core.baselines import (
+    STRATEGIES,
+    difficulty_weights,
+    level_split,
+    pick_baseline,
+    pick_cross_entropy,
+    pick_difficulty,
+    pick_uniform,
+)
+
+N = 400
+
+
+def _inputs(seed):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(N, 3))
+    f = np.linalg.norm(X - [1.5, 0.0, 0.0], axis=1)  # dangerous near (1.5, 0, 0)
+    obs = rng.choice(N, size=12, replace=False)
+    mask = np.zeros(N, dtype=bool)
+    mask[obs] = True
+    difficulty = -f + 0.1 * rng.normal(size=N)
+    return X, f, obs, mask, difficulty
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    strategy=st.sampled_from(STRATEGIES),
+    costs=st.sampled_from([[1.0], [1.0, 5 / 32], [1.0, 0.1], [1.0, 0.3, 0.07]]),
+    budget=st.sampled_from([0.5, 1.0, 2.7, 15.0, 40.0]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_budget_respected_and_no_duplicates(strategy, costs, budget, seed):
+    X, f, obs, mask, difficulty = _inputs(seed % 7)
+    idx, lev = pick_baseline(
+        strategy,
+        n_pool=N,
+        costs=costs,
+        budget=budget,
+        rng=np.random.default_rng(seed),
+        observed_level0_mask=mask,
+        difficulty=difficulty,
+        X=X,
+        observed_index=obs,
+        observed_value=f[obs],
+    )
+    assert idx.dtype == np.int64 and lev.dtype == np.int64 and len(idx) == len(lev)
+    assert math.fsum(np.asarray(costs)[lev].tolist()) <= budget
+    assert len(set(idx.tolist())) == len(idx)  # no segment twice
+    assert np.all((idx >= 0) & (idx < N))
+    assert not np.any(mask[idx[lev == 0]])  # level 0 never re-simulated
+    if strategy != "mcm-gp":
+        assert np.all(lev == 0)
+        assert len(idx) == int(budget // 1.0)  # every affordable level-0 pick is made
+
+
+def test_level_split_spreads_budget_by_cost():
+    assert level_split([1.0, 5 / 32], 15.0).tolist() == [7, 51]
+    assert level_split([1.0, 0.25], 4.0, shares=[1, 0]).tolist() == [4, 0]
+    counts = level_split([1.0, 0.3, 0.07], 10.0)
+    used = math.fsum(c * k for c, k in zip([1.0, 0.3, 0.07], counts, strict=True))
+    assert used <= 10.0 and 10.0 - used < 0.07
+
+
+def test_mixed_uniform_uses_all_levels_and_is_uniform():
+    counts = np.zeros(N)
+    for seed in range(200):
+        idx, lev = pick_uniform(N, [1.0, 0.25], 5.0, rng=np.random.default_rng(seed), mixed=True)
+        assert (lev == 0).sum() == 2 and (lev == 1).sum() == 12  # 2 + 2.5 + leftover 0.5
+        counts[idx] += 1
+    # 2800 picks over 400 segments: every segment's count is Binomial-ish around 7;
+    # a fixed-index bias (e.g. always the first rows) would put ~0 on most.
+    assert (counts == 0).mean() < 0.05
+
+
+def test_difficulty_weights_transforms():
+    d = np.array([0.0, 1.0, 3.0])
+    w = difficulty_weights(d)
+    np.testing.assert_allclose(w * w.sum() / w[0], [1.0, 1.0 + 1 / 0.003, 1 + 3 / 0.003])
+    np.testing.assert_allclose(difficulty_weights(d, transform="rank"), [1 / 6, 2 / 6, 3 / 6])
+    np.testing.assert_allclose(difficulty_weights(np.ones(4)), 0.25)
+    with pytest.raises(ValueError, match="non-finite"):
+        difficulty_weights(np.array([0.0, np.nan]))
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_ds_favours_high_difficulty(seed):
+    # 50 hard segments (weight ~1) among 950 easy ones (weight ~1e-3): an easy pick has
+    # probability < 950e-3 / 50 ~ 2% per draw, so 20 draws take >= 15 hard ones except with
+    # probability < 1e-7, for any seed.
+    difficulty = np.zeros(1000)
+    hard = np.random.default_rng(seed).choice(1000, size=50, replace=False)
+    difficulty[hard] = 1.0
+    idx, lev = pick_difficulty(difficulty, [1.0], 20.0, rng=np.random.default_rng(seed))
+    assert len(idx) == 20 and np.all(lev == 0)
+    assert np.isin(idx, hard).sum() >= 15
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ce_samples_near_the_elite(seed):
+    X, f, obs, mask, _ = _inputs(seed)
+    idx, lev = pick_cross_entropy(X, obs, f[obs], [1.0], 10.0, rng=np.random.default_rng(seed))
+    assert len(idx) == 10 and np.all(lev == 0)
+    assert np.all((idx >= 0) & (idx < N)) and not np.any(mask[idx])
+    elite = obs[np.argsort(f[obs])[:5]]
+    centre = X[elite].mean(axis=0)
+    # CE picks sit closer to the elite mean than the pool does on average
+    assert (
+        np.linalg.norm(X[idx] - centre, axis=1).mean() < np.linalg.norm(X - centre, axis=1).mean()
+    )
+
+
+def test_ce_without_data_falls_back_to_uniform():
+    X, *_ = _inputs(0)
+    idx, lev = pick_cross_entropy(
+        X, np.array([3]), np.array([0.1]), [1.0], 4.0, rng=np.random.default_rng(0)
+    )
+    assert len(idx) == 4 and 3 not in idx
+
+
+def test_unknown_strategy_and_missing_inputs():
+    with pytest.raises(ValueError, match="unknown strategy"):
+        pick_baseline("bams", n_pool=N, costs=[1.0], budget=3, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="difficulty"):
+        pick_baseline("ds", n_pool=N, costs=[1.0], budget=3, rng=np.random.default_rng(0))
+    with pytest.raises(ValueError, match="observed_value"):
+        pick_baseline("ce", n_pool=N, costs=[1.0], budget=3, rng=np.random.default_rng(0))

@@ -1,0 +1,376 @@
+"""Tests of greedy selection and pooling (bams_cli.core.select).
+
+The reference is a brute-force greedy written here from the model alone: for every
+candidate at every step it conditions the prior on data + chosen picks + candidate from
+scratch (one dense solve), recomputes J over the rows, and takes the best cost-normalised
+decrease. It shares no code with the rank-1 recursion under test.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import owens_t
+
+from bams_cli.core.cluster import cluster_pool
+from bams_cli.core.select import greedy_cluster, pool_queues, select_batch
+from tests.core.dense_posterior import make_problem
+
+
+class BruteForce:
+    """J(S) for any batch S by conditioning the prior on data + S from scratch."""
+
+    def __init__(self, post, X, gamma):
+        self.post, self.X, self.gamma = post, X, gamma
+        Xd, ld = post.X_obs, post.levels_obs
+        K = post.k_aug(Xd, ld, Xd, ld) + np.diag(post.noise[ld])
+        kx = post.k0(X, Xd)
+        self.mu = post.mean + kx @ np.linalg.solve(K, post.y_obs - post.mean)
+        self.sigma2 = self.sigma2_after([], [])
+        with np.errstate(divide="ignore"):
+            self.s = (gamma - self.mu) / np.sqrt(self.sigma2)
+
+    def sigma2_after(self, idx, lev, rows=None):
+        post = self.post
+        rows = np.arange(len(self.X)) if rows is None else rows
+        Xo = np.vstack(
+            [post.X_obs, self.X[np.asarray(idx, dtype=int)].reshape(-1, post.X_obs.shape[1])]
+        )
+        lo = np.concatenate([post.levels_obs, np.asarray(lev, dtype=int)])
+        K = post.k_aug(Xo, lo, Xo, lo) + np.diag(post.noise[lo])
+        k = post.k0(self.X[rows], Xo)
+        return np.maximum(
+            post.outputscales[0] - np.einsum("ij,ji->i", k, np.linalg.solve(K, k.T)), 0
+        )
+
+    def J(self, idx, lev, rows=None):
+        rows = np.arange(len(self.X)) if rows is None else rows
+        t = np.clip(self.sigma2_after(idx, lev, rows) / self.sigma2[rows], 0, 1)
+        # beta = 2 T(s, sqrt(t / (2 - t))), written out again rather than imported
+        return float(np.mean(2 * owens_t(self.s[rows], np.sqrt(t / (2 - t)))))
+
+    def greedy(self, rows, cand_mask, costs, budget):
+        """Brute-force greedy over candidates (rows[i], l) with cand_mask[i, l]."""
+        idx, lev, used, dj = [], [], [], []
+        j_cur = self.J([], [], rows)
+        js = [j_cur]
+        while True:
+            best = None
+            for i, r in enumerate(rows):
+                for l in range(cand_mask.shape[1]):
+                    if not cand_mask[i, l] or any(
+                        a == r and b == l for a, b in zip(idx, lev, strict=True)
+                    ):
+                        continue
+                    if math.fsum([*used, costs[l]]) > budget:
+                        continue
+                    j_new = self.J([*idx, r], [*lev, l], rows)
+                    score = (j_cur - j_new) / costs[l]
+                    if best is None or score > best[0]:
+                        best = (score, r, l, j_new)
+            if best is None:
+                break
+            _, r, l, j_new = best
+            idx.append(int(r))
+            lev.append(int(l))
+            used.append(float(costs[l]))
+            dj.append(j_cur - j_new)
+            j_cur = j_new
+            js.append(j_cur)
+        return np.array(idx), np.array(lev), np.array(dj), np.array(js)
+
+
+def _run_greedy(prob, costs, budget, rows=None, exclude_obs0=True, **kw):
+    post, X = prob.posterior, prob.X
+    rows = np.arange(len(X)) if rows is None else rows
+    mu, sigma2 = post.predict_theta0(X[rows])
+    cand = np.ones((len(rows), post.n_levels), dtype=bool)
+    if exclude_obs0:
+        cand[prob.observed_level0[rows], 0] = False
+    q = greedy_cluster(
+        post,
+        X[rows],
+        rows,
+        mu,
+        sigma2,
+        cand,
+        gamma=prob.gamma,
+        costs=np.asarray(costs),
+        budget=budget,
+        **kw,
+    )
+    return q, cand
+
+
+CASES = [
+    # n_pool, n_levels, d, seed, costs, budget
+    (60, 1, 2, 0, [1.0], 5.0),
+    (120, 1, 3, 1, [1.0], 4.0),
+    (80, 2, 2, 2, [1.0, 0.25], 3.0),
+    (150, 2, 2, 3, [1.0, 0.3], 2.5),
+    (100, 3, 2, 4, [1.0, 0.4, 0.15], 2.0),
+]
+
+
+@pytest.mark.parametrize("n_pool, n_levels, d, seed, costs, budget", CASES)
+def test_greedy_matches_brute_force(n_pool, n_levels, d, seed, costs, budget):
+    prob = make_problem(n_pool=n_pool, n_obs=8, n_levels=n_levels, d=d, seed=seed)
+    q, cand = _run_greedy(prob, costs, budget)
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    idx, lev, dj, js = bf.greedy(np.arange(n_pool), cand, np.asarray(costs), budget)
+    assert len(idx) >= 3
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(q.cost, np.asarray(costs)[lev])
+    # J never increases along the greedy; J(empty) = mean p (1 - p)
+    assert np.all(np.diff(js) <= 0) and np.all(q.delta_j >= 0)
+    p = 0.5 * (1 + np.vectorize(math.erf)(bf.s / math.sqrt(2)))
+    assert js[0] == pytest.approx(np.mean(p * (1 - p)), rel=1e-12)
+    assert math.fsum(q.cost.tolist()) <= budget
+
+
+def test_greedy_matches_brute_force_300_points():
+    prob = make_problem(n_pool=300, n_obs=10, n_levels=2, d=2, seed=7)
+    q, cand = _run_greedy(prob, [1.0, 0.25], 2.0)
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    idx, lev, dj, _ = bf.greedy(np.arange(300), cand, np.array([1.0, 0.25]), 2.0)
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("rtol", [0.0, 1e-3, 0.2, 0.9])
+def test_row_dropping_never_changes_the_picks(rtol):
+    # Dropped rows are screened by bound and evaluated exactly for contenders, so the
+    # picks and their Delta J are the same whatever the drop tolerance.
+    prob = make_problem(n_pool=150, n_obs=8, n_levels=2, d=2, seed=5)
+    ref, _ = _run_greedy(prob, [1.0, 0.2], 2.5, row_drop_rtol=0.0)
+    q, _ = _run_greedy(prob, [1.0, 0.2], 2.5, row_drop_rtol=rtol)
+    if rtol > 0.1:
+        assert q.stats["rows_dropped"] > 0
+    np.testing.assert_array_equal(q.index, ref.index)
+    np.testing.assert_array_equal(q.level, ref.level)
+    np.testing.assert_allclose(q.delta_j, ref.delta_j, rtol=1e-12, atol=1e-16)
+
+
+def test_zero_variance_rows_and_determined_candidates():
+    # Noise-free level 0 and observed points left in as candidates: their level-0
+    # candidates have V = 0 (nothing to learn) and their rows sigma2 ~ 0 (beta = 0).
+    prob = make_problem(n_pool=90, n_obs=10, n_levels=2, d=2, seed=8, noise0=0.0)
+    q, cand = _run_greedy(prob, [1.0, 0.25], 3.0, exclude_obs0=False)
+    assert np.all(np.isfinite(q.delta_j)) and np.all(q.delta_j >= 0)
+    obs0 = set(prob.obs_index[prob.obs_level == 0].tolist())
+    assert not any(i in obs0 and lev == 0 for i, lev in zip(q.index, q.level, strict=True))
+    # rows handed in with sigma2 exactly 0 are ignored (beta = 0 there)
+    post, X = prob.posterior, prob.X
+    mu, sigma2 = post.predict_theta0(X)
+    sigma2 = sigma2.copy()
+    sigma2[:10] = 0.0
+    q0 = greedy_cluster(
+        post,
+        X,
+        np.arange(90),
+        mu,
+        sigma2,
+        cand,
+        gamma=prob.gamma,
+        costs=np.array([1.0, 0.25]),
+        budget=3.0,
+    )
+    assert np.all(np.isfinite(q0.delta_j)) and len(q0.index) >= 3
+
+
+def test_all_certain_pool_picks_by_tie_break():
+    # gamma far below everything: h = 0 at every row, every Delta J is exactly 0, and the
+    # greedy still spends its budget, ties going to the lowest pool index, then level.
+    prob = make_problem(n_pool=50, n_obs=6, n_levels=2, d=2, seed=2)
+    prob.gamma = -1e3
+    q, _ = _run_greedy(prob, [1.0, 0.5], 2.0)
+    assert np.all(q.delta_j == 0)
+    obs0 = prob.observed_level0
+    first = int(np.flatnonzero(~obs0)[0])
+    assert (q.index[0], q.level[0]) == (first, 0)
+
+
+def test_budget_filled_with_cheap_picks_when_level0_no_longer_fits():
+    prob = make_problem(n_pool=80, n_obs=6, n_levels=2, d=2, seed=9)
+    q, _ = _run_greedy(prob, [1.0, 0.3], 1.5)
+    total = math.fsum(q.cost.tolist())
+    assert total <= 1.5 and 1.5 - total < 0.3  # nothing more fits
+
+
+def _brute_pool(costs, keys, index, level, budget):
+    """Algorithm 1's second loop, written plainly."""
+    queues = [list(range(len(c))) for c in costs]
+    used, taken = [], []
+    while True:
+        for q in range(len(queues)):
+            while queues[q] and math.fsum([*used, costs[q][queues[q][0]]]) > budget:
+                queues[q].pop(0)
+        heads = [(q, queues[q][0]) for q in range(len(queues)) if queues[q]]
+        if not heads:
+            return taken
+        q, p = min(
+            heads, key=lambda h: (-keys[h[0]][h[1]], h[0], index[h[0]][h[1]], level[h[0]][h[1]])
+        )
+        used.append(costs[q][p])
+        taken.append((q, p))
+        queues[q].pop(0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    data=st.lists(
+        st.lists(
+            st.tuples(
+                st.sampled_from([1.0, 0.5, 0.3, 5 / 32, 0.1]),
+                st.floats(0, 1, allow_nan=False) | st.sampled_from([0.25, 0.5]),
+            ),
+            max_size=12,
+        ),
+        min_size=1,
+        max_size=5,
+    ),
+    budget=st.sampled_from([0.1, 1.0, 2.5, 3.0, 7.3, 15.0]),
+)
+def test_pooling_never_exceeds_budget(data, budget):
+    costs = [np.array([c for c, _ in q]) for q in data]
+    keys = [np.array([k for _, k in q]) for q in data]
+    index = [np.arange(len(q)) * 7 + i for i, q in enumerate(data)]
+    level = [np.zeros(len(q), dtype=int) for q in data]
+    cl, pos = pool_queues(costs, keys, index, level, budget)
+    total = math.fsum(costs[c][p] for c, p in zip(cl, pos, strict=True))
+    assert total <= budget
+    assert list(zip(cl.tolist(), pos.tolist(), strict=True)) == _brute_pool(
+        costs, keys, index, level, budget
+    )
+    for c in range(len(data)):  # each queue is consumed in order
+        assert np.all(np.diff(pos[cl == c]) > 0)
+
+
+def test_pooling_ties_and_skips():
+    # Equal keys: lowest cluster first. Queue 0's head (cost 2) never fits budget 1.5, so
+    # it is skipped and its queue moves on.
+    costs = [np.array([2.0, 0.5]), np.array([0.5, 0.5]), np.array([0.5])]
+    keys = [np.array([9.0, 1.0]), np.array([1.0, 1.0]), np.array([1.0])]
+    index = [np.array([5, 3]), np.array([1, 2]), np.array([0])]
+    level = [np.array([0, 1]), np.array([1, 1]), np.array([1])]
+    cl, pos = pool_queues(costs, keys, index, level, 1.5)
+    assert list(zip(cl.tolist(), pos.tolist(), strict=True)) == [(0, 1), (1, 0), (1, 1)]
+
+
+@pytest.fixture(scope="module")
+def pool_problem():
+    return make_problem(n_pool=240, n_obs=10, n_levels=2, d=2, seed=21)
+
+
+def _select(prob, **kw):
+    args = dict(
+        gamma=prob.gamma,
+        costs=[1.0, 0.25],
+        budget=4.0,
+        n_clusters=3,
+        overbudget=1.5,
+        observed_level0_mask=prob.observed_level0,
+        rng=np.random.default_rng(0),
+    )
+    args.update(kw)
+    return select_batch(prob.posterior, prob.X, **args)
+
+
+def test_select_batch_clusters_and_j_after_match_brute_force(pool_problem):
+    prob = pool_problem
+    res = _select(prob)
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    labels = cluster_pool(prob.X, prob.posterior.lengthscales0, 3, rng=np.random.default_rng(0))
+    np.testing.assert_array_equal(res.labels, labels)
+    N = len(prob.X)
+    for q in res.queues:
+        rows = np.flatnonzero(labels == q.cluster)
+        cand = np.ones((len(rows), 2), dtype=bool)
+        cand[prob.observed_level0[rows], 0] = False
+        budget = math.ceil(1.5 * 4.0 * len(rows) / N - 1e-9)
+        idx, lev, dj, _ = bf.greedy(rows, cand, np.array([1.0, 0.25]), budget)
+        np.testing.assert_array_equal(q.index, idx)
+        np.testing.assert_array_equal(q.level, lev)
+        np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
+    # pooled picks are queue items with the global cost-normalised key
+    for i, c, dj, sc, cost in zip(
+        res.index, res.cluster, res.delta_j, res.score, res.cost, strict=True
+    ):
+        q = res.queues[c]
+        k = np.flatnonzero(q.index == i)[0]
+        assert dj == pytest.approx(q.n_rows / N * q.delta_j[k], rel=1e-14)
+        assert sc == pytest.approx(dj / cost, rel=1e-14)
+    assert res.total_cost <= 4.0
+    assert res.j_before == pytest.approx(bf.J([], []), rel=1e-12)
+    assert res.j_after == pytest.approx(bf.J(res.index, res.level), rel=1e-9)
+    assert res.j_after < res.j_before
+    assert set(res.timings) >= {"predict", "cluster", "greedy", "pool", "j_after", "total"}
+
+
+def test_select_batch_is_deterministic_and_raw_pooling_differs_only_in_keys(pool_problem):
+    a = _select(pool_problem)
+    b = _select(pool_problem)
+    for f in ("index", "level", "delta_j", "cost", "cluster", "rank"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    raw = _select(pool_problem, pooling="raw")
+    assert raw.total_cost <= 4.0
+    for i, c, sc in zip(raw.index, raw.cluster, raw.score, strict=True):
+        q = raw.queues[c]
+        assert sc == q.delta_j[np.flatnonzero(q.index == i)[0]]
+
+
+def test_select_batch_process_pool_matches_inline(pool_problem):
+    inline = _select(pool_problem)
+    with ProcessPoolExecutor(max_workers=2) as ex:
+        pooled = _select(pool_problem, executor=ex)
+    for f in ("index", "level", "delta_j", "cost", "cluster", "rank", "score"):
+        np.testing.assert_array_equal(getattr(inline, f), getattr(pooled, f))
+    assert inline.j_after == pooled.j_after
+
+
+def test_select_batch_single_level_and_progress(pool_problem):
+    calls = []
+    res = _select(
+        pool_problem,
+        levels=[0],
+        n_clusters=1,
+        overbudget=1.0,
+        progress=lambda *a: calls.append(a),
+    )
+    assert np.all(res.level == 0) and len(res.index) == 4  # BAS: four level-0 picks
+    assert not np.any(pool_problem.observed_level0[res.index])
+    assert ("greedy", 1, 1) in calls and calls[-1] == ("j_after", 1, 1)
+    # one cluster, budget m: pooling takes the queue in order
+    np.testing.assert_array_equal(res.index, res.queues[0].index)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(costs=[1.0]), "one cost per fidelity level"),
+        (dict(costs=[1.0, 0.0]), "positive"),
+        (dict(budget=0.0), "budget"),
+        (dict(pooling="best"), "pooling"),
+        (dict(overbudget=0.5), "overbudget"),
+        (dict(levels=[2]), "levels"),
+    ],
+)
+def test_select_batch_rejects_bad_arguments(pool_problem, kw, match):
+    with pytest.raises(ValueError, match=match):
+        _select(pool_problem, **kw)
+
+
+def test_select_batch_refuses_a_cluster_too_big_for_memory(pool_problem, monkeypatch):
+    import bams_cli.core.select as select_mod
+
+    monkeypatch.setattr(select_mod, "MAX_CLUSTER_BYTES", 10_000)
+    with pytest.raises(ValueError, match="raise n_clusters"):
+        _select(pool_problem, n_clusters=1)
