@@ -291,6 +291,252 @@ def simulate(
     _show(pipeline.simulate(handoff, truth, output), json_out, "simulate (sample data only)")
 
 
+@command()
+def fit(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    fixed_hyperparameters: Annotated[
+        Path | None,
+        typer.Option(
+            "--fixed-hyperparameters",
+            help="JSON of hyperparameters (e.g. a saved model.json): skip training, only condition.",
+        ),
+    ] = None,
+    restarts: Annotated[
+        int, typer.Option("--restarts", help="Seeded L-BFGS-B restarts of the MAP fit.")
+    ] = 8,
+    chunk_size: Annotated[
+        int, typer.Option("--chunk-size", help="Pool rows scored per chunk.")
+    ] = 50_000,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Fit the multifidelity GP and score every segment's failure probability.
+
+    [bold]Example[/]: bams-cli fit -w study
+    """
+    with console.progress(not json_out) as bar:
+        summary = pipeline.fit(
+            workspace,
+            fixed_hyperparameters=fixed_hyperparameters,
+            restarts=restarts,
+            chunk_size=chunk_size,
+            wait=wait,
+            progress=bar,
+        )
+    if json_out:
+        console.print_json(summary)
+        return
+    console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
+    rest = {k: v for k, v in summary.items() if k != "hyperparameters"}
+    console.kv_table("fit", rest)
+
+
+@command()
+def select(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    strategy: Annotated[
+        str,
+        typer.Option(
+            "--strategy",
+            help="bams (default), bas (level 0 only), random, mc-gp, mcm-gp, ds, ds-gp, or ce.",
+        ),
+    ] = "bams",
+    budget: Annotated[
+        float,
+        typer.Option(
+            "--budget", "-m", help="Batch budget m in cost units (a level-0 run costs 1)."
+        ),
+    ] = 5.0,
+    clusters: Annotated[
+        int, typer.Option("--clusters", "-S", help="Clusters S (1: no clustering).")
+    ] = 6,
+    overbudget: Annotated[
+        float,
+        typer.Option("--overbudget", help="eta >= 1: each cluster plans ceil(eta m N_s / N)."),
+    ] = 1.0,
+    pooling: Annotated[
+        str,
+        typer.Option(
+            "--pooling", help="global: compare (N_s/N) dJ/c across clusters; raw: the paper's dJ."
+        ),
+    ] = "global",
+    mixed_fidelity: Annotated[
+        bool, typer.Option("--mixed-fidelity", help="random: spread the picks over every level.")
+    ] = False,
+    level0_share: Annotated[
+        float,
+        typer.Option("--level0-share", help="random/mcm-gp: share of the budget spent at level 0."),
+    ] = 0.5,
+    difficulty_column: Annotated[
+        str,
+        typer.Option(
+            "--difficulty-column",
+            help="ds/ds-gp: per-segment difficulty (higher = likelier to fail).",
+        ),
+    ] = "difficulty",
+    allow_pending: Annotated[
+        bool,
+        typer.Option("--allow-pending", help="Select although an earlier batch awaits results."),
+    ] = False,
+    include_observed: Annotated[
+        bool,
+        typer.Option(
+            "--include-observed", help="Let segments already observed at level 0 be picked again."
+        ),
+    ] = False,
+    workers: Annotated[
+        int | None,
+        typer.Option("--workers", help="Local worker processes for clusters [default: all cores]."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
+    ] = None,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Pick the next batch of segments to simulate, at which fidelity, and write the hand-off list.
+
+    The first batch of a study needs no model: use --strategy random.
+
+    [bold]Example[/]: bams-cli select -w study --budget 5 --clusters 6
+    """
+    with console.progress(not json_out) as bar:
+        summary = pipeline.select(
+            workspace,
+            strategy=strategy,
+            budget=budget,
+            clusters=clusters,
+            overbudget=overbudget,
+            pooling=pooling,
+            mixed_fidelity=mixed_fidelity,
+            level0_share=level0_share,
+            difficulty_column=difficulty_column,
+            allow_pending=allow_pending,
+            include_observed=include_observed,
+            workers=workers,
+            scheduler=scheduler,
+            wait=wait,
+            progress=bar,
+        )
+    _show(summary, json_out, f"select: batch {summary['batch']}")
+
+
+@command()
+def estimate(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    plan: Annotated[
+        bool,
+        typer.Option(
+            "--plan", help="Phase 1: draw the importance sample and write its hand-off list."
+        ),
+    ] = False,
+    samples: Annotated[
+        float | None,
+        typer.Option("--samples", "-K", help="Simulation budget K [default: 5 x the GP's p x N]."),
+    ] = None,
+    alpha: Annotated[
+        float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
+    ] = 1.0,
+    defensive: Annotated[
+        float,
+        typer.Option("--defensive", help="Uniform share eps mixed into the sampling distribution."),
+    ] = 0.1,
+    design: Annotated[
+        str,
+        typer.Option(
+            "--design",
+            help="poisson (Horvitz-Thompson), fixed (systematic), or with-replacement (the paper's).",
+        ),
+    ] = "poisson",
+    plan_number: Annotated[
+        int | None,
+        typer.Option("--plan-number", help="Phase 2: which plan to compute [default: the latest]."),
+    ] = None,
+    confidence: Annotated[
+        float, typer.Option("--confidence", help="Two-sided confidence level of the interval.")
+    ] = 0.9,
+    exact_variance: Annotated[
+        bool,
+        typer.Option(
+            "--exact-variance",
+            help="Also compute the GP estimate's exact variance (pools <= 50,000).",
+        ),
+    ] = False,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Estimate the failure rate with an unbiased importance sample, in two phases.
+
+    Phase 1 (--plan) draws the sample and writes a hand-off list; once its results are
+    ingested, phase 2 (no --plan) computes the estimate for every configured gamma.
+
+    [bold]Example[/]: bams-cli estimate -w study --plan  (simulate, ingest-results)  bams-cli estimate -w study
+    """
+    if plan:
+        summary = pipeline.estimate_plan(
+            workspace, samples=samples, alpha=alpha, defensive=defensive, design=design, wait=wait
+        )
+        _show(summary, json_out, f"estimate plan {summary['plan']}")
+        return
+    with console.progress(not json_out) as bar:
+        summary = pipeline.estimate_compute(
+            workspace,
+            plan_number=plan_number,
+            confidence=confidence,
+            exact_variance=exact_variance,
+            wait=wait,
+            progress=bar,
+        )
+    if json_out:
+        console.print_json(summary)
+        return
+    rows = [
+        [
+            e["gamma"],
+            e["p_hat"],
+            e["se"],
+            f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
+            e["rel_var"],
+            e["distinct_failures_found"],
+        ]
+        for e in summary["estimates"]
+    ]
+    console.rows_table(
+        f"failure rate (plan {summary['plan']}, {summary['design']}, {int(confidence * 100)}% interval)",
+        ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
+        rows,
+    )
+    gp = [
+        [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
+        for g in summary["gp"]
+    ]
+    console.rows_table("the GP's own estimate", ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
+
+
+@command()
+def report(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    truth: Annotated[
+        Path | None,
+        typer.Option(
+            "--truth", help="Ground truth (segment_id, value_0), e.g. for sample data: adds recall."
+        ),
+    ] = None,
+    diverse: Annotated[
+        int, typer.Option("--diverse", help="How many diverse likely failures to list.")
+    ] = 5,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Write the study report: report/report.html, summary.json and summary.md.
+
+    [bold]Example[/]: bams-cli report -w study --truth sample_data/toy2d/truth.parquet
+    """
+    summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
+    _show(summary, json_out, "report")
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

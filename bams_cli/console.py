@@ -53,6 +53,32 @@ def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
     out.print(table)
 
 
+def hyperparameter_table(hp: Mapping[str, Any], n_obs: list[int]) -> None:
+    """Hyperparameters per level in natural units: what the model believes about f."""
+    table = Table(title="model hyperparameters", title_justify="left")
+    for col in ("level", "observations", "output scale", "lengthscales", "noise sd"):
+        table.add_column(col, justify="left" if col in {"level", "lengthscales"} else "right")
+    fmt = lambda xs: ", ".join(f"{x:.3g}" for x in xs)  # noqa: E731
+    noise = hp["noise"]
+    table.add_row(
+        "0 (theta0)",
+        str(n_obs[0]),
+        f"{hp['outputscale0'] ** 0.5:.4g}",
+        fmt(hp["lengthscales0"]),
+        f"{noise[0] ** 0.5:.3g}",
+    )
+    for lv, (scale, ells) in enumerate(zip(hp["outputscales"], hp["lengthscales"], strict=True), 1):
+        table.add_row(
+            f"{lv} (discrepancy)",
+            str(n_obs[lv]),
+            f"{scale**0.5:.4g}",
+            fmt(ells),
+            f"{noise[lv] ** 0.5:.3g}",
+        )
+    table.caption = f"constant mean {hp['mean']:.4g}; scales and noise as standard deviations"
+    out.print(table)
+
+
 @contextmanager
 def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] | None]:
     """A ``progress(phase, done, total)`` callback drawing one rich bar per phase."""

@@ -23,6 +23,7 @@ import pyarrow.parquet as pq
 
 from bams_cli.core.reduce import Reducer, fit_reducer
 from bams_cli.errors import (
+    BamsError,
     ConflictError,
     DuplicateError,
     InputError,
@@ -31,7 +32,14 @@ from bams_cli.errors import (
 )
 from bams_cli.settings import Settings, levels_from_costs
 from bams_cli.state import schemas
-from bams_cli.state.io import file_sha256, read_table, require_columns, transaction
+from bams_cli.state.io import (
+    file_sha256,
+    read_metadata,
+    read_table,
+    require_columns,
+    stamp,
+    transaction,
+)
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
 
@@ -486,11 +494,8 @@ def ingest_results(
             row=int(first["_row"]),
         )
 
-    picks = _selections(ws)
-    matched = results.join(picks, on=[SID, "fidelity"], how="left").with_columns(
-        pl.col("planned").fill_null(False)
-    )
-    unselected = matched.filter(pl.col("batch").is_null() & ~pl.col("planned"))
+    matched = results.join(ws.selections(), on=[SID, "fidelity"], how="left")
+    unselected = matched.filter(pl.col("batch").is_null() & pl.col("plan").is_null())
     if unselected.height and not allow_unselected:
         names = ", ".join(unselected[SID].head(3).to_list())
         more = "" if unselected.height <= 3 else ", ..."
@@ -550,31 +555,6 @@ def ingest_results(
         "by_fidelity": {int(k): int(v) for k, v in new.group_by("fidelity").len().iter_rows()},
         "pending": _pending_summary(ws),
     }
-
-
-def _selections(ws: Workspace) -> pl.DataFrame:
-    """Every selected (segment, fidelity): batch picks with their batch, plan picks flagged."""
-    batches = ws.read_batches().group_by(SID, "fidelity").agg(pl.col("batch").max())
-    planned = _planned(ws)
-    sel = batches.join(planned, on=[SID, "fidelity"], how="full", coalesce=True)
-    return sel.with_columns(pl.col("planned").fill_null(False))
-
-
-def _planned(ws: Workspace) -> pl.DataFrame:
-    frames = []
-    if ws.estimates_dir.is_dir():
-        for p in sorted(ws.estimates_dir.glob("plan-*.parquet")):
-            t = pq.read_table(p, columns=[SID, "stratum"])
-            df = pl.from_arrow(t)
-            assert isinstance(df, pl.DataFrame)
-            frames.append(df.filter(pl.col("stratum") == "sampled").select(SID))
-    if not frames:
-        return pl.DataFrame(schema={SID: pl.String, "fidelity": pl.Int64, "planned": pl.Boolean})
-    return (
-        pl.concat(frames)
-        .unique()
-        .with_columns(pl.lit(0, dtype=pl.Int64).alias("fidelity"), pl.lit(True).alias("planned"))
-    )
 
 
 def _pending_summary(ws: Workspace, limit: int = 20) -> dict[str, Any]:
@@ -640,4 +620,823 @@ def simulate(handoff: Path, truth: Path, output: Path) -> dict[str, Any]:
         "results": str(output),
         "rows": result.height,
         "note": "simulated from ground truth (sample data only)",
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# fit
+# ---------------------------------------------------------------------------------------
+def _training_data(
+    ws: Workspace, ids: np.ndarray, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Active observations as (pool index, level, value) arrays."""
+    obs = ws.read_observations()
+    if obs.height == 0:
+        raise WorkspaceError(
+            f"{ws.observations_path}: no observations yet; select a first batch "
+            f"(`bams-cli select -w {ws.root} --strategy random`), simulate it and ingest the results"
+        )
+    index = pl.DataFrame({SID: ids, "_idx": np.arange(len(ids))})
+    joined = obs.join(index, on=SID, how="left")
+    missing = joined.filter(pl.col("_idx").is_null())
+    if missing.height:
+        raise WorkspaceError(
+            f"{ws.observations_path}: segment {missing[SID][0]!r} is no longer in the pool "
+            f"({missing.height} observations in all); re-add it with `embed-reduce --apply`"
+        )
+    return (
+        joined["_idx"].to_numpy().astype(np.int64),
+        joined["fidelity"].to_numpy().astype(np.int64),
+        joined["value"].to_numpy().astype(np.float64),
+    )
+
+
+def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.ndarray):  # noqa: ANN201
+    """The fitted model, conditioned again on the log it was fitted on (cheap: one Cholesky)."""
+    from bams_cli.core.gp import Hyperparameters, fit_mfgp
+
+    model = ws.require_fresh_model()
+    idx, lv, y = _training_data(ws, ids, X)
+    hp = Hyperparameters.from_dict(model["hyperparameters"])
+    return fit_mfgp(
+        X[idx], lv, y, settings.n_levels, rng=np.random.default_rng(settings.seed), fixed=hp
+    ), model
+
+
+def fit(
+    root: Path,
+    *,
+    fixed_hyperparameters: Path | None = None,
+    restarts: int = 8,
+    chunk_size: int = 50_000,
+    wait: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Train the multifidelity GP on the observation log and score every pool segment."""
+    from bams_cli.core.gp import GPFitError, Hyperparameters, fit_mfgp
+
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    idx, lv, y = _training_data(ws, ids, X)
+    fixed = None
+    if fixed_hyperparameters is not None:
+        try:
+            doc = json.loads(Path(fixed_hyperparameters).read_text())
+            fixed = Hyperparameters.from_dict(doc.get("hyperparameters", doc))
+        except FileNotFoundError:
+            raise InputError(fixed_hyperparameters, "hyperparameter file not found") from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(fixed_hyperparameters, f"not a hyperparameter file ({exc})") from None
+        if fixed.lengthscales0.shape[0] != X.shape[1] or fixed.noise.shape[0] != settings.n_levels:
+            raise InputError(
+                fixed_hyperparameters,
+                f"hyperparameters are for d = {fixed.lengthscales0.shape[0]}, {fixed.noise.shape[0]} "
+                f"levels; the study has d = {X.shape[1]}, {settings.n_levels} levels",
+            )
+    rng = np.random.default_rng(settings.seed)
+    if progress:
+        progress("fit", 0, 1)
+    try:
+        model = fit_mfgp(X[idx], lv, y, settings.n_levels, rng=rng, restarts=restarts, fixed=fixed)
+    except GPFitError as exc:
+        raise WorkspaceError(f"fit: {exc}") from None
+    if progress:
+        progress("fit", 1, 1)
+
+    n = len(ids)
+    mu = np.empty(n)
+    sd = np.empty(n)
+    p = np.empty((n, len(settings.gammas)))
+    for start in range(0, n, chunk_size):
+        stop = min(start + chunk_size, n)
+        mu[start:stop], sd[start:stop], p[start:stop] = model.score(
+            X[start:stop], settings.gammas, chunk_size
+        )
+        if progress:
+            progress("score pool", stop, n)
+
+    obs_hash = ws.observations_hash()
+    hp = model.hyperparameters
+    doc = {
+        "hyperparameters": hp.to_dict(),
+        "log_marginal_likelihood": float(model.log_marginal_likelihood),
+        "log_posterior": float(model.log_posterior),
+        "n_observations_per_level": [int(c) for c in model.n_obs_per_level],
+        "observations_hash": obs_hash,
+        "trained": fixed is None,
+        "restarts": restarts,
+        "seed": settings.seed,
+        "gammas": list(settings.gammas),
+        "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    }
+    cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
+    for g in range(p.shape[1]):
+        cols[f"p_{g}"] = p[:, g]
+    meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
+    # A snapshot of p_n after every batch feeds the report's per-batch retention-recall.
+    last_batch = ws.read_observations()["batch"].drop_nulls().max()
+    snapshot = ws.history_dir / f"scores-after-batch-{int(last_batch or 0):04d}.parquet"
+    history = pa.table({f"p_{g}": p[:, g] for g in range(p.shape[1])})
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        tx.write_text(ws.model_path, json.dumps(doc, indent=2) + "\n")
+        tx.write_parquet(ws.scores_path, schemas.SCORES.conform(pa.table(cols), meta))
+        tx.write_parquet(snapshot, stamp(history, schemas.SCORES.version, meta))
+    return {
+        "model": str(ws.model_path),
+        "scores": str(ws.scores_path),
+        "observations": int(len(y)),
+        "n_observations_per_level": doc["n_observations_per_level"],
+        "log_marginal_likelihood": doc["log_marginal_likelihood"],
+        "log_posterior": doc["log_posterior"],
+        "hyperparameters": doc["hyperparameters"],
+        "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# select
+# ---------------------------------------------------------------------------------------
+MODEL_STRATEGIES = ("bams", "bas")
+STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
+
+
+def _observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+    return np.isin(ids, obs[SID].to_numpy())
+
+
+def select(
+    root: Path,
+    *,
+    strategy: str = "bams",
+    budget: float = 5.0,
+    clusters: int = 6,
+    overbudget: float = 1.0,
+    pooling: str = "global",
+    mixed_fidelity: bool = False,
+    level0_share: float = 0.5,
+    difficulty_column: str = "difficulty",
+    allow_pending: bool = False,
+    include_observed: bool = False,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    wait: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Pick the next batch of (segment, fidelity) simulations and write the hand-off list."""
+    from bams_cli.core import baselines
+    from bams_cli.core.select import select_batch
+    from bams_cli.parallel import executor
+
+    if strategy not in STRATEGIES:
+        raise WorkspaceError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
+    if pooling not in ("global", "raw"):
+        raise WorkspaceError(f"--pooling {pooling!r}: choose global or raw")
+    if not budget > 0:
+        raise WorkspaceError(
+            f"--budget {budget}: must be > 0 (cost units; one level-0 run costs 1)"
+        )
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    pend = ws.pending()
+    if pend.height and not allow_pending:
+        batches = sorted(set(pend["batch"].to_list()))
+        raise WorkspaceError(
+            f"{ws.root}: {pend.height} picks of batch {', '.join(map(str, batches))} have no results yet; "
+            f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
+        )
+    number = (ws.batch_numbers() or [0])[-1] + 1
+    rng = np.random.default_rng([settings.seed, number])
+    costs = np.asarray(settings.costs)
+    observed0 = _observed_level0(ws, ids)
+    exclude = np.zeros(len(ids), bool) if include_observed else observed0
+    model_hash = None
+    j_before = j_after = None
+    timings: dict[str, float] = {}
+
+    if strategy in MODEL_STRATEGIES:
+        posterior, model = load_posterior(ws, settings, ids, X)
+        model_hash = model["observations_hash"]
+        with executor(workers, scheduler) as pool:
+            result = select_batch(
+                posterior,
+                X,
+                gamma=settings.gammas[0],
+                costs=costs,
+                budget=budget,
+                n_clusters=clusters,
+                overbudget=overbudget,
+                observed_level0_mask=observed0,
+                pooling=pooling,  # type: ignore[arg-type]
+                executor=pool,
+                rng=rng,
+                progress=progress,
+                levels=[0] if strategy == "bas" else None,
+                reobserve_level0=include_observed,
+            )
+        picks = {
+            "index": result.index,
+            "level": result.level,
+            "delta_j": result.delta_j,
+            "cluster": result.cluster,
+        }
+        j_before, j_after = float(result.j_before), float(result.j_after)
+        timings = {k: round(float(v), 3) for k, v in result.timings.items()}
+    else:
+        multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
+        n_rest = settings.n_levels - 1
+        shares = [level0_share] + [(1 - level0_share) / n_rest] * n_rest if n_rest else None
+        if strategy in ("random", "mc-gp", "mcm-gp"):
+            index, level = baselines.pick_uniform(
+                len(ids),
+                costs,
+                budget,
+                rng=rng,
+                mixed=multi and n_rest > 0,
+                observed_level0_mask=exclude,
+                level_shares=shares,
+            )
+        elif strategy in ("ds", "ds-gp"):
+            table = ws.read_segments()
+            if difficulty_column not in table.column_names:
+                raise WorkspaceError(
+                    f"{ws.segments_path}: --strategy {strategy} needs a difficulty column "
+                    f"{difficulty_column!r} (pass it through embed-reduce, or name it with --difficulty-column)"
+                )
+            difficulty = (
+                table.column(difficulty_column).to_numpy(zero_copy_only=False).astype(np.float64)
+            )
+            if not np.isfinite(difficulty).all():
+                row = int(np.flatnonzero(~np.isfinite(difficulty))[0]) + 1
+                raise InputError(
+                    ws.segments_path, "difficulty must be finite", column=difficulty_column, row=row
+                )
+            index, level = baselines.pick_difficulty(
+                difficulty, costs, budget, rng=rng, observed_level0_mask=exclude
+            )
+        else:  # ce
+            obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+            pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+            o = obs.join(pos, on=SID).select("_i", "value")
+            index, level = baselines.pick_cross_entropy(
+                X, o["_i"].to_numpy(), o["value"].to_numpy(), costs, budget, rng=rng
+            )
+        picks = {
+            "index": np.asarray(index, np.int64),
+            "level": np.asarray(level, np.int64),
+            "delta_j": np.full(len(index), np.nan),
+            "cluster": np.zeros(len(index), np.int64),
+        }
+
+    k = len(picks["index"])
+    if k == 0:
+        raise WorkspaceError(
+            f"select: nothing fits budget {budget} (cheapest level costs {costs.min():g}); raise --budget"
+        )
+    segs = ws.read_segments()
+    passthrough = [
+        c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)
+    ]
+    cols: dict[str, Any] = {
+        SID: pa.array(ids[picks["index"]], pa.string()),
+        "fidelity": picks["level"],
+        "cost": costs[picks["level"]],
+        "delta_j": picks["delta_j"],
+        "cluster": picks["cluster"],
+        "rank": np.arange(k, dtype=np.int64),
+        "strategy": [strategy] * k,
+    }
+    if passthrough:
+        rest = segs.select(passthrough).take(pa.array(picks["index"]))
+        for name in passthrough:
+            cols[name] = rest.column(name)
+    options = {
+        "strategy": strategy,
+        "budget": budget,
+        "clusters": clusters,
+        "overbudget": overbudget,
+        "pooling": pooling,
+        "mixed_fidelity": mixed_fidelity,
+        "level0_share": level0_share,
+        "include_observed": include_observed,
+        "gamma": settings.gammas[0],
+    }
+    meta = {
+        "batch": number,
+        "seed": settings.seed,
+        "model_hash": model_hash or "",
+        "options": options,
+    }
+    table = schemas.BATCH.conform(pa.table(cols), meta)
+    path = schemas.batch_path(ws.root, number)
+    frame = pl.from_arrow(table)
+    assert isinstance(frame, pl.DataFrame)
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        tx.write_parquet(path, table)
+        tx.write_with(path.with_suffix(".csv"), lambda p: frame.write_csv(p))
+    per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
+    per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
+    return {
+        "batch": number,
+        "handoff": str(path),
+        "handoff_csv": str(path.with_suffix(".csv")),
+        "strategy": strategy,
+        "picks": k,
+        "total_cost": float(costs[picks["level"]].sum()),
+        "budget": budget,
+        "picks_per_level": per_level,
+        "picks_per_cluster": per_cluster,
+        "j_before": j_before,
+        "j_after": j_after,
+        "timings_s": timings,
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# estimate (plan -> simulate -> compute)
+# ---------------------------------------------------------------------------------------
+def _plan_numbers(ws: Workspace) -> list[int]:
+    if not ws.estimates_dir.is_dir():
+        return []
+    out = []
+    for p in ws.estimates_dir.glob("plan-*.parquet"):
+        stem = p.stem[len("plan-") :]
+        if stem.isdigit():
+            out.append(int(stem))
+    return sorted(out)
+
+
+def _read_scores(
+    ws: Workspace, n_gammas: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    t = schemas.SCORES.check(pq.read_table(ws.scores_path), ws.scores_path)
+    p = np.column_stack([t.column(f"p_{g}").to_numpy() for g in range(n_gammas)])
+    ids = t.column(SID).to_numpy(zero_copy_only=False)
+    return ids, t.column("mu").to_numpy(), t.column("sd").to_numpy(), p
+
+
+def estimate_plan(
+    root: Path,
+    *,
+    samples: float | None = None,
+    alpha: float = 1.0,
+    defensive: float = 0.1,
+    design: str = "poisson",
+    wait: bool = False,
+) -> dict[str, Any]:
+    """Plan the rate-estimation sample: inclusion probabilities and the hand-off list."""
+    from bams_cli.core.estimate import DESIGNS, gp_estimate, inclusion_probabilities, plan_sample
+
+    if design not in DESIGNS:
+        raise WorkspaceError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
+    if alpha < 0 or not 0 <= defensive <= 1:
+        raise WorkspaceError(f"--alpha {alpha} must be >= 0 and --defensive {defensive} in [0, 1]")
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    model = ws.require_fresh_model()
+    ids, _, _, p_all = _read_scores(ws, len(settings.gammas))
+    # The largest gamma's p_n bounds every other gamma's (f <= g_small implies f <= g_large),
+    # so one sample planned on it serves every configured gamma.
+    g_plan = int(np.argmax(settings.gammas))
+    p = p_all[:, g_plan]
+    known = _observed_level0(ws, ids)
+    n = len(ids)
+    gp_rate, _ = gp_estimate(p)
+    if samples is None:
+        samples = max(1.0, round(5 * gp_rate * n))  # the paper's K = 5 p N, from the GP's own p
+    if design == "with-replacement":
+        samples = float(round(samples))
+    n_unknown = int((~known).sum())
+    if samples <= 0:
+        raise WorkspaceError(f"--samples {samples}: must be > 0")
+    number = (_plan_numbers(ws) or [0])[-1] + 1
+    rng = np.random.default_rng([settings.seed, 10_000 + number])
+    with np.errstate(divide="ignore"):
+        plan = plan_sample(
+            p,
+            K=min(samples, n_unknown) if design != "with-replacement" else samples,
+            rng=rng,
+            known=known,
+            alpha=alpha,
+            defensive=defensive,
+            design=design,  # type: ignore[arg-type]
+        )
+    from bams_cli.core.estimate import max_failure_weight, model_weight
+
+    # What the known stratum saved: the inclusion probability its segments would have had.
+    saved = 0.0
+    if known.any() and design != "with-replacement":
+        full = inclusion_probabilities(p, alpha=alpha, defensive=defensive, K=min(samples, n))
+        saved = float(full[known].sum())
+    # The interval's weight for an unseen failure, per gamma: where p_n puts failures.
+    prob_u = plan.q if design == "with-replacement" else plan.pi
+    w_model = [
+        model_weight(p_all[plan.unknown, g], prob_u, design=design, K=plan.budget)  # type: ignore[arg-type]
+        for g in range(len(settings.gammas))
+    ]
+    sampled_idx = plan.sampled_pool_index
+    known_idx = np.flatnonzero(known)
+    prob = plan.sampled_prob
+    table = pa.table(
+        {
+            SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]), pa.string()),
+            "stratum": ["sampled"] * len(sampled_idx) + ["known"] * len(known_idx),
+            "pi": np.concatenate([plan.pi[plan.sampled], np.ones(len(known_idx))]),
+            "draws": np.concatenate([plan.counts, np.zeros(len(known_idx), np.int64)]),
+            "q": np.concatenate([plan.q[plan.sampled], np.zeros(len(known_idx))]),
+            "prob": np.concatenate([prob, np.ones(len(known_idx))]),
+            "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
+        }
+    )
+    meta = {
+        "plan": number,
+        "design": design,
+        "samples": samples,
+        "alpha": alpha,
+        "defensive": defensive,
+        "n_pool": n,
+        "n_unknown": n_unknown,
+        "w_max": max_failure_weight(plan),
+        "w_model": w_model,
+        "plan_gamma": settings.gammas[g_plan],
+        "model_hash": model["observations_hash"],
+        "seed": settings.seed,
+    }
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    handoff = pl.DataFrame(
+        {SID: ids[sampled_idx].astype(str), "fidelity": np.zeros(len(sampled_idx), np.int64)}
+    )
+    handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        tx.write_parquet(path, schemas.PLAN.conform(table, meta))
+        tx.write_with(handoff_path, lambda f: handoff.write_csv(f))
+    return {
+        "plan": number,
+        "plan_file": str(path),
+        "handoff": str(handoff_path),
+        "design": design,
+        "samples_K": samples,
+        "to_simulate": len(sampled_idx),
+        "simulations_certain": int((plan.pi[plan.sampled] >= 1.0).sum()),
+        "known_stratum": int(len(known_idx)),
+        "simulations_saved_by_known_stratum": round(saved, 3),
+        "gp_rate_estimate": gp_rate,
+        "alpha": alpha,
+        "defensive": defensive,
+    }
+
+
+def estimate_compute(
+    root: Path,
+    *,
+    plan_number: int | None = None,
+    confidence: float = 0.9,
+    exact_variance: bool = False,
+    wait: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Compute the rate estimate from an ingested plan, for every configured gamma."""
+    from bams_cli.core.estimate import estimate_from_sample, gp_estimate
+
+    if not 0 < confidence < 1:
+        raise WorkspaceError(f"--confidence {confidence}: must lie in (0, 1), e.g. 0.9")
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    plans = _plan_numbers(ws)
+    if not plans:
+        raise WorkspaceError(
+            f"{ws.root}: no estimate plan; run `bams-cli estimate --plan -w {ws.root}` first"
+        )
+    number = plan_number or plans[-1]
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    if not path.exists():
+        raise WorkspaceError(f"{path}: no such plan (plans: {', '.join(map(str, plans))})")
+    meta = read_metadata_json(path)
+    plan = pl.from_arrow(schemas.PLAN.check(pq.read_table(path), path))
+    assert isinstance(plan, pl.DataFrame)
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
+    joined = plan.join(obs, on=SID, how="left")
+    missing = joined.filter(pl.col("value").is_null())
+    if missing.height:
+        names = ", ".join(missing[SID].head(3).to_list())
+        raise WorkspaceError(
+            f"{path}: {missing.height} planned segments have no level-0 result ({names}"
+            f"{', ...' if missing.height > 3 else ''}); simulate "
+            f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
+        )
+    gammas = np.asarray(settings.gammas)
+    sampled = joined.filter(pl.col("stratum") == "sampled")
+    known = joined.filter(pl.col("stratum") == "known")
+    fails = sampled["value"].to_numpy()[:, None] <= gammas[None, :]
+    known_fails = (known["value"].to_numpy()[:, None] <= gammas[None, :]).sum(axis=0)
+    est = estimate_from_sample(
+        sampled["prob"].to_numpy(),
+        fails,
+        design=meta["design"],
+        n_pool=int(meta["n_pool"]),
+        n_unknown=int(meta["n_unknown"]),
+        budget=float(meta["samples"]),
+        counts=sampled["draws"].to_numpy(),
+        known_failures=known_fails,
+        confidence=confidence,
+        w_model=np.asarray(meta["w_model"], dtype=np.float64),
+    )
+    rows = []
+    gp_rows = []
+    scores_fresh = True
+    try:
+        ws.require_fresh_model()
+    except BamsError:
+        scores_fresh = False
+    _, mu, sd, p_all = _read_scores(ws, len(gammas))
+    for g, gamma in enumerate(gammas):
+        e = est[g]
+        rows.append(
+            {
+                "gamma": float(gamma),
+                "p_hat": e.p_hat,
+                "se": e.se,
+                "ci_low": e.ci_low,
+                "ci_high": e.ci_high,
+                "confidence": confidence,
+                "rel_var": e.rel_var,
+                "n_sampled": e.n_sampled,
+                "failures_sampled": e.n_failures_sampled,
+                "failures_known": e.n_known_failures,
+                "distinct_failures_found": e.n_failures_found,
+            }
+        )
+        gp_mean, gp_bound = gp_estimate(p_all[:, g])
+        gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
+        if exact_variance:
+            gp_row["gp_var_exact"] = _gp_exact_variance(
+                ws, settings, mu, sd, float(gamma), progress
+            )
+        gp_rows.append(gp_row)
+    summary = {
+        "plan": number,
+        "design": meta["design"],
+        "samples_K": meta["samples"],
+        "estimates": rows,
+        "gp": gp_rows,
+        "gp_scores_fresh": scores_fresh,
+    }
+    out = ws.estimates_dir / f"estimate-{number:04d}.json"
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        tx.write_text(out, json.dumps(summary, indent=2) + "\n")
+    summary["estimate_file"] = str(out)
+    return summary
+
+
+def _gp_exact_variance(
+    ws: Workspace,
+    settings: Settings,
+    mu: np.ndarray,
+    sd: np.ndarray,
+    gamma: float,
+    progress: Progress | None,
+) -> float:
+    from bams_cli.core.estimate import gp_variance_exact
+
+    ids, X = ws.read_pool()
+    if len(ids) > 50_000:
+        raise WorkspaceError(
+            f"--exact-variance: the pool has {len(ids)} segments; the O(N^2) sum is limited to 50,000"
+        )
+    posterior, _ = load_posterior(ws, settings, ids, X)
+    res = gp_variance_exact(
+        mu,
+        sd**2,
+        lambda r, c: posterior.cov_theta0(X[r], X[c]),
+        gamma,
+        progress=(lambda done, total: progress("exact variance", done, total))
+        if progress
+        else None,
+    )
+    return float(res.var)
+
+
+def read_metadata_json(path: Path) -> dict[str, Any]:
+    """A state file's metadata with JSON values decoded (numbers, lists, dicts)."""
+    out: dict[str, Any] = {}
+    for key, value in read_metadata(path).items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            out[key] = value
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# report
+# ---------------------------------------------------------------------------------------
+def report(
+    root: Path,
+    *,
+    truth: Path | None = None,
+    n_diverse: int = 5,
+    max_points: int = 50_000,
+    wait: bool = False,
+) -> dict[str, Any]:
+    """Write report/report.html, summary.json and summary.md for the study."""
+    from sklearn.decomposition import PCA
+
+    from bams_cli import __version__
+    from bams_cli import report as rep
+    from bams_cli.core.evaluate import batch_mean_f, dpp_diverse, retention_recall
+
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    n = len(ids)
+    gammas = list(settings.gammas)
+    log = ws.read_observations(active_only=False)
+    active = log.filter(pl.col("active"))
+    costs = settings.costs
+
+    truth_f0 = None
+    if truth is not None:
+        tt = read_table(truth, what="truth")
+        require_columns(tt, [SID, "value_0"], truth)
+        tdf = pl.from_arrow(tt.select([SID, "value_0"]))
+        assert isinstance(tdf, pl.DataFrame)
+        tdf = tdf.with_columns(pl.col(SID).cast(pl.String))
+        aligned = pl.DataFrame({SID: ids}).join(tdf, on=SID, how="left", maintain_order="left")
+        if aligned["value_0"].null_count():
+            first = aligned.filter(pl.col("value_0").is_null())[SID][0]
+            raise InputError(truth, f"no ground truth for pool segment {first!r}", column=SID)
+        truth_f0 = aligned["value_0"].to_numpy()
+
+    per_level = {}
+    for lv in range(settings.n_levels):
+        count = int((log["fidelity"] == lv).sum())
+        per_level[str(lv)] = {"count": count, "cost": count * costs[lv]}
+    spent = {
+        "per_level": per_level,
+        "count": int(log.height),
+        "cost": float(sum(v["cost"] for v in per_level.values())),
+    }
+
+    model_doc = None
+    if ws.model_path.exists():
+        model_doc = ws.read_model()
+        model_doc["fresh"] = model_doc.get("observations_hash") == ws.observations_hash()
+
+    pos = {sid: i for i, sid in enumerate(ids)}
+    obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())
+    batch_rows, batch_picks, per_batch_f = [], [], []
+    for b in ws.batch_numbers():
+        df = ws.read_batch(b)
+        idx = np.array([pos[s] for s in df[SID].to_list() if s in pos], dtype=np.int64)
+        if truth_f0 is not None:
+            f0 = truth_f0[idx]
+        else:
+            f0 = np.array([obs0[s] for s in df[SID].to_list() if s in obs0])
+        per_batch_f.append(f0)
+        batch_picks.append((b, idx))
+        batch_rows.append(
+            {
+                "batch": b,
+                "strategy": df["strategy"][0] if df.height else "",
+                "picks": df.height,
+                "picks_per_level": {
+                    str(k): int(v)
+                    for k, v in df.group_by("fidelity").len().sort("fidelity").iter_rows()
+                },
+                "picks_per_cluster": {
+                    str(k): int(v)
+                    for k, v in df.group_by("cluster").len().sort("cluster").iter_rows()
+                },
+                "cost": float(df["cost"].sum()),
+                "n_f0": int(len(f0)),
+            }
+        )
+    if per_batch_f:
+        means, ses = batch_mean_f(per_batch_f)
+        for row, m, se in zip(batch_rows, means, ses, strict=True):
+            row["mean_f0"] = None if not np.isfinite(m) else float(m)
+            row["mean_f0_se"] = None if not np.isfinite(se) else float(se)
+
+    scores = None
+    if ws.scores_path.exists():
+        _, mu, sd, p_all = _read_scores(ws, len(gammas))
+        scores = (mu, sd, p_all)
+
+    estimates, gp_rows = [], []
+    plans = _plan_numbers(ws)
+    est_path = ws.estimates_dir / f"estimate-{plans[-1]:04d}.json" if plans else None
+    if est_path is not None and est_path.exists():
+        doc = json.loads(est_path.read_text())
+        estimates, gp_rows = doc["estimates"], doc["gp"]
+    elif scores is not None:
+        from bams_cli.core.estimate import gp_estimate
+
+        for g, gamma in enumerate(gammas):
+            m, bound = gp_estimate(scores[2][:, g])
+            gp_rows.append({"gamma": gamma, "gp_p_hat": m, "gp_var_bound": bound})
+
+    figures: dict[str, str] = {}
+    rng = np.random.default_rng(settings.seed)
+    diverse = []
+    if scores is not None:
+        p0 = scores[2][:, 0]
+        if X.shape[1] == 2:
+            XY, projected = X, False
+        else:
+            fit_rows = rng.choice(n, size=min(n, max_points), replace=False)
+            XY, projected = PCA(2).fit(X[fit_rows]).transform(X), True
+        show = np.sort(rng.choice(n, size=min(n, max_points), replace=False))
+        shown = np.zeros(n, bool)
+        shown[show] = True
+        for _, idx in batch_picks:
+            shown[idx] = True
+        keep = np.flatnonzero(shown)
+        remap = np.full(n, -1)
+        remap[keep] = np.arange(len(keep))
+        figures["pool_map"] = rep.pool_map(
+            XY[keep],
+            p0[keep],
+            [(b, remap[idx]) for b, idx in batch_picks],
+            projected=projected,
+            gamma=gammas[0],
+        )
+        top = np.argsort(-p0, kind="stable")[: min(n, 500)]
+        chosen = top[dpp_diverse(X[top], p0[top], min(n_diverse, len(top)))]
+        segs = ws.read_segments()
+        passthrough = [
+            c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)
+        ]
+        extra = (
+            segs.select(passthrough).take(pa.array(chosen)).to_pylist()
+            if passthrough
+            else [{}] * len(chosen)
+        )
+        for i, more in zip(chosen, extra, strict=True):
+            row = {SID: str(ids[i]), "p_n": float(p0[i]), "mu": float(scores[0][i])}
+            if str(ids[i]) in obs0:
+                row["observed_f0"] = float(obs0[str(ids[i])])
+            row.update({k: (round(v, 6) if isinstance(v, float) else v) for k, v in more.items()})
+            diverse.append(row)
+        keys = sorted({k for r in diverse for k in r}, key=lambda k: (k != SID, k))
+        diverse = [{k: r.get(k, "") for k in keys} for r in diverse]
+
+    truth_doc = None
+    if truth_f0 is not None:
+        fails = truth_f0[:, None] <= np.asarray(gammas)[None, :]
+        counts = fails.sum(axis=0)
+        est_recall: list[float | None] = [None] * len(gammas)
+        for g, e in enumerate(estimates):
+            if counts[g]:
+                est_recall[g] = e["distinct_failures_found"] / float(counts[g])
+        grid = np.linspace(0, 10, 101)
+        curves = {}
+        if counts[0]:
+            for snap in sorted(ws.history_dir.glob("scores-after-batch-*.parquet")):
+                batch = int(snap.stem.rsplit("-", 1)[1])
+                p_snap = pq.read_table(snap, columns=["p_0"]).column("p_0").to_numpy()
+                if len(p_snap) == n:
+                    curves[batch] = retention_recall(p_snap, fails[:, 0], grid)
+        if curves:
+            figures["recall"] = rep.recall_plot(curves, grid)
+        truth_doc = {
+            "rate": [float(c) / n for c in counts],
+            "failures": [int(c) for c in counts],
+            "estimate_recall": est_recall,
+            "retention_recall": {
+                str(b): {f"{r:g}": float(v) for r, v in zip(grid[::10], c[::10], strict=True)}
+                for b, c in curves.items()
+            },
+        }
+    if estimates:
+        figures["rate"] = rep.rate_plot(estimates, truth_doc["rate"] if truth_doc else None)
+
+    summary: dict[str, Any] = {
+        "tool_version": __version__,
+        "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "workspace": str(root),
+        "study": {**_settings_summary(settings), "pool_size": n, "dim": int(X.shape[1])},
+        "simulation_spent": spent,
+        "model": model_doc,
+        "batches": batch_rows,
+        "estimates": estimates,
+        "gp_estimate": gp_rows,
+        "diverse_failures": diverse,
+        "truth": truth_doc,
+        "figures": sorted(figures),
+    }
+    out = ws.report_dir
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        tx.write_text(out / "report.html", rep.render_html(summary, figures))
+        tx.write_text(out / "summary.json", json.dumps(summary, indent=2, default=str) + "\n")
+        tx.write_text(out / "summary.md", rep.render_markdown(summary))
+    return {
+        "report": str(out / "report.html"),
+        "summary_json": str(out / "summary.json"),
+        "summary_md": str(out / "summary.md"),
+        "figures": sorted(figures),
+        "estimates": [
+            {k: e[k] for k in ("gamma", "p_hat", "ci_low", "ci_high")} for e in estimates
+        ],
     }

@@ -4,13 +4,47 @@
 set -euo pipefail
 WS=${1:-demo}
 DATA=sample_data/toy2d
+TRUTH=$DATA/truth.parquet
 rm -rf "$WS"
-mkdir -p "$WS/results"
+mkdir -p "$WS"
+RES="$WS/results"
+mkdir -p "$RES"
 step() { printf '\n\033[1m$ %s\033[0m\n' "$*"; "$@"; }
 
 step bams-cli init -w "$WS" --settings-from "$DATA/settings.toml"
 step bams-cli embed-reduce -w "$WS" "$DATA/segments.parquet" --columns 'x*' --method identity --no-standardize
 
+# Batch 1: random, spread over both fidelities (no model yet).
+step bams-cli select -w "$WS" --strategy random --mixed-fidelity --budget 10
+for batch in 1 2 3; do
+  if [ "$batch" -gt 1 ]; then
+    step bams-cli select -w "$WS" --strategy bams --budget 5
+  fi
+  n=$(printf '%04d' "$batch")
+  # The simulation team's part, played here by the sample data's ground truth.
+  step bams-cli simulate "$WS/batches/batch-$n.parquet" --truth "$TRUTH" -o "$RES/results-$n.parquet"
+  step bams-cli ingest-results -w "$WS" "$RES/results-$n.parquet"
+  step bams-cli fit -w "$WS"
+done
+
+# Rate estimate: plan the importance sample (K = 200, about 2 p N as in the paper's
+# synthetic protocol), simulate it, compute.
+step bams-cli estimate -w "$WS" --plan --samples 200
+step bams-cli simulate "$WS/estimates/plan-0001-handoff.csv" --truth "$TRUTH" -o "$RES/estimate-0001.parquet"
+step bams-cli ingest-results -w "$WS" "$RES/estimate-0001.parquet"
+step bams-cli estimate -w "$WS"
+step bams-cli report -w "$WS" --truth "$TRUTH"
+
 echo
 echo "demo workspace: $WS/"
 ls -1 "$WS"
+python - "$WS" <<'PY'
+import json, sys
+ws = sys.argv[1]
+s = json.load(open(f"{ws}/report/summary.json"))
+for e in s["estimates"]:
+    print(f"failure rate at gamma {e['gamma']:g}: {e['p_hat']:.5f} "
+          f"({int(round(e['confidence'] * 100))}% interval {e['ci_low']:.5f} to {e['ci_high']:.5f}); "
+          f"true rate {s['truth']['rate'][0]:.5f}")
+print(f"report: {ws}/report/report.html  (summary: {ws}/report/summary.md, {ws}/report/summary.json)")
+PY

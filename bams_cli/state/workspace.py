@@ -78,6 +78,10 @@ class Workspace:
         return self.root / "estimates"
 
     @property
+    def history_dir(self) -> Path:
+        return self.root / "history"
+
+    @property
     def report_dir(self) -> Path:
         return self.root / "report"
 
@@ -173,11 +177,39 @@ class Workspace:
             )
         return pl.concat(frames)
 
+    def read_plan_picks(self) -> pl.DataFrame:
+        """Segments estimate plans sent to level-0 simulation: (segment_id, fidelity, plan)."""
+        frames = []
+        if self.estimates_dir.is_dir():
+            for p in sorted(self.estimates_dir.glob("plan-*.parquet")):
+                if not p.stem[5:].isdigit():
+                    continue
+                df = pl.from_arrow(pq.read_table(p, columns=[schemas.SEGMENT_ID, "stratum"]))
+                assert isinstance(df, pl.DataFrame)
+                frames.append(
+                    df.filter(pl.col("stratum") == "sampled").select(
+                        schemas.SEGMENT_ID,
+                        pl.lit(0, dtype=pl.Int64).alias("fidelity"),
+                        pl.lit(int(p.stem[5:]), dtype=pl.Int64).alias("plan"),
+                    )
+                )
+        if not frames:
+            return pl.DataFrame(
+                schema={schemas.SEGMENT_ID: pl.String, "fidelity": pl.Int64, "plan": pl.Int64}
+            )
+        return pl.concat(frames)
+
+    def selections(self) -> pl.DataFrame:
+        """Every selected (segment_id, fidelity) with the latest batch and plan that chose it."""
+        keys = [schemas.SEGMENT_ID, "fidelity"]
+        batches = self.read_batches().group_by(keys).agg(pl.col("batch").max())
+        plans = self.read_plan_picks().group_by(keys).agg(pl.col("plan").max())
+        return batches.join(plans, on=keys, how="full", coalesce=True)
+
     def pending(self) -> pl.DataFrame:
         """Selected (segment, fidelity) pairs with no active observation yet."""
-        picks = self.read_batches()
         obs = self.read_observations().select(schemas.SEGMENT_ID, "fidelity").unique()
-        return picks.join(obs, on=[schemas.SEGMENT_ID, "fidelity"], how="anti")
+        return self.selections().join(obs, on=[schemas.SEGMENT_ID, "fidelity"], how="anti")
 
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:

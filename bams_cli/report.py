@@ -1,0 +1,383 @@
+"""The study report: one self-contained HTML file, summary.json and summary.md.
+
+Figures are matplotlib PNGs embedded as data URIs, so the HTML opens anywhere without the
+workspace beside it. Every number in the report is in summary.json (documented in the
+README), so CI can read what a person sees.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+
+SUMMARY_KEYS = (
+    "tool_version",
+    "generated_at",
+    "workspace",
+    "study",
+    "simulation_spent",
+    "model",
+    "batches",
+    "estimates",
+    "gp_estimate",
+    "diverse_failures",
+    "truth",
+    "figures",
+)
+
+# An image that fails to decode leaves naturalWidth at 0; the page records the count in
+# its title so a headless browser (and the test that drives it) can read it back.
+IMAGE_CHECK = """<script>
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.slice.call(document.images);
+  var bad = imgs.filter(function (i) { return !(i.complete && i.naturalWidth > 0); });
+  document.title = 'images-ok ' + (imgs.length - bad.length) + '/' + imgs.length;
+});
+</script>"""
+
+CSS = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
+h1 { margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #ddd; padding-bottom: 0.2em; }
+table { border-collapse: collapse; margin: 0.8em 0; }
+td, th { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f3f3f3; } td.l, th.l { text-align: left; }
+img { max-width: 100%; border: 1px solid #eee; }
+.note { color: #666; font-size: 0.9em; }
+"""
+
+
+def _png(fig: plt.Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def pool_map(
+    XY: NDArray[np.float64],
+    p: NDArray[np.float64],
+    picks: list[tuple[int, NDArray[np.int64]]],
+    *,
+    projected: bool,
+    gamma: float,
+) -> str:
+    """The pool coloured by p_n with each batch's picks marked (paper Figure 2c)."""
+    fig, ax = plt.subplots(figsize=(7, 6))
+    order = np.argsort(p)  # likely failures drawn last, on top
+    sc = ax.scatter(
+        XY[order, 0], XY[order, 1], c=p[order], s=3, cmap="viridis", vmin=0, vmax=1, rasterized=True
+    )
+    fig.colorbar(sc, ax=ax, label=f"p_n = P(f <= {gamma:g})")
+    markers = ["o", "s", "^", "D", "v", "P", "X", "*"]
+    for k, (batch, idx) in enumerate(picks):
+        ax.scatter(
+            XY[idx, 0],
+            XY[idx, 1],
+            s=36,
+            facecolors="none",
+            edgecolors=f"C{(k + 1) % 10}",
+            marker=markers[k % len(markers)],
+            linewidths=1.2,
+            label=f"batch {batch} ({len(idx)})",
+        )
+    ax.set_xlabel("projection 1 (PCA of the reduced pool)" if projected else "z0")
+    ax.set_ylabel("projection 2" if projected else "z1")
+    ax.set_title("pool coloured by failure probability, picks marked")
+    if picks:
+        ax.legend(loc="best", fontsize=8)
+    return _png(fig)
+
+
+def rate_plot(estimates: list[dict[str, Any]], truth_rates: list[float] | None) -> str:
+    """The rate estimate with its interval for each gamma (paper Figure 4)."""
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    x = np.arange(len(estimates))
+    p = np.array([e["p_hat"] for e in estimates])
+    lo = np.array([e["ci_low"] for e in estimates])
+    hi = np.array([e["ci_high"] for e in estimates])
+    ax.errorbar(x, p, yerr=[p - lo, hi - p], fmt="o", capsize=6, label="IS estimate and interval")
+    if truth_rates is not None:
+        ax.scatter(
+            x, truth_rates, marker="x", color="C3", s=60, zorder=3, label="true rate (ground truth)"
+        )
+    ax.set_xticks(x, [f"gamma = {e['gamma']:g}" for e in estimates])
+    ax.set_ylabel("failure rate")
+    ax.set_xlabel("failure threshold")
+    ax.set_title(f"failure-rate estimate, {int(round(estimates[0]['confidence'] * 100))}% interval")
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def recall_plot(curves: dict[int, NDArray[np.float64]], grid: NDArray[np.float64]) -> str:
+    """Retention-recall after each batch (paper Figures 5 and 7)."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for batch, recall in sorted(curves.items()):
+        ax.plot(grid, recall, label=f"after batch {batch}")
+    ax.set_xlabel("retention (units of p N, the number of failures)")
+    ax.set_ylabel("recall of true failures")
+    ax.set_ylim(0, 1.02)
+    ax.set_title("retention-recall: segments sorted by p_n")
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def _table(columns: list[str], rows: list[list[Any]], left: set[str] | None = None) -> str:
+    left = left or set()
+    head = "".join(f'<th class="{"l" if c in left else ""}">{html.escape(c)}</th>' for c in columns)
+    body = []
+    for row in rows:
+        cells = []
+        for c, v in zip(columns, row, strict=True):
+            text = f"{v:.4g}" if isinstance(v, float) else str(v)
+            cells.append(f'<td class="{"l" if c in left else ""}">{html.escape(text)}</td>')
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def _img(b64: str, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
+
+
+def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
+    s = summary
+    study = s["study"]
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>bams-cli report</title>",
+        f"<style>{CSS}</style>{IMAGE_CHECK}</head><body>",
+        "<h1>bams-cli study report</h1>",
+        f"<p class='note'>workspace {html.escape(s['workspace'])}, generated {s['generated_at']} "
+        f"by bams-cli {s['tool_version']}</p>",
+        "<h2>Study</h2>",
+        _table(
+            ["setting", "value"],
+            [
+                ["pool size", study["pool_size"]],
+                ["reduced dimension", study["dim"]],
+                ["gammas", ", ".join(f"{g:g}" for g in study["gammas"])],
+                [
+                    "levels (cost)",
+                    ", ".join(f"{lv['name']} ({lv['cost']:g})" for lv in study["levels"]),
+                ],
+                ["seed", study["seed"]],
+                ["batches", len(s["batches"])],
+            ],
+            left={"setting", "value"},
+        ),
+        "<h3>Simulation spent</h3>",
+        _table(
+            ["level", "simulations", "cost"],
+            [[lv, v["count"], v["cost"]] for lv, v in s["simulation_spent"]["per_level"].items()]
+            + [["total", s["simulation_spent"]["count"], s["simulation_spent"]["cost"]]],
+            left={"level"},
+        ),
+    ]
+    model = s.get("model")
+    if model:
+        hp = model["hyperparameters"]
+        rows = [
+            [
+                "0 (theta0)",
+                model["n_observations_per_level"][0],
+                hp["outputscale0"] ** 0.5,
+                ", ".join(f"{v:.3g}" for v in hp["lengthscales0"]),
+                hp["noise"][0] ** 0.5,
+            ]
+        ]
+        for lv, (sc, ells) in enumerate(
+            zip(hp["outputscales"], hp["lengthscales"], strict=True), 1
+        ):
+            rows.append(
+                [
+                    f"{lv} (discrepancy)",
+                    model["n_observations_per_level"][lv],
+                    sc**0.5,
+                    ", ".join(f"{v:.3g}" for v in ells),
+                    hp["noise"][lv] ** 0.5,
+                ]
+            )
+        parts += [
+            "<h3>Model</h3>",
+            _table(
+                ["level", "observations", "output sd", "lengthscales", "noise sd"],
+                rows,
+                left={"level", "lengthscales"},
+            ),
+            f"<p class='note'>constant mean {hp['mean']:.4g}; log marginal likelihood "
+            f"{model['log_marginal_likelihood']:.4g}; model {'up to date' if model['fresh'] else 'STALE: run bams-cli fit'}</p>",
+        ]
+    parts.append("<h2>Batches</h2>")
+    if s["batches"]:
+        parts.append(
+            _table(
+                [
+                    "batch",
+                    "strategy",
+                    "picks",
+                    "per level",
+                    "per cluster",
+                    "cost",
+                    "mean level-0 f of picks",
+                    "SE",
+                    "n",
+                ],
+                [
+                    [
+                        b["batch"],
+                        b["strategy"],
+                        b["picks"],
+                        _fmt_counts(b["picks_per_level"]),
+                        _fmt_counts(b["picks_per_cluster"]),
+                        b["cost"],
+                        _maybe(b["mean_f0"]),
+                        _maybe(b["mean_f0_se"]),
+                        b["n_f0"],
+                    ]
+                    for b in s["batches"]
+                ],
+                left={"strategy", "per level", "per cluster"},
+            )
+        )
+        parts.append(
+            "<p class='note'>Mean level-0 f over the picks whose level-0 value is known "
+            f"({'from the ground truth table' if s['truth'] else 'from the observation log'}); "
+            "the paper's Table 1.</p>"
+        )
+    if "pool_map" in figures:
+        parts += ["<h2>Pool map</h2>", _img(figures["pool_map"], "pool coloured by p_n with picks")]
+    parts.append("<h2>Failure-rate estimate</h2>")
+    if s["estimates"]:
+        parts.append(
+            _table(
+                [
+                    "gamma",
+                    "p_hat",
+                    "se",
+                    "interval",
+                    "relative variance",
+                    "sampled",
+                    "failures found",
+                ],
+                [
+                    [
+                        e["gamma"],
+                        e["p_hat"],
+                        e["se"],
+                        f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
+                        e["rel_var"],
+                        e["n_sampled"],
+                        e["distinct_failures_found"],
+                    ]
+                    for e in s["estimates"]
+                ],
+            )
+        )
+        if "rate" in figures:
+            parts.append(_img(figures["rate"], "rate estimate with interval"))
+    else:
+        parts.append(
+            "<p>No estimate yet: run <code>bams-cli estimate --plan</code>, simulate, ingest, "
+            "then <code>bams-cli estimate</code>.</p>"
+        )
+    if s["gp_estimate"]:
+        parts.append(
+            _table(
+                ["gamma", "GP mean p_n", "Var bound mean p(1-p)"],
+                [[g["gamma"], g["gp_p_hat"], g["gp_var_bound"]] for g in s["gp_estimate"]],
+            )
+        )
+    parts.append("<h2>Diverse likely failures</h2>")
+    if s["diverse_failures"]:
+        cols = list(s["diverse_failures"][0].keys())
+        parts.append(
+            _table(cols, [[r[c] for c in cols] for r in s["diverse_failures"]], left={"segment_id"})
+        )
+        parts.append(
+            "<p class='note'>Chosen by a determinantal point process (greedy MAP) over the "
+            "highest-p_n segments: likely and unlike each other.</p>"
+        )
+    truth = s.get("truth")
+    if truth:
+        parts.append("<h2>Against ground truth</h2>")
+        parts.append(
+            _table(
+                ["gamma", "true rate", "true failures", "estimate recall"],
+                [
+                    [g, r, f, _maybe(er)]
+                    for g, r, f, er in zip(
+                        study["gammas"],
+                        truth["rate"],
+                        truth["failures"],
+                        truth["estimate_recall"],
+                        strict=True,
+                    )
+                ],
+            )
+        )
+        if "recall" in figures:
+            parts.append(_img(figures["recall"], "retention-recall per batch"))
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _maybe(v: Any) -> Any:
+    return "" if v is None else v
+
+
+def _fmt_counts(d: dict[str, int]) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in d.items())
+
+
+def render_markdown(summary: dict[str, Any]) -> str:
+    s = summary
+    lines = [f"## bams-cli report ({s['workspace']})", ""]
+    spent = s["simulation_spent"]
+    lines.append(
+        f"Pool of {s['study']['pool_size']} segments; {len(s['batches'])} batches; "
+        f"{spent['count']} simulations costing {spent['cost']:g} level-0 runs."
+    )
+    lines.append("")
+    if s["estimates"]:
+        lines += [
+            "| gamma | p_hat | se | interval | rel. variance | failures found |",
+            "|---|---|---|---|---|---|",
+        ]
+        for e in s["estimates"]:
+            lines.append(
+                f"| {e['gamma']:g} | {e['p_hat']:.4g} | {e['se']:.3g} | [{e['ci_low']:.4g}, {e['ci_high']:.4g}] "
+                f"| {e['rel_var']:.3g} | {e['distinct_failures_found']} |"
+            )
+        lines.append("")
+    if s["batches"]:
+        lines += [
+            "| batch | strategy | picks | cost | mean level-0 f (SE) |",
+            "|---|---|---|---|---|",
+        ]
+        for b in s["batches"]:
+            mf = (
+                ""
+                if b["mean_f0"] is None
+                else f"{b['mean_f0']:.3g} ({_maybe(b['mean_f0_se']) if b['mean_f0_se'] is None else format(b['mean_f0_se'], '.2g')})"
+            )
+            lines.append(
+                f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} |"
+            )
+        lines.append("")
+    if s.get("truth"):
+        t = s["truth"]
+        lines.append(
+            "True rate "
+            + ", ".join(f"{r:.4g}" for r in t["rate"])
+            + "; estimate recall "
+            + ", ".join("" if r is None else f"{r:.3f}" for r in t["estimate_recall"])
+            + "."
+        )
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,105 @@
+"""fit: the model file, the scores, fixed hyperparameters, stale-state detection."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from scipy.special import ndtr
+
+from bams_cli.state.io import read_metadata
+from bams_cli.state.workspace import Workspace
+from tests.conftest import invoke, tree_hash, write_batch
+
+
+@pytest.fixture
+def fitted_ws(toy_ws, runner, toy_files, tmp_path):
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(0, 400, 20)]
+    levels = [0] * 8 + [1] * 12
+    write_batch(toy_ws, 1, ids, levels)
+    res = tmp_path / "r1.parquet"
+    assert (
+        invoke(
+            runner,
+            "simulate",
+            toy_ws / "batches" / "batch-0001.parquet",
+            "--truth",
+            truth,
+            "-o",
+            res,
+        ).exit_code
+        == 0
+    )
+    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
+    r = invoke(runner, "fit", "-w", toy_ws, "--restarts", "2", "--json")
+    assert r.exit_code == 0, r.output
+    return toy_ws
+
+
+def test_fit_writes_model_and_scores(fitted_ws):
+    ws = Workspace(fitted_ws)
+    model = json.loads(ws.model_path.read_text())
+    hp = model["hyperparameters"]
+    assert len(hp["lengthscales0"]) == 2 and len(hp["noise"]) == 2
+    assert model["n_observations_per_level"] == [8, 12]
+    assert model["observations_hash"] == ws.observations_hash()
+    assert np.isfinite(model["log_marginal_likelihood"]) and np.isfinite(model["log_posterior"])
+    scores = pq.read_table(ws.scores_path)
+    mu = scores.column("mu").to_numpy()
+    sd = scores.column("sd").to_numpy()
+    p = scores.column("p_0").to_numpy()
+    assert scores.num_rows == 400
+    np.testing.assert_allclose(p, ndtr((0.56 - mu) / sd), rtol=1e-12, atol=1e-300)
+    assert read_metadata(ws.scores_path)["observations_hash"] == ws.observations_hash()
+
+
+def test_fixed_hyperparameters_reproduce_the_model(fitted_ws, runner, tmp_path):
+    ws = Workspace(fitted_ws)
+    saved = tmp_path / "model.json"
+    saved.write_text(ws.model_path.read_text())
+    before = pq.read_table(ws.scores_path).column("mu").to_numpy()
+    r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", saved, "--json")
+    assert r.exit_code == 0, r.output
+    after = pq.read_table(ws.scores_path).column("mu").to_numpy()
+    np.testing.assert_allclose(after, before, rtol=1e-10)
+    assert json.loads(ws.model_path.read_text())["trained"] is False
+
+
+def test_bad_fixed_hyperparameters(fitted_ws, runner, tmp_path):
+    bad = tmp_path / "hp.json"
+    bad.write_text(json.dumps({"mean": 0}))
+    before = tree_hash(fitted_ws)
+    r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", bad)
+    assert r.exit_code == 1 and "hp.json: not a hyperparameter file" in r.stderr
+    assert tree_hash(fitted_ws) == before
+
+
+def test_fit_without_observations_names_the_next_step(toy_ws, runner):
+    r = invoke(runner, "fit", "-w", toy_ws)
+    assert (
+        r.exit_code == 1 and "no observations yet" in r.stderr and "--strategy random" in r.stderr
+    )
+
+
+def test_model_is_stale_after_new_results(fitted_ws, runner, toy_files, tmp_path):
+    _, truth = toy_files
+    write_batch(fitted_ws, 2, ["t000001"], [0])
+    res = tmp_path / "r2.parquet"
+    invoke(
+        runner,
+        "simulate",
+        fitted_ws / "batches" / "batch-0002.parquet",
+        "--truth",
+        truth,
+        "-o",
+        res,
+    )
+    assert invoke(runner, "ingest-results", "-w", fitted_ws, res).exit_code == 0
+    r = invoke(
+        runner, "select", "-w", fitted_ws, "--budget", "2", "--clusters", "1", "--workers", "1"
+    )
+    assert r.exit_code == 1
+    assert "fitted on an older observation log" in r.stderr and "bams-cli fit" in r.stderr

@@ -1,0 +1,248 @@
+"""The whole loop through the CLI on a small toy2d pool, and the report in a real browser."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import tempfile
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from bams_cli.report import SUMMARY_KEYS
+from bams_cli.state.io import read_metadata
+from bams_cli.state.workspace import Workspace
+from tests.conftest import invoke, tree_hash, write_toy
+
+
+def _ok(runner, *args):
+    r = invoke(runner, *args)
+    assert r.exit_code == 0, f"{args}: {r.output}"
+    return r
+
+
+@pytest.fixture(scope="module")
+def loop_ws(tmp_path_factory):
+    """A study after a random batch, two BAMS batches and one estimate (module-scoped: slow-ish)."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    tmp = tmp_path_factory.mktemp("loop")
+    seg, truth = write_toy(tmp / "data", n=1500, seed=4)
+    ws = tmp / "ws"
+    _ok(
+        runner,
+        "init",
+        "-w",
+        ws,
+        "--gamma",
+        "0.56,1.0",
+        "--costs",
+        "1,0.1",
+        "--dim",
+        "2",
+        "--seed",
+        "3",
+    )
+    _ok(
+        runner,
+        "embed-reduce",
+        "-w",
+        ws,
+        seg,
+        "--columns",
+        "x*",
+        "--method",
+        "identity",
+        "--no-standardize",
+    )
+    _ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "8")
+    for b in (1, 2, 3):
+        if b > 1:
+            _ok(runner, "select", "-w", ws, "--budget", "3", "--clusters", "2", "--workers", "1")
+        res = tmp / f"r{b}.parquet"
+        _ok(
+            runner,
+            "simulate",
+            ws / "batches" / f"batch-{b:04d}.parquet",
+            "--truth",
+            truth,
+            "-o",
+            res,
+        )
+        _ok(runner, "ingest-results", "-w", ws, res)
+        _ok(runner, "fit", "-w", ws, "--restarts", "2")
+    _ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60")
+    res = tmp / "est.parquet"
+    _ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
+    _ok(runner, "ingest-results", "-w", ws, res)
+    _ok(runner, "estimate", "-w", ws)
+    _ok(runner, "report", "-w", ws, "--truth", truth)
+    return ws, truth
+
+
+def test_batches_respect_budget_and_record_options(loop_ws):
+    ws, _ = loop_ws
+    w = Workspace(ws)
+    assert w.batch_numbers() == [1, 2, 3]
+    b1 = w.read_batch(1)
+    assert b1["cost"].sum() <= 8 + 1e-12 and set(b1["fidelity"]) == {0, 1}
+    for b in (2, 3):
+        df = w.read_batch(b)
+        assert df["cost"].sum() <= 3 + 1e-12
+        assert (df["strategy"] == "bams").all() and df["delta_j"].is_not_nan().all()
+        meta = read_metadata(ws / "batches" / f"batch-{b:04d}.parquet")
+        assert json.loads(meta["options"])["budget"] == 3 and meta["model_hash"]
+        assert (ws / "batches" / f"batch-{b:04d}.csv").exists()
+    # no level-0 pair is picked twice across batches
+    picks = w.read_batches().filter(w.read_batches()["fidelity"] == 0)
+    assert picks["segment_id"].is_unique().all()
+
+
+def test_estimate_is_consistent_with_the_plan(loop_ws):
+    ws, truth = loop_ws
+    doc = json.loads((ws / "estimates" / "estimate-0001.json").read_text())
+    plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
+    sampled = [r for r in plan if r["stratum"] == "sampled"]
+    t = {r["segment_id"]: r["value_0"] for r in pq.read_table(truth).to_pylist()}
+    for g, est in zip((0.56, 1.0), doc["estimates"], strict=True):
+        known_f = sum(t[r["segment_id"]] <= g for r in plan if r["stratum"] == "known")
+        ht = sum(1 / r["pi"] for r in sampled if t[r["segment_id"]] <= g)
+        assert est["p_hat"] == pytest.approx((known_f + ht) / 1500, rel=1e-12)
+        assert est["ci_low"] <= est["p_hat"] <= est["ci_high"]
+    # one sample serves both gammas: the larger gamma finds at least as many failures
+    assert (
+        doc["estimates"][1]["distinct_failures_found"]
+        >= doc["estimates"][0]["distinct_failures_found"]
+    )
+
+
+def test_summary_json_has_its_documented_keys(loop_ws):
+    ws, _ = loop_ws
+    summary = json.loads((ws / "report" / "summary.json").read_text())
+    assert tuple(summary) == SUMMARY_KEYS
+    assert set(summary["figures"]) == {"pool_map", "rate", "recall"}
+    assert [b["batch"] for b in summary["batches"]] == [1, 2, 3]
+    assert summary["truth"]["failures"][0] == round(summary["truth"]["rate"][0] * 1500)
+    assert len(summary["diverse_failures"]) == 5
+    md = (ws / "report" / "summary.md").read_text()
+    assert "| gamma | p_hat |" in md
+
+
+def _chromium() -> str:
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    assert path, (
+        "the report test needs Debian's chromium: `apt-get install chromium` (.ci/run installs it)"
+    )
+    return path
+
+
+def test_report_renders_in_headless_chromium_with_every_image(loop_ws):
+    ws, _ = loop_ws
+    html = ws / "report" / "report.html"
+    flags = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+    ]
+    with tempfile.TemporaryDirectory() as profile:
+        dom = subprocess.run(
+            [
+                _chromium(),
+                *flags,
+                f"--user-data-dir={profile}",
+                "--virtual-time-budget=5000",
+                "--dump-dom",
+                html.as_uri(),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        ).stdout
+    n_img = dom.count("<img ")
+    assert n_img == 3
+    assert f"<title>images-ok {n_img}/{n_img}</title>" in dom
+    with tempfile.TemporaryDirectory() as profile:
+        shot = ws / "report" / "screenshot.png"
+        subprocess.run(
+            [
+                _chromium(),
+                *flags,
+                f"--user-data-dir={profile}",
+                "--window-size=1200,3000",
+                f"--screenshot={shot}",
+                html.as_uri(),
+            ],
+            capture_output=True,
+            timeout=120,
+        )
+    assert shot.stat().st_size > 50_000  # a page with three plots, not a blank one
+
+
+def test_pending_batch_blocks_select(loop_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    runner = CliRunner()
+    _ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
+    before = tree_hash(copy)
+    r = invoke(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
+    assert r.exit_code == 1 and "have no results yet" in r.stderr and "--allow-pending" in r.stderr
+    assert tree_hash(copy) == before
+    _ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2", "--allow-pending")
+
+
+def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    runner = CliRunner()
+    _ok(runner, "fit", "-w", copy, "--restarts", "1")
+    _ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40")
+    before = tree_hash(copy)
+    r = invoke(runner, "estimate", "-w", copy)
+    assert r.exit_code == 1 and "planned segments have no level-0 result" in r.stderr
+    assert tree_hash(copy) == before
+
+
+@pytest.mark.parametrize("strategy", ["mc-gp", "mcm-gp", "ce", "bas"])
+def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    runner = CliRunner()
+    _ok(runner, "fit", "-w", copy, "--restarts", "1")
+    r = _ok(
+        runner,
+        "select",
+        "-w",
+        copy,
+        "--strategy",
+        strategy,
+        "--budget",
+        "2",
+        "--clusters",
+        "2",
+        "--workers",
+        "1",
+        "--json",
+    )
+    summary = json.loads(r.stdout)
+    assert summary["total_cost"] <= 2 + 1e-12 and summary["picks"] >= 1
+    df = Workspace(copy).read_batch(summary["batch"])
+    if strategy in ("bas", "mc-gp", "ce"):
+        assert set(df["fidelity"]) == {0}
+    assert np.all(df["strategy"].to_numpy() == strategy)
