@@ -23,7 +23,6 @@ import pyarrow.parquet as pq
 
 from bams_cli.core.reduce import Reducer, fit_reducer
 from bams_cli.errors import (
-    BamsError,
     ConflictError,
     DuplicateError,
     InputError,
@@ -297,10 +296,10 @@ def embed_reduce(
                 f"or --force to refit the reducer (coordinates change; refit the model after)"
             )
         dim = dim or settings.embedding_dim
-        sample = None
-        if method == "autoencoder" or n <= 200_000:
-            take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
-            sample = np.vstack(list(stream()))[take] if n <= 200_000 else _sample_rows(stream, take)
+        # A random sample of rows (streamed, never the whole pool) trains the autoencoder
+        # and measures reconstruction error.
+        take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
+        sample = _sample_rows(stream, take)
         try:
             reducer = fit_reducer(
                 stream,
@@ -1145,11 +1144,9 @@ def estimate_compute(
     )
     rows = []
     gp_rows = []
-    scores_fresh = True
-    try:
-        ws.require_fresh_model()
-    except BamsError:
-        scores_fresh = False
+    # The GP's own estimate sits beside the IS one, so it must describe the current log
+    # (which now includes the plan's results): refuse a stale model by name.
+    ws.require_fresh_model()
     _, mu, sd, p_all = _read_scores(ws, len(gammas))
     for g, gamma in enumerate(gammas):
         e = est[g]
@@ -1181,7 +1178,6 @@ def estimate_compute(
         "samples_K": meta["samples"],
         "estimates": rows,
         "gp": gp_rows,
-        "gp_scores_fresh": scores_fresh,
     }
     out = ws.estimates_dir / f"estimate-{number:04d}.json"
     with workspace_lock(root, wait=wait), transaction() as tx:
@@ -1281,8 +1277,8 @@ def report(
 
     model_doc = None
     if ws.model_path.exists():
-        model_doc = ws.read_model()
-        model_doc["fresh"] = model_doc.get("observations_hash") == ws.observations_hash()
+        model_doc = ws.require_fresh_model()
+        model_doc["fresh"] = True
 
     pos = {sid: i for i, sid in enumerate(ids)}
     obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())

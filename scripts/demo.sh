@@ -32,6 +32,7 @@ done
 step bams-cli estimate -w "$WS" --plan --samples 200
 step bams-cli simulate "$WS/estimates/plan-0001-handoff.csv" --truth "$TRUTH" -o "$RES/estimate-0001.parquet"
 step bams-cli ingest-results -w "$WS" "$RES/estimate-0001.parquet"
+step bams-cli fit -w "$WS"
 step bams-cli estimate -w "$WS"
 step bams-cli report -w "$WS" --truth "$TRUTH"
 

@@ -78,7 +78,10 @@ def loop_ws(tmp_path_factory):
     res = tmp / "est.parquet"
     _ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
     _ok(runner, "ingest-results", "-w", ws, res)
-    _ok(runner, "estimate", "-w", ws)
+    r = invoke(runner, "estimate", "-w", ws)
+    assert r.exit_code == 1 and "fitted on an older observation log" in r.stderr
+    _ok(runner, "fit", "-w", ws, "--restarts", "2")
+    _ok(runner, "estimate", "-w", ws, "--exact-variance")
     _ok(runner, "report", "-w", ws, "--truth", truth)
     return ws, truth
 
@@ -112,6 +115,9 @@ def test_estimate_is_consistent_with_the_plan(loop_ws):
         ht = sum(1 / r["pi"] for r in sampled if t[r["segment_id"]] <= g)
         assert est["p_hat"] == pytest.approx((known_f + ht) / 1500, rel=1e-12)
         assert est["ci_low"] <= est["p_hat"] <= est["ci_high"]
+    # the GP's exact variance lies below its Proposition-1 bound
+    for g in doc["gp"]:
+        assert 0 <= g["gp_var_exact"] <= g["gp_var_bound"] + 1e-15
     # one sample serves both gammas: the larger gamma finds at least as many failures
     assert (
         doc["estimates"][1]["distinct_failures_found"]
