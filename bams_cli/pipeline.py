@@ -303,7 +303,7 @@ def embed_reduce(
         try:
             reducer = fit_reducer(
                 stream,
-                method=method,
+                method=method,  # type: ignore[arg-type]  # checked by the CLI
                 dim=dim,
                 standardize=standardize,
                 sample=sample,
@@ -371,7 +371,7 @@ def embed_reduce(
 
 def _savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
     with open(path, "wb") as fh:
-        np.savez(fh, **arrays)
+        np.savez(fh, **arrays)  # type: ignore[arg-type]
 
 
 def _sample_rows(stream: _EmbeddingStream, take: np.ndarray) -> np.ndarray:
@@ -734,8 +734,9 @@ def fit(
         cols[f"p_{g}"] = p[:, g]
     meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
     # A snapshot of p_n after every batch feeds the report's per-batch retention-recall.
-    last_batch = ws.read_observations()["batch"].drop_nulls().max()
-    snapshot = ws.history_dir / f"scores-after-batch-{int(last_batch or 0):04d}.parquet"
+    batches_seen = ws.read_observations()["batch"].drop_nulls()
+    last_batch = int(batches_seen.max()) if batches_seen.len() else 0  # type: ignore[arg-type]
+    snapshot = ws.history_dir / f"scores-after-batch-{last_batch:04d}.parquet"
     history = pa.table({f"p_{g}": p[:, g] for g in range(p.shape[1])})
     with workspace_lock(root, wait=wait), transaction() as tx:
         tx.write_text(ws.model_path, json.dumps(doc, indent=2) + "\n")
@@ -823,7 +824,7 @@ def select(
                 posterior,
                 X,
                 gamma=settings.gammas[0],
-                costs=costs,
+                costs=list(settings.costs),
                 budget=budget,
                 n_clusters=clusters,
                 overbudget=overbudget,
@@ -850,7 +851,7 @@ def select(
         if strategy in ("random", "mc-gp", "mcm-gp"):
             index, level = baselines.pick_uniform(
                 len(ids),
-                costs,
+                list(settings.costs),
                 budget,
                 rng=rng,
                 mixed=multi and n_rest > 0,
@@ -873,14 +874,14 @@ def select(
                     ws.segments_path, "difficulty must be finite", column=difficulty_column, row=row
                 )
             index, level = baselines.pick_difficulty(
-                difficulty, costs, budget, rng=rng, observed_level0_mask=exclude
+                difficulty, list(settings.costs), budget, rng=rng, observed_level0_mask=exclude
             )
         else:  # ce
             obs = ws.read_observations().filter(pl.col("fidelity") == 0)
             pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
             o = obs.join(pos, on=SID).select("_i", "value")
             index, level = baselines.pick_cross_entropy(
-                X, o["_i"].to_numpy(), o["value"].to_numpy(), costs, budget, rng=rng
+                X, o["_i"].to_numpy(), o["value"].to_numpy(), list(settings.costs), budget, rng=rng
             )
         picks = {
             "index": np.asarray(index, np.int64),
@@ -1406,7 +1407,8 @@ def report(
             },
         }
     if estimates:
-        figures["rate"] = rep.rate_plot(estimates, truth_doc["rate"] if truth_doc else None)
+        truth_rates = list(truth_doc["rate"]) if truth_doc else None  # type: ignore[call-overload]
+        figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
     summary: dict[str, Any] = {
         "tool_version": __version__,
