@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO := demo
 
-.PHONY: setup demo test test-slow lint bench clean
+.PHONY: setup demo test test-slow lint bench reproduce reproduce-quick clean
 
 setup: $(STAMP)
 
@@ -33,6 +33,15 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy bams_cli
+
+# The paper's experiments through the same code a user runs (docs/reproduction/).
+reproduce: $(STAMP)
+	$(BIN)/bams-cli benchmark --protocol toy2d --seeds 10 --out docs/reproduction
+	$(BIN)/bams-cli benchmark --protocol av_like --seeds 10 --out docs/reproduction/av_like
+
+# Three seeds of the synthetic protocol, written outside docs/ (part of CI).
+reproduce-quick: $(STAMP)
+	$(BIN)/bams-cli benchmark --protocol toy2d --quick --out build/reproduction-quick
 
 bench: $(STAMP)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

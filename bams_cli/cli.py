@@ -7,6 +7,8 @@ one boundary, ``main``, and printed as one line with exit code 1.
 from __future__ import annotations
 
 import functools
+import shlex
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
@@ -75,11 +77,12 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     if text is None:
         return None
     try:
-        return [float(part) for part in text.split(",") if part.strip()]
+        values = [float(part) for part in text.split(",") if part.strip()]
     except ValueError:
-        raise BamsError(
-            f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1"
-        ) from None
+        values = []
+    if not values:
+        raise BamsError(f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1")
+    return values
 
 
 def _show(summary: dict[str, Any], json_out: bool, title: str) -> None:
@@ -252,7 +255,7 @@ def ingest_results(
     if json_out:
         console.print_json(summary)
         return
-    if summary.get("already_ingested"):
+    if "message" in summary:
         console.note(summary["message"])
     else:
         pend = summary.pop("pending")
@@ -471,7 +474,9 @@ def estimate(
     Phase 1 (--plan) draws the sample and writes a hand-off list; once its results are
     ingested, phase 2 (no --plan) computes the estimate for every configured gamma.
 
-    [bold]Example[/]: bams-cli estimate -w study --plan  (simulate, ingest-results)  bams-cli estimate -w study
+    [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
+
+    then simulate the hand-off list, ingest the results, and: bams-cli estimate -w study
     """
     if plan:
         summary = pipeline.estimate_plan(
@@ -535,6 +540,80 @@ def report(
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
     _show(summary, json_out, "report")
+
+
+@command()
+def benchmark(
+    protocol: Annotated[
+        str,
+        typer.Option(
+            "--protocol", help="toy2d: the paper's synthetic protocol; av_like: its AV protocol."
+        ),
+    ] = "toy2d",
+    seeds: Annotated[
+        int, typer.Option("--seeds", help="Independent repetitions (the paper: 10).")
+    ] = 10,
+    quick: Annotated[
+        bool, typer.Option("--quick", help="At most 3 seeds: the CI smoke run.")
+    ] = False,
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder for results.json, tables and plots.")
+    ] = Path("docs/reproduction"),
+    strategies: Annotated[
+        str | None,
+        typer.Option(
+            "--strategies", help="Comma-separated subset, e.g. bams,bas,mc [default: all]."
+        ),
+    ] = None,
+    level0_share: Annotated[
+        float,
+        typer.Option(
+            "--level0-share",
+            help="Share of a mixed-fidelity random batch's budget spent at level 0.",
+        ),
+    ] = 0.5,
+    n: Annotated[
+        int | None, typer.Option("--n", help="Pool size [default: the committed sample data].")
+    ] = None,
+    clusters: Annotated[int, typer.Option("--clusters", help="BAMS/BAS clusters S.")] = 6,
+    workers: Annotated[int, typer.Option("--workers", help="Runs in parallel processes.")] = 2,
+    json_out: Json = False,
+) -> None:
+    """Reproduce the paper's experiments through the same code a user runs.
+
+    For every strategy and seed: a random first batch, then two batches chosen by the
+    strategy, each going through select, simulate, ingest-results and fit in a scratch
+    workspace; then the rate estimate's recall and exact relative variance, for the default
+    design and the paper's with-replacement sampler. Writes results.json, tables and
+    retention-recall plots to --out.
+
+    [bold]Example[/]: bams-cli benchmark --protocol toy2d --quick --out /tmp/repro
+    """
+    from bams_cli.benchmark import run_benchmark
+
+    if protocol not in ("toy2d", "av_like"):
+        raise BamsError(f"--protocol {protocol!r}: choose toy2d or av_like")
+    with console.progress(not json_out) as bar:
+        result = run_benchmark(
+            protocol,
+            seeds=seeds,
+            quick=quick,
+            out_dir=out,
+            strategies=strategies.split(",") if strategies else None,
+            level0_share=level0_share,
+            workers=workers,
+            progress=bar,
+            n=n,
+            clusters=clusters,
+            command=shlex.join(["bams-cli", *sys.argv[1:]]),
+        )
+    if json_out:
+        console.print_json(result)
+        return
+    tables = out / "tables.md"
+    if tables.exists():
+        console.out.print(tables.read_text())
+    console.note(f"results: {out / 'results.json'}")
 
 
 def main() -> None:

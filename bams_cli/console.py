@@ -11,6 +11,7 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 out = Console()
 err = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -18,7 +19,9 @@ err = Console(stderr=True, highlight=False, soft_wrap=True)
 
 def error(message: str) -> None:
     """One line on stderr: what failed, expected vs got, and the fix."""
-    err.print(f"[bold red]error:[/] {message}", markup=True)
+    # The message is data (it quotes file contents), never markup: "[[levels]]" or a
+    # segment id like "[/a]" must print as written.
+    err.print(Text.assemble(("error:", "bold red"), " ", message))
 
 
 def note(message: str) -> None:
@@ -38,7 +41,7 @@ def kv_table(title: str, rows: Mapping[str, Any]) -> None:
             value = f"{value:.6g}"
         elif isinstance(value, list | dict):
             value = json.dumps(value, default=str)
-        table.add_row(key, str(value))
+        table.add_row(Text(key), Text(str(value)))
     out.print(table)
 
 
@@ -49,7 +52,7 @@ def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
             col, justify="right" if col not in {"segment_id", "name", "level"} else "left"
         )
     for row in rows:
-        table.add_row(*[f"{v:.6g}" if isinstance(v, float) else str(v) for v in row])
+        table.add_row(*[Text(f"{v:.6g}" if isinstance(v, float) else str(v)) for v in row])
     out.print(table)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import fnmatch
+import functools
 import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -29,7 +30,7 @@ from bams_cli.errors import (
     SchemaError,
     WorkspaceError,
 )
-from bams_cli.settings import Settings, levels_from_costs
+from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
@@ -44,6 +45,24 @@ from bams_cli.state.workspace import Workspace
 
 Progress = Callable[[str, int, int], None]
 SID = schemas.SEGMENT_ID
+
+
+def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
+    """Hold the workspace lock for the whole command: from the first read to the commit.
+
+    A command that read the log, then waited for the lock only to write, could overwrite
+    what another command appended in between; holding it throughout makes the second
+    command fail at once (or wait, with ``wait=True``) before it reads anything.
+    """
+
+    @functools.wraps(fn)
+    def run(root: Path, *args: Any, wait: bool = False, **kwargs: Any) -> dict[str, Any]:
+        if not (Path(root) / SETTINGS_FILE).exists():
+            return fn(root, *args, **kwargs)  # raises "no such workspace" without creating it
+        with workspace_lock(Path(root), wait=wait):
+            return fn(root, *args, **kwargs)
+
+    return run
 
 
 # ---------------------------------------------------------------------------------------
@@ -104,14 +123,34 @@ def _embedding_layout(
     id_column: str,
     columns: str | None,
     embedding_column: str | None,
+    fitted_columns: list[str] | None = None,
 ) -> tuple[str | None, list[str]]:
-    """Which column(s) hold the embedding: (list column, []) or (None, numeric columns)."""
+    """Which column(s) hold the embedding: (list column, []) or (None, numeric columns).
+
+    ``fitted_columns`` (with --apply) are the numeric columns the reducer was fitted on:
+    they are taken by name, in the fitted order, whatever order the new file has.
+    """
     if id_column not in schema.names:
         raise SchemaError(
             source,
             f"no id column {id_column!r}; found {', '.join(schema.names)} (choose it with --id-column)",
             column=id_column,
         )
+    if fitted_columns:
+        missing = [c for c in fitted_columns if c not in schema.names]
+        if missing:
+            raise SchemaError(
+                source, "embedding column the reducer was fitted on is missing", column=missing[0]
+            )
+        if columns:
+            chosen = [n for n in schema.names if n != id_column and fnmatch.fnmatchcase(n, columns)]
+            if set(chosen) != set(fitted_columns):
+                raise SchemaError(
+                    source,
+                    f"--columns {columns!r} matches {len(chosen)} columns, the reducer was fitted on "
+                    f"{len(fitted_columns)} ({', '.join(fitted_columns[:3])}, ...); drop --columns with --apply",
+                )
+        return None, list(fitted_columns)
     if columns:
         chosen = [n for n in schema.names if n != id_column and fnmatch.fnmatchcase(n, columns)]
         if not chosen:
@@ -234,6 +273,7 @@ def _check_unique(ids: pa.Array, source: object, column: str, what: str = "segme
         )
 
 
+@locked
 def embed_reduce(
     root: Path,
     source: Path,
@@ -248,10 +288,13 @@ def embed_reduce(
     batch_size: int = 8192,
     sample_size: int = 20_000,
     force: bool = False,
-    wait: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Reduce segment embeddings into the workspace pool (or, with ``apply``, add to it)."""
+    if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):
+        raise WorkspaceError(
+            f"--batch-size {batch_size}, --sample-size {sample_size} and --dim {dim} must be >= 1"
+        )
     ws = Workspace(root)
     settings = ws.require_initialised()
     id_column = id_column or settings.id_column
@@ -261,8 +304,25 @@ def embed_reduce(
         schema = pq.read_schema(source)
     except (pa.ArrowInvalid, OSError) as exc:
         raise InputError(source, f"cannot read as Parquet ({str(exc).splitlines()[0]})") from None
+    layout: dict[str, Any] | None = None
+    if apply:
+        if not ws.reducer_path.exists():
+            raise WorkspaceError(
+                f"{ws.reducer_path}: no fitted reducer; run embed-reduce without --apply first"
+            )
+        with np.load(ws.reducer_path) as saved:
+            arrays = dict(saved)
+        layout = {
+            "list": str(arrays.get("layout_list", "")) or None,
+            "columns": [str(c) for c in arrays.get("layout_columns", np.array([], dtype=str))],
+        }
     list_col, cols = _embedding_layout(
-        schema, source, id_column=id_column, columns=columns, embedding_column=embedding_column
+        schema,
+        source,
+        id_column=id_column,
+        columns=columns,
+        embedding_column=embedding_column or (layout["list"] if layout else None),
+        fitted_columns=layout["columns"] if layout and not layout["list"] else None,
     )
     ids = _read_ids(source, id_column)
     stream = _EmbeddingStream(source, list_col, cols, batch_size)
@@ -273,12 +333,7 @@ def embed_reduce(
 
     existing: pa.Table | None = None
     if apply:
-        if not ws.reducer_path.exists():
-            raise WorkspaceError(
-                f"{ws.reducer_path}: no fitted reducer; run embed-reduce without --apply first"
-            )
-        with np.load(ws.reducer_path) as arrays:
-            reducer = Reducer.from_arrays(dict(arrays))
+        reducer = Reducer.from_arrays(arrays)
         existing = ws.read_segments()
         clash = pc.is_in(ids, value_set=existing.column(SID).combine_chunks())
         if pc.any(clash).as_py():
@@ -295,7 +350,7 @@ def embed_reduce(
                 f"{ws.segments_path}: the pool is already reduced; use --apply to add segments, "
                 f"or --force to refit the reducer (coordinates change; refit the model after)"
             )
-        dim = dim or settings.embedding_dim
+        dim = settings.embedding_dim if dim is None else dim
         # A random sample of rows (streamed, never the whole pool) trains the autoencoder
         # and measures reconstruction error.
         take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
@@ -353,9 +408,13 @@ def embed_reduce(
         "seed": settings.seed,
         "reconstruction_error": reducer.reconstruction_error,
     }
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         if not apply:
-            tx.write_with(ws.reducer_path, lambda p: _savez(p, reducer.to_arrays()))
+            saved_layout = {
+                "layout_list": np.array(list_col or ""),
+                "layout_columns": np.array(cols, dtype=str),
+            }
+            tx.write_with(ws.reducer_path, lambda p: _savez(p, reducer.to_arrays() | saved_layout))
         tx.write_parquet(ws.segments_path, schemas.SEGMENTS.conform(table, meta))
     return {
         "segments": str(ws.segments_path),
@@ -391,6 +450,17 @@ def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
     """A results file as (segment_id, fidelity, value, extra), every bad row named."""
     table = read_table(path, what="results")
     require_columns(table, [SID, "fidelity", "value"], path)
+    for name in ("fidelity", "value"):
+        t = table.schema.field(name).type
+        if not (
+            pa.types.is_integer(t)
+            or pa.types.is_floating(t)
+            or pa.types.is_string(t)
+            or pa.types.is_null(t)
+        ):
+            raise SchemaError(path, f"expected numbers, got {t}", column=name)
+    if table.num_rows == 0:
+        raise InputError(path, "has no rows; nothing to ingest")
     df = pl.from_arrow(table)
     assert isinstance(df, pl.DataFrame)
     df = df.with_row_index("_row", offset=1)
@@ -457,13 +527,13 @@ def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
     return df.select("_row", SID, "fidelity", "value", "extra")
 
 
+@locked
 def ingest_results(
     root: Path,
     source: Path,
     *,
     replace: bool = False,
     allow_unselected: bool = False,
-    wait: bool = False,
 ) -> dict[str, Any]:
     """Append a simulation team's results to the observation log."""
     ws = Workspace(root)
@@ -519,6 +589,14 @@ def ingest_results(
     same = both.filter(pl.col("known").is_not_null() & (pl.col("known") == pl.col("value")))
     new = both.filter(pl.col("known").is_null() | (pl.col("known") != pl.col("value")))
 
+    if new.height == 0:
+        return {
+            "ingested": 0,
+            "already_known": same.height,
+            "already_ingested": False,
+            "message": f"{source}: every value is already in the log; nothing changed",
+            "pending": _pending_summary(ws),
+        }
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     new_rows = new.select(
         pl.col(SID),
@@ -539,7 +617,7 @@ def ingest_results(
     )
     combined = pl.concat([old, new_rows], how="vertical_relaxed")
 
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_parquet(
             ws.observations_path,
             schemas.OBSERVATIONS.conform(combined.to_arrow(), {"last_source": source.name}),
@@ -662,18 +740,20 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
     ), model
 
 
+@locked
 def fit(
     root: Path,
     *,
     fixed_hyperparameters: Path | None = None,
     restarts: int = 8,
     chunk_size: int = 50_000,
-    wait: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Train the multifidelity GP on the observation log and score every pool segment."""
     from bams_cli.core.gp import GPFitError, Hyperparameters, fit_mfgp
 
+    if restarts < 1 or chunk_size < 1:
+        raise WorkspaceError(f"--restarts {restarts} and --chunk-size {chunk_size} must be >= 1")
     ws = Workspace(root)
     settings = ws.require_initialised()
     ids, X = ws.read_pool()
@@ -685,7 +765,7 @@ def fit(
             fixed = Hyperparameters.from_dict(doc.get("hyperparameters", doc))
         except FileNotFoundError:
             raise InputError(fixed_hyperparameters, "hyperparameter file not found") from None
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise InputError(fixed_hyperparameters, f"not a hyperparameter file ({exc})") from None
         if fixed.lengthscales0.shape[0] != X.shape[1] or fixed.noise.shape[0] != settings.n_levels:
             raise InputError(
@@ -723,6 +803,8 @@ def fit(
         "log_posterior": float(model.log_posterior),
         "n_observations_per_level": [int(c) for c in model.n_obs_per_level],
         "observations_hash": obs_hash,
+        "pool": ws.pool_fingerprint(),
+        "units": "outputscale0, outputscales and noise are variances; lengthscales and mean in the metric's units",
         "trained": fixed is None,
         "restarts": restarts,
         "seed": settings.seed,
@@ -734,14 +816,20 @@ def fit(
         cols[f"p_{g}"] = p[:, g]
     meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
     # A snapshot of p_n after every batch feeds the report's per-batch retention-recall.
-    batches_seen = ws.read_observations()["batch"].drop_nulls()
-    last_batch = int(batches_seen.max()) if batches_seen.len() else 0  # type: ignore[arg-type]
-    snapshot = ws.history_dir / f"scores-after-batch-{last_batch:04d}.parquet"
+    # It is taken only when the newest results belong to a batch: a refit after ingesting
+    # an estimate plan's results must not pass for the model "after batch b".
+    log = ws.read_observations(active_only=False)  # append-only: the last rows are the newest
+    newest = log.filter(pl.col("source_sha256") == log["source_sha256"][-1])["batch"]
+    snapshot_batch = None
+    if newest.len() and newest.null_count() == 0:
+        snapshot_batch = int(newest.max())  # type: ignore[arg-type]
     history = pa.table({f"p_{g}": p[:, g] for g in range(p.shape[1])})
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_text(ws.model_path, json.dumps(doc, indent=2) + "\n")
         tx.write_parquet(ws.scores_path, schemas.SCORES.conform(pa.table(cols), meta))
-        tx.write_parquet(snapshot, stamp(history, schemas.SCORES.version, meta))
+        if snapshot_batch is not None:
+            snapshot = ws.history_dir / f"scores-after-batch-{snapshot_batch:04d}.parquet"
+            tx.write_parquet(snapshot, stamp(history, schemas.SCORES.version, meta))
     return {
         "model": str(ws.model_path),
         "scores": str(ws.scores_path),
@@ -766,6 +854,7 @@ def _observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     return np.isin(ids, obs[SID].to_numpy())
 
 
+@locked
 def select(
     root: Path,
     *,
@@ -781,7 +870,6 @@ def select(
     include_observed: bool = False,
     workers: int | None = None,
     scheduler: str | None = None,
-    wait: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the next batch of (segment, fidelity) simulations and write the hand-off list."""
@@ -793,18 +881,30 @@ def select(
         raise WorkspaceError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
     if pooling not in ("global", "raw"):
         raise WorkspaceError(f"--pooling {pooling!r}: choose global or raw")
-    if not budget > 0:
+    if clusters < 1 or not overbudget >= 1:
+        raise WorkspaceError(
+            f"--clusters {clusters} must be >= 1 and --overbudget {overbudget} >= 1"
+        )
+    if not 0 <= level0_share <= 1:
+        raise WorkspaceError(f"--level0-share {level0_share}: must lie in [0, 1]")
+    if not (budget > 0 and np.isfinite(budget)):
         raise WorkspaceError(
             f"--budget {budget}: must be > 0 (cost units; one level-0 run costs 1)"
         )
     ws = Workspace(root)
     settings = ws.require_initialised()
     ids, X = ws.read_pool()
+    if budget / min(settings.costs) > len(ids) * settings.n_levels:
+        raise WorkspaceError(
+            f"--budget {budget}: buys more simulations than the pool has "
+            f"({len(ids)} segments x {settings.n_levels} levels)"
+        )
     pend = ws.pending()
     if pend.height and not allow_pending:
-        batches = sorted(set(pend["batch"].to_list()))
+        where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
+        where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
         raise WorkspaceError(
-            f"{ws.root}: {pend.height} picks of batch {', '.join(map(str, batches))} have no results yet; "
+            f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
             f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
         )
     number = (ws.batch_numbers() or [0])[-1] + 1
@@ -921,6 +1021,10 @@ def select(
         "mixed_fidelity": mixed_fidelity,
         "level0_share": level0_share,
         "include_observed": include_observed,
+        "allow_pending": allow_pending,
+        "difficulty_column": difficulty_column,
+        "workers": workers,
+        "scheduler": scheduler,
         "gamma": settings.gammas[0],
     }
     meta = {
@@ -933,7 +1037,7 @@ def select(
     path = schemas.batch_path(ws.root, number)
     frame = pl.from_arrow(table)
     assert isinstance(frame, pl.DataFrame)
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_parquet(path, table)
         tx.write_with(path.with_suffix(".csv"), lambda p: frame.write_csv(p))
     per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
@@ -977,6 +1081,7 @@ def _read_scores(
     return ids, t.column("mu").to_numpy(), t.column("sd").to_numpy(), p
 
 
+@locked
 def estimate_plan(
     root: Path,
     *,
@@ -984,15 +1089,16 @@ def estimate_plan(
     alpha: float = 1.0,
     defensive: float = 0.1,
     design: str = "poisson",
-    wait: bool = False,
 ) -> dict[str, Any]:
     """Plan the rate-estimation sample: inclusion probabilities and the hand-off list."""
     from bams_cli.core.estimate import DESIGNS, gp_estimate, inclusion_probabilities, plan_sample
 
     if design not in DESIGNS:
         raise WorkspaceError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
-    if alpha < 0 or not 0 <= defensive <= 1:
+    if not (0 <= alpha < np.inf) or not 0 <= defensive <= 1:
         raise WorkspaceError(f"--alpha {alpha} must be >= 0 and --defensive {defensive} in [0, 1]")
+    if samples is not None and not (1 <= samples < np.inf):
+        raise WorkspaceError(f"--samples {samples}: must be a number >= 1 (simulations to plan)")
     ws = Workspace(root)
     settings = ws.require_initialised()
     model = ws.require_fresh_model()
@@ -1005,18 +1111,22 @@ def estimate_plan(
     n = len(ids)
     gp_rate, _ = gp_estimate(p)
     if samples is None:
-        samples = max(1.0, round(5 * gp_rate * n))  # the paper's K = 5 p N, from the GP's own p
+        # The paper's K = 5 p N with the GP's own p; a GP that explains failures away can
+        # put p N near 0, so the failures already seen at level 0 set a floor.
+        obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
+        seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
+        samples = float(round(5 * max(gp_rate * n, seen + 1)))
     if design == "with-replacement":
         samples = float(round(samples))
     n_unknown = int((~known).sum())
-    if samples <= 0:
-        raise WorkspaceError(f"--samples {samples}: must be > 0")
+    if design != "with-replacement":
+        samples = min(samples, float(n_unknown))
     number = (_plan_numbers(ws) or [0])[-1] + 1
     rng = np.random.default_rng([settings.seed, 10_000 + number])
     with np.errstate(divide="ignore"):
         plan = plan_sample(
             p,
-            K=min(samples, n_unknown) if design != "with-replacement" else samples,
+            K=samples,
             rng=rng,
             known=known,
             alpha=alpha,
@@ -1069,7 +1179,7 @@ def estimate_plan(
         {SID: ids[sampled_idx].astype(str), "fidelity": np.zeros(len(sampled_idx), np.int64)}
     )
     handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_parquet(path, schemas.PLAN.conform(table, meta))
         tx.write_with(handoff_path, lambda f: handoff.write_csv(f))
     return {
@@ -1088,13 +1198,13 @@ def estimate_plan(
     }
 
 
+@locked
 def estimate_compute(
     root: Path,
     *,
     plan_number: int | None = None,
     confidence: float = 0.9,
     exact_variance: bool = False,
-    wait: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Compute the rate estimate from an ingested plan, for every configured gamma."""
@@ -1109,7 +1219,7 @@ def estimate_compute(
         raise WorkspaceError(
             f"{ws.root}: no estimate plan; run `bams-cli estimate --plan -w {ws.root}` first"
         )
-    number = plan_number or plans[-1]
+    number = plans[-1] if plan_number is None else plan_number
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
     if not path.exists():
         raise WorkspaceError(f"{path}: no such plan (plans: {', '.join(map(str, plans))})")
@@ -1181,7 +1291,7 @@ def estimate_compute(
         "gp": gp_rows,
     }
     out = ws.estimates_dir / f"estimate-{number:04d}.json"
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_text(out, json.dumps(summary, indent=2) + "\n")
     summary["estimate_file"] = str(out)
     return summary
@@ -1229,13 +1339,13 @@ def read_metadata_json(path: Path) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------
 # report
 # ---------------------------------------------------------------------------------------
+@locked
 def report(
     root: Path,
     *,
     truth: Path | None = None,
     n_diverse: int = 5,
     max_points: int = 50_000,
-    wait: bool = False,
 ) -> dict[str, Any]:
     """Write report/report.html, summary.json and summary.md for the study."""
     from sklearn.decomposition import PCA
@@ -1323,8 +1433,9 @@ def report(
 
     estimates, gp_rows = [], []
     plans = _plan_numbers(ws)
-    est_path = ws.estimates_dir / f"estimate-{plans[-1]:04d}.json" if plans else None
-    if est_path is not None and est_path.exists():
+    computed = [ws.estimates_dir / f"estimate-{k:04d}.json" for k in reversed(plans)]
+    est_path = next((path for path in computed if path.exists()), None)
+    if est_path is not None:
         doc = json.loads(est_path.read_text())
         estimates, gp_rows = doc["estimates"], doc["gp"]
     elif scores is not None:
@@ -1337,6 +1448,8 @@ def report(
     figures: dict[str, str] = {}
     rng = np.random.default_rng(settings.seed)
     diverse = []
+    if n_diverse < 0 or max_points < 1:
+        raise WorkspaceError(f"--diverse {n_diverse}: must be >= 0")
     if scores is not None:
         p0 = scores[2][:, 0]
         if X.shape[1] == 2:
@@ -1360,7 +1473,9 @@ def report(
             gamma=gammas[0],
         )
         top = np.argsort(-p0, kind="stable")[: min(n, 500)]
-        chosen = top[dpp_diverse(X[top], p0[top], min(n_diverse, len(top)))]
+        chosen = (
+            top[dpp_diverse(X[top], p0[top], min(n_diverse, len(top)))] if n_diverse else top[:0]
+        )
         segs = ws.read_segments()
         passthrough = [
             c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)
@@ -1425,7 +1540,7 @@ def report(
         "figures": sorted(figures),
     }
     out = ws.report_dir
-    with workspace_lock(root, wait=wait), transaction() as tx:
+    with transaction() as tx:
         tx.write_text(out / "report.html", rep.render_html(summary, figures))
         tx.write_text(out / "summary.json", json.dumps(summary, indent=2, default=str) + "\n")
         tx.write_text(out / "summary.md", rep.render_markdown(summary))

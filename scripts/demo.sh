@@ -43,9 +43,9 @@ python - "$WS" <<'PY'
 import json, sys
 ws = sys.argv[1]
 s = json.load(open(f"{ws}/report/summary.json"))
-for e in s["estimates"]:
+for e, truth in zip(s["estimates"], s["truth"]["rate"]):
     print(f"failure rate at gamma {e['gamma']:g}: {e['p_hat']:.5f} "
           f"({int(round(e['confidence'] * 100))}% interval {e['ci_low']:.5f} to {e['ci_high']:.5f}); "
-          f"true rate {s['truth']['rate'][0]:.5f}")
+          f"true rate {truth:.5f}")
 print(f"report: {ws}/report/report.html  (summary: {ws}/report/summary.md, {ws}/report/summary.json)")
 PY

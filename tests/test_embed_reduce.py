@@ -187,3 +187,46 @@ def test_uninitialised_workspace_is_not_created(runner, tmp_path):
     r = invoke(runner, "embed-reduce", "-w", ws, tmp_path / "x.parquet")
     assert r.exit_code == 1 and "no such workspace" in r.stderr
     assert not ws.exists()
+
+
+def test_apply_takes_the_fitted_columns_by_name_in_any_order(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d", n=200, layout="columns")
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg, "--columns", "emb_*").exit_code == 0
+    _, Z = Workspace(av_ws).read_pool()
+    t = pq.read_table(seg)
+    emb = [c for c in t.column_names if c.startswith("emb_")]
+    shuffled = t.select(["segment_id", *reversed(emb), "difficulty", "scenario"])
+    shuffled = shuffled.set_column(0, "segment_id", pa.array([f"n{i}" for i in range(200)]))
+    path = tmp_path / "reordered.parquet"
+    pq.write_table(shuffled, path)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, path, "--apply")  # no --columns needed
+    assert r.exit_code == 0, r.output
+    _, Z2 = Workspace(av_ws).read_pool()
+    np.testing.assert_array_equal(Z2[200:], Z)
+    missing = tmp_path / "missing.parquet"
+    pq.write_table(shuffled.drop_columns(["emb_007"]), missing)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, missing, "--apply")
+    assert (
+        r.exit_code == 1
+        and "column 'emb_007': embedding column the reducer was fitted on is missing" in r.stderr
+    )
+
+
+def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path):
+    from tests.conftest import write_batch
+
+    _, truth = toy_files
+    write_batch(toy_ws, 1, [f"t{i:06d}" for i in range(0, 40, 4)], [0] * 10)
+    res = tmp_path / "r.parquet"
+    invoke(
+        runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res
+    )
+    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
+    assert invoke(runner, "fit", "-w", toy_ws, "--restarts", "1").exit_code == 0
+    more = tmp_path / "more.parquet"
+    pq.write_table(
+        pa.table({"segment_id": ["new-1", "new-2"], "x0": [0.1, 0.2], "x1": [1.0, 2.0]}), more
+    )
+    assert invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply").exit_code == 0
+    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--samples", "5")
+    assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr

@@ -156,3 +156,78 @@ def test_pending_listed_until_ingested(ws, runner, tmp_path):
         (IDS[1], 0),
         (IDS[3], 1),
     ]
+
+
+def test_zero_padded_ids_survive_csv(toy_ws, runner, tmp_path):
+    # a pool whose ids look numeric: "007" must not become 7 on the way through CSV
+    seg = tmp_path / "padded.parquet"
+    pq.write_table(
+        pa.table({"segment_id": ["007", "010"], "x0": [0.5, 1.0], "x1": [0.0, 1.0]}), seg
+    )
+    assert invoke(runner, "embed-reduce", "-w", toy_ws, seg, "--apply").exit_code == 0
+    write_batch(toy_ws, 1, ["007", "010"], [0, 1])
+    res = _results(tmp_path / "r.csv", [("007", 0, 1.0), ("010", 1, 2.0)])
+    r = invoke(runner, "ingest-results", "-w", toy_ws, res)
+    assert r.exit_code == 0, r.output
+    assert sorted(Workspace(toy_ws).read_observations()["segment_id"]) == ["007", "010"]
+
+
+def test_error_text_is_printed_as_written(ws, runner, tmp_path):
+    res = _results(tmp_path / "m.csv", [("[/a]", 0, 1.0)])
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1 and "segment id '[/a]' is not in the pool" in r.stderr
+    res = _results(tmp_path / "f.parquet", [(IDS[0], 3, 1.0)])
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert "add it to settings.toml [[levels]]" in r.stderr
+
+
+def test_a_command_holds_the_lock_from_first_read(ws, runner, tmp_path):
+    from tests.state.test_lock import _hold
+
+    res = _results(tmp_path / "r.parquet", [(IDS[0], 0, 1.5)])
+    before = tree_hash(ws)
+    proc = _hold(ws, 30)
+    try:
+        r = invoke(runner, "ingest-results", "-w", ws, res)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert r.exit_code == 1 and f"locked by pid {proc.pid}" in r.stderr
+    assert tree_hash(ws) == before
+    assert invoke(runner, "ingest-results", "-w", ws, res, "--wait").exit_code == 0
+
+
+@pytest.mark.parametrize(
+    ("content", "needle"),
+    [
+        ("segment_id,fidelity,value\n", "has no rows; nothing to ingest"),
+        (
+            "segment_id,fidelity,value\nt000000,true,1.0\n",
+            "column 'fidelity': expected numbers, got bool",
+        ),
+        (
+            "segment_id,fidelity,value\nt000000,0,abc\n",
+            "column 'value', row 1: value must be a finite number",
+        ),
+    ],
+)
+def test_malformed_csv_results(ws, runner, tmp_path, content, needle):
+    res = tmp_path / "bad.csv"
+    res.write_text(content)
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1 and needle in r.stderr, r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_same_values_from_another_file_change_nothing(ws, runner, tmp_path):
+    assert (
+        invoke(
+            runner, "ingest-results", "-w", ws, _results(tmp_path / "a.parquet", [(IDS[0], 0, 1.5)])
+        ).exit_code
+        == 0
+    )
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, _results(tmp_path / "b.csv", [(IDS[0], 0, 1.5)]))
+    assert r.exit_code == 0 and "already in the log; nothing changed" in r.stderr
+    assert tree_hash(ws) == before

@@ -104,6 +104,18 @@ def test_batches_respect_budget_and_record_options(loop_ws):
     assert picks["segment_id"].is_unique().all()
 
 
+def test_snapshots_are_per_batch_and_survive_the_estimate_refit(loop_ws):
+    ws, _ = loop_ws
+    snaps = sorted(p.name for p in (ws / "history").glob("*.parquet"))
+    assert snaps == [f"scores-after-batch-{b:04d}.parquet" for b in (1, 2, 3)]
+    # the last fit (after the plan's results) is not the batch-3 snapshot
+    final = json.loads((ws / "model.json").read_text())["observations_hash"]
+    assert (
+        read_metadata(ws / "history" / "scores-after-batch-0003.parquet")["observations_hash"]
+        != final
+    )
+
+
 def test_estimate_is_consistent_with_the_plan(loop_ws):
     ws, truth = loop_ws
     doc = json.loads((ws / "estimates" / "estimate-0001.json").read_text())
@@ -252,3 +264,37 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
     if strategy in ("bas", "mc-gp", "ce"):
         assert set(df["fidelity"]) == {0}
     assert np.all(df["strategy"].to_numpy() == strategy)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["select", "--clusters", "0"], "--clusters 0 must be >= 1"),
+        (["select", "--overbudget", "0.5"], "--overbudget 0.5 >= 1"),
+        (["select", "--budget", "inf"], "--budget inf: must be > 0"),
+        (
+            ["select", "--strategy", "random", "--budget", "1e12"],
+            "buys more simulations than the pool has",
+        ),
+        (
+            ["select", "--strategy", "random", "--mixed-fidelity", "--level0-share", "1.5"],
+            "--level0-share 1.5",
+        ),
+        (["estimate", "--plan", "--samples", "nan"], "--samples nan: must be a number >= 1"),
+        (["estimate", "--plan", "--alpha", "nan"], "--alpha nan must be >= 0"),
+        (["fit", "--chunk-size", "0"], "--chunk-size 0 must be >= 1"),
+        (["report", "--diverse", "-1"], "--diverse -1: must be >= 0"),
+        (["init", "--gamma", ",", "--force"], "--gamma ',': expected comma-separated numbers"),
+    ],
+)
+def test_bad_options_fail_in_one_line(loop_ws, tmp_path, args, needle):
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    before = tree_hash(copy)
+    r = invoke(CliRunner(), args[0], "-w", copy, *args[1:])
+    assert r.exit_code == 1 and needle in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1
+    assert tree_hash(copy) == before

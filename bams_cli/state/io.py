@@ -156,7 +156,9 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
         if suffix == ".csv":
             import pyarrow.csv as pacsv
 
-            return pacsv.read_csv(path)
+            # Ids stay text: type inference would turn "029" into 29.
+            convert = pacsv.ConvertOptions(column_types={"segment_id": pa.string()})
+            return pacsv.read_csv(path, convert_options=convert)
         return pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as exc:
         kind = "CSV" if suffix == ".csv" else "Parquet"

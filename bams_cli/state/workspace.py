@@ -123,6 +123,12 @@ class Workspace:
         X = np.column_stack([table.column(c).to_numpy() for c in coords]).astype(np.float64)
         return ids, X
 
+    def pool_fingerprint(self) -> str:
+        """Pool size and a hash of its segment ids: what a model's scores line up with."""
+        ids = pq.read_table(self.segments_path, columns=[schemas.SEGMENT_ID]).column(0)
+        digest = hashlib.sha256("\x1f".join(ids.to_pylist()).encode()).hexdigest()[:16]
+        return f"{len(ids)}:{digest}"
+
     # ---- observations --------------------------------------------------------------------
     def read_observations(self, *, active_only: bool = True) -> pl.DataFrame:
         if not self.observations_path.exists():
@@ -227,6 +233,13 @@ class Workspace:
             raise StaleStateError(
                 f"{self.model_path}: fitted on an older observation log "
                 f"({model.get('observations_hash')} != {current}); run `bams-cli fit -w {self.root}`"
+            )
+        pool = self.pool_fingerprint()
+        if model.get("pool") != pool:
+            raise StaleStateError(
+                f"{self.model_path}: fitted on a different segment pool "
+                f"({model.get('pool')} != {pool}, e.g. after embed-reduce --apply); "
+                f"run `bams-cli fit -w {self.root}`"
             )
         if (
             not self.scores_path.exists()
