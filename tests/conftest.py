@@ -22,9 +22,16 @@ def runner() -> CliRunner:
     return CliRunner()
 
 
-def invoke(runner: CliRunner, *args: str):
+def invoke(runner: CliRunner, *args: object):
     """Run the CLI in-process; returns the click Result (exit_code, stdout, stderr)."""
     return runner.invoke(app, [str(a) for a in args], catch_exceptions=False)
+
+
+def ok(runner: CliRunner, *args: object):
+    """Run the CLI in-process and insist it succeeded."""
+    r = invoke(runner, *args)
+    assert r.exit_code == 0, f"{args}: {r.output}"
+    return r
 
 
 def tree_hash(root: Path) -> dict[str, str]:

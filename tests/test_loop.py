@@ -14,13 +14,7 @@ import pytest
 from bams_cli.report import SUMMARY_KEYS
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, tree_hash, write_toy
-
-
-def _ok(runner, *args):
-    r = invoke(runner, *args)
-    assert r.exit_code == 0, f"{args}: {r.output}"
-    return r
+from tests.conftest import invoke, ok, tree_hash, write_toy
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +26,7 @@ def loop_ws(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("loop")
     seg, truth = write_toy(tmp / "data", n=1500, seed=4)
     ws = tmp / "ws"
-    _ok(
+    ok(
         runner,
         "init",
         "-w",
@@ -46,7 +40,7 @@ def loop_ws(tmp_path_factory):
         "--seed",
         "3",
     )
-    _ok(
+    ok(
         runner,
         "embed-reduce",
         "-w",
@@ -58,12 +52,12 @@ def loop_ws(tmp_path_factory):
         "identity",
         "--no-standardize",
     )
-    _ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "8")
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "8")
     for b in (1, 2, 3):
         if b > 1:
-            _ok(runner, "select", "-w", ws, "--budget", "3", "--clusters", "2", "--workers", "1")
+            ok(runner, "select", "-w", ws, "--budget", "3", "--clusters", "2", "--workers", "1")
         res = tmp / f"r{b}.parquet"
-        _ok(
+        ok(
             runner,
             "simulate",
             ws / "batches" / f"batch-{b:04d}.parquet",
@@ -72,17 +66,17 @@ def loop_ws(tmp_path_factory):
             "-o",
             res,
         )
-        _ok(runner, "ingest-results", "-w", ws, res)
-        _ok(runner, "fit", "-w", ws, "--restarts", "2")
-    _ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60")
+        ok(runner, "ingest-results", "-w", ws, res)
+        ok(runner, "fit", "-w", ws, "--restarts", "2")
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60")
     res = tmp / "est.parquet"
-    _ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
-    _ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", ws, res)
     r = invoke(runner, "estimate", "-w", ws)
     assert r.exit_code == 1 and "fitted on an older observation log" in r.stderr
-    _ok(runner, "fit", "-w", ws, "--restarts", "2")
-    _ok(runner, "estimate", "-w", ws, "--exact-variance")
-    _ok(runner, "report", "-w", ws, "--truth", truth)
+    ok(runner, "fit", "-w", ws, "--restarts", "2")
+    ok(runner, "estimate", "-w", ws, "--exact-variance")
+    ok(runner, "report", "-w", ws, "--truth", truth)
     return ws, truth
 
 
@@ -211,12 +205,12 @@ def test_pending_batch_blocks_select(loop_ws, tmp_path):
     copy = tmp_path / "ws"
     shutil.copytree(ws, copy)
     runner = CliRunner()
-    _ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
+    ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
     before = tree_hash(copy)
     r = invoke(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
     assert r.exit_code == 1 and "have no results yet" in r.stderr and "--allow-pending" in r.stderr
     assert tree_hash(copy) == before
-    _ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2", "--allow-pending")
+    ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2", "--allow-pending")
 
 
 def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
@@ -226,8 +220,8 @@ def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
     copy = tmp_path / "ws"
     shutil.copytree(ws, copy)
     runner = CliRunner()
-    _ok(runner, "fit", "-w", copy, "--restarts", "1")
-    _ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40")
+    ok(runner, "fit", "-w", copy, "--restarts", "1")
+    ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40")
     before = tree_hash(copy)
     r = invoke(runner, "estimate", "-w", copy)
     assert r.exit_code == 1 and "planned segments have no level-0 result" in r.stderr
@@ -242,8 +236,8 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
     copy = tmp_path / "ws"
     shutil.copytree(ws, copy)
     runner = CliRunner()
-    _ok(runner, "fit", "-w", copy, "--restarts", "1")
-    r = _ok(
+    ok(runner, "fit", "-w", copy, "--restarts", "1")
+    r = ok(
         runner,
         "select",
         "-w",

@@ -9,31 +9,25 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke
+from tests.conftest import invoke, ok
 
 DATA = Path(__file__).resolve().parents[1] / "sample_data" / "av_like"
 
 
-def _ok(runner, *args):
-    r = invoke(runner, *args)
-    assert r.exit_code == 0, f"{args}: {r.output}"
-    return r
-
-
 def _round(runner, ws: Path, tmp: Path, *select_args: str) -> dict:
-    summary = json.loads(_ok(runner, "select", "-w", ws, *select_args, "--json").stdout)
+    summary = json.loads(ok(runner, "select", "-w", ws, *select_args, "--json").stdout)
     n = summary["batch"]
     res = tmp / f"r{n}.csv"
-    _ok(runner, "simulate", summary["handoff_csv"], "--truth", DATA / "truth.parquet", "-o", res)
-    _ok(runner, "ingest-results", "-w", ws, res)
-    _ok(runner, "fit", "-w", ws, "--restarts", "2")
+    ok(runner, "simulate", summary["handoff_csv"], "--truth", DATA / "truth.parquet", "-o", res)
+    ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "2")
     return summary
 
 
 def test_av_like_loop_with_pca_difficulty_and_bams(runner, tmp_path):
     ws = tmp_path / "ws"
-    _ok(runner, "init", "-w", ws, "--settings-from", DATA / "settings.toml")
-    r = _ok(runner, "embed-reduce", "-w", ws, DATA / "segments.parquet", "--json")
+    ok(runner, "init", "-w", ws, "--settings-from", DATA / "settings.toml")
+    r = ok(runner, "embed-reduce", "-w", ws, DATA / "segments.parquet", "--json")
     assert json.loads(r.stdout)["input_dim"] == 512
     w = Workspace(ws)
     ids, X = w.read_pool()
