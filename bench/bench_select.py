@@ -1,9 +1,9 @@
 """Benchmark ``select_batch`` at the paper's AV scale (DESIGN.md "Where the time goes").
 
-Setting: pool x ~ N(0, I_12), N in {5k, 20k, 45k}; two levels with costs [1, 5/32];
+Setting: the av_like sample data (``bams_cli.core.synthetic.av_like``) at N in {5k, 20k,
+45k}, its 512-d embeddings reduced to d = 12 by PCA; two levels with costs [1, 5/32];
 budget m = 15; S = 6 clusters; 30 observations (20 at level 0, 10 at level 1) at random
-pool points. f is an AV-like TTC surface with three failure dips (as in
-``bams_cli.core.synthetic``'s av_like latent); gamma is its 1% quantile. The GP is
+pool points, with the data set's true values; gamma is its 1% quantile. The GP is
 ``bams_cli.core.gp.MFGP`` with hyperparameters fitted once by MAP on the 30 observations
 and then held fixed for every N (falls back to the dense test posterior if gp.py is
 missing). Per-cluster greedies run in a 2-process pool.
@@ -37,29 +37,20 @@ COSTS = [1.0, 5 / 32]
 BUDGET = 15.0
 
 
-def ttc(U: np.ndarray) -> np.ndarray:
-    """AV-like mean minimum-TTC over the 12-d latent: three dips (failure modes)."""
-    modes = [
-        (np.array([1.6, 1.2, 0.0]), slice(0, 3), 2.6, 0.9),
-        (np.array([-1.5, 1.4, -0.8]), slice(3, 6), 2.4, 0.8),
-        (np.array([1.3, -1.7]), slice(6, 8), 2.2, 0.7),
-    ]
-    f = 3.2 + 0.25 * np.sin(U[:, 8]) + 0.15 * U[:, 9]
-    for centre, dims, depth, width in modes:
-        f = f - depth * np.exp(-((U[:, dims] - centre) ** 2).sum(axis=1) / (2 * width**2))
-    return f
-
-
 def make_pool(n: int, seed: int = 0):
+    """The av_like sample data at size n: 512-d embeddings reduced to 12-d by PCA."""
+    from sklearn.decomposition import PCA
+
+    from bams_cli.core.synthetic import av_like
+
+    pool = av_like(n, seed)
+    E = pool.features
+    X = PCA(D, random_state=0).fit_transform((E - E.mean(0)) / E.std(0))
     rng = np.random.default_rng([seed, n])
-    X = rng.standard_normal((n, D))
-    f0 = ttc(X)
     obs = rng.choice(n, size=30, replace=False)
     lev = np.r_[np.zeros(20, dtype=np.int64), np.ones(10, dtype=np.int64)]
-    # level 1: 5 of 32 rollouts, i.e. a noisier, slightly biased TTC
-    y = f0[obs] + lev * (0.05 + 0.15 * rng.standard_normal(30))
-    gamma = float(np.quantile(f0, 0.01))
-    return X, obs, lev, y, gamma
+    y = pool.truth[obs, lev]  # level 1: the 25th percentile of 5 of the 32 rollouts
+    return X, obs, lev, y, pool.gamma
 
 
 # "flat": hand-set hyperparameters under which the GP is unsure almost everywhere (isotropic
