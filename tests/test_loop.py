@@ -292,3 +292,26 @@ def test_bad_options_fail_in_one_line(loop_ws, tmp_path, args, needle):
     assert r.exit_code == 1 and needle in r.stderr, r.stderr
     assert r.stderr.count("\n") == 1
     assert tree_hash(copy) == before
+
+
+def test_dask_scheduler_gives_the_same_batch_as_local_processes(loop_ws, tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    runner = CliRunner()
+    picks = {}
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False) as cluster:
+        for name, extra in (
+            ("local", ["--workers", "2"]),
+            ("dask", ["--scheduler", cluster.scheduler_address]),
+        ):
+            copy = tmp_path / name
+            shutil.copytree(ws, copy)
+            ok(runner, "fit", "-w", copy, "--restarts", "1")
+            r = ok(
+                runner, "select", "-w", copy, "--budget", "3", "--clusters", "2", *extra, "--json"
+            )
+            batch = Workspace(copy).read_batch(json.loads(r.stdout)["batch"])
+            picks[name] = batch.select("segment_id", "fidelity", "delta_j").rows()
+    assert picks["local"] == picks["dask"] and len(picks["local"]) > 0
