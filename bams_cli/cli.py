@@ -356,7 +356,7 @@ def select(
     overbudget: Annotated[
         float,
         typer.Option("--overbudget", help="eta >= 1: each cluster plans ceil(eta m N_s / N)."),
-    ] = 1.0,
+    ] = 2.0,
     pooling: Annotated[
         str,
         typer.Option(
@@ -440,7 +440,7 @@ def estimate(
     ] = None,
     alpha: Annotated[
         float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
-    ] = 1.0,
+    ] = 0.75,
     defensive: Annotated[
         float,
         typer.Option("--defensive", help="Uniform share eps mixed into the sampling distribution."),

@@ -861,7 +861,7 @@ def select(
     strategy: str = "bams",
     budget: float = 5.0,
     clusters: int = 6,
-    overbudget: float = 1.0,
+    overbudget: float = 2.0,
     pooling: str = "global",
     mixed_fidelity: bool = False,
     level0_share: float = 0.5,
@@ -1086,7 +1086,7 @@ def estimate_plan(
     root: Path,
     *,
     samples: float | None = None,
-    alpha: float = 1.0,
+    alpha: float = 0.75,
     defensive: float = 0.1,
     design: str = "poisson",
 ) -> dict[str, Any]:

@@ -41,17 +41,25 @@ exp(loc - scale^2), and in log space it is a Gaussian around that mode with sd `
   between points; scaling the prior with sqrt(d) keeps the expected correlation between
   two random points roughly constant as d grows. Mode 0.20 sqrt(d) x range.
 - outputscale0: mode 1 (the standardised data variance), log-sd 1.5: weak.
-- discrepancy outputscales: mode 0.1, log-sd 1.5: a cheap simulator is a priori an order
-  of magnitude closer to theta0 than theta0 varies, which is why it is worth running; the
-  data overrule this when the levels disagree.
-- level-0 noise tau_0^2: mode 3e-4, log-sd 1.5. Never a fixed tiny jitter (a GP that is
+- discrepancy outputscales: mode 0.01, log-sd 1.0: a cheap simulator is a priori close to
+  theta0 (a discrepancy sd ~10% of the data's), which is why it is worth running; the data
+  overrule this when the levels disagree. Why this tight: with a handful of level-0 points
+  among a hundred cheap ones, theta0 and the discrepancy are barely identified, and the
+  former prior (mode 0.1, log-sd 1.5) let the MAP hand whole input directions of f to the
+  discrepancy (theta0 lengthscale 15-60 along x1 or x0 on toy2d, discrepancy scale ~1),
+  leaving theta0 confidently wrong where the cheap data said otherwise
+  (docs/reproduction/README.md, "What moved the numbers").
+- level-0 noise tau_0^2: mode 3e-4, log-sd 1.0. Never a fixed tiny jitter (a GP that is
   sure of itself at the kinks of f produced p_n ~ 1e-28 for true failures and an infinite
   importance-sampling variance) and never free (free maximum likelihood explained all the
-  level-0 data as noise on some seeds). Explaining the data as noise (tau_0^2 ~ 0.5) costs
-  ~12 nats of prior; a true 1e-2 costs ~3, which data that can identify the noise (repeats,
-  points closer than a lengthscale) readily pay. Where the data cannot tell noise from
-  roughness (100 scattered points in 4-d, noise 1e-2 of the variance: the likelihood is
-  flat within 0.3 nats over 1e-4..1e-2), the prior decides and the fit returns ~5e-4.
+  level-0 data as noise on some seeds; with log-sd 1.5 the MAP still did so on one toy2d
+  seed in ten, tau_0^2 = 0.07 of the data variance, together with the discrepancy above).
+  Explaining the data as noise (tau_0^2 ~ 0.5) costs ~27 nats of prior; a true 1e-2 costs
+  ~6, which data that can identify the noise (repeats, points closer than a lengthscale)
+  readily pay (``test_map_recovers_hyperparameters_of_data_drawn_from_the_prior`` recovers
+  a level-0 noise of 2% of the variance). Where the data cannot tell noise from roughness
+  (100 scattered points in 4-d, noise 1e-2 of the variance: the likelihood is flat within
+  0.3 nats over 1e-4..1e-2), the prior decides and the fit returns ~5e-4.
 - noise at levels >= 1: mode 3e-3, log-sd 2: cheap simulators are often noisy; weak.
 
 Numerics: Cholesky with escalating relative jitter (``_cholesky``); predictions reuse the
@@ -83,8 +91,8 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 # Prior modes and log-space sds in standardised units (module docstring says why).
 _OUTPUTSCALE0_MODE, _OUTPUTSCALE0_SCALE = 1.0, 1.5
-_DISCREPANCY_MODE, _DISCREPANCY_SCALE = 0.1, 1.5
-_NOISE0_MODE, _NOISE0_SCALE = 3e-4, 1.5
+_DISCREPANCY_MODE, _DISCREPANCY_SCALE = 0.01, 1.0
+_NOISE0_MODE, _NOISE0_SCALE = 3e-4, 1.0
 _NOISE_MODE, _NOISE_SCALE = 3e-3, 2.0
 _LENGTHSCALE_SCALE = math.sqrt(3.0)
 
