@@ -1,0 +1,1074 @@
+"""The paper-reproduction harness: the paper's protocols run through the real pipeline.
+
+``run_benchmark("toy2d", ...)`` is the synthetic protocol of the paper's appendix
+"Synthetic Experiments"; ``run_benchmark("av_like", ...)`` the AV protocol of section 4 on
+the AV-like sample data. For every (strategy, seed) a fresh workspace is created in a
+temporary folder and driven through exactly the functions behind the subcommands:
+
+    init -> embed-reduce -> select (batch 1: random, budget m1) -> simulate -> ingest-results
+         -> fit -> select (strategy, budget m_b) -> simulate -> ingest-results -> fit -> ...
+
+three batches in all. After batch 3 the harness plans the rate estimate with
+``estimate --plan`` (K = k p N segments, p the true rate), simulates it, ingests it, refits and
+computes it (one realised estimate per run, to show the path works end to end), and then
+evaluates the *design* exactly from the inclusion probabilities:
+
+* recall = expected fraction of all true failures that end up in hand: the known stratum
+  (level-0 observations from discovery, counted exactly) plus sum over the failures of U of
+  their inclusion probability (``evaluate.expected_is_recall``);
+* RV = Var(p_hat) / p^2, Var the design's exact variance (``estimate.exact_relative_variance``),
+  never the spread of a few hundred trials (DESIGN.md).
+
+Both are reported for the default estimator design (the ``estimate_plan`` defaults:
+Poisson sampling over U with the known stratum) and for the paper's sampler (K draws with
+replacement from q proportional to p_n^2.5 over the whole pool, no known stratum, no
+defensive share; paper section 4.1). Plain MC: uniform sampling (the default design with
+alpha = 0), and under "paper" importance sampling by uniform random scores raised to 2.5,
+which is what the paper's MC row (710) matches (docs/reproduction/README.md).
+
+Everything the harness adds is orchestration and arithmetic over the workspaces' own
+state files; it selects, fits and estimates nothing by itself.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import inspect
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bams_cli import pipeline
+from bams_cli.core import synthetic
+from bams_cli.core.estimate import exact_variance, plan_sample
+from bams_cli.core.evaluate import expected_is_recall, retention_recall
+from bams_cli.settings import Settings, levels_from_costs
+
+Progress = Callable[[str, int, int], None]
+
+SAMPLE_DATA = Path(__file__).resolve().parent.parent / "sample_data"
+
+#: Strategies whose picks feed a GP (all but plain MC and DS).
+GP_STRATEGIES = ("bams", "bas", "mcm-gp", "mc-gp", "ds-gp")
+#: Strategies whose first batch mixes fidelities.
+MULTIFIDELITY = ("bams", "mcm-gp")
+#: Grid of retention levels (units of p N) for the retention-recall curves.
+RETENTION_GRID = np.round(np.linspace(0.0, 10.0, 101), 10)
+#: The paper's sampler: K draws with replacement from p_n^alpha, alpha = 2.5, no defensive
+#: share, over the whole pool (paper section 4.1 and appendix "IS parameter alpha").
+PAPER_ALPHA = 2.5
+#: Repeated trials the paper measured its RV over (section 4.1).
+PAPER_TRIALS = 200
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """One of the paper's experimental protocols.
+
+    Attributes
+    ----------
+    name : str
+        Sample data set (folder under ``sample_data/``).
+    m1, mb : float
+        Budget of batch 1 (random) and of batches 2 and 3 (strategy), in level-0 runs.
+    n_batches : int
+    k_factor : float
+        Rate-estimation budget K = k_factor p N (p the true rate).
+    strategies : tuple of str
+        In table order.
+    reduce : dict
+        Keyword arguments for ``pipeline.embed_reduce``.
+    default_n : int
+        Pool size of the committed sample data.
+    paper : dict
+        The paper's table: strategy -> (recall, recall SE, 100 RV, 100 RV SE).
+    paper_table1 : dict
+        The paper's Table 1 (AV only): strategy -> [(mean f, SE) per batch].
+    """
+
+    name: str
+    m1: float
+    mb: float
+    n_batches: int
+    k_factor: float
+    strategies: tuple[str, ...]
+    reduce: dict[str, Any]
+    default_n: int
+    paper: dict[str, tuple[float, float, float, float]]
+    paper_table1: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+
+
+PROTOCOLS: dict[str, Protocol] = {
+    # Appendix "Synthetic Experiments", Table 3.
+    "toy2d": Protocol(
+        name="toy2d",
+        m1=10,
+        mb=5,
+        n_batches=3,
+        k_factor=2.0,
+        strategies=("bams", "bas", "mcm-gp", "mc-gp", "mc"),
+        reduce={"columns": "x*", "method": "identity", "standardize": False},
+        default_n=20_000,
+        paper={
+            "bams": (1.00, 0.000, 2.00, 0.003),
+            "bas": (0.917, 0.003, 3.85, 0.366),
+            "mc": (0.010, 0.001, 710.0, 214.0),
+            "mc-gp": (0.394, 0.004, 39.4, 3.88),
+            "mcm-gp": (0.537, 0.005, 29.76, 5.08),
+        },
+    ),
+    # Section 4, Tables 1 and 2.
+    "av_like": Protocol(
+        name="av_like",
+        m1=20,
+        mb=15,
+        n_batches=3,
+        k_factor=5.0,
+        strategies=("bams", "bas", "mcm-gp", "mc-gp", "ds-gp", "ce", "ds", "mc"),
+        reduce={"method": "pca", "dim": 12},
+        default_n=2_000,
+        paper={
+            "bams": (0.511, 0.0013, 0.851, 0.121),
+            "bas": (0.388, 0.0013, 0.969, 0.037),
+            "mc": (0.048, 0.0006, 13.5, 2.86),
+            "mc-gp": (0.368, 0.0012, 5.70, 2.39),
+            "mcm-gp": (0.460, 0.0019, 1.43, 0.288),
+            "ds": (0.051, 0.0007, 5.40, 0.096),
+            "ds-gp": (0.315, 0.0012, 3.67, 0.599),
+            "ce": (0.096, 0.0007, 4.43, 0.063),
+        },
+        paper_table1={
+            "bams": [(4.99, 0.51), (1.75, 0.16), (1.49, 0.21)],
+            "bas": [(6.55, 0.78), (2.27, 0.58), (3.19, 0.89)],
+            "mc-gp": [(6.55, 0.78), (6.34, 0.83), (4.53, 0.6)],
+            "mcm-gp": [(4.99, 0.51), (6.09, 0.51), (5.86, 0.55)],
+            "ds-gp": [(6.55, 0.78), (6.47, 0.81), (7.37, 0.77)],
+            "ce": [(6.55, 0.78), (2.91, 0.26), (2.20, 0.12)],
+        },
+    ),
+}
+
+QUICK_SEEDS = 3
+
+
+# ---------------------------------------------------------------------------------------
+# data
+# ---------------------------------------------------------------------------------------
+def prepare_data(protocol: Protocol, n: int | None, scratch: Path) -> Path:
+    """The committed sample data, or a pool of ``n`` segments generated into ``scratch``.
+
+    Generated pools come from ``core.synthetic`` with data seed 0, like
+    ``sample_data/generate.py``; the committed files are those pools at the default n.
+    """
+    if n is None or n == protocol.default_n:
+        folder = SAMPLE_DATA / protocol.name
+        if (folder / "segments.parquet").exists():
+            return folder
+        n = protocol.default_n  # installed without sample_data/: make the same pool
+    folder = scratch / f"{protocol.name}-{n}"
+    make = synthetic.toy2d if protocol.name == "toy2d" else synthetic.av_like
+    pool = make(n, 0)
+    folder.mkdir(parents=True, exist_ok=True)
+    ids = pa.array(pool.ids, pa.string())
+    cols: dict[str, Any] = {"segment_id": ids}
+    if protocol.name == "toy2d":
+        for j in range(pool.features.shape[1]):
+            cols[f"x{j}"] = pool.features[:, j]
+        dim = pool.features.shape[1]
+    else:
+        flat = pa.array(pool.features.astype(np.float32).ravel(), pa.float32())
+        cols["embedding"] = pa.FixedSizeListArray.from_arrays(flat, pool.features.shape[1])
+        dim = synthetic.AV_LATENT_DIM
+    for key, values in pool.extra.items():
+        cols[key] = pa.array(np.round(values, 4))
+    pq.write_table(pa.table(cols), folder / "segments.parquet", row_group_size=5_000)
+    truth: dict[str, Any] = {"segment_id": ids}
+    for lv in range(pool.truth.shape[1]):
+        truth[f"value_{lv}"] = pa.array(pool.truth[:, lv])
+    pq.write_table(pa.table(truth), folder / "truth.parquet")
+    settings = Settings(
+        gammas=(pool.gamma,), levels=levels_from_costs(pool.costs), seed=0, embedding_dim=dim
+    )
+    (folder / "settings.toml").write_text(settings.to_toml())
+    return folder
+
+
+def _column(path: Path, name: str) -> np.ndarray:
+    return pq.read_table(path, columns=[name]).column(name).to_numpy(zero_copy_only=False)
+
+
+# ---------------------------------------------------------------------------------------
+# one run: a workspace driven through the pipeline
+# ---------------------------------------------------------------------------------------
+@dataclass
+class RunSpec:
+    """Everything a worker needs to run one (strategy, seed)."""
+
+    protocol: str
+    strategy: str
+    seed: int
+    data: str
+    scratch: str
+    level0_share: float
+    clusters: int
+    K: float
+    keep_workspace: bool = False
+
+
+@dataclass
+class RunResult:
+    """What one run hands back; arrays over the pool are in the truth file's row order.
+
+    Attributes
+    ----------
+    picks : list of (pool index, level) int arrays, one pair per batch
+    p_after : list of ndarray of shape (N,) or None
+        p_n after each batch (None for strategies without a GP).
+    scores : ndarray of shape (N,) or None
+        Importance scores of strategies without a GP (DS: difficulty weights, CE: the
+        final cross-entropy density); None for MC and GP strategies.
+    known : bool ndarray of shape (N,)
+        Level-0 value observed during discovery (the known stratum).
+    hyperparameters : list of dict or None, one per batch
+    realised : dict or None
+        The one estimate computed through ``estimate --plan`` ... ``estimate``.
+    seconds : dict of phase -> wall seconds
+    """
+
+    strategy: str
+    seed: int
+    picks: list[tuple[np.ndarray, np.ndarray]]
+    p_after: list[np.ndarray | None]
+    scores: np.ndarray | None
+    known: np.ndarray
+    hyperparameters: list[dict[str, Any] | None]
+    realised: dict[str, Any] | None
+    seconds: dict[str, float]
+    workspace: str | None = None
+
+
+def _select_kwargs(strategy: str, batch: int) -> dict[str, Any]:
+    if batch == 1:  # random; mixed fidelity for the multifidelity strategies
+        return {"strategy": "random", "mixed_fidelity": strategy in MULTIFIDELITY}
+    return {"strategy": "random" if strategy == "mc" else strategy}
+
+
+def _ce_scores(X: np.ndarray, obs_idx: np.ndarray, obs_f: np.ndarray) -> np.ndarray:
+    """Density (up to a constant) of the final cross-entropy Gaussian at every segment.
+
+    Paper appendix "Setup for the cross-entropy method": after batch 3 the CE sampling
+    distribution, a diagonal Gaussian fitted to the elite (the ``n_elite`` lowest level-0
+    values, as ``baselines.pick_cross_entropy`` fits it), scores every segment for the rate
+    estimate.
+    """
+    from bams_cli.core.baselines import pick_cross_entropy
+
+    sig = inspect.signature(pick_cross_entropy).parameters
+    n_elite, var_floor = sig["n_elite"].default, sig["var_floor"].default
+    elite = obs_idx[np.argsort(obs_f, kind="stable")[: max(n_elite, 2)]]
+    mean = X[elite].mean(axis=0)
+    var = X[elite].var(axis=0) + var_floor * X.var(axis=0)
+    logd = -0.5 * (((X - mean) ** 2) / var).sum(axis=1)
+    return np.exp(logd - logd.max())
+
+
+def run_one(spec: RunSpec) -> RunResult:
+    """Run the protocol for one (strategy, seed) in a fresh workspace (worker entry point)."""
+    from threadpoolctl import threadpool_limits
+
+    from bams_cli.core.baselines import difficulty_weights
+
+    protocol = PROTOCOLS[spec.protocol]
+    data = Path(spec.data)
+    truth_path = data / "truth.parquet"
+    root = Path(tempfile.mkdtemp(prefix=f"{spec.strategy}-{spec.seed}-", dir=spec.scratch))
+    gp = spec.strategy in GP_STRATEGIES
+    seconds: dict[str, float] = {}
+
+    def clock(key: str, t0: float) -> None:
+        seconds[key] = seconds.get(key, 0.0) + time.perf_counter() - t0
+
+    with threadpool_limits(limits=1):
+        t0 = time.perf_counter()
+        pipeline.init(root, settings_from=data / "settings.toml", seed=spec.seed)
+        pipeline.embed_reduce(root, data / "segments.parquet", **protocol.reduce)
+        clock("setup", t0)
+        picks: list[tuple[np.ndarray, np.ndarray]] = []
+        p_after: list[np.ndarray | None] = []
+        hps: list[dict[str, Any] | None] = []
+        for b in range(1, protocol.n_batches + 1):
+            t0 = time.perf_counter()
+            pipeline.select(
+                root,
+                budget=protocol.m1 if b == 1 else protocol.mb,
+                clusters=spec.clusters,
+                level0_share=spec.level0_share,
+                workers=1,
+                **_select_kwargs(spec.strategy, b),
+            )
+            clock("select", t0)
+            t0 = time.perf_counter()
+            handoff = root / "batches" / f"batch-{b:04d}.parquet"
+            results = root / f"results-{b:04d}.parquet"
+            pipeline.simulate(handoff, truth_path, results)
+            pipeline.ingest_results(root, results)
+            clock("simulate+ingest", t0)
+            picks.append((_column(handoff, "segment_id").astype(str), _column(handoff, "fidelity")))
+            if gp:
+                t0 = time.perf_counter()
+                summary = pipeline.fit(root)
+                clock("fit", t0)
+                p_after.append(_column(root / "scores.parquet", "p_0").astype(np.float64))
+                hps.append(summary["hyperparameters"])
+            else:
+                p_after.append(None)
+                hps.append(None)
+
+        # Everything is returned in the truth file's row order.
+        truth_ids = _column(truth_path, "segment_id").astype(str)
+        pos = {s: i for i, s in enumerate(truth_ids)}
+        pool_ids = _column(root / "segments.parquet", "segment_id").astype(str)
+        to_truth = np.array([pos[s] for s in pool_ids], np.int64)
+        picks_idx = [
+            (np.array([pos[s] for s in sid], np.int64), lv.astype(np.int64)) for sid, lv in picks
+        ]
+        known = np.zeros(len(truth_ids), bool)
+        for idx, lv in picks_idx:
+            known[idx[lv == 0]] = True
+        for i, p in enumerate(p_after):
+            if p is not None:
+                q = np.empty_like(p)
+                q[to_truth] = p
+                p_after[i] = q
+
+        scores = None
+        if spec.strategy in ("ds", "ce"):
+            if spec.strategy == "ds":
+                pool_scores = difficulty_weights(
+                    _column(root / "segments.parquet", "difficulty").astype(np.float64)
+                )
+            else:
+                from bams_cli.state.workspace import Workspace
+
+                _, X = Workspace(root).read_pool()
+                known_pool = known[to_truth]
+                f0 = _column(truth_path, "value_0")[to_truth]
+                obs = np.flatnonzero(known_pool)
+                pool_scores = _ce_scores(X, obs, f0[obs])
+            scores = np.empty(len(truth_ids))
+            scores[to_truth] = pool_scores
+
+        realised = None
+        if gp:
+            # One realised estimate through the real estimate path with the default design
+            # (plan -> simulate -> ingest -> compute). The tables use the design's exact
+            # recall and variance instead (module docstring).
+            t0 = time.perf_counter()
+            plan = pipeline.estimate_plan(root, samples=spec.K)
+            est_results = root / "estimate-results.parquet"
+            pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
+            pipeline.ingest_results(root, est_results)
+            # estimate_compute sets the GP's own estimate beside the IS one, so it wants a
+            # model fitted on the log that now holds the plan's results: condition on them
+            # with the batch-3 hyperparameters (fit --fixed-hyperparameters) rather than
+            # retrain on ~K more points, which would cost more than the whole protocol.
+            pipeline.fit(root, fixed_hyperparameters=root / "model.json")
+            e = pipeline.estimate_compute(root)["estimates"][0]
+            realised = {
+                k: e[k]
+                for k in (
+                    "p_hat",
+                    "se",
+                    "ci_low",
+                    "ci_high",
+                    "n_sampled",
+                    "failures_sampled",
+                    "distinct_failures_found",
+                )
+            }
+            clock("estimate", t0)
+    workspace = str(root) if spec.keep_workspace else None
+    if not spec.keep_workspace:
+        shutil.rmtree(root, ignore_errors=True)
+    return RunResult(
+        strategy=spec.strategy,
+        seed=spec.seed,
+        picks=picks_idx,
+        p_after=p_after,
+        scores=scores,
+        known=known,
+        hyperparameters=hps,
+        realised=realised,
+        seconds=seconds,
+        workspace=workspace,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# exact design quantities
+# ---------------------------------------------------------------------------------------
+def estimate_defaults() -> dict[str, Any]:
+    """alpha, defensive and design as ``pipeline.estimate_plan`` defaults them."""
+    sig = inspect.signature(pipeline.estimate_plan).parameters
+    return {k: sig[k].default for k in ("alpha", "defensive", "design")}
+
+
+def design_stats(
+    p: np.ndarray,
+    is_failure: np.ndarray,
+    *,
+    K: float,
+    known: np.ndarray | None,
+    alpha: float,
+    defensive: float,
+    design: str,
+) -> tuple[float, float]:
+    """Expected IS recall and exact relative variance Var(p_hat) / p^2 of one design.
+
+    The inclusion probabilities (poisson, fixed) or draw distribution (with-replacement)
+    are built exactly as ``estimate --plan`` builds them (``estimate.plan_sample``); recall
+    and variance then follow from them and the true failures without drawing anything.
+
+    Parameters
+    ----------
+    p : ndarray of shape (n_pool,)
+        Scores the design is built from (p_n; importance scores for DS and CE).
+    is_failure : bool ndarray of shape (n_pool,)
+        True level-0 failures.
+    K : float
+        Expected sample size (poisson, fixed) or number of draws (with-replacement).
+    known : bool ndarray of shape (n_pool,), optional
+        The known stratum (counted exactly, never sampled); None samples the whole pool.
+    alpha, defensive, design
+        As ``estimate.plan_sample``.
+
+    Returns
+    -------
+    recall : float
+        E[fraction of the failures known or sampled] (``evaluate.expected_is_recall``).
+    rel_var : float
+        Var(p_hat) / p^2, p the pool's true rate (``estimate.exact_variance``: exact for
+        poisson and with-replacement, Hajek's approximation for fixed; +inf if a failure
+        can never be sampled).
+    """
+    import warnings
+
+    from bams_cli.core.estimate import ZeroInclusionWarning
+
+    # Scores that underflow (p_n ~ 1e-300) are expected here, not errors: their failures
+    # show up as an unbounded variance below.
+    with warnings.catch_warnings(), np.errstate(over="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", ZeroInclusionWarning)
+        plan = plan_sample(
+            np.asarray(p, dtype=np.float64),
+            K=K,
+            rng=np.random.default_rng(0),  # the draw itself is not used
+            known=known,
+            alpha=alpha,
+            defensive=defensive,
+            design=design,  # type: ignore[arg-type]
+        )
+    recall = float(expected_is_recall(plan, is_failure)[0])
+    # Poisson and with-replacement variances are sums over the failures of U only
+    # (``estimate.exact_variance``), so pass just those rows: a non-failure whose q
+    # underflows to ~1e-320 would otherwise turn 0 x (1/q = inf) into NaN.
+    fail_u = np.asarray(is_failure, bool)[plan.unknown]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if design == "fixed":  # Hajek's approximation involves every unit of U
+            var = exact_variance(plan, fail_u)[0]
+        else:
+            prob = plan.q if design == "with-replacement" else plan.pi
+            var = exact_variance(
+                prob[fail_u], np.ones(int(fail_u.sum()), bool), design=design,  # type: ignore[arg-type]
+                n_pool=plan.n_pool, budget=plan.budget,
+            )[0]  # fmt: skip
+    rv = var / np.mean(is_failure) ** 2
+    # A failure with q = 0 (p_n^alpha underflows without a defensive share) can never be
+    # sampled, and one with q ~ 1e-300 has an astronomically large variance: unbounded.
+    return recall, float(rv) if np.isfinite(rv) else math.inf
+
+
+#: The three estimator configurations the tables report (see ``_run_designs``).
+ESTIMATORS = ("default", "paper", "with_replacement")
+
+
+def _run_designs(
+    r: RunResult, is_failure: np.ndarray, K: float, est: dict[str, Any]
+) -> dict[str, tuple[float, float]]:
+    """(recall, RV) of one run under the default design, the paper's sampler and WR.
+
+    * default: ``estimate --plan`` defaults (design, alpha, defensive) with the known
+      stratum; MC samples uniformly (alpha = 0), DS and CE use their scores with alpha 1.
+    * paper: K draws with replacement over the whole pool from p_n^2.5, no defensive
+      share; MC by uniform random scores^2.5 (what the paper's MC row matches), DS and CE
+      from their scores.
+    * with_replacement: the paper's sampler at the default alpha and defensive share,
+      to separate what the design does from what alpha and eps do.
+    """
+    N = is_failure.size
+    Kw = float(round(K))
+    if r.p_after[-1] is not None:
+        p, a_def, a_pap = r.p_after[-1], est["alpha"], PAPER_ALPHA
+    elif r.scores is not None:
+        p, a_def, a_pap = r.scores, 1.0, 1.0
+    else:
+        p, a_def, a_pap = np.ones(N), 0.0, 0.0
+    out = {
+        "default": design_stats(
+            p, is_failure, K=K, known=r.known, alpha=a_def, defensive=est["defensive"],
+            design=est["design"],
+        ),
+        "with_replacement": design_stats(
+            p, is_failure, K=Kw, known=None, alpha=a_def, defensive=est["defensive"],
+            design="with-replacement",
+        ),
+    }  # fmt: skip
+    if r.p_after[-1] is None and r.scores is None:
+        p, a_pap = np.random.default_rng([r.seed, 2024]).random(N), PAPER_ALPHA
+    out["paper"] = design_stats(
+        p, is_failure, K=Kw, known=None, alpha=a_pap, defensive=0.0,
+        design="with-replacement",
+    )  # fmt: skip
+    rng = np.random.default_rng([r.seed, 2025])
+    out["paper_trials"] = (out["paper"][0], trial_spread(p, is_failure, int(Kw), a_pap, rng))
+    return out
+
+
+def trial_spread(
+    scores: np.ndarray,
+    is_failure: np.ndarray,
+    K: int,
+    alpha: float,
+    rng: np.random.Generator,
+    trials: int = PAPER_TRIALS,
+) -> float:
+    """RV as the paper measured it: the spread of ``trials`` repeated estimates / p^2.
+
+    The paper's sampler (K draws with replacement from q proportional to scores^alpha over
+    the pool, p_hat = mean of 1{fail}/(N q)) repeated ``trials`` times (paper section 4.1:
+    200). Heavy-tailed weights make this a noisy and usually low estimate of the true
+    variance, and failures with q = 0 never show up in it at all.
+    """
+    from bams_cli.core.estimate import selection_distribution
+
+    N = is_failure.size
+    with np.errstate(over="ignore", divide="ignore", under="ignore"):
+        q = selection_distribution(np.asarray(scores, np.float64), alpha=alpha, defensive=0.0)
+    draws = rng.choice(N, size=(trials, K), p=q / q.sum())
+    est = (is_failure[draws] / (N * q[draws])).mean(axis=1)
+    return float(est.var(ddof=1) / is_failure.mean() ** 2)
+
+
+# ---------------------------------------------------------------------------------------
+# aggregation over seeds
+# ---------------------------------------------------------------------------------------
+def _se(x: Sequence[float]) -> float | None:
+    a = np.asarray(x, dtype=np.float64)
+    if a.size < 2:
+        return None
+    if not np.all(np.isfinite(a)):
+        return math.inf
+    return float(a.std(ddof=1) / math.sqrt(a.size))
+
+
+def _summary(recalls: Sequence[float], rvs: Sequence[float]) -> dict[str, Any]:
+    rv100 = 100.0 * np.asarray(rvs, dtype=np.float64)
+    return {
+        "recall": float(np.mean(recalls)),
+        "recall_se": _se(recalls),
+        "rv": float(rv100.mean()),
+        "rv_se": _se(rv100),
+        "rv_median": float(np.median(rv100)),
+        "seeds": len(recalls),
+        "per_seed_recall": [float(v) for v in recalls],
+        "per_seed_rv": [float(v) for v in rv100],
+    }
+
+
+def _curve(r: RunResult, b: int, is_failure: np.ndarray) -> np.ndarray:
+    if r.p_after[b] is not None:
+        s = r.p_after[b]
+    elif r.scores is not None and b == len(r.p_after) - 1:
+        s = r.scores
+    else:  # MC, and DS / CE before their final scores: random order (paper section 4.1)
+        s = np.random.default_rng([r.seed, 99, b]).random(is_failure.size)
+    return retention_recall(s, is_failure, RETENTION_GRID)
+
+
+def mc_explanation(
+    is_failure: np.ndarray, K: float, seeds: Sequence[int], trials: int = 200
+) -> dict[str, Any]:
+    """Where the paper's MC row (100 RV = 710) comes from: IS by random scores^alpha.
+
+    Plain MC (uniform draws) has RV = (1 - p)/(p K). The paper's "sampling based on random
+    scores" with its importance sampler q proportional to score^alpha gives weights
+    1/(N q) proportional to u^-alpha for u ~ U(0, 1), whose variance is heavy-tailed
+    (E[u^-alpha] is infinite for alpha >= 1): the exact RV per seed is set by the failure
+    that happened to draw the smallest score, and the spread of ``trials`` repeated
+    estimates (what the paper reports, 200 trials) is a noisy, usually far smaller, number.
+
+    Returns 100 x RV, mean and median over ``seeds``, for uniform draws (exact),
+    random scores^1 and ^2.5 (exact), and random scores^2.5 as the spread of ``trials``
+    repeated estimates.
+    """
+    N = is_failure.size
+    p = is_failure.mean()
+    Kw = int(round(K))
+    rows: dict[str, list[float]] = {"uniform": [], "scores^1": [], "scores^2.5": []}
+    spread: list[float] = []
+    for seed in seeds:
+        u = np.random.default_rng([seed, 2024]).random(N)
+        rows["uniform"].append(
+            design_stats(np.ones(N), is_failure, K=Kw, known=None, alpha=0.0, defensive=0.0,
+                         design="with-replacement")[1]
+        )  # fmt: skip
+        for a, key in ((1.0, "scores^1"), (PAPER_ALPHA, "scores^2.5")):
+            rows[key].append(
+                design_stats(u, is_failure, K=Kw, known=None, alpha=a, defensive=0.0,
+                             design="with-replacement")[1]
+            )  # fmt: skip
+        q = u**PAPER_ALPHA / np.sum(u**PAPER_ALPHA)
+        draws = np.random.default_rng([seed, 2025]).choice(N, size=(trials, Kw), p=q)
+        est = (is_failure[draws] / (N * q[draws])).mean(axis=1)
+        spread.append(float(est.var(ddof=1) / p**2))
+    out = {
+        key: {"mean": float(100 * np.mean(v)), "median": float(100 * np.median(v))}
+        for key, v in rows.items()
+    }
+    out[f"scores^2.5 spread of {trials} trials"] = {
+        "mean": float(100 * np.mean(spread)),
+        "median": float(100 * np.median(spread)),
+        "se": _se(100 * np.asarray(spread)),
+    }
+    out["formula_uniform"] = float(100 * (1 - p) / (p * Kw))
+    return out
+
+
+def evaluate_runs(
+    protocol: Protocol,
+    runs: Sequence[RunResult],
+    f0: np.ndarray,
+    gamma: float,
+    *,
+    K: float,
+    estimator: dict[str, Any],
+) -> dict[str, Any]:
+    """Per strategy: the IS tables, Table 1 and retention-recall curves over seeds."""
+    is_failure = f0 <= gamma
+    out: dict[str, Any] = {}
+    for strategy in protocol.strategies:
+        mine = sorted((r for r in runs if r.strategy == strategy), key=lambda r: r.seed)
+        if not mine:
+            continue
+        stats = [_run_designs(r, is_failure, K, estimator) for r in mine]
+        entry = _summary([s["default"][0] for s in stats], [s["default"][1] for s in stats])
+        entry["seed_values"] = [r.seed for r in mine]
+        for name in ("paper", "with_replacement"):
+            entry[name] = _summary([s[name][0] for s in stats], [s[name][1] for s in stats])
+        trials = 100.0 * np.array([s["paper_trials"][1] for s in stats])
+        entry["paper"]["rv_trials"] = float(trials.mean())
+        entry["paper"]["rv_trials_se"] = _se(trials)
+        entry["paper"]["rv_trials_median"] = float(np.median(trials))
+        entry["paper"]["seeds_unbounded"] = int(np.sum(~np.isfinite(entry["paper"]["per_seed_rv"])))
+        entry["failures_known"] = [int(is_failure[r.known].sum()) for r in mine]
+        entry["table1"] = []
+        for b in range(protocol.n_batches):
+            per_seed = [float(f0[r.picks[b][0]].mean()) for r in mine]
+            entry["table1"].append({"mean_f": float(np.mean(per_seed)), "se": _se(per_seed)})
+        entry["picks_per_level"] = [
+            [[int((lv == k).sum()) for k in range(2)] for _, lv in r.picks] for r in mine
+        ]
+        entry["retention_recall"] = {}
+        for b in range(protocol.n_batches):
+            c = np.array([_curve(r, b, is_failure) for r in mine])
+            entry["retention_recall"][str(b + 1)] = {
+                "mean": c.mean(axis=0).tolist(),
+                "se": (c.std(axis=0, ddof=1) / math.sqrt(len(c))).tolist() if len(c) > 1 else None,
+            }
+        if strategy == "mc":
+            entry["explanation"] = mc_explanation(is_failure, K, [r.seed for r in mine])
+        entry["hyperparameters_final"] = [r.hyperparameters[-1] for r in mine]
+        entry["realised_estimates"] = [r.realised for r in mine]
+        entry["seconds_per_run"] = {
+            k: round(float(np.mean([r.seconds.get(k, 0.0) for r in mine])), 2)
+            for k in sorted({k for r in mine for k in r.seconds})
+        }
+        out[strategy] = entry
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# the harness
+# ---------------------------------------------------------------------------------------
+def versions() -> dict[str, str]:
+    """Python, platform and the versions of the packages the numbers depend on."""
+    out = {"python": platform.python_version(), "platform": platform.platform()}
+    for pkg in (
+        "bams-cli",
+        "numpy",
+        "scipy",
+        "scikit-learn",
+        "numba",
+        "polars",
+        "pyarrow",
+        "matplotlib",
+    ):
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def run_benchmark(
+    protocol: str,
+    *,
+    seeds: int,
+    quick: bool,
+    out_dir: Path,
+    strategies: list[str] | None,
+    level0_share: float,
+    workers: int,
+    progress: Progress | None,
+    n: int | None = None,
+    clusters: int = 6,
+    first_seed: int = 0,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Run a paper protocol over seeds and write its tables, plots and results.json.
+
+    Parameters
+    ----------
+    protocol : {"toy2d", "av_like"}
+        The synthetic protocol (paper appendix "Synthetic Experiments") or the AV one
+        (paper section 4) on the AV-like sample data.
+    seeds : int
+        Independent repetitions (study seeds ``first_seed`` ..); ``quick`` caps it at 3.
+    quick : bool
+        CI mode: at most 3 seeds.
+    out_dir : Path
+        Where results.json, tables.md and the plots go (created if missing).
+    strategies : list of str, optional
+        Subset of the protocol's strategies (default: all, in table order).
+    level0_share : float
+        Share of the budget spent at level 0 by the mixed-fidelity random first batch
+        (BAMS, MCM-GP) and by every MCM-GP batch; the rest buys level-1 runs.
+    workers : int
+        Runs in parallel worker processes (1: in this process).
+    progress : callable (phase, done, total), optional
+        Called as runs finish: one phase per strategy and "all runs".
+    n : int, optional
+        Pool size; default the committed sample data (toy2d 20,000, av_like 2,000).
+    clusters : int
+        BAMS / BAS clusters S (paper: 6).
+    first_seed : int
+    command : str, optional
+        The command line to record (default: this process's argv).
+
+    Returns
+    -------
+    dict
+        The content of results.json.
+    """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
+    proto = PROTOCOLS[protocol]
+    chosen = list(proto.strategies) if not strategies else list(strategies)
+    unknown = [s for s in chosen if s not in proto.strategies]
+    if unknown:
+        raise ValueError(
+            f"strategies {unknown} are not part of the {protocol} protocol "
+            f"({', '.join(proto.strategies)})"
+        )
+    if not 0.0 < level0_share < 1.0:
+        raise ValueError(f"level0_share {level0_share}: must lie in (0, 1)")
+    if quick:
+        seeds = min(seeds, QUICK_SEEDS)
+    if seeds < 1:
+        raise ValueError(f"seeds {seeds}: need at least 1")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    estimator = estimate_defaults()
+    t_start = time.perf_counter()
+
+    with tempfile.TemporaryDirectory(prefix=f"bams-benchmark-{protocol}-") as tmp:
+        scratch = Path(tmp)
+        data = prepare_data(proto, n, scratch)
+        f0 = _column(data / "truth.parquet", "value_0").astype(np.float64)
+        gamma = Settings.from_toml((data / "settings.toml").read_text()).gammas[0]
+        F = int((f0 <= gamma).sum())
+        N = f0.size
+        K = float(round(proto.k_factor * F))
+        # Slow strategies first, so the pool's last workers are not left with a long run.
+        order = sorted(chosen, key=lambda s: (s not in ("bams", "bas"), chosen.index(s)))
+        specs = [
+            RunSpec(protocol, s, first_seed + i, str(data), str(scratch), level0_share, clusters, K)
+            for s in order
+            for i in range(seeds)
+        ]
+        done_per = dict.fromkeys(chosen, 0)
+        runs: list[RunResult] = []
+
+        def finished(r: RunResult) -> None:
+            runs.append(r)
+            done_per[r.strategy] += 1
+            if progress:
+                progress(f"{protocol} {r.strategy}", done_per[r.strategy], seeds)
+                progress(f"{protocol} all runs", len(runs), len(specs))
+
+        if progress:
+            for s in chosen:
+                progress(f"{protocol} {s}", 0, seeds)
+            progress(f"{protocol} all runs", 0, len(specs))
+        if workers <= 1:
+            for spec in specs:
+                finished(run_one(spec))
+        else:
+            import multiprocessing as mp
+
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+                pending: set[Future] = {pool.submit(run_one, spec) for spec in specs}
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        finished(fut.result())
+        table = evaluate_runs(proto, runs, f0, gamma, K=K, estimator=estimator)
+    wall = time.perf_counter() - t_start
+
+    p = F / N
+    result: dict[str, Any] = {
+        **table,
+        "protocol": protocol,
+        "units": {
+            "recall": "expected fraction of all true failures known or sampled (exact)",
+            "rv": "100 x Var(p_hat) / p^2, the design's exact variance",
+            "mean_f": "mean true level-0 metric of a batch's picks, mean over seeds",
+        },
+        "setup": {
+            "data": str(data) if n not in (None, proto.default_n) else f"sample_data/{protocol}",
+            "pool_size": N,
+            "gamma": gamma,
+            "failures": F,
+            "rate": p,
+            "K": K,
+            "K_rule": f"K = {proto.k_factor:g} p N with p the true rate",
+            "m1": proto.m1,
+            "mb": proto.mb,
+            "batches": proto.n_batches,
+            "level0_share": level0_share,
+            "clusters": clusters,
+            "seeds": seeds,
+            "first_seed": first_seed,
+            "quick": quick,
+            "estimator_default": estimator,
+            "estimator_paper": {
+                "design": "with-replacement",
+                "alpha": PAPER_ALPHA,
+                "defensive": 0.0,
+                "known_stratum": False,
+            },
+            "mc_rv_uniform_formula": (1 - p) / (p * K),
+            "strategies": chosen,
+        },
+        "paper": {
+            s: dict(zip(("recall", "recall_se", "rv", "rv_se"), v, strict=True))
+            for s, v in proto.paper.items()
+        },
+        "paper_table1": {s: v for s, v in proto.paper_table1.items()},
+        "command": command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "versions": versions(),
+        "wall_seconds": round(wall, 1),
+        "workers": workers,
+        "cpu_count": os.cpu_count(),
+    }
+    (out_dir / "results.json").write_text(json.dumps(result, indent=1, default=_json) + "\n")
+    (out_dir / "tables.md").write_text(render_tables(result))
+    plot_retention_recall(result, out_dir / "retention-recall.png")
+    return result
+
+
+def _json(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+# ---------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------
+NAMES = {
+    "bams": "BAMS",
+    "bas": "BAS",
+    "mc": "MC",
+    "mc-gp": "MC-GP",
+    "mcm-gp": "MCM-GP",
+    "ds": "DS",
+    "ds-gp": "DS-GP",
+    "ce": "CE",
+}
+
+
+def _pm(v: float | None, se: float | None, digits: int = 3) -> str:
+    if v is None or not math.isfinite(v):
+        return "inf" if v is not None and v > 0 else "-"
+    s = f"{v:.{digits}f}" if abs(v) < 1000 else f"{v:.4g}"
+    if se is None:
+        return s
+    if not math.isfinite(se):
+        return f"{s} ± inf"
+    return f"{s} ± {se:.{digits}f}" if abs(se) < 1000 else f"{s} ± {se:.3g}"
+
+
+def strategy_rows(result: dict[str, Any]) -> list[str]:
+    return [s for s in result["setup"]["strategies"] if s in result]
+
+
+def render_tables(result: dict[str, Any]) -> str:
+    """Markdown tables of a results.json: IS tables, Table 1, setup."""
+    st = result["setup"]
+    lines = [
+        f"# {result['protocol']}: {st['seeds']} seeds, N = {st['pool_size']:,}, "
+        f"{st['failures']} failures (p = {st['rate']:.5f}), K = {st['K']:g}",
+        "",
+        f"Batches: m1 = {st['m1']:g} random (level-0 share {st['level0_share']:g} for the "
+        f"multifidelity strategies), then {st['batches'] - 1} x {st['mb']:g} by the strategy; "
+        f"{st['clusters']} clusters. Default estimator: {st['estimator_default']}.",
+        "",
+    ]
+    titles = {
+        "default": "Default design (Poisson over U, known stratum, "
+        f"alpha {st['estimator_default']['alpha']:g}, "
+        f"defensive {st['estimator_default']['defensive']:g})",
+        "paper": f"Paper's sampler (K draws with replacement over the pool from "
+        f"p_n^{PAPER_ALPHA:g}, no defensive share; MC: random scores^{PAPER_ALPHA:g})",
+        "with_replacement": "With replacement at the default alpha and defensive share",
+    }
+    for name in ESTIMATORS:
+        paper_cols = name == "paper"
+        head = "| strategy | recall ± SE | 100 RV mean ± SE | 100 RV median |"
+        if paper_cols:
+            head += (
+                f" seeds with RV = inf | 100 RV from {PAPER_TRIALS} trials, mean ± SE | (median) |"
+            )
+        lines += [
+            f"## {titles[name]}",
+            "",
+            head + " paper recall | paper 100 RV |",
+            "|" + " --- |" * (head.count("|") + 1),
+        ]
+        for s in strategy_rows(result):
+            e = result[s] if name == "default" else result[s][name]
+            pap = result["paper"].get(s)
+            row = (
+                f"| {NAMES[s]} | {_pm(e['recall'], e['recall_se'])} | "
+                f"{_pm(e['rv'], e['rv_se'], 2)} | {_pm(e['rv_median'], None, 2)} |"
+            )
+            if paper_cols:
+                row += (
+                    f" {e['seeds_unbounded']}/{e['seeds']} | "
+                    f"{_pm(e['rv_trials'], e['rv_trials_se'], 2)} | "
+                    f"{_pm(e['rv_trials_median'], None, 2)} |"
+                )
+            row += (
+                f" {_pm(pap['recall'], pap['recall_se'])} | {_pm(pap['rv'], pap['rv_se'], 2)} |"
+                if pap
+                else " - | - |"
+            )
+            lines.append(row)
+        lines.append("")
+    lines += [
+        "## Mean true f of each batch's picks (the paper's Table 1), ± SE over seeds",
+        "",
+        "| strategy | " + " | ".join(f"batch {b + 1}" for b in range(st["batches"])) + " |",
+        "| --- |" + " --- |" * st["batches"],
+    ]
+    for s in strategy_rows(result):
+        cells = [_pm(t["mean_f"], t["se"], 2) for t in result[s]["table1"]]
+        lines.append(f"| {NAMES[s]} | " + " | ".join(cells) + " |")
+    if result.get("paper_table1"):
+        lines += ["", "Paper (AV, Table 1):", ""]
+        lines += [
+            "| strategy | " + " | ".join(f"batch {b + 1}" for b in range(st["batches"])) + " |",
+            "| --- |" + " --- |" * st["batches"],
+        ]
+        for s, rows in result["paper_table1"].items():
+            lines.append(
+                f"| {NAMES[s]} | " + " | ".join(f"{m:.2f} ± {e:.2f}" for m, e in rows) + " |"
+            )
+    lines += [
+        "",
+        f"Plain MC, uniform sampling of K = {st['K']:g}: RV = (1 - p)/(p K) = "
+        f"{st['mc_rv_uniform_formula']:.3f} (100 RV = {100 * st['mc_rv_uniform_formula']:.1f}).",
+        "",
+    ]
+    if "mc" in result and "explanation" in result["mc"]:
+        lines += [
+            "MC as importance sampling by uniform random scores u^alpha (K draws with "
+            "replacement over the pool), 100 RV over seeds:",
+            "",
+            "| sampler | mean | median |",
+            "| --- | --- | --- |",
+        ]
+        for key, v in result["mc"]["explanation"].items():
+            if isinstance(v, dict):
+                lines.append(f"| {key} | {_pm(v['mean'], v.get('se'), 1)} | {v['median']:.4g} |")
+        lines.append("")
+    lines += [
+        f"Command: `{result['command']}`; wall time {result['wall_seconds']:.0f} s with "
+        f"{result['workers']} worker(s) on {result['cpu_count']} CPUs.",
+        "",
+        "Versions: " + ", ".join(f"{k} {v}" for k, v in result["versions"].items()) + ".",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def plot_retention_recall(result: dict[str, Any], path: Path) -> None:
+    """Retention-recall after each batch, mean over seeds with a ±1 SE band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    st = result["setup"]
+    nb = st["batches"]
+    fig, axes = plt.subplots(1, nb, figsize=(4.2 * nb, 3.6), sharey=True)
+    for b, ax in enumerate(np.atleast_1d(axes)):
+        for s in strategy_rows(result):
+            c = result[s]["retention_recall"][str(b + 1)]
+            m = np.asarray(c["mean"])
+            (line,) = ax.plot(RETENTION_GRID, m, label=NAMES[s], lw=1.6)
+            if c["se"] is not None:
+                se = np.asarray(c["se"])
+                ax.fill_between(RETENTION_GRID, m - se, m + se, color=line.get_color(), alpha=0.15)
+        ax.set_title(f"batch {b + 1}")
+        ax.set_xlabel("retention / (p N)")
+        ax.set_xlim(0, RETENTION_GRID[-1])
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+    np.atleast_1d(axes)[0].set_ylabel("recall")
+    np.atleast_1d(axes)[-1].legend(loc="lower right", fontsize=8)
+    fig.suptitle(
+        f"{result['protocol']}: retention-recall, mean ± SE over {st['seeds']} seeds "
+        f"(N = {st['pool_size']:,})",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
