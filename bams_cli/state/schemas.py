@@ -38,7 +38,7 @@ class StateFile:
             if col.type != fld.type:
                 try:
                     col = col.cast(fld.type)
-                except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+                except pa.ArrowException as exc:  # invalid value or unsupported cast
                     raise SchemaError(
                         self.name, f"cannot cast to {fld.type} ({exc})", column=fld.name
                     ) from None
