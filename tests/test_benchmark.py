@@ -43,6 +43,13 @@ def test_tiny_synthetic_run_writes_finite_tables(tmp_path):
     assert doc["setup"]["pool_size"] == 1500 and doc["setup"]["K"] > 0
     assert res["bas"]["recall"] == doc["bas"]["recall"]
     assert ("toy2d all runs", 2, 2) in calls
+    # BAS went through estimate --plan, simulate, ingest, fit and estimate; MC did not.
+    [realised] = doc["bas"]["realised_estimates"]
+    assert 0.0 <= realised["ci_low"] <= realised["p_hat"] <= realised["ci_high"]
+    assert realised["n_sampled"] > 0
+    assert realised["distinct_failures_found"] <= doc["setup"]["failures"]
+    assert "interval covers p" in (tmp_path / "tables.md").read_text()
+    assert not any(doc["mc"].get("realised_estimates", []))
     # BAS's first batch is level 0 only; its picks fill the budget.
     levels = doc["bas"]["picks_per_level"][0]
     assert levels[0] == [10, 0] and sum(levels[1]) == 5
