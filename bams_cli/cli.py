@@ -330,8 +330,10 @@ def fit(
         console.print_json(summary)
         return
     console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
-    rest = {k: v for k, v in summary.items() if k != "hyperparameters"}
+    rest = {k: v for k, v in summary.items() if k not in ("hyperparameters", "warnings")}
     console.kv_table("fit", rest)
+    for warning in summary["warnings"]:
+        console.note(f"warning: {warning}")
 
 
 @command()

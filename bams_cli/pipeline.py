@@ -12,7 +12,7 @@ import datetime as dt
 import fnmatch
 import functools
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -795,6 +795,7 @@ def fit(
         if progress:
             progress("score pool", stop, n)
 
+    warnings = _contradicted_outcomes(ids, idx, lv, y, p, settings.gammas)
     obs_hash = ws.observations_hash()
     hp = model.hyperparameters
     doc = {
@@ -810,6 +811,7 @@ def fit(
         "seed": settings.seed,
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "warnings": warnings,
     }
     cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
     for g in range(p.shape[1]):
@@ -839,7 +841,51 @@ def fit(
         "log_posterior": doc["log_posterior"],
         "hyperparameters": doc["hyperparameters"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        "warnings": warnings,
     }
+
+
+#: p_n below this at an observed level-0 failure (or 1 - p_n below it at an observed
+#: non-failure) means the model contradicts what was measured.
+CONTRADICTION = 0.01
+
+
+def _contradicted_outcomes(
+    ids: np.ndarray,
+    idx: np.ndarray,
+    lv: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    gammas: Sequence[float],
+) -> list[str]:
+    """Observed level-0 outcomes the fitted model is nearly sure did not happen.
+
+    A fit that explains level-0 results as noise (large level-0 noise, or the data handed to
+    the discrepancy) gives p_n ~ 0 at segments seen failing. The rate estimate then samples
+    the failures like them with tiny probability and its variance explodes, so say so.
+    """
+    out = []
+    level0 = lv == 0
+    for g, gamma in enumerate(gammas):
+        pn = p[idx[level0], g]
+        val = y[level0]
+        for failed, doubt, what in (
+            (val <= gamma, pn, "failing"),
+            (val > gamma, 1.0 - pn, "not failing"),
+        ):
+            bad = np.flatnonzero(failed & (doubt < CONTRADICTION))
+            if bad.size == 0:
+                continue
+            worst = bad[np.argmin(doubt[bad])]
+            out.append(
+                f"gamma {gamma:g}: {bad.size} of {int(failed.sum())} segments observed "
+                f"{what} at level 0 get probability < {CONTRADICTION:g} of that outcome "
+                f"(worst {ids[idx[level0][worst]]!r}: value {val[worst]:.4g}, "
+                f"p_n {pn[worst]:.2g}); the model explains them as noise, so the estimate's "
+                "variance may be large. Check the level-0 noise in the hyperparameter table; "
+                "more level-0 runs near them help"
+            )
+    return out
 
 
 # ---------------------------------------------------------------------------------------

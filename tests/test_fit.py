@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from scipy.special import ndtr
@@ -103,3 +104,45 @@ def test_model_is_stale_after_new_results(fitted_ws, runner, toy_files, tmp_path
     )
     assert r.exit_code == 1
     assert "fitted on an older observation log" in r.stderr and "bams-cli fit" in r.stderr
+
+
+def _fit_with(ws, runner, tmp_path, values, noise0):
+    """Level-0 results with the given values, fitted with fixed hyperparameters."""
+    ids = [f"t{i:06d}" for i in range(0, 400, 40)][: len(values)]
+    write_batch(ws, 1, ids, [0] * len(ids))
+    res = tmp_path / "r1.parquet"
+    pq.write_table(pa.table({"segment_id": ids, "fidelity": [0] * len(ids), "value": values}), res)
+    assert invoke(runner, "ingest-results", "-w", ws, res).exit_code == 0
+    hp = {
+        "mean": 3.0,
+        "outputscale0": 0.25,
+        "lengthscales0": [1.0, 1.0],
+        "outputscales": [0.01],
+        "lengthscales": [[1.0, 1.0]],
+        "noise": [noise0, 1e-4],
+    }
+    saved = tmp_path / "hp.json"
+    saved.write_text(json.dumps(hp))
+    return invoke(runner, "fit", "-w", ws, "--fixed-hyperparameters", saved), ids
+
+
+def test_fit_warns_when_the_model_explains_an_observed_failure_as_noise(toy_ws, runner, tmp_path):
+    # Level-0 noise variance 100: the failure at 0.3 barely moves the mean off 3, so
+    # p_n there is ndtr((0.56 - ~3) / ~0.5) ~ 1e-6 although the segment was seen failing.
+    r, ids = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=100.0)
+    assert r.exit_code == 0, r.output
+    [line] = [s for s in r.stderr.splitlines() if s.startswith("warning:")]
+    assert "1 of 1 segments observed failing" in line and repr(ids[0]) in line
+    model = json.loads(Workspace(toy_ws).model_path.read_text())
+    assert len(model["warnings"]) == 1
+    p = pq.read_table(Workspace(toy_ws).scores_path).column("p_0").to_numpy()
+    assert p[0] < 0.01  # t000000 is row 0: the contradiction the warning names
+
+
+def test_fit_does_not_warn_when_the_model_follows_the_data(toy_ws, runner, tmp_path):
+    r, _ = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=1e-4)
+    assert r.exit_code == 0, r.output
+    assert "warning:" not in r.stderr
+    assert json.loads(Workspace(toy_ws).model_path.read_text())["warnings"] == []
+    p = pq.read_table(Workspace(toy_ws).scores_path).column("p_0").to_numpy()
+    assert p[0] > 0.99
