@@ -52,6 +52,7 @@ td, th { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 img { max-width: 100%; border: 1px solid #eee; }
 .note { color: #666; font-size: 0.9em; }
+.warn { color: #a40; }
 """
 
 
@@ -213,6 +214,9 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
             ),
             f"<p class='note'>constant mean {hp['mean']:.4g}; log marginal likelihood "
             f"{model['log_marginal_likelihood']:.4g}; model {'up to date' if model['fresh'] else 'STALE: run bams-cli fit'}</p>",
+        ]
+        parts += [
+            f"<p class='warn'>fit warning: {html.escape(w)}</p>" for w in model.get("warnings", [])
         ]
     parts.append("<h2>Batches</h2>")
     if s["batches"]:

@@ -137,6 +137,10 @@ def test_fit_warns_when_the_model_explains_an_observed_failure_as_noise(toy_ws, 
     assert len(model["warnings"]) == 1
     p = pq.read_table(Workspace(toy_ws).scores_path).column("p_0").to_numpy()
     assert p[0] < 0.01  # t000000 is row 0: the contradiction the warning names
+    # The report carries it too.
+    assert invoke(runner, "report", "-w", toy_ws).exit_code == 0
+    page = (toy_ws / "report" / "report.html").read_text()
+    assert page.count("fit warning: gamma 0.56: 1 of 1 segments observed failing") == 1
 
 
 def test_fit_does_not_warn_when_the_model_follows_the_data(toy_ws, runner, tmp_path):
