@@ -7,6 +7,7 @@ one boundary, ``main``, and printed as one line with exit code 1.
 from __future__ import annotations
 
 import functools
+import inspect
 import shlex
 import sys
 from collections.abc import Callable
@@ -55,6 +56,13 @@ Wait = Annotated[
 ]
 
 
+def _reflow(doc: str) -> str:
+    """Join a docstring's wrapped lines: rich help keeps single newlines, so wrapping at the
+    source's width would break lines again at the terminal's."""
+    paragraphs = inspect.cleandoc(doc).split("\n\n")
+    return "\n\n".join(" ".join(line.strip() for line in p.splitlines()) for p in paragraphs)
+
+
 def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Register a subcommand whose BamsErrors become one stderr line and exit code 1."""
 
@@ -67,6 +75,7 @@ def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable
                 console.error(str(exc))
                 raise typer.Exit(1) from None
 
+        boundary.__doc__ = _reflow(fn.__doc__ or "")
         app.command(name)(boundary)
         return fn
 
@@ -167,7 +176,7 @@ def embed_reduce(
         typer.Option("--method", help="pca (streaming IncrementalPCA), autoencoder, or identity."),
     ] = "pca",
     dim: Annotated[
-        int | None, typer.Option("--dim", help="Reduced dimension [default: settings, 12].")
+        int | None, typer.Option("--dim", help="Reduced dimension \\[default: settings, 12].")
     ] = None,
     standardize: Annotated[
         bool,
@@ -391,7 +400,9 @@ def select(
     ] = False,
     workers: Annotated[
         int | None,
-        typer.Option("--workers", help="Local worker processes for clusters [default: all cores]."),
+        typer.Option(
+            "--workers", help="Local worker processes for clusters \\[default: all cores]."
+        ),
     ] = None,
     scheduler: Annotated[
         str | None,
@@ -438,7 +449,9 @@ def estimate(
     ] = False,
     samples: Annotated[
         float | None,
-        typer.Option("--samples", "-K", help="Simulation budget K [default: 5 x the GP's p x N]."),
+        typer.Option(
+            "--samples", "-K", help="Simulation budget K \\[default: 5 x the GP's p x N]."
+        ),
     ] = None,
     alpha: Annotated[
         float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
@@ -456,7 +469,9 @@ def estimate(
     ] = "poisson",
     plan_number: Annotated[
         int | None,
-        typer.Option("--plan-number", help="Phase 2: which plan to compute [default: the latest]."),
+        typer.Option(
+            "--plan-number", help="Phase 2: which plan to compute \\[default: the latest]."
+        ),
     ] = None,
     confidence: Annotated[
         float, typer.Option("--confidence", help="Two-sided confidence level of the interval.")
@@ -564,7 +579,7 @@ def benchmark(
     strategies: Annotated[
         str | None,
         typer.Option(
-            "--strategies", help="Comma-separated subset, e.g. bams,bas,mc [default: all]."
+            "--strategies", help="Comma-separated subset, e.g. bams,bas,mc \\[default: all]."
         ),
     ] = None,
     level0_share: Annotated[
@@ -575,7 +590,7 @@ def benchmark(
         ),
     ] = 0.5,
     n: Annotated[
-        int | None, typer.Option("--n", help="Pool size [default: the committed sample data].")
+        int | None, typer.Option("--n", help="Pool size \\[default: the committed sample data].")
     ] = None,
     clusters: Annotated[int, typer.Option("--clusters", help="BAMS/BAS clusters S.")] = 6,
     workers: Annotated[int, typer.Option("--workers", help="Runs in parallel processes.")] = 2,

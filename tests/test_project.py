@@ -120,3 +120,32 @@ def test_simulate_answers_a_handoff_from_truth(runner, toy_files, tmp_path):
     r = invoke(runner, "simulate", bad, "--truth", truth, "-o", tmp_path / "o.parquet")
     assert r.exit_code == 1 and "column 'segment_id', row 1: segment id 'zzz' is not in" in r.stderr
     assert not (tmp_path / "o.parquet").exists()
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_help_paragraphs_come_out_whole_on_a_wide_terminal(runner, name, monkeypatch):
+    # Rich help keeps a docstring's single newlines; wrapped source lines would break
+    # every sentence at the source's width whatever the terminal's.
+    monkeypatch.setenv("COLUMNS", "400")
+    r = invoke(runner, name, "--help")
+    doc = get_command(app).commands[name].help
+    lines = [line.strip() for line in r.stdout.splitlines()]
+    for paragraph in doc.split("\n\n"):
+        plain = re.sub(r"\[/?[a-z ]*\]", "", paragraph)  # rich markup such as [bold]
+        assert plain in lines, f"{name}: {plain[:60]!r} is not one line"
+
+
+@pytest.mark.parametrize(
+    ("name", "hint"),
+    [
+        ("benchmark", "[default: the committed sample data]"),
+        ("benchmark", "[default: all]"),
+        ("estimate", "[default: 5 x the GP's p x N]"),
+        ("estimate", "[default: the latest]"),
+        ("select", "[default: all cores]"),
+        ("embed-reduce", "[default: settings, 12]"),
+    ],
+)
+def test_help_shows_bracketed_defaults_verbatim(runner, name, hint, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "400")  # rich would read them as markup tags
+    assert hint in invoke(runner, name, "--help").stdout
