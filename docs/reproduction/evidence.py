@@ -1,6 +1,6 @@
 """The evidence behind the defaults the reproduction changed (docs/reproduction/README.md).
 
-    .venv/bin/python docs/reproduction/evidence.py              # ~40 min on 2 cores
+    .venv/bin/python docs/reproduction/evidence.py              # ~45 min on 2 cores
     .venv/bin/python docs/reproduction/evidence.py steps alpha  # some studies only
 
 Each study runs the paper's protocol (``bams_cli.benchmark.run_one``: the real select,
