@@ -533,7 +533,10 @@ def estimate(
         [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
         for g in summary["gp"]
     ]
-    console.rows_table("the GP's own estimate", ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
+    title = "the GP's own estimate"
+    if summary["gp_model"] != "current":
+        title += " (model as of the plan; `bams-cli fit` adds the plan's results)"
+    console.rows_table(title, ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
 
 
 @command()

@@ -28,6 +28,7 @@ from bams_cli.errors import (
     DuplicateError,
     InputError,
     SchemaError,
+    StaleStateError,
     WorkspaceError,
 )
 from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
@@ -1218,6 +1219,9 @@ def estimate_plan(
         "w_model": w_model,
         "plan_gamma": settings.gammas[g_plan],
         "model_hash": model["observations_hash"],
+        # The GP's own estimate (mean p_n, variance bound) per gamma, as of this plan:
+        # `estimate` reports it when the plan's results have not been fitted yet.
+        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
         "seed": settings.seed,
     }
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
@@ -1301,10 +1305,23 @@ def estimate_compute(
     )
     rows = []
     gp_rows = []
-    # The GP's own estimate sits beside the IS one, so it must describe the current log
-    # (which now includes the plan's results): refuse a stale model by name.
-    ws.require_fresh_model()
-    _, mu, sd, p_all = _read_scores(ws, len(gammas))
+    # The IS estimate needs no model. Beside it goes the GP's own estimate: from the
+    # current model when it has been fitted on the plan's results, else the model's as of
+    # the plan (stored with it), so a large K never forces a refit just to get the number.
+    model = ws.require_model(allow_newer_observations=True)
+    at_plan = meta.get("gp_at_plan")
+    if not model["fresh"] and (exact_variance or at_plan is None):
+        why = "--exact-variance" if exact_variance else f"{path} (made by an older version)"
+        raise StaleStateError(
+            f"{ws.model_path}: fitted on an older observation log and {why} needs the current "
+            f"one; run `bams-cli fit -w {ws.root}` (or, faster, `bams-cli fit -w {ws.root} "
+            f"--fixed-hyperparameters {ws.model_path}`: condition only, no training)"
+        )
+    if model["fresh"]:
+        _, mu, sd, p_all = _read_scores(ws, len(gammas))
+        gp_values = [gp_estimate(p_all[:, g]) for g in range(len(gammas))]
+    else:
+        gp_values = [(float(m), float(b)) for m, b in at_plan or []]
     for g, gamma in enumerate(gammas):
         e = est[g]
         rows.append(
@@ -1322,7 +1339,7 @@ def estimate_compute(
                 "distinct_failures_found": e.n_failures_found,
             }
         )
-        gp_mean, gp_bound = gp_estimate(p_all[:, g])
+        gp_mean, gp_bound = gp_values[g]
         gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
         if exact_variance:
             gp_row["gp_var_exact"] = _gp_exact_variance(
@@ -1335,6 +1352,7 @@ def estimate_compute(
         "samples_K": meta["samples"],
         "estimates": rows,
         "gp": gp_rows,
+        "gp_model": "current" if model["fresh"] else "as of the plan",
     }
     out = ws.estimates_dir / f"estimate-{number:04d}.json"
     with transaction() as tx:
@@ -1434,8 +1452,9 @@ def report(
 
     model_doc = None
     if ws.model_path.exists():
-        model_doc = ws.require_fresh_model()
-        model_doc["fresh"] = True
+        # A model fitted before the latest results still describes the pool; the report
+        # shows it marked stale rather than refusing (the estimate needs no refit either).
+        model_doc = ws.require_model(allow_newer_observations=True)
 
     pos = {sid: i for i, sid in enumerate(ids)}
     obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())

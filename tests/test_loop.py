@@ -68,15 +68,30 @@ def loop_ws(tmp_path_factory):
         )
         ok(runner, "ingest-results", "-w", ws, res)
         ok(runner, "fit", "-w", ws, "--restarts", "2")
-    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60")
+    plan = json.loads(
+        ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60", "--json").stdout
+    )
     res = tmp / "est.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", ws, res)
-    r = invoke(runner, "estimate", "-w", ws)
-    assert r.exit_code == 1 and "fitted on an older observation log" in r.stderr
+    # The model predates the plan's results. The IS estimate needs no model, and the GP's
+    # own estimate is the one stored with the plan; only --exact-variance needs a refit.
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws, "--exact-variance")
+    assert r.exit_code == 1 and "--exact-variance needs the current one" in r.stderr
+    assert "--fixed-hyperparameters" in r.stderr and tree_hash(ws) == before
+    stale = json.loads(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert stale["gp_model"] == "as of the plan"
+    widest = max(stale["gp"], key=lambda g: g["gamma"])  # the gamma the plan was drawn on
+    assert widest["gp_p_hat"] == pytest.approx(plan["gp_rate_estimate"], rel=1e-12)
+    ok(runner, "report", "-w", ws)  # a model older than the log is shown, marked stale
+    assert "STALE: run bams-cli fit" in (ws / "report" / "report.html").read_text()
     ok(runner, "fit", "-w", ws, "--restarts", "2")
-    ok(runner, "estimate", "-w", ws, "--exact-variance")
+    fresh = json.loads(ok(runner, "estimate", "-w", ws, "--exact-variance", "--json").stdout)
+    assert fresh["gp_model"] == "current"
+    assert fresh["estimates"] == stale["estimates"]  # same plan, same results
     ok(runner, "report", "-w", ws, "--truth", truth)
+    assert "model up to date" in (ws / "report" / "report.html").read_text()
     return ws, truth
 
 

@@ -227,9 +227,19 @@ class Workspace:
 
     def require_fresh_model(self) -> dict[str, Any]:
         """The model, refusing it if the observation log changed since it was fitted."""
+        return self.require_model(allow_newer_observations=False)
+
+    def require_model(self, *, allow_newer_observations: bool) -> dict[str, Any]:
+        """The model and its scores, which must describe the current pool.
+
+        With ``allow_newer_observations`` a model fitted before the latest results is
+        returned with ``fresh = False`` instead of refused: for readers that only report
+        what the model said (the GP's estimate as of an estimate plan, the report).
+        """
         model = self.read_model()
         current = self.observations_hash()
-        if model.get("observations_hash") != current:
+        fresh = model.get("observations_hash") == current
+        if not fresh and not allow_newer_observations:
             raise StaleStateError(
                 f"{self.model_path}: fitted on an older observation log "
                 f"({model.get('observations_hash')} != {current}); run `bams-cli fit -w {self.root}`"
@@ -241,12 +251,11 @@ class Workspace:
                 f"({model.get('pool')} != {pool}, e.g. after embed-reduce --apply); "
                 f"run `bams-cli fit -w {self.root}`"
             )
-        if (
-            not self.scores_path.exists()
-            or read_metadata(self.scores_path).get("observations_hash") != current
-        ):
+        scored = read_metadata(self.scores_path) if self.scores_path.exists() else {}
+        if scored.get("observations_hash") != model.get("observations_hash"):
             raise StaleStateError(
-                f"{self.scores_path}: missing or older than the observation log; "
+                f"{self.scores_path}: missing or not written by the last fit; "
                 f"run `bams-cli fit -w {self.root}`"
             )
+        model["fresh"] = fresh
         return model
