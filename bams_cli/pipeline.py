@@ -22,7 +22,6 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from bams_cli.core.reduce import Reducer, fit_reducer
 from bams_cli.errors import (
     ConflictError,
     DuplicateError,
@@ -292,6 +291,8 @@ def embed_reduce(
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Reduce segment embeddings into the workspace pool (or, with ``apply``, add to it)."""
+    from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
+
     if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):
         raise WorkspaceError(
             f"--batch-size {batch_size}, --sample-size {sample_size} and --dim {dim} must be >= 1"

@@ -69,6 +69,18 @@ def test_core_modules_work_without_io_or_cli_libraries(module):
     )
 
 
+def test_cli_starts_without_the_numerical_stack():
+    # Every command pays the CLI's import time; scikit-learn and SciPy alone took ~2-5 s.
+    # They load inside the commands that use them.
+    code = (
+        "import sys, bams_cli.cli\n"
+        "heavy = {'sklearn', 'scipy', 'matplotlib', 'numba', 'dask', 'distributed'}\n"
+        "print(sorted(heavy & {m.split('.')[0] for m in sys.modules}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
 def test_python_dash_m_runs(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "bams_cli", "--version"], capture_output=True, text=True
