@@ -12,6 +12,7 @@ import datetime as dt
 import fnmatch
 import functools
 import json
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -34,8 +35,10 @@ from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
+    journal_in,
     read_metadata,
     read_table,
+    recover,
     require_columns,
     stamp,
     transaction,
@@ -59,7 +62,13 @@ def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
     def run(root: Path, *args: Any, wait: bool = False, **kwargs: Any) -> dict[str, Any]:
         if not (Path(root) / SETTINGS_FILE).exists():
             return fn(root, *args, **kwargs)  # raises "no such workspace" without creating it
-        with workspace_lock(Path(root), wait=wait):
+        with workspace_lock(Path(root), wait=wait), journal_in(Path(root)):
+            moved = recover(Path(root))
+            if moved:
+                sys.stderr.write(
+                    f"note: {root}: finished an interrupted command's commit ({moved} "
+                    f"file{'s' if moved != 1 else ''} renamed into place)\n"
+                )
             return fn(root, *args, **kwargs)
 
     return run

@@ -330,3 +330,21 @@ def test_dask_scheduler_gives_the_same_batch_as_local_processes(loop_ws, tmp_pat
             batch = Workspace(copy).read_batch(json.loads(r.stdout)["batch"])
             picks[name] = batch.select("segment_id", "fidelity", "delta_j").rows()
     assert picks["local"] == picks["dask"] and len(picks["local"]) > 0
+
+
+def test_the_next_command_completes_a_commit_a_crash_interrupted(toy_ws, runner):
+    # As if a command died after renaming some of its files: the rest wait, staged, and the
+    # journal lists every rename. The next command that takes the lock finishes the job.
+    staged = toy_ws / "batches" / ".tmp-batch-0009.csv-123-1"
+    staged.parent.mkdir(exist_ok=True)
+    staged.write_text("segment_id,fidelity\nt000001,0\n")
+    target = toy_ws / "batches" / "batch-0009.csv"
+    pairs = [[str(staged), str(target)], [str(toy_ws / ".tmp-gone-123-0"), str(toy_ws / "x")]]
+    (toy_ws / ".bams-journal.json").write_text(json.dumps({"renames": pairs}))
+    stray = toy_ws / ".tmp-scores.parquet-456-0"  # staged by a command that never committed
+    stray.write_text("partial")
+    r = ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "2")
+    assert "finished an interrupted command's commit (1 file renamed" in r.stderr
+    assert target.read_text().startswith("segment_id,fidelity")
+    assert not (toy_ws / ".bams-journal.json").exists() and not stray.exists()
+    assert not (toy_ws / "x").exists()

@@ -9,6 +9,7 @@ exactly as it was.
 
 from __future__ import annotations
 
+import contextvars
 import datetime as dt
 import hashlib
 import json
@@ -75,8 +76,60 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+#: The workspace a command holds the lock of: its transactions keep a journal there.
+JOURNAL_NAME = ".bams-journal.json"
+_journal: contextvars.ContextVar[Path | None] = contextvars.ContextVar("journal", default=None)
+
+
+@contextmanager
+def journal_in(workspace: Path) -> Iterator[None]:
+    """Make transactions inside the block journal their renames in ``workspace``."""
+    token = _journal.set(workspace / JOURNAL_NAME)
+    try:
+        yield
+    finally:
+        _journal.reset(token)
+
+
+def recover(workspace: Path) -> int:
+    """Finish or undo a commit that a crash interrupted; call it holding the lock.
+
+    A commit renames its staged files one by one. If the process died among the renames,
+    the journal it wrote first lists them all, and the staged files still waiting are
+    renamed now: the commit completes (roll forward). Staged files with no journal belong
+    to a transaction that never began to commit and are removed. Returns the number of
+    files rolled forward.
+    """
+    path = workspace / JOURNAL_NAME
+    moved = 0
+    if path.exists():
+        try:
+            pairs = json.loads(path.read_text())["renames"]
+        except (ValueError, KeyError, TypeError):
+            pairs = []  # torn while being written: the commit had not started renaming
+        folders = set()
+        for tmp, target in pairs:
+            if Path(tmp).exists():
+                os.replace(tmp, target)
+                folders.add(Path(target).parent)
+                moved += 1
+        for folder in folders:
+            _fsync_dir(folder)
+        path.unlink()
+        _fsync_dir(workspace)
+    for stray in workspace.rglob(".tmp-*"):
+        if stray.is_file():
+            stray.unlink()
+    return moved
+
+
 class Transaction:
-    """Stage files next to their targets; rename them all on commit, remove them on failure."""
+    """Stage files next to their targets; rename them all on commit, remove them on failure.
+
+    Inside ``journal_in(workspace)`` (every command holding the workspace lock), a commit
+    of more than one file first writes the list of renames to the workspace's journal, so
+    a crash among the renames is completed by ``recover`` before the next command reads.
+    """
 
     def __init__(self) -> None:
         self._staged: list[tuple[Path, Path]] = []
@@ -111,12 +164,25 @@ class Transaction:
         return self._finish(tmp, target)
 
     def commit(self) -> list[Path]:
+        journal = _journal.get()
+        if journal is not None and len(self._staged) > 1:
+            pairs = [[str(tmp.resolve()), str(target.resolve())] for tmp, target in self._staged]
+            staged = journal.parent / f".tmp-{journal.name}-{os.getpid()}"
+            with open(staged, "w") as fh:
+                json.dump({"renames": pairs}, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(staged, journal)
+            _fsync_dir(journal.parent)
         folders = set()
         for tmp, target in self._staged:
             os.replace(tmp, target)
             folders.add(target.parent)
         for folder in folders:
             _fsync_dir(folder)
+        if journal is not None and len(self._staged) > 1:
+            journal.unlink()
+            _fsync_dir(journal.parent)
         done = [target for _, target in self._staged]
         self._staged.clear()
         return done

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,7 @@ from bams_cli import __version__
 from bams_cli.core.reduce import Reducer
 from bams_cli.errors import SchemaError
 from bams_cli.settings import Level, Settings
-from bams_cli.state import schemas
+from bams_cli.state import io, schemas
 from bams_cli.state.io import read_metadata, transaction
 
 ids = st.text(min_size=1, max_size=12)
@@ -113,3 +115,69 @@ def test_reducer_round_trip(D, d, method):
     E = rng.standard_normal((7, D))
     np.testing.assert_array_equal(back.transform(E), r.transform(E))
     assert back.reconstruction_error == {"pca": 0.25}
+
+
+CRASH = """
+import os, sys
+from pathlib import Path
+from bams_cli.state import io
+
+ws, crash_after = Path(sys.argv[1]), int(sys.argv[2])
+real, renamed = os.replace, []
+
+def replace(src, dst):
+    # Die like kill -9 (no cleanup, no finally) after `crash_after` target renames.
+    if len(renamed) == crash_after and ".bams-journal" not in str(dst):
+        os._exit(9)
+    real(src, dst)
+    if ".bams-journal" not in str(dst):
+        renamed.append(dst)
+
+io.os.replace = replace
+with io.journal_in(ws), io.transaction() as tx:
+    for name in ("a", "b", "c"):
+        tx.write_text(ws / "sub" / name, "new " + name)
+"""
+
+
+@pytest.mark.parametrize("crash_after", [0, 1, 2])
+def test_a_commit_killed_among_its_renames_is_completed_by_recover(tmp_path, crash_after):
+    ws = tmp_path / "ws"
+    (ws / "sub").mkdir(parents=True)
+    for name in "abc":
+        (ws / "sub" / name).write_text("old " + name)
+    out = subprocess.run([sys.executable, "-c", CRASH, str(ws), str(crash_after)])
+    assert out.returncode == 9
+    # Killed mid-commit: some files new, some old, the journal names all three.
+    texts = [(ws / "sub" / n).read_text() for n in "abc"]
+    assert texts == [f"new {n}" for n in "abc"[:crash_after]] + [
+        f"old {n}" for n in "abc"[crash_after:]
+    ]
+    assert (ws / io.JOURNAL_NAME).exists()
+    assert io.recover(ws) == 3 - crash_after
+    assert [(ws / "sub" / n).read_text() for n in "abc"] == [f"new {n}" for n in "abc"]
+    assert not (ws / io.JOURNAL_NAME).exists()
+    assert not list(ws.rglob(".tmp-*"))
+    assert io.recover(ws) == 0  # idempotent
+
+
+def test_recover_removes_files_staged_by_a_transaction_that_never_committed(tmp_path):
+    ws = tmp_path / "ws"
+    (ws / "sub").mkdir(parents=True)
+    (ws / "sub" / "a").write_text("old")
+    tx = io.Transaction()
+    tx.write_text(ws / "sub" / "a", "new")
+    tx.write_text(ws / "b", "new")  # ... and the process died before commit
+    assert len(list(ws.rglob(".tmp-*"))) == 2
+    assert io.recover(ws) == 0
+    assert (ws / "sub" / "a").read_text() == "old" and not (ws / "b").exists()
+    assert not list(ws.rglob(".tmp-*"))
+
+
+def test_a_single_file_commit_needs_no_journal(tmp_path, monkeypatch):
+    seen = []
+    real = io.os.replace
+    monkeypatch.setattr(io.os, "replace", lambda s, d: (seen.append(Path(d).name), real(s, d)))
+    with io.journal_in(tmp_path), io.transaction() as tx:
+        tx.write_text(tmp_path / "a", "x")
+    assert seen == ["a"]
