@@ -230,3 +230,24 @@ def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path
     assert invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply").exit_code == 0
     r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--samples", "5")
     assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr
+
+
+def test_model_is_stale_after_the_same_segments_are_reduced_again(
+    toy_ws, runner, toy_files, tmp_path
+):
+    # Same ids, new coordinates (PCA instead of identity): the scores no longer line up.
+    from tests.conftest import write_batch
+
+    seg, truth = toy_files
+    write_batch(toy_ws, 1, [f"t{i:06d}" for i in range(0, 40, 4)], [0] * 10)
+    res = tmp_path / "r.parquet"
+    invoke(
+        runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res
+    )
+    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
+    assert invoke(runner, "fit", "-w", toy_ws, "--restarts", "1").exit_code == 0
+    r = invoke(runner, "embed-reduce", "-w", toy_ws, seg, "--columns", "x*", "--force")
+    assert r.exit_code == 0, r.output
+    for args in (["select", "--budget", "2", "--clusters", "1", "--workers", "1"], ["report"]):
+        r = invoke(runner, args[0], "-w", toy_ws, *args[1:])
+        assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr, args

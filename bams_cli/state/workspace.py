@@ -107,6 +107,8 @@ class Workspace:
         return schemas.SEGMENTS.check(table, self.segments_path)
 
     def coordinate_columns(self, table: pa.Table | None = None) -> list[str]:
+        if table is None:
+            self.require_segments()
         names = (
             table.column_names if table is not None else pq.read_schema(self.segments_path).names
         )
@@ -124,10 +126,15 @@ class Workspace:
         return ids, X
 
     def pool_fingerprint(self) -> str:
-        """Pool size and a hash of its segment ids: what a model's scores line up with."""
-        ids = pq.read_table(self.segments_path, columns=[schemas.SEGMENT_ID]).column(0)
-        digest = hashlib.sha256("\x1f".join(ids.to_pylist()).encode()).hexdigest()[:16]
-        return f"{len(ids)}:{digest}"
+        """Pool size and a hash of its segment ids and coordinates: what a model's scores
+        line up with. Re-reducing the same segments (``embed-reduce --force``) changes it."""
+        coords = self.coordinate_columns()
+        table = self.read_segments([schemas.SEGMENT_ID, *coords])
+        digest = hashlib.sha256("\x1f".join(table.column(0).to_pylist()).encode())
+        digest.update("\x1f".join(coords).encode())
+        for c in coords:
+            digest.update(np.ascontiguousarray(table.column(c).to_numpy(), np.float64).tobytes())
+        return f"{table.num_rows}:{digest.hexdigest()[:16]}"
 
     # ---- observations --------------------------------------------------------------------
     def read_observations(self, *, active_only: bool = True) -> pl.DataFrame:
