@@ -1,19 +1,25 @@
 """The ``bams-cli`` command line: parse flags, call one pipeline function, print.
 
-The only module that imports typer. Errors the user can fix (``BamsError``) are caught at
-one boundary, ``main``, and printed as one line with exit code 1.
+The only module that imports typer. Every command runs inside one boundary (``command``):
+errors the user can fix (``BamsError``) print as one line with exit code 1; anything else
+(a damaged state file, a full disk, a bug) prints as one line too, with exit code 1, unless
+BAMS_DEBUG is set; warnings print as one line each. Transactions roll back on the way out,
+so a failed command leaves the workspace as it was.
 """
 
 from __future__ import annotations
 
 import functools
 import inspect
+import os
 import shlex
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
+import click
 import typer
 
 from bams_cli import __version__, console, pipeline
@@ -56,6 +62,22 @@ Wait = Annotated[
 ]
 
 
+def _one_line_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
+    console.note(f"warning: {' '.join(str(message).split())}")
+
+
+def _unexpected(exc: Exception) -> str:
+    """One line for an error the commands did not anticipate; BAMS_DEBUG=1 shows it whole."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        text = f"{type(exc).__name__}: {exc}"
+    text = " ".join(text.split())
+    if len(text) > 300:
+        text = text[:297] + "..."
+    return f"{text} (unexpected: a damaged or hand-edited state file? rerun with BAMS_DEBUG=1 for the traceback)"
+
+
 def _reflow(doc: str) -> str:
     """Join a docstring's wrapped lines: rich help keeps single newlines, so wrapping at the
     source's width would break lines again at the terminal's."""
@@ -70,9 +92,21 @@ def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable
         @functools.wraps(fn)
         def boundary(*args: Any, **kwargs: Any) -> None:
             try:
-                fn(*args, **kwargs)
+                with warnings.catch_warnings():
+                    warnings.showwarning = _one_line_warning
+                    fn(*args, **kwargs)
             except BamsError as exc:
                 console.error(str(exc))
+                raise typer.Exit(1) from None
+            except (typer.Exit, typer.Abort, click.exceptions.ClickException):
+                raise
+            except KeyboardInterrupt:
+                console.error("interrupted; files being written were discarded")
+                raise typer.Exit(130) from None
+            except Exception as exc:  # a damaged state file, a full disk, or a bug
+                if os.environ.get("BAMS_DEBUG"):
+                    raise
+                console.error(_unexpected(exc))
                 raise typer.Exit(1) from None
 
         boundary.__doc__ = _reflow(fn.__doc__ or "")

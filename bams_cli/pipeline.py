@@ -37,6 +37,7 @@ from bams_cli.state.io import (
     file_sha256,
     journal_in,
     read_metadata,
+    read_state,
     read_table,
     recover,
     require_columns,
@@ -664,6 +665,18 @@ def simulate(handoff: Path, truth: Path, output: Path) -> dict[str, Any]:
 
     For sample data and demos only: real results come from real simulators.
     """
+    dest = Path(output).resolve()
+    state = {"settings.toml", "segments.parquet", "observations.parquet", "scores.parquet",
+             "model.json", "reducer.npz"}  # fmt: skip
+    in_ws = (dest.parent / SETTINGS_FILE).exists() and dest.name in state
+    in_state_dir = (
+        dest.parent.name in ("batches", "estimates", "history")
+        and (dest.parent.parent / SETTINGS_FILE).exists()
+    )
+    if dest in (Path(handoff).resolve(), Path(truth).resolve()) or in_ws or in_state_dir:
+        raise InputError(
+            output, "would overwrite an input or a workspace's state; choose another -o"
+        )
     picks = read_table(handoff, what="hand-off")
     require_columns(picks, [SID, "fidelity"], handoff)
     truth_t = read_table(truth, what="truth")
@@ -1132,7 +1145,7 @@ def _plan_numbers(ws: Workspace) -> list[int]:
 def _read_scores(
     ws: Workspace, n_gammas: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    t = schemas.SCORES.check(pq.read_table(ws.scores_path), ws.scores_path)
+    t = schemas.SCORES.check(read_state(ws.scores_path), ws.scores_path)
     p = np.column_stack([t.column(f"p_{g}").to_numpy() for g in range(n_gammas)])
     ids = t.column(SID).to_numpy(zero_copy_only=False)
     return ids, t.column("mu").to_numpy(), t.column("sd").to_numpy(), p
@@ -1284,7 +1297,7 @@ def estimate_compute(
     if not path.exists():
         raise WorkspaceError(f"{path}: no such plan (plans: {', '.join(map(str, plans))})")
     meta = read_metadata_json(path)
-    plan = pl.from_arrow(schemas.PLAN.check(pq.read_table(path), path))
+    plan = pl.from_arrow(schemas.PLAN.check(read_state(path), path))
     assert isinstance(plan, pl.DataFrame)
     obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
     joined = plan.join(obs, on=SID, how="left")
@@ -1582,7 +1595,7 @@ def report(
         if counts[0]:
             for snap in sorted(ws.history_dir.glob("scores-after-batch-*.parquet")):
                 batch = int(snap.stem.rsplit("-", 1)[1])
-                p_snap = pq.read_table(snap, columns=["p_0"]).column("p_0").to_numpy()
+                p_snap = read_state(snap, columns=["p_0"]).column("p_0").to_numpy()
                 if len(p_snap) == n:
                     curves[batch] = retention_recall(p_snap, fails[:, 0], grid)
         if curves:

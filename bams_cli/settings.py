@@ -70,6 +70,8 @@ class Settings:
         for i, level in enumerate(self.levels):
             if not (math.isfinite(level.cost) and level.cost > 0):
                 raise SettingsError(f"settings: level {i} cost must be > 0, got {level.cost}")
+        if self.seed < 0:
+            raise SettingsError(f"settings: seed must be an integer >= 0, got {self.seed}")
         if self.embedding_dim < 1:
             raise SettingsError(f"settings: embedding_dim must be >= 1, got {self.embedding_dim}")
         return self

@@ -13,7 +13,7 @@ import pytest
 from typer.main import get_command
 
 from bams_cli.cli import app
-from tests.conftest import invoke
+from tests.conftest import invoke, ok, tree_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = sorted(get_command(app).commands)  # type: ignore[attr-defined]
@@ -132,6 +132,82 @@ def test_simulate_answers_a_handoff_from_truth(runner, toy_files, tmp_path):
     r = invoke(runner, "simulate", bad, "--truth", truth, "-o", tmp_path / "o.parquet")
     assert r.exit_code == 1 and "column 'segment_id', row 1: segment id 'zzz' is not in" in r.stderr
     assert not (tmp_path / "o.parquet").exists()
+    for target in (handoff, truth):  # answering into an input would destroy it
+        before = target.read_bytes()
+        r = invoke(runner, "simulate", handoff, "--truth", truth, "-o", target)
+        assert r.exit_code == 1 and "would overwrite an input" in r.stderr
+        assert target.read_bytes() == before
+
+
+def test_simulate_refuses_to_write_over_workspace_state(toy_ws, runner, toy_files):
+    _, truth = toy_files
+    handoff = toy_ws.parent / "h.csv"
+    handoff.write_text("segment_id,fidelity\nt000001,0\n")
+    before = tree_hash(toy_ws)
+    for target in (toy_ws / "segments.parquet", toy_ws / "batches" / "batch-0001.parquet"):
+        r = invoke(runner, "simulate", handoff, "--truth", truth, "-o", target)
+        assert r.exit_code == 1 and "a workspace's state" in r.stderr
+    assert tree_hash(toy_ws) == before
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", toy_ws / "results" / "r.parquet")
+
+
+def test_a_damaged_state_file_is_a_one_line_error_naming_it(toy_ws, runner):
+    (toy_ws / "segments.parquet").write_bytes(b"PAR1 not really")
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "2")
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "segments.parquet: damaged state file, not readable as Parquet" in r.stderr
+    assert tree_hash(toy_ws) == before
+
+
+def test_unexpected_errors_are_one_line_unless_debugging(toy_ws, runner, monkeypatch):
+    from bams_cli import pipeline
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("float division\nby zero")
+
+    monkeypatch.setattr(pipeline, "select", broken)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "2")
+    assert r.exit_code == 1
+    assert r.stderr.splitlines() == [
+        "error: ZeroDivisionError: float division by zero (unexpected: a damaged or "
+        "hand-edited state file? rerun with BAMS_DEBUG=1 for the traceback)"
+    ]
+    monkeypatch.setenv("BAMS_DEBUG", "1")  # developers get the traceback
+    with pytest.raises(ZeroDivisionError):
+        invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "2")
+
+
+def test_a_damaged_model_file_names_the_fix(toy_ws, runner):
+    (toy_ws / "model.json").write_text("{not json")
+    r = invoke(runner, "select", "-w", toy_ws, "--budget", "2")
+    assert r.exit_code == 1
+    assert "model.json: damaged (not a model written by fit); run `bams-cli fit" in r.stderr
+
+
+def test_warnings_print_as_one_line_each(toy_ws, runner):
+    import warnings
+
+    from bams_cli import cli
+
+    @cli.command("warn-twice")
+    def _warn_twice() -> None:
+        """Test-only command.\n\n[bold]Example[/]: bams-cli warn-twice"""
+        warnings.warn("first\nhalf", RuntimeWarning, stacklevel=1)
+        warnings.warn("second", UserWarning, stacklevel=1)
+
+    try:
+        r = invoke(runner, "warn-twice")
+    finally:
+        app.registered_commands.pop()
+    assert r.exit_code == 0
+    assert r.stderr.splitlines() == ["warning: first half", "warning: second"]
+
+
+def test_a_negative_seed_is_refused(tmp_path, runner):
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--seed", "-1")
+    assert r.exit_code == 1 and "seed must be an integer >= 0, got -1" in r.stderr
+    assert not (tmp_path / "ws" / "settings.toml").exists()
 
 
 @pytest.mark.parametrize("name", COMMANDS)

@@ -54,9 +54,33 @@ def stamp(table: pa.Table, schema_version: int, extra: dict[str, Any] | None = N
     return table.replace_schema_metadata(meta)
 
 
+def _damaged(path: Path, exc: Exception) -> SchemaError:
+    first = " ".join(str(exc).split()) or type(exc).__name__
+    return SchemaError(path, f"damaged state file, not readable as Parquet ({first})")
+
+
+def read_state(path: Path, columns: list[str] | None = None) -> pa.Table:
+    """Read one of the workspace's own Parquet files; a damaged one is a one-line error."""
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as exc:
+        if isinstance(exc, FileNotFoundError):
+            raise
+        raise _damaged(path, exc) from None
+
+
+def read_state_schema(path: Path) -> pa.Schema:
+    try:
+        return pq.read_schema(path)
+    except (pa.ArrowException, OSError) as exc:
+        if isinstance(exc, FileNotFoundError):
+            raise
+        raise _damaged(path, exc) from None
+
+
 def read_metadata(path: Path) -> dict[str, str]:
     """The tool's metadata of a Parquet file, without the ``bams.`` prefix."""
-    meta = pq.read_schema(path).metadata or {}
+    meta = read_state_schema(path).metadata or {}
     out = {}
     for key, value in meta.items():
         k = key.decode()

@@ -26,12 +26,11 @@ from typing import Any
 import numpy as np
 import polars as pl
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from bams_cli.errors import SchemaError, StaleStateError, WorkspaceError
 from bams_cli.settings import SETTINGS_FILE, Settings, load_settings
 from bams_cli.state import schemas
-from bams_cli.state.io import read_metadata
+from bams_cli.state.io import read_metadata, read_state, read_state_schema
 
 REDUCER_FILE = "reducer.npz"
 MODEL_FILE = "model.json"
@@ -103,14 +102,14 @@ class Workspace:
     # ---- segments ------------------------------------------------------------------------
     def read_segments(self, columns: list[str] | None = None) -> pa.Table:
         self.require_segments()
-        table = pq.read_table(self.segments_path, columns=columns)
+        table = read_state(self.segments_path, columns=columns)
         return schemas.SEGMENTS.check(table, self.segments_path)
 
     def coordinate_columns(self, table: pa.Table | None = None) -> list[str]:
         if table is None:
             self.require_segments()
         names = (
-            table.column_names if table is not None else pq.read_schema(self.segments_path).names
+            table.column_names if table is not None else read_state_schema(self.segments_path).names
         )
         coords = sorted((n for n in names if COORD.match(n)), key=lambda n: int(n[1:]))
         if not coords:
@@ -141,7 +140,7 @@ class Workspace:
         if not self.observations_path.exists():
             return pl.from_arrow(schemas.OBSERVATIONS.schema.empty_table())  # type: ignore[return-value]
         table = schemas.OBSERVATIONS.check(
-            pq.read_table(self.observations_path), self.observations_path
+            read_state(self.observations_path), self.observations_path
         )
         df = pl.from_arrow(table)
         assert isinstance(df, pl.DataFrame)
@@ -168,7 +167,7 @@ class Workspace:
 
     def read_batch(self, n: int) -> pl.DataFrame:
         path = schemas.batch_path(self.root, n)
-        table = schemas.BATCH.check(pq.read_table(path), path)
+        table = schemas.BATCH.check(read_state(path), path)
         df = pl.from_arrow(table)
         assert isinstance(df, pl.DataFrame)
         return df.with_columns(pl.lit(n, dtype=pl.Int64).alias("batch"))
@@ -197,7 +196,7 @@ class Workspace:
             for p in sorted(self.estimates_dir.glob("plan-*.parquet")):
                 if not p.stem[5:].isdigit():
                     continue
-                df = pl.from_arrow(pq.read_table(p, columns=[schemas.SEGMENT_ID, "stratum"]))
+                df = pl.from_arrow(read_state(p, columns=[schemas.SEGMENT_ID, "stratum"]))
                 assert isinstance(df, pl.DataFrame)
                 frames.append(
                     df.filter(pl.col("stratum") == "sampled").select(
@@ -230,7 +229,16 @@ class Workspace:
             raise WorkspaceError(
                 f"{self.model_path}: no fitted model; run `bams-cli fit -w {self.root}`"
             )
-        return json.loads(self.model_path.read_text())
+        try:
+            model = json.loads(self.model_path.read_text())
+        except (ValueError, UnicodeDecodeError) as exc:
+            model = exc
+        if not isinstance(model, dict) or not isinstance(model.get("hyperparameters"), dict):
+            raise StaleStateError(
+                f"{self.model_path}: damaged (not a model written by fit); "
+                f"run `bams-cli fit -w {self.root}` to write it again"
+            )
+        return model
 
     def require_fresh_model(self) -> dict[str, Any]:
         """The model, refusing it if the observation log changed since it was fitted."""
