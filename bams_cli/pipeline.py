@@ -13,6 +13,7 @@ import fnmatch
 import functools
 import json
 import sys
+import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -322,8 +323,15 @@ def embed_reduce(
             raise WorkspaceError(
                 f"{ws.reducer_path}: no fitted reducer; run embed-reduce without --apply first"
             )
-        with np.load(ws.reducer_path) as saved:
-            arrays = dict(saved)
+        try:
+            with np.load(ws.reducer_path) as saved:
+                arrays = dict(saved)
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            raise SchemaError(
+                ws.reducer_path,
+                f"damaged state file ({' '.join(str(exc).split())}); run embed-reduce "
+                "without --apply to fit the reducer again",
+            ) from None
         layout = {
             "list": str(arrays.get("layout_list", "")) or None,
             "columns": [str(c) for c in arrays.get("layout_columns", np.array([], dtype=str))],

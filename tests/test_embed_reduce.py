@@ -251,3 +251,13 @@ def test_model_is_stale_after_the_same_segments_are_reduced_again(
     for args in (["select", "--budget", "2", "--clusters", "1", "--workers", "1"], ["report"]):
         r = invoke(runner, args[0], "-w", toy_ws, *args[1:])
         assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr, args
+
+
+def test_a_damaged_reducer_is_a_one_line_error(toy_ws, runner, tmp_path):
+    (toy_ws / "reducer.npz").write_bytes(b"PK\x03\x04 truncated")
+    more = tmp_path / "more.parquet"
+    pq.write_table(pa.table({"segment_id": ["new-1"], "x0": [0.1], "x1": [1.0]}), more)
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply")
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "reducer.npz: damaged state file" in r.stderr and tree_hash(toy_ws) == before
