@@ -59,6 +59,7 @@ from bams_cli import pipeline
 from bams_cli.core import synthetic
 from bams_cli.core.estimate import exact_variance, plan_sample
 from bams_cli.core.evaluate import expected_is_recall, retention_recall
+from bams_cli.errors import OptionError
 from bams_cli.settings import Settings, levels_from_costs
 
 Progress = Callable[[str, int, int], None]
@@ -787,22 +788,24 @@ def run_benchmark(
         The content of results.json.
     """
     if protocol not in PROTOCOLS:
-        raise ValueError(f"protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
+        raise OptionError(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
     proto = PROTOCOLS[protocol]
     chosen = list(proto.strategies) if not strategies else list(strategies)
     unknown = [s for s in chosen if s not in proto.strategies]
     if unknown:
-        raise ValueError(
-            f"strategies {unknown} are not part of the {protocol} protocol "
+        raise OptionError(
+            f"--strategies {','.join(unknown)}: not part of the {protocol} protocol "
             f"({', '.join(proto.strategies)})"
         )
     if not 0.0 < level0_share < 1.0:
-        raise ValueError(f"level0_share {level0_share}: must lie in (0, 1)")
+        raise OptionError(f"--level0-share {level0_share}: must lie in (0, 1)")
     if quick:
         seeds = min(seeds, QUICK_SEEDS)
     if seeds < 1:
-        raise ValueError(f"seeds {seeds}: need at least 1")
+        raise OptionError(f"--seeds {seeds}: need at least 1")
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OptionError(f"--out {out_dir}: is a file; give a folder for the results")
     out_dir.mkdir(parents=True, exist_ok=True)
     estimator = estimate_defaults()
     t_start = time.perf_counter()

@@ -52,3 +52,7 @@ class PendingBatchError(WorkspaceError):
 
 class SettingsError(BamsError):
     """The settings file or a flag holds an invalid value."""
+
+
+class OptionError(BamsError):
+    """A command-line option out of range or unknown."""

@@ -92,6 +92,8 @@ def init(
     wait: bool = False,
 ) -> dict[str, Any]:
     """Create a workspace and its settings file (flags > --settings-from file > defaults)."""
+    if Path(root).exists() and not Path(root).is_dir():
+        raise WorkspaceError(f"{root}: is a file; a workspace is a folder, choose another -w")
     ws = Workspace(root)
     if ws.settings_path.exists() and not force:
         raise WorkspaceError(

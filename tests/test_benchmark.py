@@ -10,6 +10,7 @@ import pytest
 
 from bams_cli.benchmark import PROTOCOLS, design_stats, run_benchmark
 from bams_cli.core.estimate import estimate_from_sample, plan_sample
+from tests.conftest import invoke
 
 REQUIRED = ("recall", "recall_se", "rv", "rv_se", "rv_median", "seeds")
 
@@ -156,3 +157,30 @@ def test_underflowing_scores_of_non_failures_leave_the_variance_finite():
         p, is_failure, K=K, known=None, alpha=2.5, defensive=0.0, design="with-replacement"
     )
     assert rv == math.inf
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--seeds", "0"], "--seeds 0: need at least 1"),
+        (["--strategies", "bams,foo"], "--strategies foo: not part of the toy2d protocol"),
+        (["--level0-share", "2"], "--level0-share 2.0: must lie in (0, 1)"),
+        (["--protocol", "nope"], "--protocol 'nope': choose toy2d or av_like"),
+    ],
+)
+def test_bad_benchmark_options_are_one_line_errors(runner, tmp_path, args, message):
+    r = invoke(runner, "benchmark", "--out", tmp_path / "out", *args)
+    assert r.exit_code == 1 and r.stderr.startswith("error: " + message), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_benchmark_out_must_be_a_folder(runner, tmp_path):
+    (tmp_path / "file").write_text("x")
+    r = invoke(runner, "benchmark", "--seeds", "1", "--out", tmp_path / "file")
+    assert r.exit_code == 1 and "--out" in r.stderr and "is a file" in r.stderr
+
+
+def test_init_on_a_file_is_a_one_line_error(runner, tmp_path):
+    (tmp_path / "w").write_text("x")
+    r = invoke(runner, "init", "-w", tmp_path / "w", "--gamma", "0.5")
+    assert r.exit_code == 1 and "w: is a file; a workspace is a folder" in r.stderr
