@@ -178,6 +178,13 @@ def _embedding_layout(
             raise SchemaError(
                 source, "no such column (see --embedding-column)", column=embedding_column
             )
+        t = schema.field(embedding_column).type
+        if not (pa.types.is_fixed_size_list(t) or pa.types.is_list(t) or pa.types.is_large_list(t)):
+            raise SchemaError(
+                source,
+                f"--embedding-column must name a list column, got type {t} (numeric columns: --columns)",
+                column=embedding_column,
+            )
         return embedding_column, []
     lists = [
         f.name

@@ -261,3 +261,12 @@ def test_a_damaged_reducer_is_a_one_line_error(toy_ws, runner, tmp_path):
     r = invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply")
     assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
     assert "reducer.npz: damaged state file" in r.stderr and tree_hash(toy_ws) == before
+
+
+def test_embedding_column_must_be_a_list_column(toy_ws, runner, toy_files):
+    seg, _ = toy_files
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "embed-reduce", "-w", toy_ws, seg, "--embedding-column", "x0", "--force")
+    assert r.exit_code == 1
+    assert "column 'x0': --embedding-column must name a list column, got type double" in r.stderr
+    assert tree_hash(toy_ws) == before

@@ -209,11 +209,19 @@ def test_a_command_holds_the_lock_from_first_read(ws, runner, tmp_path):
             "segment_id,fidelity,value\nt000000,0,abc\n",
             "column 'value', row 1: value must be a finite number",
         ),
+        (
+            "segment_id,fidelity,value,value\nt000000,0,1.0,2.0\n",
+            "bad.csv: column 'value': column appears more than once in the header",
+        ),
+        (
+            "segm\xffent_id,fidelity,value\nt000000,0,1.0\n",
+            "bad.csv: the header is not valid UTF-8",
+        ),
     ],
 )
 def test_malformed_csv_results(ws, runner, tmp_path, content, needle):
     res = tmp_path / "bad.csv"
-    res.write_text(content)
+    res.write_bytes(content.encode("latin-1"))
     before = tree_hash(ws)
     r = invoke(runner, "ingest-results", "-w", ws, res)
     assert r.exit_code == 1 and needle in r.stderr, r.stderr

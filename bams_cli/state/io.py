@@ -248,12 +248,23 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
 
             # Ids stay text: type inference would turn "029" into 29.
             convert = pacsv.ConvertOptions(column_types={"segment_id": pa.string()})
-            return pacsv.read_csv(path, convert_options=convert)
-        return pq.read_table(path)
-    except (pa.ArrowInvalid, OSError) as exc:
+            table = pacsv.read_csv(path, convert_options=convert)
+        else:
+            table = pq.read_table(path)
+    except (pa.ArrowException, OSError, UnicodeDecodeError) as exc:
         kind = "CSV" if suffix == ".csv" else "Parquet"
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(path, f"cannot read as {kind} ({first})") from None
+    try:
+        names = table.column_names
+    except UnicodeDecodeError:
+        raise InputError(path, "the header is not valid UTF-8 text") from None
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise InputError(path, "column appears more than once in the header", column=name)
+        seen.add(name)
+    return table
 
 
 def require_columns(table: pa.Table, columns: list[str], source: object) -> None:
