@@ -103,7 +103,7 @@ def init(
     if settings_from is not None:
         if not settings_from.exists():
             raise InputError(settings_from, "settings file not found")
-        base = Settings.from_toml(settings_from.read_text(), source=str(settings_from))
+        base = Settings.from_file(settings_from)
     levels = levels_from_costs(costs, level_names) if costs else None
     settings = base.with_overrides(
         gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim

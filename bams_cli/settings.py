@@ -111,7 +111,18 @@ class Settings:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise SettingsError(f"{source}: malformed entry ({exc})") from None
-        return settings.validate()
+        try:
+            return settings.validate()
+        except SettingsError as exc:  # name the file, not "settings"
+            raise SettingsError(str(exc).replace("settings:", f"{source}:", 1)) from None
+
+    @classmethod
+    def from_file(cls, path: Path) -> Settings:
+        try:
+            text = path.read_text()
+        except UnicodeDecodeError:
+            raise SettingsError(f"{path}: not a TOML text file") from None
+        return cls.from_toml(text, source=str(path))
 
     def with_overrides(self, **overrides: Any) -> Settings:
         """Flag > settings file: apply the flags that were given (None means not given)."""
@@ -137,4 +148,4 @@ def load_settings(workspace: Path) -> Settings:
             f"{workspace}: no {SETTINGS_FILE}; create the study with "
             f"`bams-cli init -w {workspace} --gamma ... --costs ...`"
         )
-    return Settings.from_toml(path.read_text(), source=str(path))
+    return Settings.from_file(path)

@@ -237,3 +237,14 @@ def test_help_paragraphs_come_out_whole_on_a_wide_terminal(runner, name, monkeyp
 def test_help_shows_bracketed_defaults_verbatim(runner, name, hint, monkeypatch):
     monkeypatch.setenv("COLUMNS", "400")  # rich would read them as markup tags
     assert hint in invoke(runner, name, "--help").stdout
+
+
+def test_settings_errors_name_the_file(toy_ws, runner, toy_files):
+    settings = toy_ws / "settings.toml"
+    settings.write_text(settings.read_text().replace("seed = 0", "seed = -3"))
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "2")
+    assert r.exit_code == 1
+    assert r.stderr.strip() == f"error: {settings}: seed must be an integer >= 0, got -3"
+    seg, _ = toy_files  # a binary file handed over as settings
+    r = invoke(runner, "init", "-w", toy_ws.parent / "w2", "--settings-from", seg)
+    assert r.exit_code == 1 and f"{seg}: not a TOML text file" in r.stderr
