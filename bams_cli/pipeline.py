@@ -683,14 +683,8 @@ def simulate(handoff: Path, truth: Path, output: Path) -> dict[str, Any]:
     For sample data and demos only: real results come from real simulators.
     """
     dest = Path(output).resolve()
-    state = {"settings.toml", "segments.parquet", "observations.parquet", "scores.parquet",
-             "model.json", "reducer.npz"}  # fmt: skip
-    in_ws = (dest.parent / SETTINGS_FILE).exists() and dest.name in state
-    in_state_dir = (
-        dest.parent.name in ("batches", "estimates", "history")
-        and (dest.parent.parent / SETTINGS_FILE).exists()
-    )
-    if dest in (Path(handoff).resolve(), Path(truth).resolve()) or in_ws or in_state_dir:
+    in_state = any(Workspace(d).holds_state(dest) for d in (dest.parent, dest.parent.parent))
+    if dest in (Path(handoff).resolve(), Path(truth).resolve()) or in_state:
         raise InputError(
             output, "would overwrite an input or a workspace's state; choose another -o"
         )

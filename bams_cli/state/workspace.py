@@ -84,6 +84,16 @@ class Workspace:
     def report_dir(self) -> Path:
         return self.root / "report"
 
+    def holds_state(self, path: Path) -> bool:
+        """Whether ``path`` is (or would be) one of this workspace's own state files."""
+        if not self.settings_path.exists():
+            return False
+        ws, path = Workspace(self.root.resolve()), path.resolve()
+        files = (ws.settings_path, ws.reducer_path, ws.segments_path, ws.observations_path,
+                 ws.model_path, ws.scores_path)  # fmt: skip
+        folders = (ws.batches_dir, ws.estimates_dir, ws.history_dir, ws.report_dir)
+        return path in files or path.parent in folders
+
     # ---- existence -----------------------------------------------------------------------
     def require_initialised(self) -> Settings:
         if not self.root.is_dir():
