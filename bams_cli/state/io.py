@@ -54,28 +54,27 @@ def stamp(table: pa.Table, schema_version: int, extra: dict[str, Any] | None = N
     return table.replace_schema_metadata(meta)
 
 
-def _damaged(path: Path, exc: Exception) -> SchemaError:
-    first = " ".join(str(exc).split()) or type(exc).__name__
-    return SchemaError(path, f"damaged state file, not readable as Parquet ({first})")
+@contextmanager
+def _state_file(path: Path) -> Iterator[None]:
+    """Turn a damaged workspace Parquet file into a one-line error naming it."""
+    try:
+        yield
+    except FileNotFoundError:
+        raise
+    except (pa.ArrowException, OSError) as exc:
+        first = " ".join(str(exc).split()) or type(exc).__name__
+        raise SchemaError(path, f"damaged state file, not readable as Parquet ({first})") from None
 
 
 def read_state(path: Path, columns: list[str] | None = None) -> pa.Table:
     """Read one of the workspace's own Parquet files; a damaged one is a one-line error."""
-    try:
+    with _state_file(path):
         return pq.read_table(path, columns=columns)
-    except (pa.ArrowException, OSError) as exc:
-        if isinstance(exc, FileNotFoundError):
-            raise
-        raise _damaged(path, exc) from None
 
 
 def read_state_schema(path: Path) -> pa.Schema:
-    try:
+    with _state_file(path):
         return pq.read_schema(path)
-    except (pa.ArrowException, OSError) as exc:
-        if isinstance(exc, FileNotFoundError):
-            raise
-        raise _damaged(path, exc) from None
 
 
 def read_metadata(path: Path) -> dict[str, str]:
