@@ -21,10 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bams_cli.core import synthetic
+from bams_cli.benchmark import PROTOCOLS, prepare_data
 
 BIN = Path(sys.executable).parent / "bams-cli"
 
@@ -45,32 +44,19 @@ def run(args: list[object], log: Path) -> tuple[float, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=1_000_000)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--keep", type=Path, help="Keep the workspace here instead of a temp dir.")
     a = ap.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="bams-bench-") as tmp:
         root = a.keep or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
-        pool = synthetic.toy2d(a.n, a.seed)
-        seg, truth = root / "segments.parquet", root / "truth.parquet"
-        pq.write_table(
-            pa.table(
-                {"segment_id": pool.ids, "x0": pool.features[:, 0], "x1": pool.features[:, 1]}
-            ),
-            seg,
-        )
-        pq.write_table(
-            pa.table(
-                {"segment_id": pool.ids, "value_0": pool.truth[:, 0], "value_1": pool.truth[:, 1]}
-            ),
-            truth,
-        )
+        data = prepare_data(PROTOCOLS["toy2d"], a.n, root)  # the benchmark harness's pool
+        seg, truth = data / "segments.parquet", data / "truth.parquet"
         ws = root / "ws"
         batch = ws / "batches" / "batch-0001.parquet"
         plan = ws / "estimates" / "plan-0001-handoff.csv"
         steps: list[tuple[str, list[object]]] = [
-            ("init", ["init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2"]),
+            ("init", ["init", "-w", ws, "--settings-from", data / "settings.toml"]),
             ("embed-reduce", ["embed-reduce", "-w", ws, seg, "--columns", "x*",
                               "--method", "identity", "--no-standardize"]),
             ("select random", ["select", "-w", ws, "--strategy", "random", "--mixed-fidelity",
