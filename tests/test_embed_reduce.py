@@ -14,7 +14,7 @@ from sklearn.decomposition import PCA
 from bams_cli.core import synthetic
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, tree_hash
+from tests.conftest import invoke, tree_hash, write_batch
 
 
 def _av_files(folder: Path, n: int = 600, layout: str = "list") -> Path:
@@ -212,17 +212,17 @@ def test_apply_takes_the_fitted_columns_by_name_in_any_order(av_ws, runner, tmp_
     )
 
 
-def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path):
-    from tests.conftest import write_batch
-
-    _, truth = toy_files
-    write_batch(toy_ws, 1, [f"t{i:06d}" for i in range(0, 40, 4)], [0] * 10)
+def _fit_ten(ws, runner, truth, tmp_path):
+    """Ten level-0 results, ingested and fitted: a workspace with a model."""
+    write_batch(ws, 1, [f"t{i:06d}" for i in range(0, 40, 4)], [0] * 10)
     res = tmp_path / "r.parquet"
-    invoke(
-        runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res
-    )
-    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
-    assert invoke(runner, "fit", "-w", toy_ws, "--restarts", "1").exit_code == 0
+    invoke(runner, "simulate", ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    assert invoke(runner, "ingest-results", "-w", ws, res).exit_code == 0
+    assert invoke(runner, "fit", "-w", ws, "--restarts", "1").exit_code == 0
+
+
+def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path):
+    _fit_ten(toy_ws, runner, toy_files[1], tmp_path)
     more = tmp_path / "more.parquet"
     pq.write_table(
         pa.table({"segment_id": ["new-1", "new-2"], "x0": [0.1, 0.2], "x1": [1.0, 2.0]}), more
@@ -236,16 +236,8 @@ def test_model_is_stale_after_the_same_segments_are_reduced_again(
     toy_ws, runner, toy_files, tmp_path
 ):
     # Same ids, new coordinates (PCA instead of identity): the scores no longer line up.
-    from tests.conftest import write_batch
-
     seg, truth = toy_files
-    write_batch(toy_ws, 1, [f"t{i:06d}" for i in range(0, 40, 4)], [0] * 10)
-    res = tmp_path / "r.parquet"
-    invoke(
-        runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res
-    )
-    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
-    assert invoke(runner, "fit", "-w", toy_ws, "--restarts", "1").exit_code == 0
+    _fit_ten(toy_ws, runner, truth, tmp_path)
     r = invoke(runner, "embed-reduce", "-w", toy_ws, seg, "--columns", "x*", "--force")
     assert r.exit_code == 0, r.output
     for args in (["select", "--budget", "2", "--clusters", "1", "--workers", "1"], ["report"]):
