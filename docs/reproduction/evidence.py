@@ -173,9 +173,13 @@ def main(studies: list[str]) -> None:
             cache[(protocol, key)] = run_setting(protocol, strategies, seeds[protocol], **kw)
         return cache[(protocol, key)]
 
+    def only(setting: dict[str, Any], *strategies: str) -> dict[str, Any]:
+        """The setting's runs of the given strategies."""
+        return {**setting, "runs": [r for r in setting["runs"] if r[0] in strategies]}
+
     def merged(a: dict[str, Any], b: dict[str, Any], take: set[str]) -> dict[str, Any]:
         """Runs of ``a``, with those of strategies ``take`` replaced by ``b``'s."""
-        keep = [r for r in a["runs"] if r[0] not in take] + [r for r in b["runs"] if r[0] in take]
+        keep = [r for r in a["runs"] if r[0] not in take] + only(b, *take)["runs"]
         return {**a, "runs": keep}
 
     if "steps" in studies:
@@ -209,10 +213,9 @@ def main(studies: list[str]) -> None:
         shipped = runs("toy2d", "shipped", gp_strats)
         eta1 = runs("toy2d", "eta1", ["bams", "bas"], select_kw={"overbudget": 1.0})
         eta3 = runs("toy2d", "eta3", ["bams", "bas"], select_kw={"overbudget": 3.0})
-        only = {"runs": [r for r in shipped["runs"] if r[0] in ("bams", "bas")]}
         rows = {
             "overbudget 1": score(eta1, a0, e0),
-            "overbudget 2 (shipped)": score({**shipped, **only}, a0, e0),
+            "overbudget 2 (shipped)": score(only(shipped, "bams", "bas"), a0, e0),
             "overbudget 3": score(eta3, a0, e0),
         }
         doc["eta/toy2d"] = rows
@@ -222,7 +225,7 @@ def main(studies: list[str]) -> None:
         rows = {}
         for share in (0.3, 0.5, 0.7):
             if share == 0.5:
-                s = {**shipped, "runs": [r for r in shipped["runs"] if r[0] == "bams"]}
+                s = only(shipped, "bams")
             else:
                 s = runs("toy2d", f"share{share}", ["bams"], level0_share=share)
             rows[f"level-0 share {share:g}" + (" (shipped)" if share == 0.5 else "")] = score(
@@ -234,9 +237,7 @@ def main(studies: list[str]) -> None:
         shipped = runs("toy2d", "shipped", gp_strats)
         raw = runs("toy2d", "raw", ["bams"], select_kw={"pooling": "raw"})
         rows = {
-            "pooling global (shipped)": score(
-                {**shipped, "runs": [r for r in shipped["runs"] if r[0] == "bams"]}, a0, e0
-            ),
+            "pooling global (shipped)": score(only(shipped, "bams"), a0, e0),
             "pooling raw (paper)": score(raw, a0, e0),
         }
         doc["pooling/toy2d"] = rows
