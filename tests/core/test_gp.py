@@ -22,13 +22,13 @@ from bams_cli.core.gp import (
     MFGP,
     GPFitError,
     Hyperparameters,
-    _cholesky,
     _failure_probability,
     _MAPObjective,
     _pack,
     _Priors,
-    _standardise,
+    cholesky,
     fit_mfgp,
+    standardise,
 )
 
 # ----------------------------------------------------------------- reference model
@@ -71,6 +71,7 @@ def random_hp(rng, d, n_levels):
         outputscales=rng.uniform(0.05, 0.5, L),
         lengthscales=rng.uniform(0.5, 3.0, (L, d)),
         noise=rng.uniform(0.01, 0.1, n_levels),
+        offsets=rng.normal(size=L),
     )
 
 
@@ -147,7 +148,8 @@ def test_multifidelity_posterior_equals_dense(n_levels, d):
     Xc[1], lc[1] = Xc[0], (lc[0] + 1) % n_levels  # same x, another level
 
     k0_p = ref_matern52(Xp, X, hp.lengthscales0, hp.outputscale0)
-    mu_ref = hp.mean + k0_p @ solve(y - hp.mean)
+    prior_mean = hp.mean + np.r_[0.0, hp.offsets][levels]  # y = m + b_l + theta0 + ...
+    mu_ref = hp.mean + k0_p @ solve(y - prior_mean)
     cov_pp = ref_matern52(Xp, Xp, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(k0_p.T)
     kc = ref_kaug(X, levels, Xc, lc, hp)
     cov_pc = ref_matern52(Xp, Xc, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(kc)
@@ -198,7 +200,7 @@ def test_gradient_matches_central_differences(n_levels):
     rng = np.random.default_rng(n_levels)
     d = 3
     X, levels, y = mf_data(rng, d, n_levels, n=30)
-    ybar, ystd = _standardise(y)
+    ybar, ystd = standardise(y)
     priors = _Priors.for_data(X, n_levels)
     objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, priors)
     h = 1e-6
@@ -216,7 +218,7 @@ def test_gradient_matches_central_differences(n_levels):
 
 
 def test_uncached_squared_differences_give_same_objective(monkeypatch):
-    import bams_cli.core.gp as gp
+    import bams_cli.core.gp.objective as gp
 
     rng = np.random.default_rng(0)
     X, levels, y = mf_data(rng, 3, 2)
@@ -236,7 +238,7 @@ def test_fit_reports_map_objective_and_beats_prior_mode():
     rng = np.random.default_rng(5)
     X, levels, y = mf_data(rng, 2, 2, n=40)
     model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=3)
-    ybar, ystd = _standardise(y)
+    ybar, ystd = standardise(y)
     priors = _Priors.for_data(X, 2)
     objective = _MAPObjective(X, levels, (y - ybar) / ystd, 2, priors)
     hp = model.hyperparameters
@@ -376,6 +378,32 @@ def test_cheap_level_lowers_heldout_error_on_toy2d():
     assert np.mean(ratios) < 0.7, ratios
 
 
+def test_constant_bias_of_a_cheap_level_is_an_offset_not_a_discrepancy():
+    """A cheap level reading 2.0 high everywhere: the GLS offset takes the bias, so the
+    discrepancy kernel stays small and theta0's mean is not shifted."""
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(60, 2))
+    f = np.sin(X[:, 0]) + 0.5 * X[:, 1]
+    levels = np.r_[np.zeros(20, int), np.ones(40, int)]
+    X = np.vstack([X[:20], X[:20], X[20:40]])  # 20 pairs, 20 cheap-only
+    f = np.r_[f[:20], f[:20], f[20:40]]
+    y = f + 2.0 * levels + 0.01 * rng.normal(size=60)
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0))
+    hp = model.hyperparameters
+    assert hp.offsets[0] == pytest.approx(2.0, abs=0.1)
+    assert hp.outputscales[0] < 0.05 * np.var(y)
+    Xt = rng.normal(size=(200, 2))
+    mu, _ = model.predict_theta0(Xt)
+    assert abs(np.mean(mu - (np.sin(Xt[:, 0]) + 0.5 * Xt[:, 1]))) < 0.1
+
+
+def test_offset_is_zero_without_level0_data():
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(10, 2))
+    model = fit_mfgp(X, np.ones(10, int), X.sum(1), 2, rng=rng)
+    assert model.hyperparameters.offsets.tolist() == [0.0]
+
+
 # ------------------------------------------------------- 6. numerical failure
 
 
@@ -393,7 +421,7 @@ def test_jitter_rescues_duplicates_without_noise():
 
 def test_indefinite_matrix_raises_with_remedy():
     with pytest.raises(GPFitError, match="jitter.*noise variance"):
-        _cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
+        cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
 
 
 def test_overflowing_inputs_raise_with_remedy():

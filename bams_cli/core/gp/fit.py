@@ -1,0 +1,120 @@
+"""MAP training of the multifidelity GP: seeded L-BFGS-B restarts over the log parameters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import OptimizeResult, minimize
+from threadpoolctl import threadpool_limits
+
+from bams_cli.core.gp._numerics import (
+    FloatArray,
+    GPFitError,
+    IntArray,
+    check_data,
+    cholesky,
+    standardise,
+)
+from bams_cli.core.gp.hyperparameters import Hyperparameters, _hyperparameters
+from bams_cli.core.gp.model import MFGP
+from bams_cli.core.gp.objective import _MAPObjective
+from bams_cli.core.gp.priors import PriorSpec, _Priors
+
+_SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
+_N_POLISH = 2  # restarts continued to convergence
+_MAXITER = 300  # cap on those; converged runs stop well before
+
+
+def _minimize(
+    objective: _MAPObjective, theta: FloatArray, bounds: list, maxiter: int
+) -> OptimizeResult:
+    return minimize(
+        objective, theta, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter}
+    )
+
+
+def fit_mfgp(
+    X: FloatArray,
+    levels: IntArray,
+    y: FloatArray,
+    n_levels: int,
+    *,
+    rng: np.random.Generator,
+    restarts: int = 8,
+    fixed: Hyperparameters | None = None,
+    priors: PriorSpec | None = None,
+) -> MFGP:
+    """Fit the multifidelity GP by MAP and condition it on the data.
+
+    Parameters
+    ----------
+    X : ndarray of shape (n, d)
+        Inputs (reduced embeddings). Repeats and several levels at one x are fine.
+    levels : int ndarray of shape (n,)
+        Fidelity level of each observation, in [0, n_levels).
+    y : ndarray of shape (n,)
+        Observed metric.
+    n_levels : int
+        L + 1. Levels without observations keep their prior-mode hyperparameters.
+    rng : numpy.random.Generator
+        Draws the restart points; the only source of randomness.
+    restarts : int
+        Number of L-BFGS-B starts: one from the prior mode, ``restarts - 1`` from
+        ``_Priors.sample_start``. Each runs 30 iterations; the best two then run to
+        convergence, and the best MAP objective wins.
+    fixed : Hyperparameters, optional
+        If given, no training: the returned GP conditions on the data with these.
+    priors : PriorSpec, optional
+        Hyperparameter priors; ``priors.DEFAULT_PRIORS`` when omitted.
+
+    Returns
+    -------
+    MFGP
+
+    Raises
+    ------
+    GPFitError
+        Bad data (message names the row), or no restart reached a finite objective.
+    """
+    if n_levels < 1:
+        raise GPFitError(f"n_levels must be >= 1, got {n_levels}")
+    X, levels, y = check_data(X, levels, y, n_levels)
+    if fixed is not None:
+        return MFGP(X, levels, y, n_levels, fixed, priors=priors)
+    if restarts < 1:
+        raise GPFitError(f"restarts must be >= 1, got {restarts}")
+
+    ybar, ystd = standardise(y)
+    prior = _Priors.for_data(X, n_levels, priors)
+    objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, prior)
+    bounds = list(zip(prior.lower, prior.upper, strict=True))
+    starts = [prior.mode] + [prior.sample_start(rng) for _ in range(restarts - 1)]
+
+    # Restarts in two stages: every start gets a short L-BFGS-B run, then the best
+    # _N_POLISH of them continue to convergence. All `restarts` starts still compete for
+    # the basin; the expensive tail of the optimisation is spent only on the leaders.
+    # (Measured at n = 200, d = 12: full runs take ~140 evaluations each and nearly all
+    # end in the same optimum, so this halves the fit time at no cost in objective.)
+    # One BLAS thread: the matrices are a few hundred wide, where OpenBLAS threads only
+    # add synchronisation (measured 30x slower Cholesky at n = 200 on a busy 2-core box).
+    with threadpool_limits(limits=1, user_api="blas"):
+        screened = [_minimize(objective, t, bounds, _SCREEN_ITER) for t in starts]
+        finite = [r for r in screened if np.isfinite(r.fun)]
+        finite.sort(key=lambda r: float(r.fun))
+        polished = [_minimize(objective, r.x, bounds, _MAXITER) for r in finite[:_N_POLISH]]
+    best_theta, best_f = None, math.inf
+    for res in finite + polished:
+        if np.isfinite(res.fun) and res.fun < best_f:
+            best_theta, best_f = res.x, float(res.fun)
+    if best_theta is None:
+        raise GPFitError(
+            f"MAP training failed from all {restarts} starts (non-finite objective); "
+            "check X and y for extreme values or pass fixed hyperparameters"
+        )
+
+    K, _, _ = objective.covariance(best_theta)
+    L, _ = cholesky(K)
+    beta, _ = objective.gls_mean(L)
+    hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
+    return MFGP(X, levels, y, n_levels, hp, priors=priors)

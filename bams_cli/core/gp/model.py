@@ -1,0 +1,375 @@
+"""The multifidelity GP conditioned on observations: the posterior BAMS needs."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import cho_solve, solve_triangular
+from scipy.special import ndtr
+from threadpoolctl import threadpool_limits
+
+from bams_cli.core.gp._numerics import (
+    LOG_2PI,
+    FloatArray,
+    GPFitError,
+    IntArray,
+    check_data,
+    check_levels,
+    cholesky,
+    standardise,
+)
+from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
+from bams_cli.core.gp.priors import PriorSpec, _Priors
+from bams_cli.core.kernels import matern52
+
+_CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
+
+
+class MFGP:
+    """The multifidelity GP conditioned on observations; implements ``posterior.Posterior``.
+
+    All inputs and outputs are in natural units. Construction factorises K once; every
+    query then costs a kernel evaluation against the n training observations and a
+    triangular solve with the stored factor. Picklable (plain numpy attributes).
+
+    Parameters
+    ----------
+    X : ndarray of shape (n, d)
+    levels : int ndarray of shape (n,)
+    y : ndarray of shape (n,)
+    n_levels : int
+    hyperparameters : Hyperparameters
+
+    Attributes
+    ----------
+    hyperparameters : Hyperparameters
+    n_levels : int
+    n_obs_per_level : int ndarray of shape (n_levels,)
+    log_marginal_likelihood : float
+        log N(y | mean, K), natural units.
+    log_posterior : float
+        log_marginal_likelihood + log prior, the prior evaluated on the standardised
+        parameters (the MAP objective up to the constant n log std(y)); -inf when a noise
+        variance is 0.
+    jitter : float
+        Absolute jitter that the Cholesky factorisation needed (usually 0).
+    X_train, levels_train, y_train : ndarray
+        The observations conditioned on.
+    """
+
+    def __init__(
+        self,
+        X: FloatArray,
+        levels: IntArray,
+        y: FloatArray,
+        n_levels: int,
+        hyperparameters: Hyperparameters,
+        *,
+        priors: PriorSpec | None = None,
+    ) -> None:
+        X, levels, y = check_data(X, levels, y, n_levels)
+        hp = hyperparameters
+        if hp.n_levels != n_levels or hp.d != X.shape[1]:
+            raise GPFitError(
+                f"hyperparameters are for {hp.n_levels} level(s) and d = {hp.d}, but the "
+                f"data have n_levels = {n_levels} and d = {X.shape[1]}; refit, or pass "
+                "hyperparameters fitted on the same study"
+            )
+        self.hyperparameters = hp
+        self.n_levels = int(n_levels)
+        self.X_train = X
+        self.levels_train = levels
+        self.y_train = y
+        self.n_obs_per_level = np.bincount(levels, minlength=n_levels)
+        # Stationary kernels: centring changes nothing but the rounding of the matmul
+        # distance formula (kernels.scaled_sqdist).
+        self._shift = X.mean(axis=0)
+        self._Xt = X - self._shift
+        self._s = np.concatenate([[hp.outputscale0], hp.outputscales])
+        self._ell = np.vstack([hp.lengthscales0[None, :], hp.lengthscales])
+
+        n = X.shape[0]
+        with np.errstate(over="ignore", invalid="ignore"):  # _cholesky reports non-finite K
+            K = self._k_aug(self._Xt, levels, self._Xt, levels, exact=True)
+        K[np.diag_indices(n)] += hp.noise[levels]
+        with threadpool_limits(limits=1, user_api="blas"):  # small matrix: see fit_mfgp
+            self._L, self.jitter = cholesky(K)
+        offsets = np.concatenate([[0.0], hp.offsets])  # type: ignore[arg-type]
+        r = y - hp.mean - offsets[levels]
+        self._alpha = cho_solve((self._L, True), r, check_finite=False)  # GPML Alg. 2.1 l. 3
+        self.log_marginal_likelihood = float(
+            -0.5 * r @ self._alpha - np.sum(np.log(np.diag(self._L))) - 0.5 * n * LOG_2PI
+        )  # GPML Alg. 2.1 line 7
+
+        ybar, ystd = standardise(y)
+        v = ystd**2
+        theta_std = _pack(
+            Hyperparameters(
+                mean=0.0,
+                outputscale0=hp.outputscale0 / v,
+                lengthscales0=hp.lengthscales0,
+                outputscales=hp.outputscales / v,
+                lengthscales=hp.lengthscales,
+                noise=hp.noise / v,
+            )
+        )
+        if np.all(np.isfinite(theta_std)):
+            lp, _ = _Priors.for_data(X, n_levels, priors).log_prior(theta_std)
+        else:
+            lp = -math.inf
+        self.log_posterior = self.log_marginal_likelihood + lp
+
+    # ------------------------------------------------------------------ helpers
+
+    @property
+    def lengthscales0(self) -> FloatArray:
+        """Level-0 (theta0) lengthscales, shape (d,)."""
+        return self.hyperparameters.lengthscales0
+
+    def _centre(self, X: Any, name: str = "X") -> FloatArray:
+        X = np.asarray(X, dtype=np.float64)
+        d = self._shift.size
+        if X.ndim != 2 or X.shape[1] != d:
+            raise ValueError(f"{name} must have shape (n, {d}), got shape {X.shape}")
+        return X - self._shift
+
+    def _levels(self, levels: Any, n: int, name: str = "levels") -> IntArray:
+        return check_levels(levels, self.n_levels, n, name)
+
+    def _k0(self, A: FloatArray, B: FloatArray) -> FloatArray:
+        """k0 between centred point sets, (len(A), len(B))."""
+        return matern52(A, B, self._ell[0], self._s[0])
+
+    def _k_aug(
+        self, A: FloatArray, la: IntArray, B: FloatArray, lb: IntArray, *, exact: bool = False
+    ) -> FloatArray:
+        """k_aug((A, la), (B, lb)) = k0 + [a == b >= 1] k_a, centred inputs; paper sec. 3."""
+        K = matern52(A, B, self._ell[0], self._s[0], exact=exact)
+        for lv in range(1, self.n_levels):
+            ia = np.flatnonzero(la == lv)
+            ib = np.flatnonzero(lb == lv)
+            if ia.size and ib.size:
+                K[np.ix_(ia, ib)] += matern52(A[ia], B[ib], self._ell[lv], self._s[lv], exact=exact)
+        return K
+
+    def _solve_L(self, B: FloatArray) -> FloatArray:
+        """L^-1 B for B of shape (n, m); overwrites B."""
+        return solve_triangular(self._L, B, lower=True, overwrite_b=True, check_finite=False)
+
+    def _obs_factor(self, Xc: FloatArray, lc: IntArray) -> FloatArray:
+        """W = L^-1 k_aug(Y_n, (Xc, lc)), shape (n, m), for centred Xc."""
+        return self._solve_L(self._k_aug(self._Xt, self.levels_train, Xc, lc))
+
+    def _predict_block(self, Xc: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and (unclipped) variance of theta0 at centred rows Xc.
+
+        Paper sec. 2 (GP predictions) with the constant mean; GPML Alg. 2.1.
+        """
+        k = self._k0(Xc, self._Xt)  # (m, n), C order
+        mu = self.hyperparameters.mean + k @ self._alpha  # GPML Alg. 2.1 line 4
+        v = self._solve_L(k.T)  # F-ordered view: LAPACK solves in place, no copy
+        sigma2 = self._s[0] - np.einsum("ij,ij->j", v, v)  # GPML Alg. 2.1 lines 5-6
+        return mu, sigma2
+
+    def _chunk_rows(self, chunk_size: int) -> int:
+        return max(1, min(int(chunk_size), _CHUNK_ELEMENTS // max(1, self._Xt.shape[0])))
+
+    # --------------------------------------------------------------- public API
+
+    def predict_theta0(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and variance of theta0 (noise-free level-0 metric) at X.
+
+        Parameters
+        ----------
+        X : ndarray of shape (m, d)
+
+        Returns
+        -------
+        mu : ndarray of shape (m,)
+        sigma2 : ndarray of shape (m,)
+            Clipped at 0: rounding can make k0(x,x) - v'v slightly negative at observed
+            points when the level-0 noise is tiny.
+        """
+        mu, sigma2, _ = self._score(self._centre(X), np.empty(0), 50_000)
+        return mu, sigma2
+
+    def cov_theta0(self, Xa: FloatArray, Xb: FloatArray) -> FloatArray:
+        """Posterior covariance cov_n(theta0(xa), theta0(xb)).
+
+        k0(Xa, Xb) - k0(Xa, X_n) K^-1 k0(X_n, Xb).
+
+        Parameters
+        ----------
+        Xa : ndarray of shape (na, d)
+        Xb : ndarray of shape (nb, d)
+
+        Returns
+        -------
+        C : ndarray of shape (na, nb)
+        """
+        A, B = self._centre(Xa, "Xa"), self._centre(Xb, "Xb")
+        Va = self._solve_L(self._k0(self._Xt, A))
+        Vb = self._solve_L(self._k0(self._Xt, B))
+        return self._k0(A, B) - Va.T @ Vb
+
+    def cov_theta0_obs(self, X: FloatArray, Xc: FloatArray, levels: IntArray) -> FloatArray:
+        """cov_n(theta0(x), y_c) for pool points x and candidate observations c = (x_c, l).
+
+        cov_n(theta0(x), y_c) = k0(x, x_c) - k0(x, X_n) K^-1 k_aug(Y_n, (x_c, l))
+        (DESIGN.md). theta0 is noise-free and alpha_l is independent of theta0, so the
+        prior part is k0 alone whatever the candidate's level.
+
+        Parameters
+        ----------
+        X : ndarray of shape (n, d)
+        Xc : ndarray of shape (m, d)
+        levels : int ndarray of shape (m,)
+
+        Returns
+        -------
+        C : ndarray of shape (n, m)
+        """
+        A, B = self._centre(X), self._centre(Xc, "Xc")
+        lc = self._levels(levels, B.shape[0])
+        V = self._solve_L(self._k0(self._Xt, A))
+        W = self._obs_factor(B, lc)
+        return self._k0(A, B) - V.T @ W
+
+    def cov_obs_obs(
+        self,
+        Xa: FloatArray,
+        levels_a: IntArray,
+        Xb: FloatArray,
+        levels_b: IntArray,
+        same: NDArray[np.bool_] | None = None,
+    ) -> FloatArray:
+        """cov_n(y_a, y_b) between two sets of candidate observations.
+
+        k_aug((xa, a), (xb, b)) + [same] tau_a^2 - k_aug((xa, a), Y_n) K^-1 k_aug(Y_n, (xb, b)).
+
+        Parameters
+        ----------
+        Xa : ndarray of shape (na, d)
+        levels_a : int ndarray of shape (na,)
+        Xb : ndarray of shape (nb, d)
+        levels_b : int ndarray of shape (nb,)
+        same : bool ndarray of shape (na, nb), optional
+            True where a and b are the same future observation (noise added). None means
+            identical coordinates and identical level.
+
+        Returns
+        -------
+        G : ndarray of shape (na, nb)
+        """
+        A, B = self._centre(Xa, "Xa"), self._centre(Xb, "Xb")
+        # Parameter names follow posterior.Posterior (callers may pass them by keyword).
+        la = self._levels(levels_a, A.shape[0], "levels_a")
+        lb = self._levels(levels_b, B.shape[0], "levels_b")
+        if same is None:
+            same = _same_observation(np.asarray(Xa, float), la, np.asarray(Xb, float), lb)
+        else:
+            same = np.asarray(same, dtype=bool)
+            if same.shape != (A.shape[0], B.shape[0]):
+                raise ValueError(
+                    f"same must have shape ({A.shape[0]}, {B.shape[0]}), got {same.shape}"
+                )
+        G = self._k_aug(A, la, B, lb) - self._obs_factor(A, la).T @ self._obs_factor(B, lb)
+        ia, ib = np.nonzero(same)
+        G[ia, ib] += self.hyperparameters.noise[la[ia]]
+        return G
+
+    def obs_var(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
+        """var_n(y_c) including the noise tau_l^2 of the candidate's level.
+
+        Parameters
+        ----------
+        Xc : ndarray of shape (m, d)
+        levels : int ndarray of shape (m,)
+
+        Returns
+        -------
+        v : ndarray of shape (m,)
+            Clipped at 0.
+        """
+        B = self._centre(Xc, "Xc")
+        lc = self._levels(levels, B.shape[0])
+        prior = self._s[0] + np.where(lc >= 1, self._s[lc], 0.0) + self.hyperparameters.noise[lc]
+        W = self._obs_factor(B, lc)
+        return np.maximum(prior - np.einsum("ij,ij->j", W, W), 0.0)
+
+    def score(
+        self, X: FloatArray, gammas: Any, chunk_size: int = 50_000
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Posterior mean, sd and failure probability p_n(x) = Phi((gamma - mu) / sd).
+
+        p_n(x) = E_{theta_n}[1{theta_n(x) <= gamma}] (paper eq. (2) and the line after
+        it), with theta_n(x) ~ N(mu, sd^2). Computed in chunks of rows so
+        the (chunk, n_obs) kernel block stays bounded (at most ``chunk_size`` rows and
+        2^24 kernel entries, ~128 MB, per chunk) for pools of millions.
+
+        Parameters
+        ----------
+        X : ndarray of shape (m, d)
+        gammas : array-like of shape (g,)
+            Failure thresholds.
+        chunk_size : int
+            Maximum rows per chunk.
+
+        Returns
+        -------
+        mu : ndarray of shape (m,)
+        sd : ndarray of shape (m,)
+            sqrt of the clipped variance.
+        p : ndarray of shape (m, g)
+            Where sd is exactly 0 (clipped variance of an observed noise-free point),
+            p = 1{mu <= gamma}, the limit of Phi as sd -> 0 (never NaN).
+        """
+        g = np.atleast_1d(np.asarray(gammas, dtype=np.float64))
+        if g.ndim != 1:
+            raise ValueError(f"gammas must be one-dimensional, got shape {g.shape}")
+        mu, sigma2, p = self._score(self._centre(X), g, chunk_size)
+        return mu, np.sqrt(sigma2), p
+
+    def _score(
+        self, X: FloatArray, gammas: FloatArray, chunk_size: int
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """mu (m,), clipped sigma2 (m,), p (m, len(gammas)) for centred X, chunk by chunk."""
+        m = X.shape[0]
+        mu = np.empty(m)
+        sigma2 = np.empty(m)
+        p = np.empty((m, gammas.size))
+        step = self._chunk_rows(chunk_size)
+        for start in range(0, m, step):
+            sl = slice(start, min(start + step, m))
+            mu[sl], s2 = self._predict_block(X[sl])
+            sigma2[sl] = np.maximum(s2, 0.0)
+            if gammas.size:
+                p[sl] = _failure_probability(mu[sl], np.sqrt(sigma2[sl]), gammas)
+        return mu, sigma2, p
+
+
+def _failure_probability(mu: FloatArray, sd: FloatArray, gammas: FloatArray) -> FloatArray:
+    """Phi((gamma - mu) / sd), shape (m, g); 1{mu <= gamma} where sd == 0."""
+    diff = gammas[None, :] - mu[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = ndtr(diff / sd[:, None])
+    zero = sd == 0.0
+    if zero.any():
+        p[zero] = (diff[zero] >= 0.0).astype(np.float64)
+    return p
+
+
+def _same_observation(
+    Xa: FloatArray, la: IntArray, Xb: FloatArray, lb: IntArray
+) -> NDArray[np.bool_]:
+    """[i, j] True where (Xa[i], la[i]) and (Xb[j], lb[j]) are identical (exact equality).
+
+    Rows are mapped to integer ids with np.unique, so memory is O(na nb), not O(na nb d).
+    """
+    rows = np.concatenate([np.column_stack([Xa, la]), np.column_stack([Xb, lb])]) + 0.0
+    _, ids = np.unique(rows, axis=0, return_inverse=True)
+    ids = ids.reshape(-1)
+    return ids[: len(Xa), None] == ids[None, len(Xa) :]

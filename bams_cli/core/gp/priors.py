@@ -1,0 +1,164 @@
+"""Priors of the multifidelity GP's hyperparameters, every default defined once.
+
+Priors (all LogNormal densities on the positive parameter itself, the GPyTorch/BoTorch
+convention, in standardised units; a LogNormal(loc, scale) then has its MAP mode at
+exp(loc - scale^2), and in log space it is a Gaussian around that mode with sd ``scale``):
+
+- lengthscales, theta0 and every discrepancy kernel: LogNormal(sqrt2 + log(d)/2, sqrt3) on
+  the lengthscale in unit-cube units (each input dimension divided by its range over the
+  training inputs, as BoTorch's Normalize transform does), i.e. BoTorch's dimension-scaled
+  default (Hvarfner et al. 2024). Why: with tens of observations in d = 12 maximum
+  likelihood happily picks short lengthscales that interpolate and then knows nothing
+  between points; scaling the prior with sqrt(d) keeps the expected correlation between
+  two random points roughly constant as d grows. Mode 0.20 sqrt(d) x range.
+- outputscale0: mode 1 (the standardised data variance), log-sd 1.5: weak.
+- discrepancy outputscales: mode 0.01, log-sd 1.0: a cheap simulator is a priori close to
+  theta0 (a discrepancy sd ~10% of the data's), which is why it is worth running; the data
+  overrule this when the levels disagree. Why this tight: with a handful of level-0 points
+  among a hundred cheap ones, theta0 and the discrepancy are barely identified, and the
+  former prior (mode 0.1, log-sd 1.5) let the MAP hand whole input directions of f to the
+  discrepancy (theta0 lengthscale 15-60 along x1 or x0 on toy2d, discrepancy scale ~1),
+  leaving theta0 confidently wrong where the cheap data said otherwise
+  (docs/reproduction/README.md, "What moved the numbers").
+- level-0 noise tau_0^2: mode 3e-4, log-sd 1.0. Never a fixed tiny jitter (a GP that is
+  sure of itself at the kinks of f produced p_n ~ 1e-28 for true failures and an infinite
+  importance-sampling variance) and never free (free maximum likelihood explained all the
+  level-0 data as noise on some seeds; with log-sd 1.5 the MAP still did so on one toy2d
+  seed in ten, tau_0^2 = 0.07 of the data variance, together with the discrepancy above).
+  Explaining the data as noise (tau_0^2 ~ 0.5) costs ~27 nats of prior; a true 1e-2 costs
+  ~6, which data that can identify the noise (repeats, points closer than a lengthscale)
+  readily pay (``test_map_recovers_hyperparameters_of_data_drawn_from_the_prior`` recovers
+  a level-0 noise of 2% of the variance). Where the data cannot tell noise from roughness
+  (100 scattered points in 4-d, noise 1e-2 of the variance: the likelihood is flat within
+  0.3 nats over 1e-4..1e-2), the prior decides and the fit returns ~5e-4.
+- noise at levels >= 1: mode 3e-3, log-sd 2: cheap simulators are often noisy; weak.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, input_ranges
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """Modes and log-space sds of the LogNormal priors, in standardised units.
+
+    Each pair is (mode, log-sd); the module docstring says why each default is what it is.
+    ``lengthscale_dim_scaling`` multiplies the lengthscale prior's location by sqrt(d)
+    (BoTorch's dimension-scaled prior); turning it off is for experiments only.
+    """
+
+    outputscale0: tuple[float, float] = (1.0, 1.5)
+    discrepancy: tuple[float, float] = (0.01, 1.0)
+    noise0: tuple[float, float] = (3e-4, 1.0)
+    noise: tuple[float, float] = (3e-3, 2.0)
+    lengthscale_scale: float = math.sqrt(3.0)
+    lengthscale_dim_scaling: bool = True
+
+
+#: The priors every fit uses unless told otherwise.
+DEFAULT_PRIORS = PriorSpec()
+
+# Box bounds on the standardised parameters. Wide: the priors do the regularising; the
+# bounds only keep L-BFGS-B away from overflow and from singular K.
+_OUTPUTSCALE0_BOUNDS = (1e-4, 1e4)
+_DISCREPANCY_BOUNDS = (1e-6, 1e4)
+_LENGTHSCALE_BOUNDS = (5e-3, 1e3)  # in units of the training range of each dimension
+_NOISE_BOUNDS = (1e-9, 1e1)
+
+
+@dataclass(frozen=True)
+class _Priors:
+    """Independent LogNormal(loc, scale) priors on exp(theta), and box bounds on theta.
+
+    All arrays have the layout of ``_pack``. Standardised units.
+    """
+
+    loc: FloatArray
+    scale: FloatArray
+    lower: FloatArray
+    upper: FloatArray
+
+    @classmethod
+    def for_data(cls, X: FloatArray, n_levels: int, spec: PriorSpec | None = None) -> _Priors:
+        """Priors for training inputs X of shape (n, d) and ``n_levels`` levels."""
+        spec = DEFAULT_PRIORS if spec is None else spec
+        d = X.shape[1]
+        m = n_levels
+        log_range = np.log(input_ranges(X))
+
+        def from_mode(mode: float, scale: float) -> float:
+            # LogNormal(loc, scale) has its mode at exp(loc - scale^2).
+            return math.log(mode) + scale**2
+
+        # BoTorch's dimension-scaled lengthscale prior, on unit-cube lengthscales; moving
+        # to natural units shifts loc by log(range) per dimension.
+        dim_shift = 0.5 * math.log(d) if spec.lengthscale_dim_scaling else 0.0
+        ell_loc = math.sqrt(2.0) + dim_shift + log_range
+        loc = np.concatenate(
+            [
+                [from_mode(*spec.outputscale0)],
+                np.full(m - 1, from_mode(*spec.discrepancy)),
+                np.tile(ell_loc, m),
+                [from_mode(*spec.noise0)],
+                np.full(m - 1, from_mode(*spec.noise)),
+            ]
+        )
+        scale = np.concatenate(
+            [
+                [spec.outputscale0[1]],
+                np.full(m - 1, spec.discrepancy[1]),
+                np.full(m * d, spec.lengthscale_scale),
+                [spec.noise0[1]],
+                np.full(m - 1, spec.noise[1]),
+            ]
+        )
+        lower = np.log(
+            np.concatenate(
+                [
+                    [_OUTPUTSCALE0_BOUNDS[0]],
+                    np.full(m - 1, _DISCREPANCY_BOUNDS[0]),
+                    np.tile(_LENGTHSCALE_BOUNDS[0] * np.exp(log_range), m),
+                    np.full(m, _NOISE_BOUNDS[0]),
+                ]
+            )
+        )
+        upper = np.log(
+            np.concatenate(
+                [
+                    [_OUTPUTSCALE0_BOUNDS[1]],
+                    np.full(m - 1, _DISCREPANCY_BOUNDS[1]),
+                    np.tile(_LENGTHSCALE_BOUNDS[1] * np.exp(log_range), m),
+                    np.full(m, _NOISE_BOUNDS[1]),
+                ]
+            )
+        )
+        return cls(loc=loc, scale=scale, lower=lower, upper=upper)
+
+    @property
+    def mode(self) -> FloatArray:
+        """theta at the prior mode, clipped to the bounds."""
+        return np.clip(self.loc - self.scale**2, self.lower, self.upper)
+
+    def sample_start(self, rng: np.random.Generator) -> FloatArray:
+        """A restart point: theta ~ N(mode, scale^2), clipped to the bounds.
+
+        Centred on the mode rather than the median: the lengthscale prior's median
+        (4.1 sqrt(d) x range) is far beyond where the MAP usually lands.
+        """
+        return np.clip(rng.normal(self.loc - self.scale**2, self.scale), self.lower, self.upper)
+
+    def log_prior(self, theta: FloatArray) -> tuple[float, FloatArray]:
+        """Sum of LogNormal log densities of exp(theta) and its gradient wrt theta.
+
+        log p(v) = -log v - log(scale sqrt(2 pi)) - (log v - loc)^2 / (2 scale^2), v = exp(theta).
+        """
+        u = (theta - self.loc) / self.scale
+        value = float(np.sum(-theta - np.log(self.scale) - 0.5 * LOG_2PI - 0.5 * u * u))
+        grad = -1.0 - u / self.scale
+        return value, grad
