@@ -108,13 +108,22 @@ def pick_uniform(
     mixed: bool = False,
     observed_level0_mask: BoolArray | None = None,
     level_shares: Sequence[float] | None = None,
+    paired: bool = True,
 ) -> tuple[IntArray, IntArray]:
     """Uniform picks over unobserved segments: MC / MC-GP (level 0) and MCM-GP (mixed).
 
     Single fidelity: floor(m / c_0) distinct segments with level 0 unobserved, uniformly
     without replacement. Mixed (``mixed=True``): ``level_split`` decides how many picks
-    each level gets; all picks are distinct segments, drawn uniformly without replacement
-    (level-0 picks only among segments whose level 0 is unobserved).
+    each level gets, drawn uniformly without replacement (level-0 picks only among
+    segments whose level 0 is unobserved). With ``paired`` (the default) each cheap level's
+    first picks are the level-0 segments themselves, as many as that level's count allows,
+    and the rest are other segments; without it every pick is a distinct segment.
+
+    Why pairs: the values of one segment at level 0 and at a cheap level identify the
+    cheap level's discrepancy directly (their difference is alpha_l + noise, with theta0
+    cancelled). Without pairs the model can only tell the discrepancy from theta0 through
+    the kernels' smoothness, and with a handful of level-0 runs it often calls a weak
+    cheap level nearly exact (DESIGN.md, "Paired evidence").
 
     Parameters
     ----------
@@ -143,13 +152,19 @@ def pick_uniform(
     taken = np.zeros(n_pool, dtype=bool)
     idx_out: list[IntArray] = []
     lev_out: list[IntArray] = []
+    level0 = np.zeros(0, dtype=np.int64)
     for lev, k in enumerate(counts):
+        k = int(k)
+        pair = level0[: k if paired and lev > 0 else 0]
         pool = np.flatnonzero((free0 if lev == 0 else np.ones(n_pool, dtype=bool)) & ~taken)
-        k = min(int(k), len(pool))
-        pick = rng.choice(pool, size=k, replace=False) if k else np.zeros(0, dtype=np.int64)
-        taken[pick] = True
-        idx_out.append(pick.astype(np.int64))
-        lev_out.append(np.full(k, lev, dtype=np.int64))
+        k_new = min(k - len(pair), len(pool))
+        new = rng.choice(pool, size=k_new, replace=False) if k_new else np.zeros(0, np.int64)
+        taken[new] = True
+        pick = np.concatenate([pair, new]).astype(np.int64)
+        if lev == 0:
+            level0 = pick
+        idx_out.append(pick)
+        lev_out.append(np.full(len(pick), lev, dtype=np.int64))
     return np.concatenate(idx_out), np.concatenate(lev_out)
 
 

@@ -56,7 +56,7 @@ def test_budget_respected_and_no_duplicates(strategy, costs, budget, seed):
     )
     assert idx.dtype == np.int64 and lev.dtype == np.int64 and len(idx) == len(lev)
     assert math.fsum(np.asarray(costs)[lev].tolist()) <= budget
-    assert len(set(idx.tolist())) == len(idx)  # no segment twice
+    assert len(set(zip(idx.tolist(), lev.tolist(), strict=True))) == len(idx)  # no pair twice
     assert np.all((idx >= 0) & (idx < N))
     assert not np.any(mask[idx[lev == 0]])  # level 0 never re-simulated
     if strategy != "mcm-gp":
@@ -81,6 +81,27 @@ def test_mixed_uniform_uses_all_levels_and_is_uniform():
     # 2800 picks over 400 segments: every segment's count is Binomial-ish around 7;
     # a fixed-index bias (e.g. always the first rows) would put ~0 on most.
     assert (counts == 0).mean() < 0.05
+
+
+@pytest.mark.parametrize("paired", [True, False])
+def test_mixed_uniform_pairs_level0_segments_with_cheap_runs(paired):
+    idx, lev = pick_uniform(
+        N, [1.0, 0.25], 5.0, rng=np.random.default_rng(1), mixed=True, paired=paired
+    )
+    zero, cheap = set(idx[lev == 0]), idx[lev == 1]
+    assert len(cheap) == len(set(cheap)) == 12  # no (segment, level) twice
+    assert len(zero & set(cheap)) == (2 if paired else 0)
+    if paired:
+        assert set(cheap[:2]) == zero  # the pairs come first
+
+
+def test_pairs_are_capped_by_the_cheap_level_count():
+    # 4 level-0 picks but only 2 cheap ones: both cheap picks pair, none is new.
+    idx, lev = pick_uniform(
+        N, [1.0, 1.0], 6.0, rng=np.random.default_rng(2), mixed=True, level_shares=[4, 2]
+    )
+    assert (lev == 0).sum() == 4 and (lev == 1).sum() == 2
+    assert set(idx[lev == 1]) <= set(idx[lev == 0])
 
 
 def test_difficulty_weights_transforms():
