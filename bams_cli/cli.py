@@ -373,8 +373,9 @@ def fit(
         console.print_json(summary)
         return
     console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
-    rest = {k: v for k, v in summary.items() if k not in ("hyperparameters", "warnings")}
+    rest = {k: v for k, v in summary.items() if k not in ("hyperparameters", "warnings", "checks")}
     console.kv_table("fit", rest)
+    console.model_checks(summary["checks"])
     for warning in summary["warnings"]:
         console.note(f"warning: {warning}")
 

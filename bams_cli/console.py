@@ -70,9 +70,10 @@ def hyperparameter_table(hp: Mapping[str, Any], n_obs: list[int]) -> None:
         fmt(hp["lengthscales0"]),
         f"{noise[0] ** 0.5:.3g}",
     )
+    offsets = hp.get("offsets") or [0.0] * len(hp["outputscales"])
     for lv, (scale, ells) in enumerate(zip(hp["outputscales"], hp["lengthscales"], strict=True), 1):
         table.add_row(
-            f"{lv} (discrepancy)",
+            f"{lv} (discrepancy, offset {offsets[lv - 1]:+.3g})",
             str(n_obs[lv]),
             f"{scale**0.5:.4g}",
             fmt(ells),
@@ -80,6 +81,23 @@ def hyperparameter_table(hp: Mapping[str, Any], n_obs: list[int]) -> None:
         )
     table.caption = f"constant mean {hp['mean']:.4g}; scales and noise as standard deviations"
     out.print(table)
+
+
+def model_checks(checks: Mapping[str, Any]) -> None:
+    """One line per self-check of a fitted model (``core.gp.checks``)."""
+    loo = checks["loo_level0"]
+    if loo["n"]:
+        out.print(
+            f"check: leave-one-out at {loo['n']} level-0 runs, mean z^2 {loo['mean_z2']:.2f} "
+            "(1 if calibrated)"
+        )
+    for pair in checks["pairs"]:
+        if pair["n_pairs"] >= 2:
+            out.print(
+                f"check: {pair['n_pairs']} segments run at levels 0 and {pair['level']}: "
+                f"sd(y{pair['level']} - y0) {pair['sd_observed']:.3g}, model "
+                f"{pair['sd_fitted']:.3g}"
+            )
 
 
 @contextmanager

@@ -786,6 +786,7 @@ def fit(
 ) -> dict[str, Any]:
     """Train the multifidelity GP on the observation log and score every pool segment."""
     from bams_cli.core.gp import GPFitError, Hyperparameters, fit_mfgp
+    from bams_cli.core.gp.checks import check_model
 
     if restarts < 1 or chunk_size < 1:
         raise WorkspaceError(f"--restarts {restarts} and --chunk-size {chunk_size} must be >= 1")
@@ -830,7 +831,12 @@ def fit(
         if progress:
             progress("score pool", stop, n)
 
-    warnings = _contradicted_outcomes(ids, idx, lv, y, p, settings.gammas)
+    checks = check_model(model, idx)
+    warnings = [
+        *model.notes,
+        *checks.warnings,
+        *_contradicted_outcomes(ids, idx, lv, y, p, settings.gammas),
+    ]
     obs_hash = ws.observations_hash()
     hp = model.hyperparameters
     doc = {
@@ -846,6 +852,8 @@ def fit(
         "seed": settings.seed,
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "jitter": float(model.jitter),
+        "checks": checks.to_dict(),
         "warnings": warnings,
     }
     cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
@@ -875,6 +883,8 @@ def fit(
         "log_marginal_likelihood": doc["log_marginal_likelihood"],
         "log_posterior": doc["log_posterior"],
         "hyperparameters": doc["hyperparameters"],
+        "checks": doc["checks"],
+        "jitter": doc["jitter"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,
     }

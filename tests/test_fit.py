@@ -106,7 +106,7 @@ def test_model_is_stale_after_new_results(fitted_ws, runner, toy_files, tmp_path
     assert "fitted on an older observation log" in r.stderr and "bams-cli fit" in r.stderr
 
 
-def _fit_with(ws, runner, tmp_path, values, noise0):
+def _fit_with(ws, runner, tmp_path, values, noise0, outputscale0=0.25):
     """Level-0 results with the given values, fitted with fixed hyperparameters."""
     ids = [f"t{i:06d}" for i in range(0, 400, 40)][: len(values)]
     write_batch(ws, 1, ids, [0] * len(ids))
@@ -115,7 +115,7 @@ def _fit_with(ws, runner, tmp_path, values, noise0):
     assert invoke(runner, "ingest-results", "-w", ws, res).exit_code == 0
     hp = {
         "mean": 3.0,
-        "outputscale0": 0.25,
+        "outputscale0": outputscale0,
         "lengthscales0": [1.0, 1.0],
         "outputscales": [0.01],
         "lengthscales": [[1.0, 1.0]],
@@ -144,9 +144,26 @@ def test_fit_warns_when_the_model_explains_an_observed_failure_as_noise(toy_ws, 
 
 
 def test_fit_does_not_warn_when_the_model_follows_the_data(toy_ws, runner, tmp_path):
-    r, _ = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=1e-4)
+    # Output sd 3: a 0.3 among values near 3 is a 0.9-sd event, which the leave-one-out
+    # check accepts (with sd 0.5 it would be 5.4 sd and rightly flagged as overconfident).
+    r, _ = _fit_with(
+        toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=1e-4, outputscale0=9.0
+    )
     assert r.exit_code == 0, r.output
     assert "warning:" not in r.stderr
     assert json.loads(Workspace(toy_ws).model_path.read_text())["warnings"] == []
     p = pq.read_table(Workspace(toy_ws).scores_path).column("p_0").to_numpy()
     assert p[0] > 0.99
+
+
+def test_fit_warns_when_level0_runs_surprise_the_model(toy_ws, runner, tmp_path):
+    # The same data with output sd 0.5: leave-one-out, the 0.3 is 5.4 sd from its
+    # prediction. The warning and model.json's checks say so with the evidence.
+    r, _ = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=1e-4)
+    assert r.exit_code == 0, r.output
+    [line] = [s for s in r.stderr.splitlines() if s.startswith("warning:")]
+    assert "overconfident at level 0" in line and "5 level-0 runs" in line
+    model = json.loads(Workspace(toy_ws).model_path.read_text())
+    assert model["checks"]["loo_level0"]["n"] == 5
+    assert model["checks"]["loo_level0"]["mean_z2"] > 5
+    assert model["jitter"] == 0.0

@@ -414,9 +414,35 @@ def test_jitter_rescues_duplicates_without_noise():
     hp = dataclasses.replace(random_hp(rng, 2, 1), noise=np.array([0.0]))
     model = MFGP(X, np.zeros(10, int), y, 1, hp)
     assert model.jitter > 0.0
+    assert len(model.notes) == 1 and "jitter" in model.notes[0]
     mu, sigma2 = model.predict_theta0(X)
     np.testing.assert_allclose(mu, y, atol=1e-3)
     assert np.all(sigma2 >= 0.0) and np.all(sigma2 < 1e-3)
+
+
+def test_no_note_when_no_jitter_was_needed():
+    rng = np.random.default_rng(0)
+    X, levels, y = mf_data(rng, 2, 2)
+    assert MFGP(X, levels, y, 2, random_hp(rng, 2, 2)).notes == []
+
+
+def test_constant_data_is_a_recorded_fact():
+    X = np.random.default_rng(0).normal(size=(6, 2))
+    model = fit_mfgp(X, np.zeros(6, int), np.full(6, 3.5), 1, rng=np.random.default_rng(0))
+    assert any("all 6 observed values equal 3.5" in n for n in model.notes)
+
+
+def test_values_near_the_float_limit_are_standardised_without_overflow():
+    # The plain np.mean of these overflows to inf; scaled first, it does not.
+    ybar, ystd = standardise(np.array([1.7e308, 1.7e308]))
+    assert ybar == pytest.approx(1.7e308) and ystd == 1.0
+    assert standardise(np.array([1e100, 2e100])) == pytest.approx((1.5e100, 0.5e100))
+    with pytest.raises(GPFitError, match="too large for a GP"):
+        standardise(np.array([1e307, 3e307, 2e307]))
+    with pytest.raises(GPFitError, match="too large for a GP"):
+        fit_mfgp(
+            np.eye(3), np.zeros(3, int), [1e307, 3e307, 2e307], 1, rng=np.random.default_rng(0)
+        )
 
 
 def test_indefinite_matrix_raises_with_remedy():

@@ -22,11 +22,38 @@ class GPFitError(ValueError):
     """The GP cannot be built from these observations or hyperparameters."""
 
 
+#: Largest sd of the observed values the model accepts: natural-unit variances are
+#: sd^2 times standardised ones, and beyond this they overflow a float64.
+MAX_SCALE = 1e150
+
+
 def standardise(y: FloatArray) -> tuple[float, float]:
-    """(mean, std) used to standardise y; std 1 when y is constant or n = 1."""
-    ybar = float(np.mean(y))
-    ystd = float(np.std(y))
-    if not (math.isfinite(ystd) and ystd > 0.0):
+    """(mean, std) used to standardise y; std 1 when y is constant or n = 1.
+
+    Computed on y / max|y|, so values near the float limits do not overflow the sum.
+    Constant y is legitimate (the caller records it: the model is then flat); a spread
+    beyond ``MAX_SCALE`` is an error, since no variance in natural units could hold it.
+
+    Raises
+    ------
+    GPFitError
+        y has non-finite values, or its sd exceeds ``MAX_SCALE``.
+    """
+    top = float(np.max(np.abs(y))) if y.size else 0.0
+    if not math.isfinite(top):
+        raise GPFitError("the observed values include inf or NaN; drop or repair those rows")
+    if top == 0.0:
+        return 0.0, 1.0
+    u = y / top
+    ybar = top * float(np.mean(u))
+    ystd = top * float(np.std(u))
+    if ystd > MAX_SCALE:
+        raise GPFitError(
+            f"the observed values spread over {ystd:.3g} (sd): too large for a GP in "
+            f"float64 (limit {MAX_SCALE:g}); rescale the metric, e.g. report it in "
+            "thousands, or check the results for a wrong value"
+        )
+    if not ystd > 0.0:
         ystd = 1.0
     return ybar, ystd
 

@@ -117,4 +117,10 @@ def fit_mfgp(
     L, _ = cholesky(K)
     beta, _ = objective.gls_mean(L)
     hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
-    return MFGP(X, levels, y, n_levels, hp, priors=priors)
+    model = MFGP(X, levels, y, n_levels, hp, priors=priors)
+    if np.ptp(y) == 0.0:
+        model.notes.append(
+            f"all {y.size} observed values equal {y[0]:.6g}: the model is flat, and its "
+            "failure probabilities rest on the priors alone"
+        )
+    return model

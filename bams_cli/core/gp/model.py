@@ -56,6 +56,8 @@ class MFGP:
         variance is 0.
     jitter : float
         Absolute jitter that the Cholesky factorisation needed (usually 0).
+    notes : list of str
+        What a user should hear about this fit (jitter needed, constant data), one line each.
     X_train, levels_train, y_train : ndarray
         The observations conditioned on.
     """
@@ -97,6 +99,15 @@ class MFGP:
         K[np.diag_indices(n)] += hp.noise[levels]
         with threadpool_limits(limits=1, user_api="blas"):  # small matrix: see fit_mfgp
             self._L, self.jitter = cholesky(K)
+        #: Facts about this fit a user should hear: jitter needed, a flat model.
+        self.notes: list[str] = []
+        if self.jitter > 0.0:
+            rel = self.jitter / float(np.mean(np.diag(K)))
+            self.notes.append(
+                f"the training covariance needed jitter {self.jitter:.3g} ({rel:.0e} of its "
+                "mean diagonal) to factorise: some observations nearly repeat each other "
+                "with almost no noise; predictions near them are slightly smoothed"
+            )
         offsets = np.concatenate([[0.0], hp.offsets])  # type: ignore[arg-type]
         r = y - hp.mean - offsets[levels]
         self._alpha = cho_solve((self._L, True), r, check_finite=False)  # GPML Alg. 2.1 l. 3

@@ -1,0 +1,210 @@
+"""Self-checks of a fitted model against its own data: is it overconfident?
+
+A GP that is confidently wrong is the worst case for BAMS: the greedy stops running the
+expensive level, and the rate estimate's weights and interval follow the model. Two checks
+need nothing but the observations the model was fitted on (DESIGN.md, "Paired evidence"):
+
+* Leave-one-out residuals at level-0 points, in closed form (Rasmussen and Williams 2006,
+  sec. 5.4.2, eqs. 5.10-5.12): with alpha = K^-1 (y - H beta),
+
+      y_i - mu_{-i} = alpha_i / [K^-1]_ii,      var_{-i} = 1 / [K^-1]_ii,
+
+  so z_i = alpha_i / sqrt([K^-1]_ii) is N(0, 1) under the model. sum z_i^2 far above its
+  chi-square(n) range means the model's intervals are too narrow where it was tested.
+* Paired differences. A segment observed at level 0 and at level l gives
+  d = y_l - y_0 = b_l + alpha_l(x) + eps_l - eps_0, whose variance over the pool under the
+  model is s_l + tau_l^2 + tau_0^2 (the fitted discrepancy variance plus both noises). The
+  pairs' sample variance S^2 (the offset b_l drops out) then has (k - 1) S^2 / sigma^2 ~
+  chi-square(k - 1), approximately (pairs far apart are nearly independent).
+
+Both give a one-sided p-value for "the model is overconfident"; a small one is reported
+with its evidence.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.stats import chi2
+
+from bams_cli.core.gp._numerics import FloatArray, IntArray
+from bams_cli.core.gp.model import MFGP
+
+#: A check's p-value below this is reported as a warning.
+CHECK_LEVEL = 0.01
+#: At most this many level-0 points enter the leave-one-out check (each costs a solve).
+_MAX_LOO = 2_000
+
+
+@dataclass
+class PairCheck:
+    """Paired level-0 / level-l differences against the fitted discrepancy.
+
+    Attributes
+    ----------
+    level : int
+    n_pairs : int
+    sd_observed : float
+        Sample sd of y_l - y_0 over the pairs (NaN below 2 pairs).
+    sd_fitted : float
+        sqrt(s_l + tau_l^2 + tau_0^2), the model's sd of the same difference.
+    p_value : float
+        P(chi-square(k - 1) >= (k - 1) S^2 / sd_fitted^2); small = overconfident.
+    """
+
+    level: int
+    n_pairs: int
+    sd_observed: float
+    sd_fitted: float
+    p_value: float
+
+
+@dataclass
+class ModelChecks:
+    """Result of ``check_model``.
+
+    Attributes
+    ----------
+    loo_n : int
+        Level-0 observations in the leave-one-out check.
+    loo_mean_z2 : float
+        Mean squared standardised LOO residual (1 for a calibrated model; NaN if loo_n = 0).
+    loo_max_abs_z : float
+    loo_p_value : float
+        P(chi-square(n) >= sum z^2).
+    pairs : list of PairCheck, one per level >= 1
+    warnings : list of str
+    """
+
+    loo_n: int
+    loo_mean_z2: float
+    loo_max_abs_z: float
+    loo_p_value: float
+    pairs: list[PairCheck] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN becomes None)."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "loo_level0": {
+                "n": self.loo_n,
+                "mean_z2": num(self.loo_mean_z2),
+                "max_abs_z": num(self.loo_max_abs_z),
+                "p_value": num(self.loo_p_value),
+            },
+            "pairs": [
+                {
+                    "level": p.level,
+                    "n_pairs": p.n_pairs,
+                    "sd_observed": num(p.sd_observed),
+                    "sd_fitted": num(p.sd_fitted),
+                    "p_value": num(p.p_value),
+                }
+                for p in self.pairs
+            ],
+        }
+
+
+def loo_level0(model: MFGP, rng: np.random.Generator | None = None) -> FloatArray:
+    """Standardised leave-one-out residuals z_i at (up to 2,000) level-0 observations.
+
+    Returns
+    -------
+    z : ndarray of shape (k,)
+        R&W eq. 5.12 in standardised form; a random subset of level-0 points when there
+        are more than ``_MAX_LOO`` (``rng``, default seed 0).
+    """
+    rows = np.flatnonzero(model.levels_train == 0)
+    if rows.size > _MAX_LOO:
+        rng = np.random.default_rng(0) if rng is None else rng
+        rows = np.sort(rng.choice(rows, _MAX_LOO, replace=False))
+    if rows.size == 0:
+        return np.zeros(0)
+    n = model.levels_train.size
+    # [K^-1]_ii = || L^-1 e_i ||^2
+    E = np.zeros((n, rows.size))
+    E[rows, np.arange(rows.size)] = 1.0
+    V = solve_triangular(model._L, E, lower=True, check_finite=False)
+    kinv_diag = np.einsum("ij,ij->j", V, V)
+    return model._alpha[rows] / np.sqrt(kinv_diag)
+
+
+def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: int) -> FloatArray:
+    """y_l - y_0 for every segment observed at both levels (repeats averaged first).
+
+    Parameters
+    ----------
+    seg : int ndarray of shape (n,)
+        Segment (pool row) of each observation.
+    levels : int ndarray of shape (n,)
+    y : ndarray of shape (n,)
+    level : int
+        The cheap level l >= 1.
+
+    Returns
+    -------
+    d : ndarray of shape (k,), in increasing segment order
+    """
+    out = []
+    for lv in (0, level):
+        m = levels == lv
+        keys, inv = np.unique(seg[m], return_inverse=True)
+        means = np.bincount(inv, weights=y[m]) / np.bincount(inv)
+        out.append((keys, means))
+    (k0, m0), (kl, ml) = out
+    common, i0, il = np.intersect1d(k0, kl, return_indices=True)
+    return ml[il] - m0[i0]
+
+
+def check_model(model: MFGP, seg: IntArray) -> ModelChecks:
+    """Leave-one-out and paired-difference checks of a fitted model (module docstring).
+
+    Parameters
+    ----------
+    model : MFGP
+    seg : int ndarray of shape (n_obs,)
+        Segment of each training observation, to find pairs.
+
+    Returns
+    -------
+    ModelChecks
+    """
+    z = loo_level0(model)
+    n = z.size
+    s2 = float(np.sum(z * z))
+    checks = ModelChecks(
+        loo_n=n,
+        loo_mean_z2=s2 / n if n else math.nan,
+        loo_max_abs_z=float(np.max(np.abs(z))) if n else math.nan,
+        loo_p_value=float(chi2.sf(s2, n)) if n else math.nan,
+    )
+    if n >= 5 and checks.loo_p_value < CHECK_LEVEL:
+        checks.warnings.append(
+            f"the model is overconfident at level 0: its leave-one-out residuals at {n} "
+            f"level-0 runs have mean square {checks.loo_mean_z2:.2f} (1 if calibrated; "
+            f"largest |z| {checks.loo_max_abs_z:.1f}, p = {checks.loo_p_value:.1g}); its "
+            "failure probabilities are too sure of themselves, so more level-0 runs help"
+        )
+    hp = model.hyperparameters
+    for lv in range(1, model.n_levels):
+        d = paired_differences(seg, model.levels_train, model.y_train, lv)
+        k = d.size
+        sd_fit = math.sqrt(hp.outputscales[lv - 1] + hp.noise[lv] + hp.noise[0])
+        sd_obs = float(np.std(d, ddof=1)) if k >= 2 else math.nan
+        p = float(chi2.sf((k - 1) * sd_obs**2 / sd_fit**2, k - 1)) if k >= 2 else math.nan
+        checks.pairs.append(PairCheck(lv, k, sd_obs, sd_fit, p))
+        if k >= 3 and p < CHECK_LEVEL:
+            checks.warnings.append(
+                f"level {lv} differs from level 0 more than the model allows: {k} segments "
+                f"run at both give sd(y{lv} - y0) = {sd_obs:.3g} against the model's "
+                f"{sd_fit:.3g} (p = {p:.1g}); the model trusts level {lv} too much"
+            )
+    return checks

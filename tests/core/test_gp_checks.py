@@ -1,0 +1,118 @@
+"""Self-checks of a fitted GP: closed-form leave-one-out against brute force, paired
+differences, and the warnings they give."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bams_cli.core.gp import MFGP, Hyperparameters, fit_mfgp
+from bams_cli.core.gp.checks import check_model, loo_level0, paired_differences
+
+
+def _hp(d=2, noise=(0.05, 0.05), s1=0.3):
+    return Hyperparameters(
+        mean=0.2,
+        outputscale0=1.0,
+        lengthscales0=np.full(d, 0.8),
+        outputscales=np.array([s1]),
+        lengthscales=np.full((1, d), 1.2),
+        noise=np.array(noise),
+        offsets=np.array([0.4]),
+    )
+
+
+def test_closed_form_loo_equals_refitting_without_each_point():
+    """R&W eq. 5.12 against brute force: drop observation i, condition on the rest with
+    the same hyperparameters, and standardise y_i by the predictive mean and variance of
+    a level-0 observation (theta0 plus level-0 noise)."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(14, 2))
+    levels = np.r_[np.zeros(6, int), np.ones(8, int)]
+    y = np.sin(X).sum(1) + 0.4 * levels + 0.1 * rng.normal(size=14)
+    hp = _hp()
+    z = loo_level0(MFGP(X, levels, y, 2, hp))
+    ref = []
+    for i in range(6):
+        keep = np.arange(14) != i
+        m = MFGP(X[keep], levels[keep], y[keep], 2, hp)
+        mu, s2 = m.predict_theta0(X[i : i + 1])
+        ref.append((y[i] - mu[0]) / np.sqrt(s2[0] + hp.noise[0]))
+    np.testing.assert_allclose(z, ref, rtol=1e-8)
+
+
+def test_paired_differences_average_repeats_and_match_segments():
+    seg = np.array([3, 3, 7, 3, 7, 9, 1])
+    lv = np.array([0, 0, 0, 1, 1, 1, 0])
+    y = np.array([1.0, 3.0, 5.0, 4.0, 4.5, 0.0, 2.0])
+    np.testing.assert_allclose(paired_differences(seg, lv, y, 1), [4.0 - 2.0, 4.5 - 5.0])
+
+
+def _paired_data(rng, n_pairs, disc_sd, n_cheap=40):
+    X = rng.normal(size=(n_pairs + n_cheap, 2))
+    f = np.sin(X[:, 0]) + 0.5 * X[:, 1]
+    seg = np.r_[np.arange(n_pairs), np.arange(n_pairs + n_cheap)]
+    Xo = X[seg]
+    levels = np.r_[np.zeros(n_pairs, int), np.ones(n_pairs + n_cheap, int)]
+    y = f[seg] + disc_sd * rng.normal(size=seg.size) * levels
+    return Xo, levels, y, seg
+
+
+def test_pair_check_flags_a_model_that_trusts_the_cheap_level_too_much():
+    rng = np.random.default_rng(1)
+    Xo, levels, y, seg = _paired_data(rng, 20, disc_sd=0.5)
+    # Hyperparameters that claim the cheap level is nearly exact (sd ~0.03).
+    hp = Hyperparameters(
+        mean=0.0, outputscale0=1.0, lengthscales0=np.ones(2), outputscales=np.array([1e-4]),
+        lengthscales=np.ones((1, 2)), noise=np.array([1e-4, 1e-4]),
+    )  # fmt: skip
+    checks = check_model(MFGP(Xo, levels, y, 2, hp), seg)
+    pair = checks.pairs[0]
+    assert pair.n_pairs == 20 and pair.sd_observed == pytest.approx(0.5, rel=0.35)
+    assert pair.p_value < 1e-6
+    assert any(
+        "level 1 differs from level 0 more than the model allows" in w for w in checks.warnings
+    )
+
+
+def test_fitted_model_learns_the_discrepancy_from_pairs_and_passes_its_checks():
+    rng = np.random.default_rng(2)
+    Xo, levels, y, seg = _paired_data(rng, 15, disc_sd=0.4)
+    model = fit_mfgp(Xo, levels, y, 2, rng=np.random.default_rng(0))
+    checks = check_model(model, seg)
+    fitted = np.sqrt(model.hyperparameters.outputscales[0] + model.hyperparameters.noise.sum())
+    assert 0.2 < fitted < 0.8  # true sd(y1 - y0) = 0.4
+    assert checks.pairs[0].p_value > 0.01
+    assert not checks.warnings
+
+
+def test_loo_check_flags_an_overconfident_level0_model():
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(30, 2))
+    y = np.sin(3 * X[:, 0]) + 0.3 * rng.normal(size=30)  # rough and noisy
+    hp = Hyperparameters(
+        mean=0.0, outputscale0=0.05, lengthscales0=np.full(2, 3.0), outputscales=np.zeros(0),
+        lengthscales=np.zeros((0, 2)), noise=np.array([1e-4]),
+    )  # fmt: skip
+    checks = check_model(MFGP(X, np.zeros(30, int), y, 1, hp), np.arange(30))
+    assert checks.loo_mean_z2 > 5 and checks.loo_p_value < 1e-6
+    assert any("overconfident at level 0" in w for w in checks.warnings)
+    doc = checks.to_dict()
+    assert doc["loo_level0"]["n"] == 30 and doc["pairs"] == []
+
+
+def test_calibrated_model_has_loo_mean_square_near_one():
+    """Data drawn from the model itself: the standardised LOO residuals are N(0, 1)."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-2, 2, size=(150, 2))
+    hp = Hyperparameters(
+        mean=0.0, outputscale0=1.0, lengthscales0=np.full(2, 0.7), outputscales=np.zeros(0),
+        lengthscales=np.zeros((0, 2)), noise=np.array([0.05]),
+    )  # fmt: skip
+    from tests.core.test_gp import ref_matern52
+
+    K = ref_matern52(X, X, hp.lengthscales0, 1.0) + 0.05 * np.eye(150)
+    y = np.linalg.cholesky(K) @ rng.normal(size=150)
+    checks = check_model(MFGP(X, np.zeros(150, int), y, 1, hp), np.arange(150))
+    assert 0.7 < checks.loo_mean_z2 < 1.35
+    assert not checks.warnings
