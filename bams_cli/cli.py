@@ -22,7 +22,7 @@ from typing import Annotated, Any
 import click
 import typer
 
-from bams_cli import __version__, console, pipeline
+from bams_cli import __version__, console, defaults, pipeline
 from bams_cli.errors import BamsError
 
 app = typer.Typer(
@@ -416,6 +416,14 @@ def select(
         float,
         typer.Option("--level0-share", help="random/mcm-gp: share of the budget spent at level 0."),
     ] = 0.5,
+    confirm_share: Annotated[
+        float,
+        typer.Option(
+            "--confirm-share",
+            help="bams: share of the budget for level-0 runs confirming cheap-level failures "
+            "(then the likeliest unconfirmed ones); 0 turns it off.",
+        ),
+    ] = defaults.CONFIRM_SHARE,
     difficulty_column: Annotated[
         str,
         typer.Option(
@@ -462,6 +470,7 @@ def select(
             pooling=pooling,
             mixed_fidelity=mixed_fidelity,
             level0_share=level0_share,
+            confirm_share=confirm_share,
             difficulty_column=difficulty_column,
             allow_pending=allow_pending,
             include_observed=include_observed,

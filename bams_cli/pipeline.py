@@ -24,6 +24,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from bams_cli import defaults
 from bams_cli.errors import (
     ConflictError,
     DuplicateError,
@@ -940,6 +941,12 @@ MODEL_STRATEGIES = ("bams", "bas")
 STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
 
 
+def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
+    """Segments seen at or below gamma at some cheap level (a lead until level 0 confirms)."""
+    obs = ws.read_observations().filter((pl.col("fidelity") > 0) & (pl.col("value") <= gamma))
+    return np.isin(ids, obs[SID].to_numpy())
+
+
 def _observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     obs = ws.read_observations().filter(pl.col("fidelity") == 0)
     return np.isin(ids, obs[SID].to_numpy())
@@ -956,6 +963,7 @@ def select(
     pooling: str = "global",
     mixed_fidelity: bool = False,
     level0_share: float = 0.5,
+    confirm_share: float = defaults.CONFIRM_SHARE,
     difficulty_column: str = "difficulty",
     allow_pending: bool = False,
     include_observed: bool = False,
@@ -963,8 +971,15 @@ def select(
     scheduler: str | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Pick the next batch of (segment, fidelity) simulations and write the hand-off list."""
+    """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
+
+    For ``strategy="bams"`` in a study with cheap levels, ``confirm_share`` of the budget
+    first buys level-0 runs of unconfirmed cheap-level failures (leads), then of the
+    likeliest failures whose level 0 is unknown (``core.confirm``); the greedy spends the
+    rest.
+    """
     from bams_cli.core import baselines
+    from bams_cli.core.confirm import confirmation_picks, n_confirmations
     from bams_cli.core.select import select_batch
     from bams_cli.parallel import executor
 
@@ -978,6 +993,8 @@ def select(
         )
     if not 0 <= level0_share <= 1:
         raise WorkspaceError(f"--level0-share {level0_share}: must lie in [0, 1]")
+    if not 0 <= confirm_share <= 1:
+        raise WorkspaceError(f"--confirm-share {confirm_share}: must lie in [0, 1]")
     if not (budget > 0 and np.isfinite(budget)):
         raise WorkspaceError(
             f"--budget {budget}: must be > 0 (cost units; one level-0 run costs 1)"
@@ -1007,34 +1024,61 @@ def select(
     j_before = j_after = None
     timings: dict[str, float] = {}
 
+    purpose: np.ndarray | None = None
     if strategy in MODEL_STRATEGIES:
         posterior, model = load_posterior(ws, settings, ids, X)
         model_hash = model["observations_hash"]
-        with executor(workers, scheduler) as pool:
-            result = select_batch(
-                posterior,
-                X,
-                gamma=settings.gammas[0],
-                costs=list(settings.costs),
-                budget=budget,
-                n_clusters=clusters,
-                overbudget=overbudget,
-                observed_level0_mask=observed0,
-                pooling=pooling,  # type: ignore[arg-type]
-                executor=pool,
-                rng=rng,
-                progress=progress,
-                levels=[0] if strategy == "bas" else None,
-                reobserve_level0=include_observed,
-            )
+        confirm, is_lead = np.zeros(0, np.int64), np.zeros(0, bool)
+        if strategy == "bams" and settings.n_levels > 1:
+            k = n_confirmations(budget, float(costs[0]), confirm_share)
+            if k:
+                _, _, _, p_all = _read_scores(ws, len(settings.gammas))
+                confirm, is_lead = confirmation_picks(
+                    p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
+                )
+        rest = budget - float(costs[0]) * len(confirm)
+        taken0 = observed0.copy()
+        taken0[confirm] = True
+        result = None
+        if rest >= costs.min() - 1e-12:
+            with executor(workers, scheduler) as pool:
+                result = select_batch(
+                    posterior,
+                    X,
+                    gamma=settings.gammas[0],
+                    costs=list(settings.costs),
+                    budget=rest,
+                    n_clusters=clusters,
+                    overbudget=overbudget,
+                    observed_level0_mask=taken0,
+                    pooling=pooling,  # type: ignore[arg-type]
+                    executor=pool,
+                    rng=rng,
+                    progress=progress,
+                    levels=[0] if strategy == "bas" else None,
+                    reobserve_level0=include_observed,
+                )
+        n_greedy = 0 if result is None else len(result.index)
         picks = {
-            "index": result.index,
-            "level": result.level,
-            "delta_j": result.delta_j,
-            "cluster": result.cluster,
+            "index": np.concatenate([confirm, result.index if result else []]).astype(np.int64),
+            "level": np.concatenate(
+                [np.zeros(len(confirm)), result.level if result else []]
+            ).astype(np.int64),
+            "delta_j": np.concatenate(
+                [np.full(len(confirm), np.nan), result.delta_j if result else []]
+            ),
+            "cluster": np.concatenate(
+                [np.full(len(confirm), -1), result.cluster if result else []]
+            ).astype(np.int64),
         }
-        j_before, j_after = float(result.j_before), float(result.j_after)
-        timings = {k: round(float(v), 3) for k, v in result.timings.items()}
+        purpose = np.array(
+            [("confirm lead" if lead else "confirm likely") for lead in is_lead]
+            + ["discover"] * n_greedy,
+            dtype=object,
+        )
+        if result is not None:
+            j_before, j_after = float(result.j_before), float(result.j_after)
+            timings = {k: round(float(v), 3) for k, v in result.timings.items()}
     else:
         multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
         n_rest = settings.n_levels - 1
@@ -1098,6 +1142,7 @@ def select(
         "cluster": picks["cluster"],
         "rank": np.arange(k, dtype=np.int64),
         "strategy": [strategy] * k,
+        "purpose": list(purpose) if purpose is not None else ["discover"] * k,
     }
     if passthrough:
         rest = segs.select(passthrough).take(pa.array(picks["index"]))
@@ -1111,6 +1156,7 @@ def select(
         "pooling": pooling,
         "mixed_fidelity": mixed_fidelity,
         "level0_share": level0_share,
+        "confirm_share": confirm_share,
         "include_observed": include_observed,
         "allow_pending": allow_pending,
         "difficulty_column": difficulty_column,
@@ -1143,6 +1189,8 @@ def select(
         "budget": budget,
         "picks_per_level": per_level,
         "picks_per_cluster": per_cluster,
+        "confirm_picks": int(np.sum(purpose != "discover")) if purpose is not None else 0,
+        "confirm_leads": int(np.sum(purpose == "confirm lead")) if purpose is not None else 0,
         "j_before": j_before,
         "j_after": j_after,
         "timings_s": timings,
