@@ -353,6 +353,14 @@ def fit(
     chunk_size: Annotated[
         int, typer.Option("--chunk-size", help="Pool rows scored per chunk.")
     ] = 50_000,
+    transform: Annotated[
+        str,
+        typer.Option(
+            "--transform",
+            help="auto: model the metric or an asinh compression of it far from gamma, "
+            "whichever the data support best; none: the metric itself.",
+        ),
+    ] = defaults.TRANSFORM,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -366,6 +374,7 @@ def fit(
             fixed_hyperparameters=fixed_hyperparameters,
             restarts=restarts,
             chunk_size=chunk_size,
+            transform=transform,
             wait=wait,
             progress=bar,
         )
@@ -373,9 +382,10 @@ def fit(
         console.print_json(summary)
         return
     console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
-    rest = {k: v for k, v in summary.items() if k not in ("hyperparameters", "warnings", "checks")}
+    skip = ("hyperparameters", "warnings", "checks", "transform")
+    rest = {k: v for k, v in summary.items() if k not in skip}
     console.kv_table("fit", rest)
-    console.model_checks(summary["checks"])
+    console.model_checks(summary["checks"], summary["transform"])
     for warning in summary["warnings"]:
         console.note(f"warning: {warning}")
 

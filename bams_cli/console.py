@@ -83,8 +83,14 @@ def hyperparameter_table(hp: Mapping[str, Any], n_obs: list[int]) -> None:
     out.print(table)
 
 
-def model_checks(checks: Mapping[str, Any]) -> None:
-    """One line per self-check of a fitted model (``core.gp.checks``)."""
+def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None = None) -> None:
+    """One line per self-check of a fitted model (``core.gp.checks``), and its transform."""
+    if transform and transform.get("kind") == "asinh":
+        out.print(
+            f"model: g(y) = {transform['centre']:.4g} + s asinh((y - {transform['centre']:.4g})"
+            f" / s), s = {transform['scale']:.4g} (the metric compressed far from gamma; "
+            "scales above are in g's units)"
+        )
     loo = checks["loo_level0"]
     if loo["n"]:
         out.print(

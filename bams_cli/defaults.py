@@ -9,3 +9,7 @@ from __future__ import annotations
 #: Share of a BAMS batch's budget spent on level-0 runs that confirm cheap-level leads
 #: (or, without leads, the likeliest unconfirmed failures); ``core.confirm``.
 CONFIRM_SHARE = 0.2
+
+#: Output transform of ``fit``: "auto" chooses by evidence between the metric itself and
+#: asinh compressions of it far from gamma (``core.gp.transform``); "none" keeps the metric.
+TRANSFORM = "auto"

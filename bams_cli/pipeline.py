@@ -12,6 +12,7 @@ import datetime as dt
 import fnmatch
 import functools
 import json
+import math
 import sys
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
@@ -765,15 +766,33 @@ def _training_data(
 
 
 def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.ndarray):  # noqa: ANN201
-    """The fitted model, conditioned again on the log it was fitted on (cheap: one Cholesky)."""
+    """The fitted model, conditioned again on the log it was fitted on (cheap: one Cholesky).
+
+    The posterior is of the transformed metric g(y) (model.json's ``transform``); g maps
+    the first gamma to itself, so ``select`` compares against it unchanged.
+    """
     from bams_cli.core.gp import Hyperparameters, fit_mfgp
 
     model = ws.require_fresh_model()
     idx, lv, y = _training_data(ws, ids, X)
     hp = Hyperparameters.from_dict(model["hyperparameters"])
+    g = _model_transform(ws, model)
     return fit_mfgp(
-        X[idx], lv, y, settings.n_levels, rng=np.random.default_rng(settings.seed), fixed=hp
-    ), model
+        X[idx], lv, g.forward(y), settings.n_levels, rng=np.random.default_rng(settings.seed),
+        fixed=hp,
+    ), model  # fmt: skip
+
+
+def _model_transform(ws: Workspace, model: dict[str, Any]):  # noqa: ANN202
+    """The output transform a model.json records (the identity for older models)."""
+    from bams_cli.core.gp import OutputTransform
+
+    try:
+        return OutputTransform.from_dict(model.get("transform"))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(
+            ws.model_path, f"transform: {exc}; rewrite it with `bams-cli fit -w {ws.root}`"
+        ) from None
 
 
 @locked
@@ -783,14 +802,23 @@ def fit(
     fixed_hyperparameters: Path | None = None,
     restarts: int = 8,
     chunk_size: int = 50_000,
+    transform: str = defaults.TRANSFORM,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Train the multifidelity GP on the observation log and score every pool segment."""
-    from bams_cli.core.gp import GPFitError, Hyperparameters, fit_mfgp
+    """Train the multifidelity GP on the observation log and score every pool segment.
+
+    ``transform`` is "auto" (model g(y) = c + s asinh((y - c)/s), c the first gamma, with
+    s chosen by evidence among the identity and a few scales: ``core.gp.transform``) or
+    "none". With ``fixed_hyperparameters`` the file's own transform is used.
+    """
+    from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
     from bams_cli.core.gp.checks import check_model
 
     if restarts < 1 or chunk_size < 1:
         raise WorkspaceError(f"--restarts {restarts} and --chunk-size {chunk_size} must be >= 1")
+    if transform not in TRANSFORMS:
+        raise WorkspaceError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
+    chosen = None if transform == "auto" else OutputTransform()
     ws = Workspace(root)
     settings = ws.require_initialised()
     ids, X = ws.read_pool()
@@ -800,6 +828,7 @@ def fit(
         try:
             doc = json.loads(Path(fixed_hyperparameters).read_text())
             fixed = Hyperparameters.from_dict(doc.get("hyperparameters", doc))
+            chosen = OutputTransform.from_dict(doc.get("transform"))
         except FileNotFoundError:
             raise InputError(fixed_hyperparameters, "hyperparameter file not found") from None
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
@@ -814,9 +843,13 @@ def fit(
     if progress:
         progress("fit", 0, 1)
     try:
-        model = fit_mfgp(X[idx], lv, y, settings.n_levels, rng=rng, restarts=restarts, fixed=fixed)
+        model, g, evidence = fit_transformed(
+            X[idx], lv, y, settings.n_levels, centre=float(settings.gammas[0]), rng=rng,
+            restarts=restarts, transform=chosen, fixed=fixed,
+        )  # fmt: skip
     except GPFitError as exc:
         raise WorkspaceError(f"fit: {exc}") from None
+    model_gammas = g.forward(np.asarray(settings.gammas, dtype=np.float64))
     if progress:
         progress("fit", 1, 1)
 
@@ -827,7 +860,7 @@ def fit(
     for start in range(0, n, chunk_size):
         stop = min(start + chunk_size, n)
         mu[start:stop], sd[start:stop], p[start:stop] = model.score(
-            X[start:stop], settings.gammas, chunk_size
+            X[start:stop], model_gammas, chunk_size
         )
         if progress:
             progress("score pool", stop, n)
@@ -854,6 +887,14 @@ def fit(
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "jitter": float(model.jitter),
+        "transform": g.to_dict(),
+        "transform_evidence": [
+            {
+                "scale": None if math.isinf(e["scale"]) else e["scale"],
+                "log_evidence": e["log_evidence"],
+            }
+            for e in evidence
+        ],
         "checks": checks.to_dict(),
         "warnings": warnings,
     }
@@ -886,9 +927,14 @@ def fit(
         "hyperparameters": doc["hyperparameters"],
         "checks": doc["checks"],
         "jitter": doc["jitter"],
+        "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,
     }
+
+
+#: Output transforms ``fit --transform`` accepts.
+TRANSFORMS = ("auto", "none")
 
 
 #: p_n below this at an observed level-0 failure (or 1 - p_n below it at an observed
@@ -1434,9 +1480,8 @@ def estimate_compute(
         gp_mean, gp_bound = gp_values[g]
         gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
         if exact_variance:
-            gp_row["gp_var_exact"] = _gp_exact_variance(
-                ws, settings, mu, sd, float(gamma), progress
-            )
+            g_model = float(_model_transform(ws, model).forward(float(gamma)))
+            gp_row["gp_var_exact"] = _gp_exact_variance(ws, settings, mu, sd, g_model, progress)
         gp_rows.append(gp_row)
     summary = {
         "plan": number,

@@ -41,11 +41,12 @@ construction (GPML Alg. 2.1).
 """
 
 from bams_cli.core.gp._numerics import GPFitError, check_data, cholesky, standardise
-from bams_cli.core.gp.fit import fit_mfgp
+from bams_cli.core.gp.fit import fit_mfgp, fit_transformed
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
 from bams_cli.core.gp.model import MFGP, _failure_probability
 from bams_cli.core.gp.objective import _MAPObjective, mean_basis
 from bams_cli.core.gp.priors import DEFAULT_PRIORS, PriorSpec, _Priors
+from bams_cli.core.gp.transform import OutputTransform
 
 __all__ = [
     "DEFAULT_PRIORS",
@@ -56,6 +57,8 @@ __all__ = [
     "check_data",
     "cholesky",
     "fit_mfgp",
+    "fit_transformed",
+    "OutputTransform",
     "mean_basis",
     "standardise",
     "_MAPObjective",

@@ -20,6 +20,7 @@ from bams_cli.core.gp.hyperparameters import Hyperparameters, _hyperparameters
 from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import PriorSpec, _Priors
+from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
 
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
 _N_POLISH = 2  # restarts continued to convergence
@@ -124,3 +125,57 @@ def fit_mfgp(
             "failure probabilities rest on the priors alone"
         )
     return model
+
+
+def fit_transformed(
+    X: FloatArray,
+    levels: IntArray,
+    y: FloatArray,
+    n_levels: int,
+    *,
+    centre: float,
+    rng: np.random.Generator,
+    restarts: int = 8,
+    transform: OutputTransform | None = None,
+    fixed: Hyperparameters | None = None,
+    priors: PriorSpec | None = None,
+) -> tuple[MFGP, OutputTransform, list[dict[str, float]]]:
+    """Fit the GP to g(y), choosing the output transform g by evidence (``transform``).
+
+    Parameters
+    ----------
+    X, levels, y, n_levels, rng, restarts, fixed, priors
+        As ``fit_mfgp``; y in the metric's units.
+    centre : float
+        c of the asinh transform (the study's first gamma).
+    transform : OutputTransform, optional
+        Use this one; None chooses among ``candidate_transforms`` by the log posterior
+        density of y (the MAP log posterior of g(y) plus the log Jacobian). Every
+        candidate starts from the same seed, so the choice is reproducible.
+
+    Returns
+    -------
+    model : MFGP
+        Conditioned on g(y); its mu and sd are in g's units.
+    transform : OutputTransform
+    evidence : list of dict
+        One row per candidate tried: ``scale`` (inf for the identity) and ``log_evidence``.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    candidates = (
+        [transform] if transform is not None else candidate_transforms(y[np.isfinite(y)], centre)
+    )
+    seed = int(rng.integers(2**63))
+    best: tuple[float, MFGP, OutputTransform] | None = None
+    evidence = []
+    for g in candidates:
+        model = fit_mfgp(
+            X, levels, g.forward(y), n_levels, rng=np.random.default_rng(seed),
+            restarts=restarts, fixed=fixed, priors=priors,
+        )  # fmt: skip
+        score = model.log_posterior + g.log_jacobian(y)
+        evidence.append({"scale": g.scale, "log_evidence": float(score)})
+        if best is None or score > best[0]:
+            best = (score, model, g)
+    assert best is not None
+    return best[1], best[2], evidence
