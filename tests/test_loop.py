@@ -84,8 +84,11 @@ def loop_ws(tmp_path_factory):
     assert stale["gp_model"] == "as of the plan"
     widest = max(stale["gp"], key=lambda g: g["gamma"])  # the gamma the plan was drawn on
     assert widest["gp_p_hat"] == pytest.approx(plan["gp_rate_estimate"], rel=1e-12)
-    ok(runner, "report", "-w", ws)  # a model older than the log is shown, marked stale
-    assert "STALE: run bams-cli fit" in (ws / "report" / "report.html").read_text()
+    ok(runner, "report", "-w", ws)  # a model older than the log is shown, under a banner
+    html = (ws / "report" / "report.html").read_text()
+    assert html.index("class='banner warning' role='alert' data-kind='stale_model'") < html.index(
+        "<h2>"
+    )
     ok(runner, "fit", "-w", ws, "--restarts", "2")
     fresh = json.loads(ok(runner, "estimate", "-w", ws, "--exact-variance", "--json").stdout)
     assert fresh["gp_model"] == "current"
