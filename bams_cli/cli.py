@@ -610,7 +610,10 @@ def report(
 ) -> None:
     """Write the study report: report/report.html, summary.json and summary.md.
 
-    [bold]Example[/]: bams-cli report -w study --truth sample_data/toy2d/truth.parquet
+    Runs at any point of a study. A model older than the observation log, batches or
+    estimate plans awaiting results open the report as banners.
+
+    [bold]Example[/]: bams-cli report -w study   (sample data: add --truth sample_data/toy2d/truth.parquet)
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
     _show(summary, json_out, "report")

@@ -1592,12 +1592,18 @@ def report(
         # A model fitted before the latest results still describes the pool; the report
         # shows it marked stale rather than refusing (the estimate needs no refit either).
         model_doc = ws.require_model(allow_newer_observations=True)
+    notices = _report_model_notices(ws, model_doc, active)
 
     pos = {sid: i for i, sid in enumerate(ids)}
     obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())
+    observed_pairs = active.select(SID, "fidelity").unique()
     batch_rows, batch_picks, per_batch_f = [], [], []
+    waiting = []
     for b in ws.batch_numbers():
         df = ws.read_batch(b)
+        pending = df.join(observed_pairs, on=[SID, "fidelity"], how="anti").height
+        if pending:
+            waiting.append(f"batch {b} ({pending} of {df.height} picks, batches/batch-{b:04d}.csv)")
         idx = np.array([pos[s] for s in df[SID].to_list() if s in pos], dtype=np.int64)
         if truth_f0 is not None:
             f0 = truth_f0[idx]
@@ -1620,6 +1626,17 @@ def report(
                 },
                 "cost": float(df["cost"].sum()),
                 "n_f0": int(len(f0)),
+                "pending": pending,
+            }
+        )
+    if waiting:
+        notices.append(
+            {
+                "kind": "pending_batches",
+                "severity": "info",
+                "text": f"Results pending for {'; '.join(waiting)}: simulate the hand-off "
+                f"list and run `bams-cli ingest-results -w {root}`. A batch's mean level-0 f "
+                "counts only the picks whose level-0 value is known.",
             }
         )
     if per_batch_f:
@@ -1635,11 +1652,15 @@ def report(
 
     estimates, gp_rows = [], []
     plans = _plan_numbers(ws)
-    computed = [ws.estimates_dir / f"estimate-{k:04d}.json" for k in reversed(plans)]
-    est_path = next((path for path in computed if path.exists()), None)
-    if est_path is not None:
-        doc = json.loads(est_path.read_text())
-        estimates, gp_rows = doc["estimates"], doc["gp"]
+    shown_plan = next(
+        (k for k in reversed(plans) if (ws.estimates_dir / f"estimate-{k:04d}.json").exists()),
+        None,
+    )
+    notices += _report_plan_notices(ws, plans, shown_plan, set(obs0))
+    if shown_plan is not None:
+        doc = json.loads((ws.estimates_dir / f"estimate-{shown_plan:04d}.json").read_text())
+        estimates = [{**e, "plan": shown_plan} for e in doc["estimates"]]
+        gp_rows = doc["gp"]
     elif scores is not None:
         from bams_cli.core.estimate import gp_estimate
 
@@ -1674,27 +1695,41 @@ def report(
             projected=projected,
             gamma=gammas[0],
         )
-        top = np.argsort(-p0, kind="stable")[: min(n, 500)]
+        # A likely failure is a guess about a segment's level-0 value, so a segment whose
+        # level-0 value is known is never one: observed failing it is a confirmed failure
+        # (listed apart), observed above every gamma it passed, whatever a model fitted
+        # before that result still says.
+        known0 = np.zeros(n, bool)
+        known0[[pos[s] for s in obs0 if s in pos]] = True
+        unknown = np.flatnonzero(~known0)
+        top = unknown[np.argsort(-p0[unknown], kind="stable")[:500]]
         chosen = (
             top[dpp_diverse(X[top], p0[top], min(n_diverse, len(top)))] if n_diverse else top[:0]
         )
-        segs = ws.read_segments()
-        passthrough = [
-            c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)
-        ]
-        extra = (
-            segs.select(passthrough).take(pa.array(chosen)).to_pylist()
-            if passthrough
-            else [{}] * len(chosen)
-        )
-        for i, more in zip(chosen, extra, strict=True):
+        cheap = active.filter(pl.col("fidelity") > 0).sort("fidelity")
+        leads: dict[str, dict[str, float]] = {}
+        for sid, lv, value in cheap.select(SID, "fidelity", "value").iter_rows():
+            leads.setdefault(sid, {})[f"observed_f{lv}"] = float(value)
+        for i, more in zip(chosen, _passthrough_rows(ws, chosen), strict=True):
             row = {SID: str(ids[i]), "p_n": float(p0[i]), "mu": float(scores[0][i])}
-            if str(ids[i]) in obs0:
-                row["observed_f0"] = float(obs0[str(ids[i])])
-            row.update({k: (round(v, 6) if isinstance(v, float) else v) for k, v in more.items()})
+            row.update(leads.get(str(ids[i]), {}))
+            row.update(more)
             diverse.append(row)
-        keys = sorted({k for r in diverse for k in r}, key=lambda k: (k != SID, k))
-        diverse = [{k: r.get(k, "") for k in keys} for r in diverse]
+        diverse = _uniform_rows(diverse)
+
+    # Failures seen at level 0: findings, not guesses. Those the estimate plan sampled are
+    # here too; the list holds every one (it is bounded by the level-0 runs).
+    confirmed = []
+    fails_at = {sid: [g for g in gammas if value <= g] for sid, value in obs0.items() if sid in pos}
+    failed = sorted((s for s in fails_at if fails_at[s]), key=lambda s: (obs0[s], s))
+    rows_failed = np.array([pos[s] for s in failed], dtype=np.int64)
+    for sid, more in zip(failed, _passthrough_rows(ws, rows_failed), strict=True):
+        row = {SID: sid, "observed_f0": float(obs0[sid]), "fails_at_gamma": fails_at[sid]}
+        if scores is not None:
+            row["p_n"] = float(scores[2][pos[sid], 0])
+        row.update(more)
+        confirmed.append(row)
+    confirmed = _uniform_rows(confirmed)
 
     truth_doc = None
     if truth_f0 is not None:
@@ -1731,12 +1766,14 @@ def report(
         "tool_version": __version__,
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "workspace": str(root),
+        "notices": notices,
         "study": {**_settings_summary(settings), "pool_size": n, "dim": int(X.shape[1])},
         "simulation_spent": spent,
         "model": model_doc,
         "batches": batch_rows,
         "estimates": estimates,
         "gp_estimate": gp_rows,
+        "confirmed_failures": confirmed,
         "diverse_failures": diverse,
         "truth": truth_doc,
         "figures": sorted(figures),
@@ -1751,7 +1788,83 @@ def report(
         "summary_json": str(out / "summary.json"),
         "summary_md": str(out / "summary.md"),
         "figures": sorted(figures),
+        "notices": [n["text"] for n in notices],
         "estimates": [
             {k: e[k] for k in ("gamma", "p_hat", "ci_low", "ci_high")} for e in estimates
         ],
     }
+
+
+def _report_model_notices(
+    ws: Workspace, model: dict[str, Any] | None, active: pl.DataFrame
+) -> list[dict[str, str]]:
+    """What the report must say first about the model: missing, or older than the log."""
+    fit = f"`bams-cli fit -w {ws.root}`"
+    if model is None:
+        return [
+            {
+                "kind": "no_model",
+                "severity": "info",
+                "text": f"No model yet: once results are ingested, run {fit} for failure "
+                "probabilities, the pool map and the likely failures.",
+            }
+        ]
+    if model["fresh"]:
+        return []
+    fitted = int(sum(model.get("n_observations_per_level", [])))
+    return [
+        {
+            "kind": "stale_model",
+            "severity": "warning",
+            "text": f"Stale model: the observation log changed after the last fit (fitted on "
+            f"{fitted} results, the log now holds {active.height}). Failure probabilities, "
+            "the pool map, the likely failures' ranking and the GP's estimate are that "
+            f"fit's and miss the newer results; run {fit} to bring them up to date.",
+        }
+    ]
+
+
+def _report_plan_notices(
+    ws: Workspace, plans: list[int], shown: int | None, known0: set[str]
+) -> list[dict[str, str]]:
+    """One notice per estimate plan newer than the estimate shown: results or compute due."""
+    out = []
+    picks = ws.read_plan_picks()
+    for k in plans:
+        if shown is not None and k <= shown:
+            continue
+        sampled = picks.filter(pl.col("plan") == k)[SID].to_list()
+        missing = sum(s not in known0 for s in sampled)
+        shown_text = (
+            "no estimate is shown yet" if shown is None else f"the estimate shown is plan {shown}'s"
+        )
+        if missing:
+            text = (
+                f"Estimate plan {k} awaits level-0 results for {missing} of its {len(sampled)} "
+                f"sampled segments (estimates/plan-{k:04d}-handoff.csv); {shown_text}."
+            )
+        else:
+            text = (
+                f"Estimate plan {k} has all its results: run `bams-cli estimate -w {ws.root}` "
+                f"to compute it; {shown_text}."
+            )
+        out.append({"kind": "pending_plan", "severity": "info", "text": text})
+    return out
+
+
+def _passthrough_rows(ws: Workspace, rows: np.ndarray) -> list[dict[str, Any]]:
+    """The pool's pass-through columns (scenario tags, difficulty ...) of some pool rows."""
+    segs = ws.read_segments()
+    cols = [c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)]
+    if not cols:
+        return [{} for _ in rows]
+    return [
+        {k: (round(v, 6) if isinstance(v, float) else v) for k, v in r.items()}
+        for r in segs.select(cols).take(pa.array(rows, type=pa.int64())).to_pylist()
+    ]
+
+
+def _uniform_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows with one key set (segment_id first, then sorted), blanks where a row lacks one."""
+    keys = sorted({k for r in rows for k in r}, key=lambda k: (k != SID, k))
+    return [{k: r.get(k, "") for k in keys} for r in rows]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import re
 from typing import Any
 
 import matplotlib
@@ -23,12 +24,14 @@ SUMMARY_KEYS = (
     "tool_version",
     "generated_at",
     "workspace",
+    "notices",
     "study",
     "simulation_spent",
     "model",
     "batches",
     "estimates",
     "gp_estimate",
+    "confirmed_failures",
     "diverse_failures",
     "truth",
     "figures",
@@ -53,6 +56,9 @@ th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 img { max-width: 100%; border: 1px solid #eee; }
 .note { color: #666; font-size: 0.9em; }
 .warn { color: #a40; }
+.banner { padding: 0.7em 1em; margin: 0.8em 0; border-radius: 4px; border: 1px solid; }
+.banner.warning { background: #fff3e0; border-color: #e65100; color: #6d2a00; font-weight: 600; }
+.banner.info { background: #e8f1fb; border-color: #1e63b8; color: #123d70; }
 """
 
 
@@ -155,6 +161,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
         "<!doctype html><html><head><meta charset='utf-8'><title>bams-cli report</title>",
         f"<style>{CSS}</style>{IMAGE_CHECK}</head><body>",
         "<h1>bams-cli study report</h1>",
+        *_banners(s["notices"]),
         f"<p class='note'>workspace {html.escape(s['workspace'])}, generated {s['generated_at']} "
         f"by bams-cli {s['tool_version']}</p>",
         "<h2>Study</h2>",
@@ -213,7 +220,8 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                 left={"level", "lengthscales"},
             ),
             f"<p class='note'>constant mean {hp['mean']:.4g}; log marginal likelihood "
-            f"{model['log_marginal_likelihood']:.4g}; model {'up to date' if model['fresh'] else 'STALE: run bams-cli fit'}</p>",
+            f"{model['log_marginal_likelihood']:.4g}; "
+            f"{'model up to date' if model['fresh'] else 'model stale (see the top of the report)'}</p>",
         ]
         parts += [
             f"<p class='warn'>fit warning: {html.escape(w)}</p>" for w in model.get("warnings", [])
@@ -232,6 +240,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                     "mean level-0 f of picks",
                     "SE",
                     "n",
+                    "pending",
                 ],
                 [
                     [
@@ -244,6 +253,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                         _maybe(b["mean_f0"]),
                         _maybe(b["mean_f0_se"]),
                         b["n_f0"],
+                        b["pending"],
                     ]
                     for b in s["batches"]
                 ],
@@ -253,12 +263,14 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
         parts.append(
             "<p class='note'>Mean level-0 f over the picks whose level-0 value is known "
             f"({'from the ground truth table' if s['truth'] else 'from the observation log'}); "
-            "the paper's Table 1.</p>"
+            "the paper's Table 1. Blank where no pick's level-0 value is known yet (only "
+            "cheap-level picks, or results pending); pending: picks without a result.</p>"
         )
     if "pool_map" in figures:
         parts += ["<h2>Pool map</h2>", _img(figures["pool_map"], "pool coloured by p_n with picks")]
     parts.append("<h2>Failure-rate estimate</h2>")
     if s["estimates"]:
+        parts.append(f"<p class='note'>From estimate plan {s['estimates'][0]['plan']}.</p>")
         parts.append(
             _table(
                 [
@@ -298,6 +310,22 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                 [[g["gamma"], g["gp_p_hat"], g["gp_var_bound"]] for g in s["gp_estimate"]],
             )
         )
+    parts.append("<h2>Confirmed failures</h2>")
+    if s["confirmed_failures"]:
+        cols = list(s["confirmed_failures"][0].keys())
+        parts.append(
+            _table(
+                cols,
+                [[_cell(r[c]) for c in cols] for r in s["confirmed_failures"]],
+                left={"segment_id", "fails_at_gamma"},
+            )
+        )
+        parts.append(
+            "<p class='note'>Segments simulated at level 0 with f &lt;= gamma for at least "
+            "one gamma (batches and estimate plans alike).</p>"
+        )
+    else:
+        parts.append("<p>None yet: no level-0 result is at or below a gamma.</p>")
     parts.append("<h2>Diverse likely failures</h2>")
     if s["diverse_failures"]:
         cols = list(s["diverse_failures"][0].keys())
@@ -306,8 +334,12 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
         )
         parts.append(
             "<p class='note'>Chosen by a determinantal point process (greedy MAP) over the "
-            "highest-p_n segments: likely and unlike each other.</p>"
+            "highest-p_n segments whose level-0 value is unknown: likely and unlike each "
+            "other. observed_f1 and up: cheap-level results, leads until level 0 confirms "
+            "them.</p>"
         )
+    elif s["model"] is None:
+        parts.append("<p>No model yet: run <code>bams-cli fit</code>.</p>")
     truth = s.get("truth")
     if truth:
         parts.append("<h2>Against ground truth</h2>")
@@ -332,6 +364,22 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
     return "\n".join(parts)
 
 
+def _banners(notices: list[dict[str, str]]) -> list[str]:
+    """The notices as boxes at the top of the page; `commands` in them as code."""
+    out = []
+    for n in notices:
+        text = re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(n["text"]))
+        out.append(
+            f"<div class='banner {html.escape(n['severity'])}' role='alert' "
+            f"data-kind='{html.escape(n['kind'])}'>{text}</div>"
+        )
+    return out
+
+
+def _cell(v: Any) -> Any:
+    return ", ".join(f"{x:g}" for x in v) if isinstance(v, list) else v
+
+
 def _maybe(v: Any) -> Any:
     return "" if v is None else v
 
@@ -343,6 +391,13 @@ def _fmt_counts(d: dict[str, int]) -> str:
 def render_markdown(summary: dict[str, Any]) -> str:
     s = summary
     lines = [f"## bams-cli report ({s['workspace']})", ""]
+    for n in s["notices"]:
+        # GitHub renders these as alert boxes; elsewhere they read as quoted lines.
+        lines += [
+            f"> [!{'WARNING' if n['severity'] == 'warning' else 'NOTE'}]",
+            f"> {n['text']}",
+            "",
+        ]
     spent = s["simulation_spent"]
     lines.append(
         f"Pool of {s['study']['pool_size']} segments; {len(s['batches'])} batches; "
@@ -362,8 +417,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
         lines.append("")
     if s["batches"]:
         lines += [
-            "| batch | strategy | picks | cost | mean level-0 f (SE) |",
-            "|---|---|---|---|---|",
+            "| batch | strategy | picks | cost | mean level-0 f (SE) | pending |",
+            "|---|---|---|---|---|---|",
         ]
         for b in s["batches"]:
             mf = (
@@ -372,9 +427,23 @@ def render_markdown(summary: dict[str, Any]) -> str:
                 else f"{b['mean_f0']:.3g} ({_maybe(b['mean_f0_se']) if b['mean_f0_se'] is None else format(b['mean_f0_se'], '.2g')})"
             )
             lines.append(
-                f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} |"
+                f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} | {b['pending']} |"
             )
         lines.append("")
+    confirmed = s["confirmed_failures"]
+    lines.append(
+        f"Confirmed failures (level 0, f <= a gamma): {len(confirmed)}"
+        + (": " + ", ".join(str(r["segment_id"]) for r in confirmed[:10]) if confirmed else "")
+        + (", ..." if len(confirmed) > 10 else "")
+        + "."
+    )
+    if s["diverse_failures"]:
+        lines.append(
+            "Likely failures (level-0 value unknown, by p_n): "
+            + ", ".join(f"{r['segment_id']} (p_n {r['p_n']:.2g})" for r in s["diverse_failures"])
+            + "."
+        )
+    lines.append("")
     if s.get("truth"):
         t = s["truth"]
         lines.append(

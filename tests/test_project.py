@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -248,3 +249,28 @@ def test_settings_errors_name_the_file(toy_ws, runner, toy_files):
     seg, _ = toy_files  # a binary file handed over as settings
     r = invoke(runner, "init", "-w", toy_ws.parent / "w2", "--settings-from", seg)
     assert r.exit_code == 1 and f"{seg}: not a TOML text file" in r.stderr
+
+
+BROWSER_TEST = "tests/test_loop.py::test_report_renders_in_headless_chromium_with_every_image"
+
+
+@pytest.mark.parametrize(
+    ("require", "outcome"),
+    [({}, "1 skipped"), ({"BAMS_REQUIRE_BROWSER": "1"}, "1 error"), ({"CI": "true"}, "1 error")],
+)
+def test_without_chromium_the_browser_test_skips_and_in_ci_fails(tmp_path, require, outcome):
+    # `make test` installs nothing: on a machine without Chromium the browser test skips
+    # with its reason (and before building the study it would render); CI must run it.
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "BAMS_REQUIRE_BROWSER", "PATH")}
+    env.update(PATH=str(tmp_path), **require)  # an empty folder: no chromium on PATH
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", BROWSER_TEST],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert outcome in r.stdout, r.stdout + r.stderr
+    assert "no chromium on PATH: the report's browser test needs Debian's chromium" in r.stdout
+    assert ("CI must run this test" in r.stdout) == bool(require)

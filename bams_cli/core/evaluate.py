@@ -233,13 +233,15 @@ def batch_mean_f(values_per_batch: Sequence[ArrayLike]) -> tuple[FloatArray, Flo
     mean : ndarray of shape (n_batches,)
     se : ndarray of shape (n_batches,)
         NaN for a batch with fewer than 2 values.
+
+    A batch with no values (none of its picks has a known level-0 value yet: its results
+    are pending, or it picked only cheap levels) has mean NaN: it has no mean, and the
+    batches after it still have theirs.
     """
     means = np.empty(len(values_per_batch))
     ses = np.empty(len(values_per_batch))
     for b, vals in enumerate(values_per_batch):
         v = np.asarray(vals, dtype=np.float64).ravel()
-        if v.size == 0:
-            raise ValueError(f"batch {b} has no values")
-        means[b] = v.mean()
+        means[b] = v.mean() if v.size else np.nan
         ses[b] = v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
     return means, ses

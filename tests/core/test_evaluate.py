@@ -180,3 +180,11 @@ def test_batch_mean_f_hand_example():
     np.testing.assert_allclose(mean, [3.0, 4.0, 7.0])
     np.testing.assert_allclose(se[:2], [math.sqrt(14 / 3) / 2, 0.0])
     assert math.isnan(se[2])
+
+
+def test_batch_mean_f_of_a_batch_without_values_is_nan_and_the_rest_keep_theirs():
+    # A batch whose picks were all cheap-level, or whose results are pending, has no
+    # level-0 value: no mean, and no error for the study's report.
+    mean, se = batch_mean_f([[1.0, 3.0], [], [5.0]])
+    assert mean[0] == 2.0 and math.isnan(mean[1]) and mean[2] == 5.0
+    assert se[0] == 1.0 and math.isnan(se[1]) and math.isnan(se[2])

@@ -1,0 +1,273 @@
+"""`report` without --truth, at every state a real study passes through.
+
+The loop runs on the av_like sample data through the CLI, with `bams-cli simulate` as the
+simulation team, and `report` runs after every step: before any model, with a batch
+pending, after batches that picked only cheap-level runs (mcm-gp with --level0-share 0, and
+BAMS with a budget below one level-0 run), with an estimate plan pending, with its results
+in but not computed, and with two plans. The second part hands a stale model results that
+contradict its likely failures.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from bams_cli.report import SUMMARY_KEYS
+from bams_cli.state.workspace import Workspace
+from tests.conftest import ok
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
+AV = SAMPLE / "av_like"
+TOY = SAMPLE / "toy2d"
+
+
+class Study:
+    """A workspace driven through the CLI, keeping the report written after each step."""
+
+    def __init__(self, tmp: Path, data: Path):
+        self.runner = CliRunner()
+        self.tmp, self.data, self.ws = tmp, data, tmp / "ws"
+        self.truth = data / "truth.parquet"
+        self.reports: dict[str, dict] = {}
+
+    def run(self, *args: object):
+        return ok(self.runner, *args)
+
+    def simulate_and_ingest(self, handoff: Path) -> None:
+        res = self.tmp / f"results-{handoff.stem}.parquet"
+        self.run("simulate", handoff, "--truth", self.truth, "-o", res)
+        self.run("ingest-results", "-w", self.ws, res)
+
+    def report(self, stage: str) -> dict:
+        self.run("report", "-w", self.ws)  # no --truth: what a real study has
+        out = self.ws / "report"
+        level0 = Workspace(self.ws).read_observations().filter(pl.col("fidelity") == 0)
+        self.reports[stage] = {
+            "summary": json.loads((out / "summary.json").read_text()),
+            "md": (out / "summary.md").read_text(),
+            "html": (out / "report.html").read_text(),
+            "level0": dict(level0.select("segment_id", "value").iter_rows()),
+        }
+        return self.reports[stage]
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory) -> Study:
+    s = Study(tmp_path_factory.mktemp("report-states"), AV)
+    ws = s.ws
+    s.run("init", "-w", ws, "--settings-from", AV / "settings.toml")
+    s.run("embed-reduce", "-w", ws, AV / "segments.parquet", "--dim", "12")
+    s.report("initialised")
+    s.run("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "6")
+    s.report("first batch pending")
+    s.simulate_and_ingest(ws / "batches" / "batch-0001.parquet")
+    s.report("first results, no fit")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    s.report("fitted")
+    s.run("select", "-w", ws, "--strategy", "mcm-gp", "--level0-share", "0", "--budget", "1")
+    s.report("cheap-only batch pending")
+    s.simulate_and_ingest(ws / "batches" / "batch-0002.parquet")
+    s.report("cheap-only batch in, not fitted")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    bams = ("--clusters", "2", "--workers", "1")
+    s.run("select", "-w", ws, "--strategy", "bams", "--budget", "0.5", *bams)
+    s.report("cheap-only bams batch pending")
+    s.simulate_and_ingest(ws / "batches" / "batch-0003.parquet")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    s.report("cheap-only bams batch fitted")
+    s.run("estimate", "-w", ws, "--plan", "--samples", "40")
+    s.report("plan 1 pending")
+    s.simulate_and_ingest(ws / "estimates" / "plan-0001-handoff.csv")
+    s.report("plan 1 in, not computed")
+    s.run("estimate", "-w", ws)
+    s.report("plan 1 computed")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    s.run("estimate", "-w", ws, "--plan", "--samples", "40")
+    s.report("plan 2 pending")
+    s.simulate_and_ingest(ws / "estimates" / "plan-0002-handoff.csv")
+    s.run("estimate", "-w", ws)
+    s.report("plan 2 computed")
+    return s
+
+
+# stage -> the notices the report must open with, in order
+EXPECTED_NOTICES = {
+    "initialised": ["no_model"],
+    "first batch pending": ["no_model", "pending_batches"],
+    "first results, no fit": ["no_model"],
+    "fitted": [],
+    "cheap-only batch pending": ["pending_batches"],
+    "cheap-only batch in, not fitted": ["stale_model"],
+    "cheap-only bams batch pending": ["pending_batches"],
+    "cheap-only bams batch fitted": [],
+    "plan 1 pending": ["pending_plan"],
+    "plan 1 in, not computed": ["stale_model", "pending_plan"],
+    "plan 1 computed": ["stale_model"],
+    "plan 2 pending": ["pending_plan"],
+    "plan 2 computed": ["stale_model"],
+}
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_report_says_first_what_state_the_study_is_in(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    assert tuple(s) == SUMMARY_KEYS and s["truth"] is None
+    assert [n["kind"] for n in s["notices"]] == EXPECTED_NOTICES[stage]
+    # Banners come first: in the HTML right under the title, in summary.md right under
+    # its heading, in the same order as in summary.json.
+    html, md = r["html"], r["md"]
+    body = html[html.index("<h1>") : html.index("<h2>")]
+    assert body.count("class='banner") == len(s["notices"])
+    head = md.split("\nPool of ")[0]
+    for n in s["notices"]:
+        assert f"data-kind='{n['kind']}'" in body
+        assert f"> {n['text']}" in head
+    if "stale_model" in EXPECTED_NOTICES[stage]:
+        assert "class='banner warning'" in body and "> [!WARNING]" in head
+        assert "Stale model" in body and f"bams-cli fit -w {study.ws}" in head
+        assert "model stale (see the top of the report)" in html
+    elif s["model"] is not None:
+        assert "model up to date" in html
+
+
+def test_a_pending_batch_names_its_hand_off_list_and_has_no_mean_yet(study):
+    s = study.reports["first batch pending"]["summary"]
+    (b1,) = s["batches"]
+    assert b1["pending"] == b1["picks"] and b1["mean_f0"] is None and b1["n_f0"] == 0
+    text = s["notices"][1]["text"]
+    assert f"batch 1 ({b1['picks']} of {b1['picks']} picks, batches/batch-0001.csv)" in text
+    assert "bams-cli ingest-results" in text
+    after = study.reports["first results, no fit"]["summary"]["batches"][0]
+    assert after["pending"] == 0 and after["mean_f0"] is not None and after["n_f0"] > 0
+
+
+@pytest.mark.parametrize(
+    ("stage", "batch", "strategy"),
+    [
+        ("cheap-only batch pending", 2, "mcm-gp"),
+        ("cheap-only batch in, not fitted", 2, "mcm-gp"),
+        ("cheap-only bams batch pending", 3, "bams"),
+        ("cheap-only bams batch fitted", 3, "bams"),
+        ("plan 2 computed", 3, "bams"),
+    ],
+)
+def test_a_batch_of_cheap_level_picks_only_has_a_blank_mean(study, stage, batch, strategy):
+    r = study.reports[stage]
+    row = r["summary"]["batches"][batch - 1]
+    assert row["batch"] == batch and row["strategy"] == strategy
+    assert set(row["picks_per_level"]) == {"1"} and row["picks"] > 0
+    assert row["mean_f0"] is None and row["mean_f0_se"] is None and row["n_f0"] == 0
+    assert row["pending"] == (row["picks"] if "pending" in stage else 0)
+    first = r["summary"]["batches"][0]
+    assert first["mean_f0"] is not None  # the other batches keep theirs
+    md_row = next(line for line in r["md"].splitlines() if line.startswith(f"| {batch} |"))
+    assert md_row.endswith(f"|  | {row['pending']} |")
+
+
+def test_the_estimate_shown_is_the_latest_computed_plan(study):
+    for stage in ("initialised", "fitted", "plan 1 pending", "plan 1 in, not computed"):
+        r = study.reports[stage]
+        assert r["summary"]["estimates"] == [] and "No estimate yet" in r["html"]
+    pending = study.reports["plan 1 pending"]["summary"]["notices"][0]["text"]
+    assert "Estimate plan 1 awaits level-0 results for" in pending
+    assert "estimates/plan-0001-handoff.csv" in pending and "no estimate is shown yet" in pending
+    due = study.reports["plan 1 in, not computed"]["summary"]["notices"][1]["text"]
+    assert "Estimate plan 1 has all its results" in due and "bams-cli estimate -w" in due
+    for stage, shown in (("plan 1 computed", 1), ("plan 2 pending", 1), ("plan 2 computed", 2)):
+        r = study.reports[stage]
+        doc = json.loads((study.ws / "estimates" / f"estimate-{shown:04d}.json").read_text())
+        assert [e["plan"] for e in r["summary"]["estimates"]] == [shown]
+        assert [e["p_hat"] for e in r["summary"]["estimates"]] == [
+            e["p_hat"] for e in doc["estimates"]
+        ]
+        assert f"From estimate plan {shown}." in r["html"] and "rate" in r["summary"]["figures"]
+        assert "| gamma | p_hat |" in r["md"]
+    text = study.reports["plan 2 pending"]["summary"]["notices"][0]["text"]
+    assert "Estimate plan 2 awaits" in text and "the estimate shown is plan 1's" in text
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_likely_failures_are_unknown_at_level_0_and_level_0_failures_are_confirmed(study, stage):
+    r = study.reports[stage]
+    s, level0 = r["summary"], r["level0"]
+    gamma = s["study"]["gammas"][0]
+    likely = [row["segment_id"] for row in s["diverse_failures"]]
+    assert not set(likely) & set(level0)
+    if s["model"] is not None:
+        assert len(likely) == 5 and "pool_map" in s["figures"]
+    else:
+        assert likely == [] and s["figures"] == []
+    failed = sorted((v, sid) for sid, v in level0.items() if v <= gamma)
+    confirmed = s["confirmed_failures"]
+    assert [(row["observed_f0"], row["segment_id"]) for row in confirmed] == failed
+    assert all(row["fails_at_gamma"] == [gamma] and "difficulty" in row for row in confirmed)
+    assert f"Confirmed failures (level 0, f <= a gamma): {len(failed)}" in r["md"]
+    for sid in likely[:1] + [row["segment_id"] for row in confirmed[:1]]:
+        assert f">{sid}<" in r["html"]
+
+
+def test_the_plans_find_failures_the_report_confirms(study):
+    # Without this, the confirmed-failure checks above could pass on empty lists.
+    assert study.reports["plan 2 computed"]["summary"]["confirmed_failures"]
+
+
+# ---------------------------------------------------------------------------------------
+# A stale model contradicted by results ingested after it (issue 13, point 7)
+# ---------------------------------------------------------------------------------------
+def test_a_stale_model_is_a_banner_and_results_since_overrule_its_likely_failures(tmp_path):
+    s = Study(tmp_path, TOY)
+    ws = s.ws
+    s.run("init", "-w", ws, "--settings-from", TOY / "settings.toml")
+    identity = ("--columns", "x*", "--method", "identity", "--no-standardize")
+    s.run("embed-reduce", "-w", ws, TOY / "segments.parquet", *identity)
+    s.run("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "6")
+    s.simulate_and_ingest(ws / "batches" / "batch-0001.parquet")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    fresh = s.report("fresh")["summary"]
+    gamma = fresh["study"]["gammas"][0]
+    assert fresh["notices"] == [] and len(fresh["diverse_failures"]) == 5
+    # The simulation team then reports, at level 0, that the first likely failure passed
+    # (a value above every gamma) and the second failed, and nobody refits.
+    passed, failed = (row["segment_id"] for row in fresh["diverse_failures"][:2])
+    p_passed = fresh["diverse_failures"][0]["p_n"]
+    results = tmp_path / "hand-run.parquet"
+    pq.write_table(
+        pa.table(
+            {
+                "segment_id": [passed, failed],
+                "fidelity": [0, 0],
+                "value": [gamma + 0.2, gamma - 0.1],
+            }
+        ),
+        results,
+    )
+    s.run("ingest-results", "-w", ws, results, "--allow-unselected")
+    stale = s.report("stale")
+    summary = stale["summary"]
+    assert [n["kind"] for n in summary["notices"]] == ["stale_model"]
+    assert summary["model"]["fresh"] is False
+    # The banner opens the HTML and summary.md, not a caption further down.
+    html = stale["html"]
+    assert html.index("class='banner warning'") < html.index("<h2>")
+    assert stale["md"].splitlines()[2:4] == ["> [!WARNING]", f"> {summary['notices'][0]['text']}"]
+    likely = {row["segment_id"] for row in summary["diverse_failures"]}
+    assert passed not in likely and failed not in likely and len(likely) == 5
+    (confirmed,) = summary["confirmed_failures"]
+    assert confirmed["segment_id"] == failed and confirmed["observed_f0"] == gamma - 0.1
+    # The segment seen passing is nowhere listed as a failure, though the model still
+    # gives it a high failure probability.
+    assert p_passed > 0.3
+    assert f">{passed}<" not in html and passed not in stale["md"]
+    s.run("fit", "-w", ws, "--restarts", "2")
+    refit = s.report("refit")["summary"]
+    assert refit["notices"] == []
+    assert passed not in {row["segment_id"] for row in refit["diverse_failures"]}
+    assert [row["segment_id"] for row in refit["confirmed_failures"]] == [failed]
