@@ -620,7 +620,7 @@ def benchmark(
         str | None,
         typer.Option(
             "--strategies",
-            help="Comma-separated subset, e.g. bams,bas,mc \\[default: all; suite: bams,mcm-gp,mc].",
+            help="Comma-separated subset, e.g. bams,bas,mc \\[default: all] (suite: bams,mcm-gp,mc).",
         ),
     ] = None,
     level0_share: Annotated[
@@ -643,11 +643,14 @@ def benchmark(
     strategy, each going through select, simulate, ingest-results and fit in a scratch
     workspace; then the rate estimate's recall and exact relative variance, for the default
     design and the paper's with-replacement sampler. Writes results.json, tables and
-    retention-recall plots to --out. --protocol suite runs every problem into its own
-    subfolder of --out and writes suite.md over them (recall, RV, fitted against true
-    discrepancy sd, level-0 picks per batch, the GP's own rate estimate).
+    retention-recall plots to --out.
+
+    The suite (--protocol suite) runs every problem into its own subfolder of --out and
+    writes suite.md over them: recall, RV, the fitted against the true discrepancy sd,
+    level-0 picks per batch and the GP's own rate estimate.
 
     [bold]Example[/]: bams-cli benchmark --protocol toy2d --quick --out /tmp/repro
+
     [bold]Example[/]: bams-cli benchmark --protocol suite --seeds 10 --out docs/reproduction/suite
     """
     from bams_cli.benchmark import PROTOCOLS, run_benchmark, run_suite, suite_rows
