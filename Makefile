@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO := demo
 
-.PHONY: setup demo test test-slow lint bench reproduce reproduce-quick clean
+.PHONY: setup demo test test-slow lint bench reproduce reproduce-suite reproduce-quick clean
 
 setup: $(STAMP)
 
@@ -39,6 +39,11 @@ lint: $(STAMP)
 reproduce: $(STAMP)
 	$(BIN)/bams-cli benchmark --protocol toy2d --seeds 10 --out docs/reproduction
 	$(BIN)/bams-cli benchmark --protocol av_like --seeds 10 --out docs/reproduction/av_like
+	$(MAKE) reproduce-suite
+
+# The suite of unlike problems (core/suite.py) beside toy2d and av_like: suite.md over all.
+reproduce-suite: $(STAMP)
+	$(BIN)/bams-cli benchmark --protocol suite --seeds 10 --out docs/reproduction/suite
 
 # Three seeds of the synthetic protocol, written outside docs/ (part of CI).
 reproduce-quick: $(STAMP)

@@ -624,7 +624,10 @@ def benchmark(
     protocol: Annotated[
         str,
         typer.Option(
-            "--protocol", help="toy2d: the paper's synthetic protocol; av_like: its AV protocol."
+            "--protocol",
+            help="toy2d: the paper's synthetic protocol; av_like: its AV protocol; weak_cheap, "
+            "digits, rare_regions, gap_sim: the suite's problems; suite: all six, with a "
+            "suite.md table over them.",
         ),
     ] = "toy2d",
     seeds: Annotated[
@@ -639,7 +642,8 @@ def benchmark(
     strategies: Annotated[
         str | None,
         typer.Option(
-            "--strategies", help="Comma-separated subset, e.g. bams,bas,mc \\[default: all]."
+            "--strategies",
+            help="Comma-separated subset, e.g. bams,bas,mc \\[default: all] (suite: bams,mcm-gp,mc).",
         ),
     ] = None,
     level0_share: Annotated[
@@ -664,12 +668,38 @@ def benchmark(
     design and the paper's with-replacement sampler. Writes results.json, tables and
     retention-recall plots to --out.
 
-    [bold]Example[/]: bams-cli benchmark --protocol toy2d --quick --out /tmp/repro
-    """
-    from bams_cli.benchmark import run_benchmark
+    The suite (--protocol suite) runs every problem into its own subfolder of --out and
+    writes suite.md over them: recall, RV, the fitted against the true discrepancy sd,
+    level-0 picks per batch and the GP's own rate estimate.
 
-    if protocol not in ("toy2d", "av_like"):
-        raise BamsError(f"--protocol {protocol!r}: choose toy2d or av_like")
+    [bold]Example[/]: bams-cli benchmark --protocol toy2d --quick --out /tmp/repro
+
+    [bold]Example[/]: bams-cli benchmark --protocol suite --seeds 10 --out docs/reproduction/suite
+    """
+    from bams_cli.benchmark import PROTOCOLS, run_benchmark, run_suite, suite_rows
+
+    if protocol not in (*PROTOCOLS, "suite"):
+        raise BamsError(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}, or suite")
+    if protocol == "suite":
+        with console.progress(not json_out) as bar:
+            results = run_suite(
+                seeds=seeds,
+                quick=quick,
+                out_dir=out,
+                strategies=strategies.split(",") if strategies else None,
+                level0_share=level0_share,
+                workers=workers,
+                progress=bar,
+                n=n,
+                clusters=clusters,
+                command=shlex.join(["bams-cli", *sys.argv[1:]]),
+            )
+        if json_out:
+            console.print_json({p: suite_rows(r) for p, r in results.items()})
+            return
+        console.out.print((out / "suite.md").read_text())
+        console.note(f"results: {out / 'suite.json'} and one folder per problem")
+        return
     with console.progress(not json_out) as bar:
         result = run_benchmark(
             protocol,

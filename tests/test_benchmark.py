@@ -8,7 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from bams_cli.benchmark import PROTOCOLS, design_stats, run_benchmark
+from bams_cli.benchmark import (
+    PROTOCOLS,
+    SUITE,
+    RunResult,
+    _run_designs,
+    design_stats,
+    run_benchmark,
+    run_suite,
+)
 from bams_cli.core.estimate import estimate_from_sample, plan_sample
 from tests.conftest import invoke
 
@@ -165,7 +173,7 @@ def test_underflowing_scores_of_non_failures_leave_the_variance_finite():
         (["--seeds", "0"], "--seeds 0: need at least 1"),
         (["--strategies", "bams,foo"], "--strategies foo: not part of the toy2d protocol"),
         (["--level0-share", "2"], "--level0-share 2.0: must lie in (0, 1)"),
-        (["--protocol", "nope"], "--protocol 'nope': choose toy2d or av_like"),
+        (["--protocol", "nope"], "--protocol 'nope': choose one of toy2d, av_like, weak_cheap"),
     ],
 )
 def test_bad_benchmark_options_are_one_line_errors(runner, tmp_path, args, message):
@@ -184,3 +192,72 @@ def test_init_on_a_file_is_a_one_line_error(runner, tmp_path):
     (tmp_path / "w").write_text("x")
     r = invoke(runner, "init", "-w", tmp_path / "w", "--gamma", "0.5")
     assert r.exit_code == 1 and "w: is a file; a workspace is a folder" in r.stderr
+
+
+def test_a_suite_problem_runs_end_to_end_into_the_suite_table(tmp_path):
+    """gap_sim, one seed, small pool: its folder, tables without paper columns, suite.md."""
+    results = run_suite(
+        seeds=1,
+        quick=True,
+        out_dir=tmp_path,
+        strategies=["mcm-gp", "mc"],
+        level0_share=0.5,
+        workers=1,
+        progress=None,
+        n=1200,
+        problems=["gap_sim"],
+    )
+    doc = json.loads((tmp_path / "gap_sim" / "results.json").read_text())
+    assert doc["setup"]["pool_size"] == 1200 and doc["paper"] == {}
+    assert doc["setup"]["true_discrepancy_sd"] > 0
+    tables = (tmp_path / "gap_sim" / "tables.md").read_text()
+    assert tables.startswith("# gap_sim") and "paper recall" not in tables
+    gp, mc = doc["mcm-gp"], doc["mc"]
+    [fitted] = gp["discrepancy_sd_fitted"]
+    [ratio] = gp["gp_rate_ratio"]
+    assert fitted > 0 and ratio > 0
+    assert mc["discrepancy_sd_fitted"] == [] and mc["gp_rate_ratio"] == []
+    assert mc["level0_per_batch"] == [10, 5, 5]  # plain MC: level 0 only
+    assert sum(gp["level0_per_batch"]) < 20  # MCM-GP buys cheap runs too
+    md = (tmp_path / "suite.md").read_text()
+    header = next(line for line in md.splitlines() if line.startswith("| problem"))
+    for column in ("recall", "100 RV", "disc. sd fitted", "true sd(f1 - f0)",
+                   "level-0 picks per batch", "GP / p"):  # fmt: skip
+        assert column in header
+    row = next(line for line in md.splitlines() if line.startswith("| gap_sim"))
+    assert f"{fitted:.3g}" in row and "10 / 5 / 5" in md
+    condensed = json.loads((tmp_path / "suite.json").read_text())
+    assert set(condensed) == {"gap_sim"} and set(results) == {"gap_sim"}
+    assert condensed["gap_sim"]["strategies"]["mc"]["gp_rate_ratio"] is None
+
+
+def test_every_suite_problem_has_a_protocol_without_paper_numbers():
+    for name in SUITE[2:]:
+        proto = PROTOCOLS[name]
+        assert (proto.m1, proto.mb, proto.n_batches, proto.k_factor) == (10, 5, 3, 2.0)
+        assert proto.paper == {} and proto.strategies == ("bams", "mcm-gp", "mc")
+        assert proto.reduce["method"] == "pca" and 8 <= proto.reduce["dim"] <= 12
+
+
+def test_mc_estimates_uniformly_and_mc_gp_by_its_gp():
+    """Same uniform picks; MC's design is uniform over U, MC-GP's follows p_n."""
+    rng = np.random.default_rng(0)
+    n, K = 2000, 60.0
+    is_failure = rng.random(n) < 0.02
+    known = np.zeros(n, bool)
+    known[rng.choice(n, 20, replace=False)] = True
+    picks = [(np.flatnonzero(known)[:10], np.zeros(10, np.int64))]
+    est = {"alpha": 0.75, "defensive": 0.1, "design": "poisson"}
+
+    def run(strategy, p):
+        return RunResult(strategy, 0, picks, [p], None, known, [None], None, {})
+
+    recall, rv = _run_designs(run("mc", None), is_failure, K, est)["default"]
+    U = ~known
+    pi = K / U.sum()  # every unknown segment equally likely
+    fails_u = int((is_failure & U).sum())
+    assert rv == pytest.approx(fails_u * (1 - pi) / pi / n**2 / is_failure.mean() ** 2)
+    assert recall == pytest.approx((is_failure[known].sum() + pi * fails_u) / is_failure.sum())
+    p_n = np.where(is_failure, 0.5, 0.01)
+    _, rv_gp = _run_designs(run("mc-gp", p_n), is_failure, K, est)["default"]
+    assert rv_gp < rv / 5

@@ -11,7 +11,7 @@ bit for bit and larger pools made on demand.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +40,8 @@ class SyntheticPool:
     gamma : float
     costs : list of float, length L + 1
     extra : dict of name -> ndarray of shape (n,)  pass-through columns
+    latent : ndarray of shape (n, d) or None
+        The hidden scenario behind ``features`` (suite problems; for tests, never written).
     """
 
     ids: list[str]
@@ -48,6 +50,7 @@ class SyntheticPool:
     gamma: float
     costs: list[float]
     extra: dict[str, NDArray]
+    latent: NDArray[np.float64] | None = field(default=None, repr=False)
 
 
 def toy2d_f(X: NDArray[np.float64], c: float = TOY2D_CENTER) -> NDArray[np.float64]:
