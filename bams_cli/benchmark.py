@@ -403,7 +403,7 @@ def run_one(spec: RunSpec) -> RunResult:
                 summary = pipeline.fit(root)
                 clock("fit", t0)
                 p_after.append(_column(root / "scores.parquet", "p_0").astype(np.float64))
-                hps.append(summary["hyperparameters"])
+                hps.append({**summary["hyperparameters"], "transform": summary["transform"]})
             else:
                 p_after.append(None)
                 hps.append(None)
@@ -727,6 +727,19 @@ def mc_explanation(
     return out
 
 
+def true_discrepancy_sd(
+    f0: np.ndarray, f1: np.ndarray, transform: dict[str, Any] | None = None
+) -> float:
+    """sd(g(f1) - g(f0)) over the pool, g the model's output transform (identity if None).
+
+    The discrepancy a model of g(y) should find; with the identity, sd(f1 - f0).
+    """
+    from bams_cli.core.gp import OutputTransform
+
+    g = OutputTransform.from_dict(transform)
+    return float(np.std(g.forward(f1) - g.forward(f0)))
+
+
 def discrepancy_sd(hyperparameters: dict[str, Any]) -> float:
     """The model's sd of y1 - y0 at one segment, in the metric's units.
 
@@ -747,8 +760,13 @@ def evaluate_runs(
     *,
     K: float,
     estimator: dict[str, Any],
+    f1: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Per strategy: the IS tables, Table 1 and retention-recall curves over seeds."""
+    """Per strategy: the IS tables, Table 1 and retention-recall curves over seeds.
+
+    ``f1`` (the cheap level's truth) adds each run's fitted discrepancy sd over the true
+    one, both in the model's units (``true_discrepancy_sd``).
+    """
     is_failure = f0 <= gamma
     out: dict[str, Any] = {}
     for strategy in protocol.strategies:
@@ -789,6 +807,13 @@ def evaluate_runs(
         entry["discrepancy_sd_fitted"] = [
             discrepancy_sd(r.hyperparameters[-1]) for r in mine if r.hyperparameters[-1]
         ]
+        if f1 is not None:
+            entry["discrepancy_sd_ratio"] = [
+                discrepancy_sd(r.hyperparameters[-1])
+                / true_discrepancy_sd(f0, f1, r.hyperparameters[-1].get("transform"))
+                for r in mine
+                if r.hyperparameters[-1]
+            ]
         entry["gp_rate_ratio"] = [
             float(np.mean(r.p_after[-1]) / is_failure.mean())
             for r in mine
@@ -946,7 +971,7 @@ def run_benchmark(
                     done, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for fut in done:
                         finished(fut.result())
-        table = evaluate_runs(proto, runs, f0, gamma, K=K, estimator=estimator)
+        table = evaluate_runs(proto, runs, f0, gamma, K=K, estimator=estimator, f1=f1)
     wall = time.perf_counter() - t_start
 
     p = F / N
@@ -1086,6 +1111,7 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
     for s in strategy_rows(result):
         e = result[s]
         fitted, ratio = e.get("discrepancy_sd_fitted") or [], e.get("gp_rate_ratio") or []
+        disc = e.get("discrepancy_sd_ratio") or []
         rows[s] = {
             "recall": e["recall"],
             "recall_se": e["recall_se"],
@@ -1093,6 +1119,9 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
             "rv_se": e["rv_se"],
             "discrepancy_sd_fitted": float(np.mean(fitted)) if fitted else None,
             "discrepancy_sd_fitted_range": [min(fitted), max(fitted)] if fitted else None,
+            "discrepancy_sd_ratio": float(np.mean(disc)) if disc else None,
+            "discrepancy_sd_ratio_range": [min(disc), max(disc)] if disc else None,
+            "discrepancy_within_2x": int(sum(0.5 <= v <= 2.0 for v in disc)) if disc else None,
             "level0_per_batch": e.get("level0_per_batch"),
             "gp_rate_ratio": float(np.mean(ratio)) if ratio else None,
             "gp_rate_ratio_range": [min(ratio), max(ratio)] if ratio else None,
@@ -1117,13 +1146,15 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "disc. sd: the fitted model's sd of y1 - y0 at a segment, "
         "sqrt(outputscale_1 + noise_1 + noise_0) from the final hyperparameters, mean "
         "[range] over seeds, beside the true sd(f1 - f0) over the pool, both in the "
-        "metric's units. level-0 picks: per batch, mean over seeds. GP / p: the GP's own "
+        "metric's units. fitted / true: the same ratio per seed in the model's units "
+        "(after its output transform, if fit chose one), mean [range] and the seeds within "
+        "a factor 2. level-0 picks: per batch, mean over seeds. GP / p: the GP's own "
         "estimate mean(p_n) after the last batch over the true rate, mean [range].",
         "",
         "| problem | N | p | corr(f0, f1) | failures unseen at level 1 | strategy | seeds "
         "| recall ± SE | 100 RV ± SE | disc. sd fitted | true sd(f1 - f0) "
-        "| level-0 picks per batch | GP / p |",
-        "|" + " --- |" * 13,
+        "| fitted / true (within 2x) | level-0 picks per batch | GP / p |",
+        "|" + " --- |" * 14,
     ]
     for problem, result in results.items():
         table = suite_rows(result)
@@ -1145,11 +1176,17 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
                 if row["gp_rate_ratio"] is not None
                 else "-"
             )
+            disc = (
+                f"{row['discrepancy_sd_ratio']:.2f}{rng_(row['discrepancy_sd_ratio_range'], 2)} "
+                f"({row['discrepancy_within_2x']}/{st['seeds']})"
+                if row.get("discrepancy_sd_ratio") is not None
+                else "-"
+            )
             level0 = " / ".join(f"{v:g}" for v in row["level0_per_batch"] or [])
             lines.append(
                 f"{head} {NAMES[s]} | {st['seeds']} | {_pm(row['recall'], row['recall_se'])} | "
                 f"{_pm(row['rv'], row['rv_se'], 2)} | {fitted} | "
-                f"{st['true_discrepancy_sd']:.3g} | {level0} | {ratio} |"
+                f"{st['true_discrepancy_sd']:.3g} | {disc} | {level0} | {ratio} |"
             )
     first = next(iter(results.values()), None)
     if first is not None:

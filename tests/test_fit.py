@@ -167,3 +167,33 @@ def test_fit_warns_when_level0_runs_surprise_the_model(toy_ws, runner, tmp_path)
     assert model["checks"]["loo_level0"]["n"] == 5
     assert model["checks"]["loo_level0"]["mean_z2"] > 5
     assert model["jitter"] == 0.0
+
+
+def test_fit_records_its_output_transform_and_fixed_hyperparameters_reuse_it(
+    fitted_ws, runner, tmp_path
+):
+    model = json.loads(Workspace(fitted_ws).model_path.read_text())
+    assert model["transform"]["kind"] in ("identity", "asinh")
+    assert len(model["transform_evidence"]) == 3  # the identity and two asinh scales
+    best = max(model["transform_evidence"], key=lambda e: e["log_evidence"])
+    assert (best["scale"] is None) == (model["transform"]["kind"] == "identity")
+    # A hand-made transform in a saved model is what a conditioning-only fit uses.
+    model["transform"] = {"kind": "asinh", "centre": 0.56, "scale": 0.7}
+    saved = tmp_path / "model.json"
+    saved.write_text(json.dumps(model))
+    r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", saved, "--json")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["transform"] == model["transform"]
+    # Scores are in the model's units: p_n = Phi((g(gamma) - mu) / sd), g(0.56) = 0.56.
+    t = pq.read_table(Workspace(fitted_ws).scores_path)
+    mu, sd, p = (t.column(c).to_numpy() for c in ("mu", "sd", "p_0"))
+    np.testing.assert_allclose(p, ndtr((0.56 - mu) / sd), rtol=1e-9, atol=1e-12)
+
+
+def test_fit_transform_none_models_the_metric_itself(fitted_ws, runner):
+    r = invoke(runner, "fit", "-w", fitted_ws, "--transform", "none", "--json", "--restarts", "2")
+    assert r.exit_code == 0, r.output
+    doc = json.loads(Workspace(fitted_ws).model_path.read_text())
+    assert doc["transform"] == {"kind": "identity"} and len(doc["transform_evidence"]) == 1
+    r = invoke(runner, "fit", "-w", fitted_ws, "--transform", "log")
+    assert r.exit_code != 0 and "--transform 'log': choose one of auto, none" in r.stderr
