@@ -346,6 +346,65 @@ def test_map_recovers_hyperparameters_of_data_drawn_from_the_prior():
     assert np.all(np.abs(err_noise.mean(0)) < math.log(1.5)), np.exp(err_noise.mean(0))
 
 
+def test_prior_modes_are_the_documented_ones():
+    """The priors' modes, pinned: a changed default must change this test on purpose.
+
+    d = 12 inputs with unit range, two levels; standardised units. The lengthscale prior
+    is BoTorch's dimension-scaled one, mode exp(sqrt2 + log(d)/2 - 3) = 0.2048 sqrt(d).
+    """
+    from bams_cli.core.gp import DEFAULT_PRIORS
+
+    d = 12
+    X = np.vstack([np.zeros(d), np.ones(d)])
+    mode = np.exp(_Priors.for_data(X, 2).mode)
+    s, ell, noise = mode[:2], mode[2 : 2 + 2 * d].reshape(2, d), mode[2 + 2 * d :]
+    np.testing.assert_allclose(ell, math.exp(math.sqrt(2) - 3) * math.sqrt(d), rtol=1e-12)
+    assert ell[0, 0] == pytest.approx(0.7094, abs=1e-4)
+    np.testing.assert_allclose(s, [1.0, DEFAULT_PRIORS.discrepancy[0]], rtol=1e-12)
+    np.testing.assert_allclose(noise, [3e-4, 3e-3], rtol=1e-12)
+    assert DEFAULT_PRIORS.noise0 == (3e-4, 1.0) and DEFAULT_PRIORS.lengthscale_dim_scaling
+    # Natural units: a dimension twice as wide gets twice the lengthscale.
+    X2 = X.copy()
+    X2[1, 0] = 2.0
+    assert np.exp(_Priors.for_data(X2, 2).mode[2]) == pytest.approx(2 * ell[0, 0])
+
+
+def test_level0_noise_the_data_cannot_identify_stays_near_the_prior_mode():
+    """100 scattered points in 4-d with noise 1% of the signal variance: the likelihood
+    hardly tells that noise from roughness, so the prior decides. Measured fitted noise /
+    var(y): 4e-4, 1.7e-3, 3e-4 on seeds 0-2 with the shipped prior; with a 100x higher
+    mode, 9e-3, 4e-3, 4e-3 (mean 6e-3), which this test rejects."""
+    fitted = []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        X = rng.normal(size=(100, 4))
+        f = np.sin(1.5 * X[:, 0]) + np.cos(1.2 * X[:, 1]) * X[:, 2] + 0.5 * np.sin(2 * X[:, 3])
+        y = f + 0.1 * np.std(f) * rng.normal(size=100)
+        hp = fit_mfgp(X, np.zeros(100, int), y, 1, rng=np.random.default_rng(0)).hyperparameters
+        fitted.append(hp.noise[0] / np.var(y))
+    assert max(fitted) < 2.5e-3 and np.mean(fitted) < 1.5e-3, fitted
+
+
+def test_dimension_scaled_lengthscales_keep_a_12d_fit_from_interpolating():
+    """20 points in 12-d from a function of two inputs: the sqrt(d)-scaled prior keeps the
+    irrelevant dimensions' lengthscales long (median above the input range); without
+    the scaling (prior mode 0.2 x range) the fit makes them short and interpolates."""
+    from bams_cli.core.gp import PriorSpec
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform(0, 1, (20, 12))
+    y = np.sin(4 * X[:, 0]) + X[:, 1]
+    fits = {
+        scaled: fit_mfgp(
+            X, np.zeros(20, int), y, 1, rng=np.random.default_rng(0),
+            priors=PriorSpec(lengthscale_dim_scaling=scaled),
+        ).hyperparameters.lengthscales0
+        for scaled in (True, False)
+    }  # fmt: skip
+    assert np.median(fits[True][2:]) > 1.0
+    assert np.median(fits[True][2:]) > 2.0 * np.median(fits[False][2:])
+
+
 # -------------------------------------------------------------------- 5. toy2d
 
 
