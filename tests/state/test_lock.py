@@ -1,15 +1,23 @@
-"""The workspace lock: a second writer fails at once naming the holder, or waits."""
+"""The workspace lock: a second writer fails at once naming the holder, or waits; the lock
+never outlives its holder (no child keeps it, a dead holder is recognised)."""
 
 from __future__ import annotations
 
+import json
+import os
+import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from bams_cli.errors import WorkspaceLockedError
-from bams_cli.state.lock import workspace_lock
+from bams_cli.state import lock
+from bams_cli.state.lock import LOCK_FILE, workspace_lock
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
 HOLD = """
 import sys, time
@@ -27,6 +35,26 @@ def _hold(ws, seconds):
     )
     assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
     return proc
+
+
+def _gone(pid: int) -> bool:
+    """Exited (reaped, or a zombie that has closed its files)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def _lock_files_open(pid: int | str = "self") -> list[str]:
+    fds = Path(f"/proc/{pid}/fd")
+    names = []
+    for fd in fds.iterdir():
+        try:
+            names.append(os.readlink(fd))
+        except OSError:
+            pass
+    return [n for n in names if Path(n).name.startswith(LOCK_FILE)]
 
 
 def test_second_writer_fails_naming_the_holder(tmp_path):
@@ -51,3 +79,158 @@ def test_wait_blocks_until_free(tmp_path):
         waited = time.monotonic() - start
     proc.wait()
     assert waited > 0.3
+
+
+# ---- no child holds the lock -------------------------------------------------------------
+@linux_only
+def test_forked_child_does_not_hold_the_lock(tmp_path):
+    with workspace_lock(tmp_path):
+        assert len(_lock_files_open()) == 1
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # child: report which lock files it still has open, then leave at once
+            os.write(write, json.dumps(_lock_files_open()).encode())
+            os._exit(0)
+        os.close(write)
+        os.waitpid(pid, 0)
+        assert json.loads(os.read(read, 4096)) == []
+        os.close(read)
+        # ... and the parent still holds it: the child closed its copy, it did not unlock.
+        with pytest.raises(WorkspaceLockedError, match=rf"locked by pid {os.getpid()} on "):
+            with workspace_lock(tmp_path):
+                pass
+    assert _lock_files_open() == []
+
+
+@linux_only
+def test_executed_child_does_not_inherit_the_lock(tmp_path):
+    with workspace_lock(tmp_path):
+        out = subprocess.run(
+            ["ls", "-l", "/proc/self/fd/"], close_fds=False, capture_output=True, text=True
+        ).stdout
+    assert LOCK_FILE not in out
+
+
+# ---- a dead holder is recognised -------------------------------------------------------------
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_holder_that_died_is_noted_in_one_line(tmp_path, capfd):
+    proc = _hold(tmp_path, 30)
+    proc.kill()
+    proc.wait()
+    with workspace_lock(tmp_path, wait=True, timeout=5):
+        pass
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1
+    assert f"pid {proc.pid} on {socket.gethostname()}" in err and "died holding the lock" in err
+    with workspace_lock(tmp_path):  # released properly this time: nothing to say
+        pass
+    assert capfd.readouterr().err == ""
+
+
+ORPHAN = """
+import fcntl, json, os, sys, time
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.pwrite(fd, sys.argv[2].encode().ljust(1024), 0)
+print("held", flush=True)
+time.sleep(30)
+"""
+
+
+def _orphan(ws: Path, record: dict) -> subprocess.Popen:
+    """A process holding the flock under a record that names someone else (as a pool worker
+    of an older version did after its command was killed)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ORPHAN, str(ws / LOCK_FILE), json.dumps(record)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def _record(pid: int, **changes) -> dict:
+    me = lock._identity()
+    stat = lock._proc_stat(pid)
+    base = {**me, "pid": pid, "start": stat[1] if stat else None, "command": "bams-cli select"}
+    return {**base, **changes}
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "dead pid",
+        pytest.param("reused pid", marks=linux_only),  # alive, but started after the record
+        "old record",  # written by an older version: pid and host only
+    ],
+)
+def test_lock_kept_by_a_dead_holders_child_is_taken_over(tmp_path, capfd, case):
+    if case == "dead pid":
+        record = _record(_dead_pid())
+    elif case == "reused pid":
+        record = _record(os.getpid(), start="1")
+    else:
+        record = {"pid": _dead_pid(), "host": socket.gethostname(), "command": "bams-cli fit"}
+    orphan = _orphan(tmp_path, record)
+    try:
+        start = time.monotonic()
+        with workspace_lock(tmp_path):
+            assert time.monotonic() - start < 1
+        err = capfd.readouterr().err
+        assert err.count("\n") == 1 and f"pid {record['pid']} on" in err
+        assert "still has .bams.lock open); proceeding" in err
+        with workspace_lock(tmp_path):  # the new lock file is an ordinary one
+            pass
+        assert capfd.readouterr().err == ""
+    finally:
+        orphan.kill()
+        orphan.wait()
+
+
+@pytest.mark.parametrize("where", ["here", "another host"])
+def test_live_holder_is_never_taken_over(tmp_path, where):
+    record = _record(os.getpid())  # this very process: alive, same start time
+    if where == "another host":
+        record = _record(_dead_pid(), host="elsewhere")  # cannot be checked: counts as alive
+    orphan = _orphan(tmp_path, record)
+    try:
+        with pytest.raises(WorkspaceLockedError, match=rf"locked by pid {record['pid']} on "):
+            with workspace_lock(tmp_path):
+                pass
+    finally:
+        orphan.kill()
+        orphan.wait()
+
+
+CHURN = """
+import sys, time
+from pathlib import Path
+from bams_cli.state.lock import workspace_lock
+end = time.monotonic() + float(sys.argv[2])
+print("go", flush=True)
+while time.monotonic() < end:
+    with workspace_lock(Path(sys.argv[1]), wait=True):
+        pass
+"""
+
+
+def test_refusal_names_the_holder_even_while_it_takes_and_releases(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHURN, str(tmp_path), "1.5"], stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "go"
+    refusals: list[str] = []
+    while proc.poll() is None:
+        try:
+            with workspace_lock(tmp_path):
+                pass
+        except WorkspaceLockedError as exc:
+            refusals.append(str(exc))
+    assert refusals, "never caught the other process holding the lock"
+    nameless = [r for r in refusals if f"locked by pid {proc.pid} on " not in r]
+    assert nameless == [], f"{len(nameless)} of {len(refusals)}: {nameless[0]}"
