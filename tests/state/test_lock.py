@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -109,6 +110,71 @@ def test_executed_child_does_not_inherit_the_lock(tmp_path):
             ["ls", "-l", "/proc/self/fd/"], close_fds=False, capture_output=True, text=True
         ).stdout
     assert LOCK_FILE not in out
+
+
+POOL = """
+import json, os, sys, time
+from pathlib import Path
+from bams_cli.parallel import executor
+from bams_cli.state.lock import workspace_lock
+
+def report(_):
+    time.sleep(0.3)  # so each worker gets one task
+    fds = [os.readlink(f"/proc/self/fd/{n}") for n in os.listdir("/proc/self/fd")
+           if os.path.exists(f"/proc/self/fd/{n}")]
+    return os.getpid(), [f for f in fds if ".bams.lock" in f]
+
+with workspace_lock(Path(sys.argv[1])):
+    with executor(workers=2) as pool:
+        print(json.dumps(list(pool.map(report, range(2)))), flush=True)
+        pool.submit(time.sleep, 60)  # one worker busy, one idle, as in a killed select
+        time.sleep(60)
+"""
+
+
+@linux_only
+def test_killed_command_leaves_no_lock_and_no_workers(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-c", POOL, str(tmp_path)], stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout is not None
+    workers = json.loads(proc.stdout.readline())
+    pids = [pid for pid, _ in workers]
+    assert len(set(pids)) == 2 and all(fds == [] for _, fds in workers), workers
+    proc.send_signal(signal.SIGKILL)
+    start = time.monotonic()
+    with workspace_lock(tmp_path, wait=True, timeout=20):
+        assert time.monotonic() - start < 3
+    proc.wait()
+    deadline = time.monotonic() + 3
+    while not all(map(_gone, pids)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert [pid for pid in pids if not _gone(pid)] == []
+
+
+@linux_only
+def test_worker_watchdog_exits_when_its_parent_dies(tmp_path):
+    # Where PR_SET_PDEATHSIG is missing, a thread polling getppid ends the worker.
+    program = """
+import os, sys, threading, time
+from bams_cli.parallel import _watch_parent
+pid = os.fork()
+if pid == 0:
+    threading.Thread(target=_watch_parent, args=(os.getppid(), 0.05), daemon=True).start()
+    time.sleep(60)
+    os._exit(0)
+print(pid, flush=True)
+time.sleep(60)
+"""
+    proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    child = int(proc.stdout.readline())
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 3
+    while not _gone(child) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(child)
 
 
 # ---- a dead holder is recognised -------------------------------------------------------------
