@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -300,3 +301,52 @@ def test_refusal_names_the_holder_even_while_it_takes_and_releases(tmp_path):
     assert refusals, "never caught the other process holding the lock"
     nameless = [r for r in refusals if f"locked by pid {proc.pid} on " not in r]
     assert nameless == [], f"{len(nameless)} of {len(refusals)}: {nameless[0]}"
+
+
+# ---- init under the lock -------------------------------------------------------------------
+INIT = """
+import sys, time
+from pathlib import Path
+go = Path(sys.argv[1])
+from bams_cli.cli import main  # import first, so that all start together
+from bams_cli.settings import Settings
+
+# A slow machine: a long moment between looking at the folder and taking the lock.
+build = Settings.with_overrides
+Settings.with_overrides = lambda self, **kw: time.sleep(0.3) or build(self, **kw)
+print("ready", flush=True)
+while not go.exists():
+    time.sleep(0.002)
+sys.argv = ["bams-cli", "init", *sys.argv[2:]]
+main()
+"""
+
+
+def test_concurrent_inits_one_wins_the_rest_fail(tmp_path):
+    """Two of four wait for the lock: they must then find the workspace made, not remake it."""
+    ws, go = tmp_path / "ws", tmp_path / "go"
+    waits = [False, True, False, True]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", INIT, str(go), "-w", str(ws), "--seed", str(seed)]
+            + ["--wait"] * wait,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for seed, wait in enumerate(waits)
+    ]
+    for p in procs:
+        assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+    go.touch()
+    results = [(p.wait(timeout=60), *p.communicate()) for p in procs]
+    winners = [seed for seed, (code, _, _) in enumerate(results) if code == 0]
+    assert len(winners) == 1, results
+    for (code, _, err), wait in zip(results, waits, strict=True):
+        if code != 0:
+            assert code == 1 and err.count("\n") == 1, err
+            assert "settings.toml: already exists; edit it, or pass --force" in err or (
+                not wait and "locked by pid" in err
+            ), err
+    settings = tomllib.loads((ws / "settings.toml").read_text())
+    assert settings["study"]["seed"] == winners[0]
