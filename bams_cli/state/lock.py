@@ -186,6 +186,7 @@ def _write_record(fd: int, info: dict[str, Any]) -> None:
         info = {**info, "command": str(info.get("command", ""))[:200] + "..."}
         data = json.dumps(info)[:RECORD_SIZE]
     os.pwrite(fd, data.ljust(RECORD_SIZE).encode(), 0)
+    os.ftruncate(fd, RECORD_SIZE)  # a longer record of an older version leaves no tail
 
 
 # ---- the guard -------------------------------------------------------------------------------

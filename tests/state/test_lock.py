@@ -120,14 +120,17 @@ from bams_cli.parallel import executor
 from bams_cli.state.lock import workspace_lock
 
 def report(_):
-    time.sleep(0.3)  # so each worker gets one task
+    time.sleep(0.1)
     fds = [os.readlink(f"/proc/self/fd/{n}") for n in os.listdir("/proc/self/fd")
            if os.path.exists(f"/proc/self/fd/{n}")]
     return os.getpid(), [f for f in fds if ".bams.lock" in f]
 
 with workspace_lock(Path(sys.argv[1])):
     with executor(workers=2) as pool:
-        print(json.dumps(list(pool.map(report, range(2)))), flush=True)
+        seen = {}
+        while len(seen) < 2:  # until both workers have answered
+            seen.update(pool.map(report, range(4)))
+        print(json.dumps(list(seen.items())), flush=True)
         pool.submit(time.sleep, 60)  # one worker busy, one idle, as in a killed select
         time.sleep(60)
 """
@@ -150,7 +153,10 @@ def test_killed_command_leaves_no_lock_and_no_workers(tmp_path):
     deadline = time.monotonic() + 3
     while not all(map(_gone, pids)) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert [pid for pid in pids if not _gone(pid)] == []
+    survivors = [pid for pid in pids if not _gone(pid)]
+    for pid in survivors:  # do not leave them behind when the test fails
+        os.kill(pid, signal.SIGKILL)
+    assert survivors == []
 
 
 @linux_only
@@ -159,9 +165,10 @@ def test_worker_watchdog_exits_when_its_parent_dies(tmp_path):
     program = """
 import os, sys, threading, time
 from bams_cli.parallel import _watch_parent
+parent = os.getpid()  # not getppid() in the child: the parent may be dead by then
 pid = os.fork()
 if pid == 0:
-    threading.Thread(target=_watch_parent, args=(os.getppid(), 0.05), daemon=True).start()
+    threading.Thread(target=_watch_parent, args=(parent, 0.05), daemon=True).start()
     time.sleep(60)
     os._exit(0)
 print(pid, flush=True)
@@ -175,7 +182,9 @@ time.sleep(60)
     deadline = time.monotonic() + 3
     while not _gone(child) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert _gone(child)
+    if not _gone(child):
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the worker outlived its parent")
 
 
 # ---- a dead holder is recognised -------------------------------------------------------------
@@ -197,6 +206,23 @@ def test_holder_that_died_is_noted_in_one_line(tmp_path, capfd):
     with workspace_lock(tmp_path):  # released properly this time: nothing to say
         pass
     assert capfd.readouterr().err == ""
+
+
+def test_long_record_of_an_older_version_is_replaced_whole(tmp_path, capfd):
+    # Older versions wrote the record at its own length; a killed one left it behind.
+    old = {"pid": _dead_pid(), "host": socket.gethostname(), "command": "bams-cli " + "x" * 3000}
+    (tmp_path / LOCK_FILE).write_text(json.dumps(old))
+    with workspace_lock(tmp_path):
+        pass
+    assert f"pid {old['pid']} on" in capfd.readouterr().err
+    proc = _hold(tmp_path, 30)
+    try:
+        with pytest.raises(WorkspaceLockedError, match=rf"locked by pid {proc.pid} on "):
+            with workspace_lock(tmp_path):
+                pass
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 ORPHAN = """
