@@ -50,7 +50,7 @@ POLL = 0.2  # seconds between tries with --wait
 GUARD_TIMEOUT = 5.0  # the guard is held for microseconds; this long means something is wrong
 
 # Descriptors this process locks through; a forked child closes them at once. A fork waits
-# for _opening, so no child is forked between an open and its entry in _held.
+# for _opening, so no child is forked between an open (or a close) and the update of _held.
 _held: set[int] = set()
 _opening = threading.Lock()
 
@@ -63,8 +63,9 @@ def _open_held(path: Path) -> int:
 
 
 def _close_held(fd: int) -> None:
-    _held.discard(fd)
-    os.close(fd)
+    with _opening:
+        _held.discard(fd)
+        os.close(fd)
 
 
 def _close_in_child() -> None:
@@ -169,7 +170,7 @@ class Holder:
 def _read_record(fd: int) -> Holder:
     # Records of older versions were written truncate-then-write: retry a torn read briefly.
     for _ in range(10):
-        raw = os.pread(fd, 4096, 0).decode(errors="replace").strip()
+        raw = os.pread(fd, 1 << 16, 0).decode(errors="replace").strip()
         try:
             info = json.loads(raw) if raw else {}
         except ValueError:

@@ -210,7 +210,7 @@ def test_holder_that_died_is_noted_in_one_line(tmp_path, capfd):
 
 def test_long_record_of_an_older_version_is_replaced_whole(tmp_path, capfd):
     # Older versions wrote the record at its own length; a killed one left it behind.
-    old = {"pid": _dead_pid(), "host": socket.gethostname(), "command": "bams-cli " + "x" * 3000}
+    old = {"pid": _dead_pid(), "host": socket.gethostname(), "command": "bams-cli " + "x" * 6000}
     (tmp_path / LOCK_FILE).write_text(json.dumps(old))
     with workspace_lock(tmp_path):
         pass
