@@ -4,11 +4,21 @@ Per-cluster selection is independent work. It goes through a
 ``concurrent.futures.Executor``: a local process pool by default, an in-process runner for
 ``--workers 1``, or a ``dask.distributed`` cluster when the user names a scheduler
 (``client.get_executor()``). One code path either way, and the same answer.
+
+Local workers die with the command that started them: a worker outliving a killed command
+would sit idle forever (it waits on a queue whose other end it holds itself) and, before
+the lock closed its descriptor in forked children, kept the workspace locked.
 """
 
 from __future__ import annotations
 
+import ctypes
+import multiprocessing
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
@@ -27,6 +37,45 @@ class InlineExecutor(Executor):
         except BaseException as exc:  # handed to the caller through the future
             future.set_exception(exc)
         return future
+
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _watch_parent(parent: int, interval: float = 0.5) -> None:
+    """Exit as soon as this process's parent is no longer ``parent`` (it died)."""
+    while os.getppid() == parent:
+        time.sleep(interval)
+    os._exit(1)
+
+
+def _die_with_parent(parent: int) -> None:
+    """Worker initializer: end this worker when ``parent`` (the command) dies.
+
+    On Linux the kernel sends SIGKILL at the parent's death (``PR_SET_PDEATHSIG``), even to
+    a worker busy in C code; elsewhere a thread polls ``getppid``. Either way the parent
+    may have died before this ran, so check once by hand.
+    """
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent:
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
+def _pool_context() -> multiprocessing.context.BaseContext:
+    """Fork on Linux (fast; the lock's at-fork hook keeps the lock out of workers); the
+    platform's default elsewhere. Named, not left to the default, because workers must be
+    children of this process for ``_die_with_parent`` (a forkserver's would not be)."""
+    if sys.platform.startswith("linux"):
+        return multiprocessing.get_context("fork")
+    return multiprocessing.get_context("spawn")
 
 
 @contextmanager
@@ -60,5 +109,10 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     if n <= 1:
         yield InlineExecutor()
         return
-    with ProcessPoolExecutor(max_workers=n) as pool:
+    with ProcessPoolExecutor(
+        max_workers=n,
+        mp_context=_pool_context(),
+        initializer=_die_with_parent,
+        initargs=(os.getpid(),),
+    ) as pool:
         yield pool

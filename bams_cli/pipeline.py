@@ -93,14 +93,15 @@ def init(
     force: bool = False,
     wait: bool = False,
 ) -> dict[str, Any]:
-    """Create a workspace and its settings file (flags > --settings-from file > defaults)."""
+    """Create a workspace and its settings file (flags > --settings-from file > defaults).
+
+    The settings are built (and checked) first, so bad flags create nothing; whether the
+    workspace exists is checked holding the lock, so of two concurrent inits one creates
+    it and the other finds it there.
+    """
     if Path(root).exists() and not Path(root).is_dir():
         raise WorkspaceError(f"{root}: is a file; a workspace is a folder, choose another -w")
     ws = Workspace(root)
-    if ws.settings_path.exists() and not force:
-        raise WorkspaceError(
-            f"{ws.settings_path}: already exists; edit it, or pass --force to overwrite it"
-        )
     base = Settings()
     if settings_from is not None:
         if not settings_from.exists():
@@ -111,6 +112,10 @@ def init(
         gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
     )
     with workspace_lock(root, wait=wait), transaction() as tx:
+        if ws.settings_path.exists() and not force:
+            raise WorkspaceError(
+                f"{ws.settings_path}: already exists; edit it, or pass --force to overwrite it"
+            )
         tx.write_text(ws.settings_path, settings.to_toml())
     return {
         "workspace": str(root),

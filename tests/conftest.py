@@ -37,12 +37,12 @@ def ok(runner: CliRunner, *args: object):
 def tree_hash(root: Path) -> dict[str, str]:
     """Content hash of every file under root, to prove a failing command changed nothing.
 
-    The lock file is left out: it records whoever holds the lock right now, not state.
+    The lock files are left out: they record whoever holds the lock right now, not state.
     """
     return {
         str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
         for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != ".bams.lock"
+        if p.is_file() and not p.name.startswith(".bams.lock")
     }
 
 

@@ -92,3 +92,24 @@ def test_cluster_pool_small_and_bad_inputs():
         cluster_pool(X, np.ones(2), 3, n_init_clusters=2, rng=np.random.default_rng(0))
     with pytest.raises(ValueError, match="n_clusters"):
         cluster_pool(X, np.ones(2), 0, rng=np.random.default_rng(0))
+
+
+# Ties. Points on a line, listed so that the label order and the point order disagree (a
+# tie broken by "first point" or by "highest label" gives the other answer).
+def test_tie_for_smallest_goes_to_the_lowest_label():
+    # Labels 1 ({20}) and 3 ({0}) are both the smallest. Label 1 merges, into label 2
+    # ({21, 22, 23}, 3 away); merging label 3 instead would join {0} to {1, 2, 3}.
+    Z = np.array([0.0, 1, 2, 3, 20, 21, 22, 23])[:, None]
+    labels = np.array([3, 0, 0, 0, 1, 2, 2, 2])
+    got = merge_smallest(Z, labels, 3)
+    np.testing.assert_array_equal(got, [0, 1, 1, 1, 2, 2, 2, 2])  # {0} {1,2,3} {20..23}
+
+
+def test_tie_for_nearest_goes_to_the_lowest_label():
+    # {0} (label 1) is exactly 3 from both {2, 3} (label 0) and {-2, -3} (label 2): it joins
+    # label 0; joining label 2 would give {-3, -2, 0} and {2, 3}.
+    Z = np.array([-2.0, -3, 0, 2, 3])[:, None]
+    labels = np.array([2, 2, 1, 0, 0])
+    assert hausdorff(Z[2:3], Z[3:]) == hausdorff(Z[2:3], Z[:2]) == 3.0
+    got = merge_smallest(Z, labels, 2)
+    np.testing.assert_array_equal(got, [0, 0, 1, 1, 1])  # {-2, -3} {0, 2, 3}

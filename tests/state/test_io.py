@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -181,3 +184,82 @@ def test_a_single_file_commit_needs_no_journal(tmp_path, monkeypatch):
     with io.journal_in(tmp_path), io.transaction() as tx:
         tx.write_text(tmp_path / "a", "x")
     assert seen == ["a"]
+
+
+def _durable_order(monkeypatch):
+    """Record every fsync (of which file or folder) and every rename, in call order."""
+    events: list[tuple] = []
+    real_fsync, real_replace, real_rename = io.os.fsync, io.os.replace, io.os.rename
+
+    def ident(st):
+        return (st.st_dev, st.st_ino)
+
+    def fsync(fd):
+        events.append(("fsync", ident(os.fstat(fd))))
+        real_fsync(fd)
+
+    def rename_with(real):
+        def move(src, dst):
+            events.append(("rename", ident(os.stat(src)), Path(dst)))
+            real(src, dst)
+
+        return move
+
+    monkeypatch.setattr(io.os, "fsync", fsync)
+    monkeypatch.setattr(io.os, "replace", rename_with(real_replace))
+    monkeypatch.setattr(io.os, "rename", rename_with(real_rename))
+    return events
+
+
+def _assert_fsync_rename_fsync(events, renamed: int) -> None:
+    """Each renamed file was fsynced before its rename, and its folder after it."""
+    moves = [(i, e[1], e[2]) for i, e in enumerate(events) if e[0] == "rename"]
+    assert len(moves) == renamed
+    for at, file, target in moves:
+        folder = os.stat(target.parent)
+        synced = [i for i, e in enumerate(events) if e[0] == "fsync" and e[1] == file]
+        assert synced and synced[0] < at, f"{target.name}: renamed before its data was fsynced"
+        dir_synced = [
+            i
+            for i, e in enumerate(events)
+            if e[0] == "fsync" and e[1] == (folder.st_dev, folder.st_ino)
+        ]
+        assert any(i > at for i in dir_synced), f"{target.name}: folder not fsynced after rename"
+
+
+WRITERS = {
+    "parquet": lambda tx, p: tx.write_parquet(p, pa.table({"a": [1, 2]})),
+    "bytes": lambda tx, p: tx.write_bytes(p, b"x"),
+    "text": lambda tx, p: tx.write_text(p, "x"),
+    "with": lambda tx, p: tx.write_with(p, lambda tmp: Path(tmp).write_bytes(b"x")),
+}
+
+
+@pytest.mark.parametrize("how", WRITERS)
+@pytest.mark.parametrize("journal", [False, True])
+def test_every_file_is_fsynced_before_its_rename_and_its_folder_after(
+    tmp_path, monkeypatch, how, journal
+):
+    # Three files in two folders: with the journal that is four renames (journal included).
+    targets = [tmp_path / "a", tmp_path / "sub" / "b", tmp_path / "sub" / "c"]
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "b").write_text("old")
+    events = _durable_order(monkeypatch)
+    with io.journal_in(tmp_path) if journal else contextlib.nullcontext():
+        with transaction() as tx:
+            for target in targets:
+                WRITERS[how](tx, target)
+    _assert_fsync_rename_fsync(events, renamed=len(targets) + journal)
+    assert all(t.exists() for t in targets) and not list(tmp_path.rglob(".tmp-*"))
+
+
+def test_recover_fsyncs_the_folders_it_renames_into(tmp_path, monkeypatch):
+    (tmp_path / "sub").mkdir()
+    events = _durable_order(monkeypatch)
+    tx = io.Transaction()
+    tx.write_text(tmp_path / "a", "new")
+    tx.write_text(tmp_path / "sub" / "b", "new")
+    pairs = [[str(tmp), str(target)] for tmp, target in tx._staged]
+    (tmp_path / io.JOURNAL_NAME).write_text(json.dumps({"renames": pairs}))  # then: killed
+    assert io.recover(tmp_path) == 2
+    _assert_fsync_rename_fsync(events, renamed=2)
