@@ -30,6 +30,7 @@ from bams_cli.errors import (
     ConflictError,
     DuplicateError,
     InputError,
+    PendingResultsError,
     SchemaError,
     StaleStateError,
     WorkspaceError,
@@ -49,6 +50,7 @@ from bams_cli.state.io import (
 )
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
+from bams_cli.status import pending_handoffs
 
 Progress = Callable[[str, int, int], None]
 SID = schemas.SEGMENT_ID
@@ -745,6 +747,13 @@ def _training_data(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Active observations as (pool index, level, value) arrays."""
     obs = ws.read_observations()
+    pend = ws.pending() if obs.height == 0 else None
+    if pend is not None and pend.height:
+        raise PendingResultsError(
+            f"{ws.observations_path}: no observations yet, {pend.height} picks await results; "
+            f"simulate {' and '.join(pending_handoffs(ws, pend))} and run "
+            f"`bams-cli ingest-results -w {ws.root} RESULTS.parquet`, then fit"
+        )
     if obs.height == 0:
         raise WorkspaceError(
             f"{ws.observations_path}: no observations yet; select a first batch "
@@ -1057,7 +1066,7 @@ def select(
     if pend.height and not allow_pending:
         where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
         where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
-        raise WorkspaceError(
+        raise PendingResultsError(
             f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
             f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
         )
@@ -1419,7 +1428,7 @@ def estimate_compute(
     missing = joined.filter(pl.col("value").is_null())
     if missing.height:
         names = ", ".join(missing[SID].head(3).to_list())
-        raise WorkspaceError(
+        raise PendingResultsError(
             f"{path}: {missing.height} planned segments have no level-0 result ({names}"
             f"{', ...' if missing.height > 3 else ''}); simulate "
             f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
