@@ -365,10 +365,17 @@ def fit(
             "whichever the data support best; none: the metric itself.",
         ),
     ] = defaults.TRANSFORM,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Fit again although the model is up to date."),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
     """Fit the multifidelity GP and score every segment's failure probability.
+
+    When the model was already fitted the same way on the current observation log, fit
+    says so and changes nothing (--force fits again).
 
     [bold]Example[/]: bams-cli fit -w study
     """
@@ -379,11 +386,15 @@ def fit(
             restarts=restarts,
             chunk_size=chunk_size,
             transform=transform,
+            force=force,
             wait=wait,
             progress=bar,
         )
     if json_out:
         console.print_json(summary)
+        return
+    if summary.get("up_to_date"):
+        console.out.print(summary["message"], markup=False, highlight=False)
         return
     console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
     skip = ("hyperparameters", "warnings", "checks", "transform")

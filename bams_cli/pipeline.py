@@ -812,6 +812,7 @@ def fit(
     restarts: int = 8,
     chunk_size: int = 50_000,
     transform: str = defaults.TRANSFORM,
+    force: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Train the multifidelity GP on the observation log and score every pool segment.
@@ -819,6 +820,9 @@ def fit(
     ``transform`` is "auto" (model g(y) = c + s asinh((y - c)/s), c the first gamma, with
     s chosen by evidence among the identity and a few scales: ``core.gp.transform``) or
     "none". With ``fixed_hyperparameters`` the file's own transform is used.
+
+    A model already fitted the same way on the same log is kept, and nothing is written
+    (``up_to_date`` in the summary; ``_fit_up_to_date``), unless ``force``.
     """
     from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
     from bams_cli.core.gp.checks import check_model
@@ -830,6 +834,10 @@ def fit(
     chosen = None if transform == "auto" else OutputTransform()
     ws = Workspace(root)
     settings = ws.require_initialised()
+    if not force and fixed_hyperparameters is None:
+        kept = _fit_up_to_date(ws, settings, restarts=restarts, transform=transform)
+        if kept is not None:
+            return kept
     ids, X = ws.read_pool()
     idx, lv, y = _training_data(ws, ids, X)
     fixed = None
@@ -897,6 +905,7 @@ def fit(
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "jitter": float(model.jitter),
         "transform": g.to_dict(),
+        "transform_option": transform,
         "transform_evidence": [
             {
                 "scale": None if math.isinf(e["scale"]) else e["scale"],
@@ -939,6 +948,61 @@ def fit(
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,
+    }
+
+
+def _fit_up_to_date(
+    ws: Workspace, settings: Settings, *, restarts: int, transform: str
+) -> dict[str, Any] | None:
+    """The summary of the model in ``model.json`` if fitting now would redo it, else None.
+
+    Redoing it means: trained (not ``--fixed-hyperparameters``) on the current observation
+    log and pool, with scores from that fit (``Workspace.require_model``), for the same
+    gammas, seed and number of levels, with the same ``--restarts`` and ``--transform``.
+    ``--chunk-size`` only bounds memory, so it does not count.
+    """
+    if not ws.model_path.exists() or not ws.segments_path.exists():
+        return None
+    try:
+        model = ws.require_model(allow_newer_observations=True)
+    except (StaleStateError, SchemaError):  # damaged, another pool, scores from another fit
+        return None
+    n_obs = model.get("n_observations_per_level")
+    same = (
+        model["fresh"]
+        and model.get("trained") is True
+        and model.get("restarts") == restarts
+        and model.get("transform_option") == transform
+        and model.get("gammas") == list(settings.gammas)
+        and model.get("seed") == settings.seed
+        and isinstance(n_obs, list)
+        and len(n_obs) == settings.n_levels
+    )
+    if not same:
+        return None
+    _, _, _, p = _read_scores(ws, len(settings.gammas))
+    n = int(sum(n_obs))
+    return {
+        "up_to_date": True,
+        "message": f"model is up to date (fitted on {n} observations); nothing to do "
+        f"(pass --force to fit again)",
+        "model": str(ws.model_path),
+        "scores": str(ws.scores_path),
+        "observations": n,
+        **{
+            k: model.get(k)
+            for k in (
+                "n_observations_per_level",
+                "log_marginal_likelihood",
+                "log_posterior",
+                "hyperparameters",
+                "checks",
+                "jitter",
+                "transform",
+            )
+        },
+        "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        "warnings": model.get("warnings", []),
     }
 
 
