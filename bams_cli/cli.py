@@ -182,10 +182,20 @@ def init(
     force: Annotated[
         bool, typer.Option("--force", help="Overwrite an existing settings.toml.")
     ] = False,
+    exist_ok: Annotated[
+        bool,
+        typer.Option(
+            "--exist-ok",
+            help="Succeed without writing when settings.toml already holds these settings.",
+        ),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
     """Create a study workspace and its settings file.
+
+    --gamma (or --settings-from) is required. Re-running the same init with --exist-ok
+    changes nothing; with other settings it is an error naming them.
 
     [bold]Example[/]: bams-cli init -w study --gamma 0.56 --costs 1,0.1 --seed 0
     """
@@ -198,8 +208,16 @@ def init(
         dim=dim,
         settings_from=settings_from,
         force=force,
+        exist_ok=exist_ok,
         wait=wait,
     )
+    if summary.get("unchanged") and not json_out:
+        console.out.print(
+            f"{summary['settings']} already holds these settings; nothing changed",
+            markup=False,
+            highlight=False,
+        )
+        return
     _show(summary, json_out, "workspace created")
 
 
