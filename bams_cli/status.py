@@ -22,7 +22,7 @@ from typing import Any
 import polars as pl
 
 from bams_cli import defaults
-from bams_cli.errors import EXIT_OK, EXIT_PENDING, StaleStateError
+from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
 from bams_cli.settings import Settings
 from bams_cli.state import schemas
 from bams_cli.state.io import JOURNAL_NAME, read_metadata
@@ -142,7 +142,7 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
         return None
     try:
         model = ws.require_model(allow_newer_observations=True)
-    except StaleStateError as exc:  # damaged, another pool, or scores not from the last fit
+    except (StaleStateError, SchemaError) as exc:  # damaged, another pool, scores of another fit
         return {"fresh": False, "fitted_on": None, "fitted_at": None, "reason": str(exc)}
     fitted = int(sum(model.get("n_observations_per_level", [])))
     return {

@@ -197,3 +197,13 @@ def test_a_bad_input_exits_1(study, tmp_path):
     bad.write_text("segment_id,fidelity,value\nt000001,0,oops\n")
     r = invoke(study.runner, "ingest-results", "-w", study.ws, bad)
     assert r.exit_code == 1 and "bad.csv" in r.stderr
+
+
+def test_a_damaged_model_makes_fit_the_next_step(study, tmp_path):
+    copy = tmp_path / "ws"
+    shutil.copytree(study.ws, copy)
+    (copy / "model.json").write_text("{not json")
+    r = invoke(study.runner, "status", "-w", copy, "--json")
+    got = json.loads(r.stdout)
+    assert r.exit_code == 0 and got["next"]["step"] == "fit"
+    assert got["model"]["fresh"] is False and "damaged" in got["model"]["reason"]
