@@ -1,7 +1,8 @@
 """The ``bams-cli`` command line: parse flags, call one pipeline function, print.
 
 The only module that imports typer. Every command runs inside one boundary (``command``):
-errors the user can fix (``BamsError``) print as one line with exit code 1; anything else
+errors the user can fix (``BamsError``) print as one line with exit code 1 (3 when the
+command refuses because picks await results: ``PendingResultsError``); anything else
 (a damaged state file, a full disk, a bug) prints as one line too, with exit code 1, unless
 BAMS_DEBUG is set; warnings print as one line each. Transactions roll back on the way out,
 so a failed command leaves the workspace as it was.
@@ -24,6 +25,7 @@ import typer
 
 from bams_cli import __version__, console, defaults, pipeline
 from bams_cli.errors import BamsError
+from bams_cli.status import status as study_status
 
 app = typer.Typer(
     name="bams-cli",
@@ -32,7 +34,8 @@ app = typer.Typer(
         "with Bayesian adaptive multifidelity sampling (BAMS).\n\n"
         "Every step reads and writes Parquet state in a workspace folder:\n\n"
         "init -> embed-reduce -> select (random) -> \\[simulate] -> ingest-results -> fit -> "
-        "select -> ... -> estimate -> report"
+        "select -> ... -> estimate -> report\n\n"
+        "bams-cli status shows where a study stands and the command to run next."
     ),
     rich_markup_mode="rich",
     context_settings={"help_option_names": ["-h", "--help"]},
@@ -86,7 +89,8 @@ def _reflow(doc: str) -> str:
 
 
 def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable[..., None]]:
-    """Register a subcommand whose BamsErrors become one stderr line and exit code 1."""
+    """Register a subcommand whose BamsErrors become one stderr line and their exit code
+    (1; 3 for ``PendingResultsError``, waiting on results)."""
 
     def register(fn: Callable[..., None]) -> Callable[..., None]:
         @functools.wraps(fn)
@@ -97,7 +101,7 @@ def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable
                     fn(*args, **kwargs)
             except BamsError as exc:
                 console.error(str(exc))
-                raise typer.Exit(1) from None
+                raise typer.Exit(exc.exit_code) from None
             except (typer.Exit, typer.Abort, click.exceptions.ClickException):
                 raise
             except KeyboardInterrupt:
@@ -178,10 +182,20 @@ def init(
     force: Annotated[
         bool, typer.Option("--force", help="Overwrite an existing settings.toml.")
     ] = False,
+    exist_ok: Annotated[
+        bool,
+        typer.Option(
+            "--exist-ok",
+            help="Succeed without writing when settings.toml already holds these settings.",
+        ),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
     """Create a study workspace and its settings file.
+
+    --gamma (or --settings-from) is required. Re-running the same init with --exist-ok
+    changes nothing; with other settings it is an error naming them.
 
     [bold]Example[/]: bams-cli init -w study --gamma 0.56 --costs 1,0.1 --seed 0
     """
@@ -194,8 +208,16 @@ def init(
         dim=dim,
         settings_from=settings_from,
         force=force,
+        exist_ok=exist_ok,
         wait=wait,
     )
+    if summary.get("unchanged") and not json_out:
+        console.out.print(
+            f"{summary['settings']} already holds these settings; nothing changed",
+            markup=False,
+            highlight=False,
+        )
+        return
     _show(summary, json_out, "workspace created")
 
 
@@ -361,10 +383,17 @@ def fit(
             "whichever the data support best; none: the metric itself.",
         ),
     ] = defaults.TRANSFORM,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Fit again although the model is up to date."),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
     """Fit the multifidelity GP and score every segment's failure probability.
+
+    When the model was already fitted the same way on the current observation log, fit
+    says so and changes nothing (--force fits again).
 
     [bold]Example[/]: bams-cli fit -w study
     """
@@ -375,11 +404,15 @@ def fit(
             restarts=restarts,
             chunk_size=chunk_size,
             transform=transform,
+            force=force,
             wait=wait,
             progress=bar,
         )
     if json_out:
         console.print_json(summary)
+        return
+    if summary.get("up_to_date"):
+        console.out.print(summary["message"], markup=False, highlight=False)
         return
     console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
     skip = ("hyperparameters", "warnings", "checks", "transform")
@@ -405,7 +438,7 @@ def select(
         typer.Option(
             "--budget", "-m", help="Batch budget m in cost units (a level-0 run costs 1)."
         ),
-    ] = 5.0,
+    ] = defaults.BUDGET,
     clusters: Annotated[
         int, typer.Option("--clusters", "-S", help="Clusters S (1: no clustering).")
     ] = 6,
@@ -617,6 +650,29 @@ def report(
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
     _show(summary, json_out, "report")
+
+
+@command()
+def status(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    json_out: Json = False,
+) -> None:
+    """Show where the study stands and the exact command to run next.
+
+    Batches and estimate plans with the picks still awaiting results, whether the model
+    was fitted on the current observation log, the latest estimate. Reads only: it takes
+    no lock. Exit code 0, or 3 while picks await results (simulate the hand-off list and
+    ingest it).
+
+    [bold]Example[/]: bams-cli status -w study
+    """
+    summary = study_status(workspace)
+    if json_out:
+        console.print_json(summary)
+    else:
+        console.study_status(summary)
+    if summary["exit_code"]:
+        raise typer.Exit(summary["exit_code"])
 
 
 @command()

@@ -106,6 +106,60 @@ def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None 
             )
 
 
+def study_status(s: Mapping[str, Any]) -> None:
+    """``bams-cli status``: batches, plans, model, latest estimate, then the next command."""
+    pool = "no pool yet" if s["pool_size"] is None else f"{s['pool_size']} segments"
+    out.print(
+        f"study {s['workspace']}: {pool}, levels {', '.join(s['levels'])}, "
+        f"gammas {', '.join(f'{g:g}' for g in s['gammas'])}, {s['observations']} results",
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
+    )
+    if s["batches"]:
+        rows_table(
+            "batches",
+            ["batch", "strategy", "picks", "cost", "pending", "hand-off"],
+            [
+                [b["batch"], b["strategy"], b["picks"], b["cost"], b["pending"], b["handoff"]]
+                for b in s["batches"]
+            ],
+        )
+    if s["plans"]:
+        rows_table(
+            "estimate plans",
+            ["plan", "sampled", "pending", "hand-off", "estimate"],
+            [
+                [p["plan"], p["sampled"], p["pending"], p["handoff"], p["estimate"] or "-"]
+                for p in s["plans"]
+            ],
+        )
+    m = s["model"]
+    if m is None:
+        text = "none yet"
+    elif m["fresh"]:
+        text = f"up to date (fitted on {m['fitted_on']} results at {m['fitted_at']})"
+    else:
+        text = f"stale: {m['reason']}"
+    out.print(f"model: {text}", markup=False, highlight=False, soft_wrap=True)
+    e = s["latest_estimate"]
+    if e is not None:
+        for row in e["estimates"]:
+            out.print(
+                f"estimate (plan {e['plan']}): gamma {row['gamma']:g}: p_hat {row['p_hat']:.4g}, "
+                f"{round(100 * row['confidence'])}% interval [{row['ci_low']:.4g}, "
+                f"{row['ci_high']:.4g}]",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
+    if s["commit_in_progress"]:
+        note(
+            "note: a command's commit is in progress or was interrupted; the next command completes it"
+        )
+    out.print(Text.assemble(("next: ", "bold"), s["next"]["text"]), soft_wrap=True)
+
+
 @contextmanager
 def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] | None]:
     """A ``progress(phase, done, total)`` callback drawing one rich bar per phase."""

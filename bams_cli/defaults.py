@@ -13,3 +13,7 @@ CONFIRM_SHARE = 0.2
 #: Output transform of ``fit``: "auto" chooses by evidence between the metric itself and
 #: asinh compressions of it far from gamma (``core.gp.transform``); "none" keeps the metric.
 TRANSFORM = "auto"
+
+#: Budget of ``select`` in cost units (a level-0 run costs 1), and of the first batch that
+#: ``status`` suggests.
+BUDGET = 5.0

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+#: Exit codes, documented in the README: 0 done, 1 error, 2 usage (click's own, for an
+#: unknown option or a malformed value), 3 waiting on results (``PendingResultsError``,
+#: and ``bams-cli status`` while picks await results).
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PENDING = 0, 1, 2, 3
+
 
 class BamsError(Exception):
     """Base class: a problem the user can fix; printed as one line, exit code 1."""
+
+    exit_code: int = EXIT_ERROR
 
 
 class InputError(BamsError):
@@ -46,8 +53,10 @@ class StaleStateError(WorkspaceError):
     """A derived state file (model, scores) is older than what it was derived from."""
 
 
-class PendingBatchError(WorkspaceError):
-    """A selected batch has not been ingested yet."""
+class PendingResultsError(WorkspaceError):
+    """Selected picks (a batch, an estimate plan) await results; exit code 3, not an error."""
+
+    exit_code = EXIT_PENDING
 
 
 class SettingsError(BamsError):

@@ -30,7 +30,10 @@ from bams_cli.errors import (
     ConflictError,
     DuplicateError,
     InputError,
+    OptionError,
+    PendingResultsError,
     SchemaError,
+    SettingsError,
     StaleStateError,
     WorkspaceError,
 )
@@ -49,6 +52,7 @@ from bams_cli.state.io import (
 )
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
+from bams_cli.status import pending_handoffs
 
 Progress = Callable[[str, int, int], None]
 SID = schemas.SEGMENT_ID
@@ -91,14 +95,27 @@ def init(
     dim: int | None = None,
     settings_from: Path | None = None,
     force: bool = False,
+    exist_ok: bool = False,
     wait: bool = False,
 ) -> dict[str, Any]:
     """Create a workspace and its settings file (flags > --settings-from file > defaults).
 
-    The settings are built (and checked) first, so bad flags create nothing; whether the
-    workspace exists is checked holding the lock, so of two concurrent inits one creates
-    it and the other finds it there.
+    A failure threshold is required: ``gammas`` or a ``settings_from`` file. The settings
+    are built (and checked) first, so bad flags create nothing; whether the workspace
+    exists is checked holding the lock, so of two concurrent inits one creates it and the
+    other finds it there. With ``exist_ok`` an existing settings file holding exactly the
+    requested settings is kept (``unchanged`` in the summary); one holding others is an
+    error naming the differences.
     """
+    if force and exist_ok:
+        raise OptionError(
+            "init: --force overwrites settings.toml and --exist-ok keeps it; pass one of them"
+        )
+    if not gammas and settings_from is None:
+        raise OptionError(
+            "init: no failure threshold given; pass --gamma (e.g. --gamma 0.5, comma-separated "
+            "for several) or --settings-from FILE"
+        )
     if Path(root).exists() and not Path(root).is_dir():
         raise WorkspaceError(f"{root}: is a file; a workspace is a folder, choose another -w")
     ws = Workspace(root)
@@ -112,9 +129,24 @@ def init(
         gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
     )
     with workspace_lock(root, wait=wait), transaction() as tx:
+        if ws.settings_path.exists() and exist_ok:
+            differences = _settings_differences(Settings.from_file(ws.settings_path), settings)
+            if differences:
+                raise SettingsError(
+                    f"{ws.settings_path}: already exists with other settings "
+                    f"({'; '.join(differences)}); pass the same flags as before, or --force "
+                    "to overwrite it"
+                )
+            return {
+                "workspace": str(root),
+                "settings": str(ws.settings_path),
+                "unchanged": True,
+                **_settings_summary(settings),
+            }
         if ws.settings_path.exists() and not force:
             raise WorkspaceError(
-                f"{ws.settings_path}: already exists; edit it, or pass --force to overwrite it"
+                f"{ws.settings_path}: already exists; edit it, pass --force to overwrite it, "
+                "or --exist-ok to keep it when it holds these settings"
             )
         tx.write_text(ws.settings_path, settings.to_toml())
     return {
@@ -122,6 +154,27 @@ def init(
         "settings": str(ws.settings_path),
         **_settings_summary(settings),
     }
+
+
+def _settings_differences(existing: Settings, requested: Settings) -> list[str]:
+    """Each setting that differs, as "name: X in the file, Y requested"."""
+
+    def levels(s: Settings) -> str:
+        return ", ".join(f"{lv.name} {lv.cost:g}" for lv in s.levels)
+
+    shown = {
+        "gammas": lambda s: ", ".join(f"{g:g}" for g in s.gammas),
+        "levels (costs)": levels,
+        "seed": lambda s: str(s.seed),
+        "embedding_dim": lambda s: str(s.embedding_dim),
+        "id_column": lambda s: s.id_column,
+        "extra": lambda s: json.dumps(s.extra, sort_keys=True),
+    }
+    return [
+        f"{name}: {show(existing)} in the file, {show(requested)} requested"
+        for name, show in shown.items()
+        if show(existing) != show(requested)
+    ]
 
 
 def _settings_summary(s: Settings) -> dict[str, Any]:
@@ -750,6 +803,13 @@ def _training_data(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Active observations as (pool index, level, value) arrays."""
     obs = ws.read_observations()
+    pend = ws.pending() if obs.height == 0 else None
+    if pend is not None and pend.height:
+        raise PendingResultsError(
+            f"{ws.observations_path}: no observations yet, {pend.height} picks await results; "
+            f"simulate {' and '.join(pending_handoffs(ws, pend))} and run "
+            f"`bams-cli ingest-results -w {ws.root} RESULTS.parquet`, then fit"
+        )
     if obs.height == 0:
         raise WorkspaceError(
             f"{ws.observations_path}: no observations yet; select a first batch "
@@ -808,6 +868,7 @@ def fit(
     restarts: int = 8,
     chunk_size: int = 50_000,
     transform: str = defaults.TRANSFORM,
+    force: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Train the multifidelity GP on the observation log and score every pool segment.
@@ -815,6 +876,9 @@ def fit(
     ``transform`` is "auto" (model g(y) = c + s asinh((y - c)/s), c the first gamma, with
     s chosen by evidence among the identity and a few scales: ``core.gp.transform``) or
     "none". With ``fixed_hyperparameters`` the file's own transform is used.
+
+    A model already fitted the same way on the same log is kept, and nothing is written
+    (``up_to_date`` in the summary; ``_fit_up_to_date``), unless ``force``.
     """
     from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
     from bams_cli.core.gp.checks import check_model
@@ -826,6 +890,10 @@ def fit(
     chosen = None if transform == "auto" else OutputTransform()
     ws = Workspace(root)
     settings = ws.require_initialised()
+    if not force and fixed_hyperparameters is None:
+        kept = _fit_up_to_date(ws, settings, restarts=restarts, transform=transform)
+        if kept is not None:
+            return kept
     ids, X = ws.read_pool()
     idx, lv, y = _training_data(ws, ids, X)
     fixed = None
@@ -893,6 +961,7 @@ def fit(
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "jitter": float(model.jitter),
         "transform": g.to_dict(),
+        "transform_option": transform,
         "transform_evidence": [
             {
                 "scale": None if math.isinf(e["scale"]) else e["scale"],
@@ -935,6 +1004,61 @@ def fit(
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,
+    }
+
+
+def _fit_up_to_date(
+    ws: Workspace, settings: Settings, *, restarts: int, transform: str
+) -> dict[str, Any] | None:
+    """The summary of the model in ``model.json`` if fitting now would redo it, else None.
+
+    Redoing it means: trained (not ``--fixed-hyperparameters``) on the current observation
+    log and pool, with scores from that fit (``Workspace.require_model``), for the same
+    gammas, seed and number of levels, with the same ``--restarts`` and ``--transform``.
+    ``--chunk-size`` only bounds memory, so it does not count.
+    """
+    if not ws.model_path.exists() or not ws.segments_path.exists():
+        return None
+    try:
+        model = ws.require_model(allow_newer_observations=True)
+    except (StaleStateError, SchemaError):  # damaged, another pool, scores from another fit
+        return None
+    n_obs = model.get("n_observations_per_level")
+    same = (
+        model["fresh"]
+        and model.get("trained") is True
+        and model.get("restarts") == restarts
+        and model.get("transform_option") == transform
+        and model.get("gammas") == list(settings.gammas)
+        and model.get("seed") == settings.seed
+        and isinstance(n_obs, list)
+        and len(n_obs) == settings.n_levels
+    )
+    if not same:
+        return None
+    _, _, _, p = _read_scores(ws, len(settings.gammas))
+    n = int(sum(n_obs))
+    return {
+        "up_to_date": True,
+        "message": f"model is up to date (fitted on {n} observations); nothing to do "
+        f"(pass --force to fit again)",
+        "model": str(ws.model_path),
+        "scores": str(ws.scores_path),
+        "observations": n,
+        **{
+            k: model.get(k)
+            for k in (
+                "n_observations_per_level",
+                "log_marginal_likelihood",
+                "log_posterior",
+                "hyperparameters",
+                "checks",
+                "jitter",
+                "transform",
+            )
+        },
+        "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        "warnings": model.get("warnings", []),
     }
 
 
@@ -1062,7 +1186,7 @@ def select(
     if pend.height and not allow_pending:
         where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
         where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
-        raise WorkspaceError(
+        raise PendingResultsError(
             f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
             f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
         )
@@ -1424,7 +1548,7 @@ def estimate_compute(
     missing = joined.filter(pl.col("value").is_null())
     if missing.height:
         names = ", ".join(missing[SID].head(3).to_list())
-        raise WorkspaceError(
+        raise PendingResultsError(
             f"{path}: {missing.height} planned segments have no level-0 result ({names}"
             f"{', ...' if missing.height > 3 else ''}); simulate "
             f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"

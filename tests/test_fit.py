@@ -197,3 +197,37 @@ def test_fit_transform_none_models_the_metric_itself(fitted_ws, runner):
     assert doc["transform"] == {"kind": "identity"} and len(doc["transform_evidence"]) == 1
     r = invoke(runner, "fit", "-w", fitted_ws, "--transform", "log")
     assert r.exit_code != 0 and "--transform 'log': choose one of auto, none" in r.stderr
+
+
+def test_fit_is_a_no_op_when_the_model_is_up_to_date(fitted_ws, runner):
+    ws = Workspace(fitted_ws)
+    before, mtime = tree_hash(fitted_ws), ws.model_path.stat().st_mtime_ns
+    r = invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2")
+    assert r.exit_code == 0
+    assert "model is up to date (fitted on 20 observations); nothing to do" in r.stdout
+    assert tree_hash(fitted_ws) == before and ws.model_path.stat().st_mtime_ns == mtime
+    summary = json.loads(invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2", "--json").stdout)
+    model = json.loads(ws.model_path.read_text())
+    assert summary["up_to_date"] is True and summary["observations"] == 20
+    assert summary["hyperparameters"] == model["hyperparameters"]
+    assert tree_hash(fitted_ws) == before
+
+
+def test_fit_force_and_other_options_fit_again(fitted_ws, runner):
+    ws = Workspace(fitted_ws)
+    mtime = ws.model_path.stat().st_mtime_ns
+    r = invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2", "--force")
+    assert r.exit_code == 0 and "up to date" not in r.stdout
+    assert ws.model_path.stat().st_mtime_ns > mtime
+    # the default fit (8 restarts) is another fit than --restarts 2; then it is up to date
+    r = invoke(runner, "fit", "-w", fitted_ws)
+    assert r.exit_code == 0 and "up to date" not in r.stdout
+    assert json.loads(ws.model_path.read_text())["restarts"] == 8
+    r = invoke(runner, "fit", "-w", fitted_ws)
+    assert r.exit_code == 0 and "model is up to date" in r.stdout
+    # edited settings (another gamma) ask for other scores
+    text = ws.settings_path.read_text().replace("0.56", "0.5")
+    ws.settings_path.write_text(text)
+    r = invoke(runner, "fit", "-w", fitted_ws, "--json")
+    assert r.exit_code == 0 and "up_to_date" not in json.loads(r.stdout)
+    assert json.loads(ws.model_path.read_text())["gammas"] == [0.5]

@@ -246,7 +246,7 @@ def test_pending_batch_blocks_select(loop_ws, tmp_path):
     ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
     before = tree_hash(copy)
     r = invoke(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
-    assert r.exit_code == 1 and "have no results yet" in r.stderr and "--allow-pending" in r.stderr
+    assert r.exit_code == 3 and "have no results yet" in r.stderr and "--allow-pending" in r.stderr
     assert tree_hash(copy) == before
     ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2", "--allow-pending")
 
@@ -262,7 +262,7 @@ def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
     ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40")
     before = tree_hash(copy)
     r = invoke(runner, "estimate", "-w", copy)
-    assert r.exit_code == 1 and "planned segments have no level-0 result" in r.stderr
+    assert r.exit_code == 3 and "planned segments have no level-0 result" in r.stderr
     assert tree_hash(copy) == before
 
 

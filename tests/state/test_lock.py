@@ -354,7 +354,18 @@ def test_concurrent_inits_one_wins_the_rest_fail(tmp_path):
     waits = [False, True, False, True]
     procs = [
         subprocess.Popen(
-            [sys.executable, "-c", INIT, str(go), "-w", str(ws), "--seed", str(seed)]
+            [
+                sys.executable,
+                "-c",
+                INIT,
+                str(go),
+                "-w",
+                str(ws),
+                "--seed",
+                str(seed),
+                "--gamma",
+                "0.5",
+            ]
             + ["--wait"] * wait,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -371,7 +382,7 @@ def test_concurrent_inits_one_wins_the_rest_fail(tmp_path):
     for (code, _, err), wait in zip(results, waits, strict=True):
         if code != 0:
             assert code == 1 and err.count("\n") == 1, err
-            assert "settings.toml: already exists; edit it, or pass --force" in err or (
+            assert "settings.toml: already exists; edit it, pass --force" in err or (
                 not wait and "locked by pid" in err
             ), err
     settings = tomllib.loads((ws / "settings.toml").read_text())

@@ -1,0 +1,259 @@
+"""``bams-cli status``: where a study stands and the one command to run next.
+
+Pure reading: batches and estimate plans with the picks still awaiting results, whether the
+model was fitted on the current observation log, the latest estimate. It takes no lock and
+writes nothing, so it runs beside any other command; run during another command's commit,
+it shows the state just before or just after it.
+
+The next step follows the loop: a pool (``embed-reduce``), a first batch (``select
+--strategy random``), its results (``ingest-results``), a model of them (``fit``), the next
+batch (``select``) ... Once an estimate plan is newer than the newest batch the study is
+estimating: results for the plan, ``estimate``, a ``fit`` that includes them, ``report``;
+then nothing is left to do.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from bams_cli import defaults
+from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
+from bams_cli.settings import Settings
+from bams_cli.state import schemas
+from bams_cli.state.io import JOURNAL_NAME, read_metadata
+from bams_cli.state.workspace import Workspace
+
+#: Version of the ``status --json`` object; bump it when a key changes meaning or goes away.
+STATUS_SCHEMA_VERSION = 1
+
+SID = schemas.SEGMENT_ID
+
+
+def batch_handoff(ws: Workspace, n: int) -> Path:
+    """The CSV hand-off list of batch ``n``."""
+    return schemas.batch_path(ws.root, n).with_suffix(".csv")
+
+
+def plan_handoff(ws: Workspace, k: int) -> Path:
+    """The CSV hand-off list of estimate plan ``k``."""
+    return ws.estimates_dir / f"plan-{k:04d}-handoff.csv"
+
+
+def pending_handoffs(ws: Workspace, pending: pl.DataFrame) -> list[str]:
+    """The hand-off lists that ``Workspace.pending()`` picks came from, batches first."""
+    batches = sorted(set(pending["batch"].drop_nulls().to_list()))
+    plans = sorted(set(pending["plan"].drop_nulls().to_list()))
+    return [str(batch_handoff(ws, b)) for b in batches] + [str(plan_handoff(ws, k)) for k in plans]
+
+
+def status(root: Path) -> dict[str, Any]:
+    """Where the study in ``root`` stands, and the next command (``next``) to run.
+
+    ``exit_code`` is 3 (waiting on results) when a batch or plan has picks without
+    results, else 0.
+    """
+    ws = Workspace(Path(root))
+    settings = ws.require_initialised()
+    has_pool = ws.segments_path.exists()
+    obs = ws.read_observations()
+    observed = obs.select(SID, "fidelity").unique()
+    batches = _batches(ws, observed)
+    plans = _plans(ws, observed)
+    model = _model(ws, obs) if has_pool else None
+    latest = _latest_estimate(ws)
+    step = _next_step(ws, settings, has_pool, batches, plans, model)
+    waiting = step["step"] == "ingest-results"
+    return {
+        "schema_version": STATUS_SCHEMA_VERSION,
+        "workspace": str(ws.root),
+        "gammas": list(settings.gammas),
+        "levels": [lv.name for lv in settings.levels],
+        "pool_size": ws.read_segments([SID]).num_rows if has_pool else None,
+        "observations": obs.height,
+        "observations_per_level": [
+            int((obs["fidelity"] == lv).sum()) for lv in range(settings.n_levels)
+        ],
+        "batches": batches,
+        "plans": plans,
+        "pending": sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans),
+        "model": model,
+        "latest_estimate": latest,
+        "commit_in_progress": (ws.root / JOURNAL_NAME).exists(),
+        "waiting_on_results": waiting,
+        "next": step,
+        "exit_code": EXIT_PENDING if waiting else EXIT_OK,
+    }
+
+
+def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
+    out = []
+    for n in ws.batch_numbers():
+        df = ws.read_batch(n)
+        pending = df.join(observed, on=[SID, "fidelity"], how="anti").height
+        options = _json(read_metadata(schemas.batch_path(ws.root, n)).get("options"))
+        out.append(
+            {
+                "batch": n,
+                "strategy": df["strategy"][0] if df.height else None,
+                "picks": df.height,
+                "cost": float(df["cost"].sum()),
+                "budget": options.get("budget") if isinstance(options, dict) else None,
+                "pending": pending,
+                "handoff": str(batch_handoff(ws, n)),
+            }
+        )
+    return out
+
+
+def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
+    picks = ws.read_plan_picks()
+    level0 = observed.filter(pl.col("fidelity") == 0).select(SID)
+    out = []
+    for k in _plan_numbers(ws):
+        sampled = picks.filter(pl.col("plan") == k).select(SID)
+        estimate = ws.estimates_dir / f"estimate-{k:04d}.json"
+        out.append(
+            {
+                "plan": k,
+                "sampled": sampled.height,
+                "pending": sampled.join(level0, on=SID, how="anti").height,
+                "handoff": str(plan_handoff(ws, k)),
+                "estimate": str(estimate) if estimate.exists() else None,
+            }
+        )
+    return out
+
+
+def _plan_numbers(ws: Workspace) -> list[int]:
+    if not ws.estimates_dir.is_dir():
+        return []
+    stems = (p.stem[len("plan-") :] for p in ws.estimates_dir.glob("plan-*.parquet"))
+    return sorted(int(s) for s in stems if s.isdigit())
+
+
+def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
+    """Whether ``model.json`` was fitted on the current log and pool, as ``select`` decides."""
+    if not ws.model_path.exists():
+        return None
+    try:
+        model = ws.require_model(allow_newer_observations=True)
+    except (StaleStateError, SchemaError) as exc:  # damaged, another pool, scores of another fit
+        return {"fresh": False, "fitted_on": None, "fitted_at": None, "reason": str(exc)}
+    fitted = int(sum(model.get("n_observations_per_level", [])))
+    return {
+        "fresh": bool(model["fresh"]),
+        "fitted_on": fitted,
+        "fitted_at": model.get("fitted_at"),
+        "reason": None
+        if model["fresh"]
+        else f"the observation log changed after the last fit (fitted on {fitted} results, "
+        f"the log now holds {obs.height})",
+    }
+
+
+def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
+    files = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
+    if not files:
+        return None
+    path = files[-1]
+    doc = _json(path.read_text())
+    if not isinstance(doc, dict) or not isinstance(doc.get("estimates"), list):
+        k = int(path.stem[len("estimate-") :])
+        raise StaleStateError(
+            f"{path}: damaged (not an estimate written by estimate); run "
+            f"`bams-cli estimate -w {shlex.quote(str(ws.root))} --plan-number {k}` to write it again"
+        )
+    keys = ("gamma", "p_hat", "se", "ci_low", "ci_high", "confidence")
+    return {
+        "plan": doc.get("plan"),
+        "file": str(path),
+        "estimates": [{k: e.get(k) for k in keys} for e in doc["estimates"]],
+    }
+
+
+def _next_step(
+    ws: Workspace,
+    settings: Settings,
+    has_pool: bool,
+    batches: list[dict[str, Any]],
+    plans: list[dict[str, Any]],
+    model: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The step the loop needs next: ``step`` (a command name, or "done"), the exact
+    ``command``, and ``text`` saying why, for a person."""
+    w = shlex.quote(str(ws.root))
+
+    def step(name: str, command: str | None, text: str, **extra: Any) -> dict[str, Any]:
+        return {"step": name, "command": command, "text": text, **extra}
+
+    if not has_pool:
+        cmd = f"bams-cli embed-reduce -w {w} SEGMENTS.parquet"
+        return step("embed-reduce", cmd, f"no segment pool yet: run `{cmd}`")
+    waiting = [b["handoff"] for b in batches if b["pending"]]
+    waiting += [p["handoff"] for p in plans if p["pending"]]
+    if waiting:
+        cmd = f"bams-cli ingest-results -w {w} RESULTS.parquet"
+        n = sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans)
+        return step(
+            "ingest-results",
+            cmd,
+            f"{n} picks await results: simulate {' and '.join(waiting)} and run `{cmd}` "
+            "(RESULTS.parquet: the results file, Parquet or CSV)",
+            handoffs=waiting,
+        )
+    fit = f"bams-cli fit -w {w}"
+    stale = model is None or not model["fresh"]
+    why_fit = "no model yet" if model is None else f"the model is stale: {model['reason']}"
+    if not batches and not plans:
+        mixed = " --mixed-fidelity" if settings.n_levels > 1 else ""
+        cmd = f"bams-cli select -w {w} --strategy random{mixed} --budget {defaults.BUDGET:g}"
+        return step("select", cmd, f"no batch yet: run `{cmd}` for a random first batch")
+    if plans and _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet"):
+        k = plans[-1]["plan"]
+        if plans[-1]["estimate"] is None:
+            cmd = f"bams-cli estimate -w {w}"
+            return step("estimate", cmd, f"estimate plan {k} has all its results: run `{cmd}`")
+        if stale:
+            return step("fit", fit, f"{why_fit}; run `{fit}` so the report shows the current model")
+        report = ws.report_dir / "summary.json"
+        if _mtime(report) < max(_mtime(Path(plans[-1]["estimate"])), _mtime(ws.model_path)):
+            cmd = f"bams-cli report -w {w}"
+            return step("report", cmd, f"plan {k}'s estimate is computed: run `{cmd}`")
+        return step(
+            "done",
+            None,
+            f"nothing to do: plan {k}'s estimate is computed and reported; for more, "
+            f"`bams-cli select -w {w}` (discovery) or `bams-cli estimate -w {w} --plan` "
+            "(a new sample)",
+        )
+    if stale:
+        return step("fit", fit, f"{why_fit}; run `{fit}`")
+    budget = batches[-1]["budget"] or defaults.BUDGET
+    cmd = f"bams-cli select -w {w} --budget {budget:g}"
+    return step(
+        "select",
+        cmd,
+        f"the model is up to date: run `{cmd}` for the next batch, or, when discovery is "
+        f"done, `bams-cli estimate -w {w} --plan`",
+    )
+
+
+def _mtime(path: Path) -> int:
+    return path.stat().st_mtime_ns if path.exists() else -1
+
+
+def _newest(ws: Workspace, pattern: str) -> int:
+    """Modification time of the newest file matching ``pattern``: which came last."""
+    return max((_mtime(p) for p in ws.root.glob(pattern)), default=-1)
+
+
+def _json(text: str | None) -> Any:
+    try:
+        return json.loads(text) if text is not None else None
+    except ValueError:
+        return None

@@ -1,0 +1,209 @@
+"""status: where a study stands and the next command, at every stage of the loop; the
+documented exit codes (0 done, 1 error, 2 usage, 3 waiting on results)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from tests.conftest import invoke, ok, tree_hash, write_toy
+
+
+class Study:
+    """Runs the loop on a small toy2d pool and keeps `status --json` (and its exit code,
+    and the human output) after each stage."""
+
+    def __init__(self, tmp: Path):
+        self.runner = CliRunner()
+        self.tmp = tmp
+        self.seg, self.truth = write_toy(tmp / "data", n=400, seed=1)
+        self.ws = tmp / "ws"
+        self.stages: dict[str, dict] = {}
+        self.copies: dict[str, Path] = {}
+
+    def run(self, *args: object):
+        return ok(self.runner, *args)
+
+    def ingest(self, handoff: Path) -> None:
+        res = self.tmp / f"res-{handoff.stem}.parquet"
+        self.run("simulate", handoff, "--truth", self.truth, "-o", res)
+        self.run("ingest-results", "-w", self.ws, res)
+
+    def status(self, stage: str, *, keep: bool = False) -> None:
+        r = invoke(self.runner, "status", "-w", self.ws, "--json")
+        human = invoke(self.runner, "status", "-w", self.ws)
+        assert human.exit_code == r.exit_code
+        self.stages[stage] = {
+            "code": r.exit_code,
+            "json": json.loads(r.stdout),
+            "text": human.stdout,
+        }
+        if keep:  # a copy of the workspace at this stage, for refusals tested later
+            self.copies[stage] = self.tmp / stage.replace(" ", "-")
+            shutil.copytree(self.ws, self.copies[stage])
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory) -> Study:
+    s = Study(tmp_path_factory.mktemp("status"))
+    ws = s.ws
+    s.run("init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2", "--seed", "2")
+    s.status("initialised")
+    s.run("embed-reduce", "-w", ws, s.seg, "--columns", "x*", "--method", "identity",
+          "--no-standardize")  # fmt: skip
+    s.status("pool")
+    s.run("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "8")
+    s.status("batch 1 pending", keep=True)
+    s.ingest(ws / "batches" / "batch-0001.parquet")
+    s.status("batch 1 in")
+    s.run("fit", "-w", ws, "--restarts", "1")
+    s.status("fitted")
+    s.run("select", "-w", ws, "--budget", "2", "--clusters", "1", "--workers", "1")
+    s.status("batch 2 pending")
+    s.ingest(ws / "batches" / "batch-0002.parquet")
+    s.status("batch 2 in")
+    s.run("fit", "-w", ws, "--restarts", "1")
+    s.status("refitted")
+    s.run("estimate", "-w", ws, "--plan", "--samples", "20")
+    s.status("plan pending", keep=True)
+    s.ingest(ws / "estimates" / "plan-0001-handoff.csv")
+    s.status("plan in")
+    s.run("estimate", "-w", ws)
+    s.status("estimated")
+    s.run("fit", "-w", ws, "--restarts", "1")
+    s.status("estimated, fitted")
+    s.run("report", "-w", ws)
+    s.status("done")
+    return s
+
+
+# stage -> exit code, the next step, and a piece of the command it names
+NEXT = {
+    "initialised": (0, "embed-reduce", "bams-cli embed-reduce -w {ws} SEGMENTS.parquet"),
+    "pool": (0, "select", "bams-cli select -w {ws} --strategy random --mixed-fidelity --budget 5"),
+    "batch 1 pending": (3, "ingest-results", "bams-cli ingest-results -w {ws} RESULTS.parquet"),
+    "batch 1 in": (0, "fit", "bams-cli fit -w {ws}"),
+    "fitted": (0, "select", "bams-cli select -w {ws} --budget 8"),
+    "batch 2 pending": (3, "ingest-results", "bams-cli ingest-results -w {ws} RESULTS.parquet"),
+    "batch 2 in": (0, "fit", "bams-cli fit -w {ws}"),
+    "refitted": (0, "select", "bams-cli select -w {ws} --budget 2"),
+    "plan pending": (3, "ingest-results", "bams-cli ingest-results -w {ws} RESULTS.parquet"),
+    "plan in": (0, "estimate", "bams-cli estimate -w {ws}"),
+    "estimated": (0, "fit", "bams-cli fit -w {ws}"),
+    "estimated, fitted": (0, "report", "bams-cli report -w {ws}"),
+    "done": (0, "done", None),
+}
+
+
+@pytest.mark.parametrize("stage", list(NEXT))
+def test_status_names_the_next_command_at_every_stage(study, stage):
+    code, step, command = NEXT[stage]
+    got = study.stages[stage]
+    assert got["code"] == code == got["json"]["exit_code"]
+    assert got["json"]["schema_version"] == 1
+    assert got["json"]["next"]["step"] == step
+    assert got["json"]["waiting_on_results"] is (code == 3)
+    if command is None:
+        assert got["json"]["next"]["command"] is None
+        assert "nothing to do" in got["text"]
+    else:
+        assert got["json"]["next"]["command"] == command.format(ws=study.ws)
+        assert command.format(ws=study.ws) in got["text"].replace("\n", " ")
+
+
+@pytest.mark.parametrize(
+    ("stage", "handoff"),
+    [
+        ("batch 1 pending", "batches/batch-0001.csv"),
+        ("batch 2 pending", "batches/batch-0002.csv"),
+        ("plan pending", "estimates/plan-0001-handoff.csv"),
+    ],
+)
+def test_pending_picks_name_their_hand_off_list(study, stage, handoff):
+    got = study.stages[stage]["json"]
+    assert got["next"]["handoffs"] == [str(study.ws / handoff)]
+    assert f"simulate {study.ws / handoff} and run" in study.stages[stage]["text"]
+    rows = got["plans"] if "plan" in stage else got["batches"]
+    assert rows[-1]["pending"] == got["pending"] > 0
+    assert all(r["pending"] == 0 for r in rows[:-1])
+
+
+def test_status_reports_batches_plans_model_and_estimate(study):
+    fresh = study.stages["fitted"]["json"]
+    assert fresh["model"]["fresh"] is True and fresh["model"]["fitted_on"] == fresh["observations"]
+    assert [b["budget"] for b in fresh["batches"]] == [8.0]
+    stale = study.stages["batch 2 in"]["json"]
+    assert (
+        stale["model"]["fresh"] is False
+        and "changed after the last fit" in stale["model"]["reason"]
+    )
+    assert "model: stale" in study.stages["batch 2 in"]["text"]
+    assert study.stages["plan in"]["json"]["plans"][0]["estimate"] is None
+    done = study.stages["done"]["json"]
+    assert done["plans"][0]["estimate"] == str(study.ws / "estimates" / "estimate-0001.json")
+    est = done["latest_estimate"]
+    assert est["plan"] == 1 and est["estimates"][0]["gamma"] == 0.56
+    assert (
+        est["estimates"][0]["ci_low"]
+        <= est["estimates"][0]["p_hat"]
+        <= est["estimates"][0]["ci_high"]
+    )
+    assert study.stages["initialised"]["json"]["model"] is None
+    assert study.stages["initialised"]["json"]["pool_size"] is None
+    assert done["pool_size"] == 400 and done["pending"] == 0
+
+
+def test_status_reads_only(study, tmp_path):
+    copy = tmp_path / "ws"
+    shutil.copytree(study.copies["batch 1 pending"], copy)
+    lock = copy / ".bams.lock"
+    before, lock_before = tree_hash(copy), lock.stat().st_mtime_ns
+    assert invoke(study.runner, "status", "-w", copy).exit_code == 3
+    assert tree_hash(copy) == before and lock.stat().st_mtime_ns == lock_before
+
+
+@pytest.mark.parametrize(
+    ("stage", "args", "needle"),
+    [
+        ("batch 1 pending", ["select", "--strategy", "random", "--budget", "2"], "--allow-pending"),
+        ("batch 1 pending", ["fit", "--restarts", "1"], "batch-0001.csv"),
+        ("plan pending", ["select", "--budget", "2", "--clusters", "1"], "estimate plan 1"),
+        ("plan pending", ["estimate"], "planned segments have no level-0 result"),
+    ],
+)
+def test_commands_refusing_for_pending_results_exit_3(study, tmp_path, stage, args, needle):
+    copy = tmp_path / "ws"
+    shutil.copytree(study.copies[stage], copy)
+    before = tree_hash(copy)
+    r = invoke(study.runner, args[0], "-w", copy, *args[1:])
+    assert r.exit_code == 3 and needle in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert tree_hash(copy) == before
+
+
+def test_a_usage_error_exits_2(study):
+    r = invoke(study.runner, "status", "-w", study.ws, "--no-such-flag")
+    assert r.exit_code == 2 and "No such option" in r.output
+    assert invoke(study.runner, "select", "-w", study.ws, "--budget", "lots").exit_code == 2
+
+
+def test_a_bad_input_exits_1(study, tmp_path):
+    r = invoke(study.runner, "status", "-w", tmp_path / "nowhere")
+    assert r.exit_code == 1 and "no such workspace" in r.stderr
+    bad = tmp_path / "bad.csv"
+    bad.write_text("segment_id,fidelity,value\nt000001,0,oops\n")
+    r = invoke(study.runner, "ingest-results", "-w", study.ws, bad)
+    assert r.exit_code == 1 and "bad.csv" in r.stderr
+
+
+def test_a_damaged_model_makes_fit_the_next_step(study, tmp_path):
+    copy = tmp_path / "ws"
+    shutil.copytree(study.ws, copy)
+    (copy / "model.json").write_text("{not json")
+    r = invoke(study.runner, "status", "-w", copy, "--json")
+    got = json.loads(r.stdout)
+    assert r.exit_code == 0 and got["next"]["step"] == "fit"
+    assert got["model"]["fresh"] is False and "damaged" in got["model"]["reason"]
