@@ -509,11 +509,11 @@ def estimate(
     ] = None,
     alpha: Annotated[
         float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
-    ] = 0.75,
+    ] = defaults.ALPHA,
     defensive: Annotated[
         float,
         typer.Option("--defensive", help="Uniform share eps mixed into the sampling distribution."),
-    ] = 0.1,
+    ] = defaults.DEFENSIVE,
     design: Annotated[
         str,
         typer.Option(

@@ -1271,8 +1271,8 @@ def estimate_plan(
     root: Path,
     *,
     samples: float | None = None,
-    alpha: float = 0.75,
-    defensive: float = 0.1,
+    alpha: float = defaults.ALPHA,
+    defensive: float = defaults.DEFENSIVE,
     design: str = "poisson",
 ) -> dict[str, Any]:
     """Plan the rate-estimation sample: inclusion probabilities and the hand-off list."""

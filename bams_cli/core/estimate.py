@@ -96,6 +96,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import gammaincinv, ndtr, ndtri
 
+from bams_cli import defaults
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
@@ -445,8 +447,8 @@ def plan_sample(
     K: float,
     rng: np.random.Generator,
     known: ArrayLike | None = None,
-    alpha: float = 1.0,
-    defensive: float = 0.1,
+    alpha: float = defaults.ALPHA,
+    defensive: float = defaults.DEFENSIVE,
     design: Design = "poisson",
     permute: bool = True,
 ) -> SamplePlan:
@@ -463,7 +465,8 @@ def plan_sample(
         True where the level-0 value is already known: excluded from sampling and counted
         exactly by the estimator.
     alpha, defensive : float
-        See ``inclusion_probabilities``.
+        See ``inclusion_probabilities``; defaults ``defaults.ALPHA`` and
+        ``defaults.DEFENSIVE``, the values the CLI uses.
     design : {"poisson", "fixed", "with-replacement"}
     permute : bool
         "fixed" only: randomise the systematic order (see ``draw_systematic``).
