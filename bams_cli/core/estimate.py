@@ -120,8 +120,7 @@ class ZeroInclusionWarning(UserWarning):
 def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> FloatArray:
     """q = (1 - eps) p^alpha / sum(p^alpha) + eps / |U| (paper section 4.1, with DESIGN.md's eps).
 
-    p^alpha is formed as exp(alpha (log p - max log p)), so p_n down to 1e-300 and alpha up to
-    a few keep their ratios instead of underflowing in the sum.
+    ``exp(log_selection_distribution(...))``: see there for how the extremes are kept.
 
     Parameters
     ----------
@@ -135,7 +134,31 @@ def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> F
     Returns
     -------
     q : ndarray of shape (n_unknown,)
-        Non-negative, sums to 1.
+        Non-negative, sums to 1 (entries below ~1e-308 underflow; their logs do not).
+    """
+    return np.exp(log_selection_distribution(p, alpha=alpha, defensive=defensive))
+
+
+def log_selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> FloatArray:
+    """log q, q = (1 - eps) p^alpha / sum(p^alpha) + eps / |U|, without under- or overflow.
+
+    p^alpha is formed as alpha (log p - max log p), so p_n down to 1e-300 and alpha up to a
+    few keep their ratios: at eps = 0 and alpha = 2.5, p_n = 1e-150 gives q ~ 1e-375, which
+    no float64 holds but its log does. ``inclusion_probabilities`` works from these logs.
+
+    Parameters
+    ----------
+    p : array_like of shape (n_unknown,)
+        Failure probabilities p_n over U, in [0, 1].
+    alpha : float
+        Sharpening exponent, >= 0 (0 gives uniform sampling).
+    defensive : float
+        Defensive uniform share eps, in [0, 1].
+
+    Returns
+    -------
+    log_q : ndarray of shape (n_unknown,)
+        -inf where q = 0 (p = 0 with eps = 0); logsumexp(log_q) = 0.
     """
     p = np.asarray(p, dtype=np.float64)
     if p.ndim != 1 or p.size == 0:
@@ -148,19 +171,24 @@ def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> F
         raise ValueError(f"defensive must lie in [0, 1]; got {defensive}")
     n = p.size
     if alpha == 0.0:
-        base = np.full(n, 1.0 / n)
+        log_base = np.full(n, -math.log(n))
     else:
         pos = p > 0.0
         if not np.any(pos):
             if defensive == 0.0:
                 raise ValueError("all p are 0 and defensive = 0: q is undefined; set defensive > 0")
-            base = np.zeros(n)
+            log_base = np.full(n, -np.inf)
         else:
-            logp = np.full(n, -np.inf)
-            logp[pos] = np.log(p[pos])
-            w = np.exp(alpha * (logp - logp[pos].max()))
-            base = w / w.sum()
-    return (1.0 - defensive) * base + defensive / n
+            a = np.full(n, -np.inf)
+            a[pos] = alpha * np.log(p[pos])
+            a -= a[pos].max()
+            # The largest term is exp(0) = 1, so the sum lies in [1, n]: no under/overflow.
+            log_base = a - math.log(float(np.exp(a[pos]).sum()))
+    if defensive == 0.0:
+        return log_base
+    if defensive == 1.0:
+        return np.full(n, -math.log(n))
+    return np.logaddexp(math.log1p(-defensive) + log_base, math.log(defensive / n))
 
 
 def inclusion_probabilities(
@@ -170,15 +198,25 @@ def inclusion_probabilities(
 
     q is ``selection_distribution(p, alpha=alpha, defensive=defensive)``. The capped set is
     found exactly, not by iteration: sort q descending; if the m largest are capped at 1, the
-    rest share K - m, so lam_m = (K - m) / (sum of the other q); m is the smallest count with
-    lam_m q_(m) <= 1. The uncapped pi are then (K - m) q / sum(q_uncapped), summed pairwise,
-    so sum(pi) = K to rounding (~1e-16 relative).
+    rest share K - m, so lam_m = (K - m) / S_m with S_m the sum of the other q, and m is the
+    smallest count with lam_m q_(m) <= 1, i.e. with
 
-    Segments with q = 0 (p = 0 with eps = 0) get pi = 0 and can never be sampled: a failure
-    among them makes the HT estimate biased low, and a ``ZeroInclusionWarning`` says so.
-    Tiny but positive pi keep the estimate unbiased at the price of a variance that can be
-    astronomically large (a failure with inclusion probability pi adds (1 - pi)/(N^2 pi) to
-    Var(p_hat)); the defensive share eps bounds pi below by ~eps K / |U|.
+        K - m <= S_m / q_(m) = sum_{j >= m} q_(j) / q_(m).
+
+    Both sides are formed from log q rescaled by q_(m) (every ratio in [0, 1], the sum in
+    [1, n]), never as lam = (K - m) / S_m: at eps = 0 the tail sums S_m of a confident GP
+    are subnormal (q ~ 1e-310), and the division overflowed to inf, no m passed, and every
+    segment with q > 0 got pi = 1 (sum(pi) 1,541 against K = 1,489, issue 12). The test is
+    monotone in m (S_m / q_(m) - (K - m) never decreases), so m is found by bisection,
+    O(n log K). The uncapped pi are then (K - m) r / sum(r), r = q / q_(m), summed
+    pairwise, so sum(pi) = K to rounding (~1e-16 relative).
+
+    Segments with q = 0 (p = 0 with eps = 0), or with pi below ~1e-308, get pi = 0 and can
+    never be sampled: a failure among them makes the HT estimate biased low, and a
+    ``ZeroInclusionWarning`` says so. Tiny but positive pi keep the estimate unbiased at the
+    price of a variance that can be astronomically large (a failure with inclusion
+    probability pi adds (1 - pi)/(N^2 pi) to Var(p_hat)); the defensive share eps bounds pi
+    below by ~eps K / |U|.
 
     Parameters
     ----------
@@ -197,41 +235,50 @@ def inclusion_probabilities(
         In [0, 1], non-decreasing in p, summing to min(K, |U|) (less only if fewer than K
         segments have q > 0, with a warning).
     """
-    q = selection_distribution(p, alpha=alpha, defensive=defensive)
-    n = q.size
+    log_q = log_selection_distribution(p, alpha=alpha, defensive=defensive)
+    n = log_q.size
     if K < 0 or not np.isfinite(K):
         raise ValueError(f"K must be a finite number >= 0; got {K}")
     if K >= n:
         return np.ones(n)
     if K == 0:
         return np.zeros(n)
-    order = np.argsort(-q, kind="stable")
-    qs = q[order]
-    # suffix[m] = sum of qs[m:], the mass left for the uncapped when the m largest are capped.
-    suffix = np.cumsum(qs[::-1])[::-1]
-    m_max = min(n - 1, int(math.floor(K)))
-    ms = np.arange(m_max + 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (K - ms) / suffix[ms]
-        ok = (lam * qs[ms] <= 1.0 + 1e-12) & np.isfinite(lam)
+    order = np.argsort(-log_q, kind="stable")
+    ls = log_q[order]
+    n_pos = int(np.count_nonzero(ls > -np.inf))
     pi_sorted = np.zeros(n)
-    if not np.any(ok):
-        # Fewer than K segments have q > 0: every one of them is taken for sure and the rest
+    if n_pos <= K:
+        # At most K segments have q > 0: every one of them is taken for sure and the rest
         # of the budget cannot be placed (q = 0 means "never sample").
-        pi_sorted[qs > 0.0] = 1.0
+        pi_sorted[:n_pos] = 1.0
     else:
-        m = int(np.argmax(ok))
+
+        def ratios(m: int) -> FloatArray:
+            return np.exp(ls[m:] - ls[m])  # q_(j) / q_(m) for j >= m, in [0, 1]
+
+        def uncapped_fits(m: int) -> bool:
+            return K - m <= float(ratios(m).sum()) * (1.0 + 1e-12)
+
+        # uncapped_fits(floor(K)) holds (K - floor(K) < 1 <= the sum), so bisect below it.
+        lo, hi = 0, min(n - 1, int(math.floor(K)))
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if uncapped_fits(mid):
+                hi = mid
+            else:
+                lo = mid + 1
+        m = lo
+        r = ratios(m)
         pi_sorted[:m] = 1.0
-        rest = qs[m:]
-        pi_sorted[m:] = np.minimum(1.0, (K - m) * rest / rest.sum())
+        pi_sorted[m:] = np.minimum(1.0, (K - m) * r / r.sum())
     pi = np.empty(n)
     pi[order] = pi_sorted
     n_zero = int(np.count_nonzero(pi == 0.0))
     if n_zero:
         warnings.warn(
-            f"{n_zero} of {n} segments have inclusion probability 0 (p = 0 with defensive = 0): "
-            "failures among them are never sampled and the rate estimate is biased low; "
-            "set defensive > 0",
+            f"{n_zero} of {n} segments have inclusion probability 0 (p = 0 with defensive = 0, "
+            "or p_n so small that pi underflows): failures among them are never sampled and "
+            "the rate estimate is biased low; set defensive > 0",
             ZeroInclusionWarning,
             stacklevel=2,
         )

@@ -28,6 +28,7 @@ from bams_cli.core.estimate import (
     gp_estimate,
     gp_variance_exact,
     inclusion_probabilities,
+    log_selection_distribution,
     model_weight,
     plan_sample,
     selection_distribution,
@@ -162,6 +163,40 @@ def test_selection_distribution_survives_tiny_p():
     # p^2.5 underflows for p ~ 1e-200; ratios must survive.
     q = selection_distribution(np.array([1e-200, 2e-200]), alpha=2.5, defensive=0.0)
     np.testing.assert_allclose(q, np.array([1.0, 2**2.5]) / (1 + 2**2.5))
+
+
+def subnormal_tail_pool() -> np.ndarray:
+    # 1,480 likely segments and 61 whose p_n falls from 1e-306 to 1e-315: at eps = 0 their
+    # q (p / 740) lies below 2.2e-308, so every tail sum S_m is subnormal and the old
+    # lam = (K - m) / S_m overflowed (issue 12: every pi became 1, sum 1,541 vs K).
+    return np.concatenate([np.full(1480, 0.5), np.logspace(-306, -315, 61)])
+
+
+@pytest.mark.parametrize(
+    "pool, alpha",
+    [
+        # q spanning 1e-300..1 log-uniformly (alpha 1: q = p / sum p).
+        pytest.param(lambda: np.logspace(0, -300, 1541), 1.0, id="q-1e-300..1"),
+        pytest.param(subnormal_tail_pool, 1.0, id="subnormal-tail"),
+        # alpha 2.5 takes p = 1e-150 to q ~ 1e-375: no float64 holds it, its log does.
+        pytest.param(lambda: np.logspace(0, -150, 1541), 2.5, id="q-below-float64"),
+    ],
+)
+@pytest.mark.parametrize("K", [10.0, 1485.5, 1489.0, 1540.5])
+@pytest.mark.filterwarnings("ignore::bams_cli.core.estimate.ZeroInclusionWarning")
+def test_inclusion_probabilities_at_the_float_edge(pool, alpha, K):
+    p = pool()
+    pi = inclusion_probabilities(p, alpha=alpha, defensive=0.0, K=K)
+    assert math.isclose(pi.sum(), K, rel_tol=1e-9), (pi.sum(), int((pi == 1).sum()))
+    assert np.all((pi >= 0) & (pi <= 1))
+    # pi = lam q for the uncapped, checked in logs (q itself underflows): log pi - log q is
+    # one constant log lam, and every capped segment would exceed 1 at that lam.
+    log_q = log_selection_distribution(p, alpha=alpha, defensive=0.0)
+    unc = (pi < 1) & (pi > 1e-300)
+    log_lam = np.log(pi[unc]) - log_q[unc]
+    np.testing.assert_allclose(log_lam, log_lam[0], rtol=0, atol=1e-9)
+    assert np.all(log_lam[0] + log_q[pi == 1] >= -1e-9)
+    assert np.count_nonzero(pi == 1) < K  # the budget left for the tail is really placed
 
 
 # --------------------------------------------------------------------------------------------
