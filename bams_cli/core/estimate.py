@@ -774,9 +774,13 @@ def estimate_from_sample(
         K = float(budget)
         yc = np.broadcast_to(y * c, (fr.size, m))
         T = (inv @ yc) / K
-        sum_sq = (inv**2) @ yc
-        # s^2 of the K terms Y_k = y/q; v = s^2 / K. (sum Y^2 - K Ybar^2) can round below 0.
-        v = np.maximum(sum_sq - K * T**2, 0.0) / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
+        # s^2 of the K terms Y_k = y/q; v = s^2 / K. Two passes: the squared deviations
+        # from T, the failure draws' (1/q - T)^2 and T^2 for each of the other draws. The
+        # one-pass sum Y^2 - K T^2 cancels when every draw is a failure of similar weight
+        # (terms 1e9 +- 1: every digit lost, v = 0); these terms are all >= 0.
+        n_zero_draws = K - yc.sum(axis=0)
+        ss = ((inv[:, None] - T[None, :]) ** 2 * yc).sum(axis=0) + n_zero_draws * T**2
+        v = ss / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
         D = np.zeros(m)
         R = T
         yr = yf
@@ -881,7 +885,7 @@ def _gamma_interval(
     lower = Gamma quantile a/2 with mean R and variance v;
     upper = Gamma quantile 1 - a/2 with mean R + w and variance v + w^2, w = ``w_next``.
     A Gamma with mean M and variance V has shape M^2/V and scale V/M; with R = 0 the upper
-    limit is w (-ln(a/2)), the rule of three.
+    limit is w (-ln(a/2)), the rule of three. With v = 0 and w = 0 both limits are R.
 
     Parameters
     ----------
@@ -904,8 +908,11 @@ def _gamma_interval(
         lo[pos] = (v[pos] / R[pos]) * gammaincinv(R[pos] ** 2 / v[pos], a / 2.0)
     M = R + w_next
     V = v + w_next**2
-    hi = R.copy()
-    ok = M > 0
+    # V = 0 (no variance and no extra failure allowed for, w = 0: every segment of U_r has
+    # pi = 1, or with replacement q = 1) is a point mass at M; the Gamma's shape M^2/V
+    # would be inf and its scale 0, and their product NaN.
+    hi = M.copy()
+    ok = (M > 0) & (V > 0)
     # P(Gamma(k) <= x) = 1 - a/2  <=>  x = gammaincinv(k, 1 - a/2).
     hi[ok] = (V[ok] / M[ok]) * gammaincinv(M[ok] ** 2 / V[ok], 1.0 - a / 2.0)
     return lo, hi

@@ -17,6 +17,7 @@ from scipy.stats import multivariate_normal
 from bams_cli.core.estimate import (
     RateEstimate,
     ZeroInclusionWarning,
+    _gamma_interval,
     bvn_cov,
     draw_poisson,
     draw_systematic,
@@ -264,6 +265,38 @@ def test_estimates_hand_example():
     assert math.isclose(est.var_hat[0], 50 / 12 / 100)
 
 
+def test_with_replacement_variance_keeps_its_digits():
+    # K = 4 draws, every one a failure: rows drawn [2, 1, 1] times with 1/q ~ [1e9, 1e9 + 1,
+    # 1e9 + 3], terms ~ [1e9, 1e9, 1e9 + 1, 1e9 + 3]: mean 1e9 + 1, deviations [-1, -1, 0, 2],
+    # s^2 = 6/3 = 2, v = s^2/K = 0.5. The one-pass sum Y^2 - K T^2 is a difference of two
+    # ~4e18 numbers whose spacing is 512: all digits lost.
+    q = 1.0 / np.array([1e9, 1e9 + 1, 1e9 + 3])
+    counts = np.array([2, 1, 1])
+    K = 4
+    terms = np.repeat(1.0 / q, counts)  # brute force: the K terms themselves, in fsum
+    mean = math.fsum(terms) / K
+    brute = math.fsum((t - mean) ** 2 for t in terms) / (K - 1) / K
+    assert math.isclose(brute, 0.5, rel_tol=1e-6)
+    one_pass = (math.fsum(terms**2) - K * mean**2) / (K - 1) / K
+    assert abs(one_pass - brute) > 0.5 * brute  # the case really defeats the one-pass form
+    N = 10**10
+    est = estimate_from_sample(
+        q, np.ones(3, bool), design="with-replacement", counts=counts, n_pool=N,
+        n_unknown=10**9, budget=K,
+    )  # fmt: skip
+    assert math.isclose(est.var_hat[0] * N**2, brute, rel_tol=1e-9)
+    # With draws of passing segments too (repeat columns), still the brute-force value.
+    counts2 = np.array([[2, 1], [1, 0], [1, 1]])  # column 1: two failure draws, two passes
+    est = estimate_from_sample(
+        q, np.ones(3, bool), design="with-replacement", counts=counts2, n_pool=N,
+        n_unknown=10**9, budget=K,
+    )  # fmt: skip
+    terms = np.array([1.0 / q[0], 1.0 / q[2], 0.0, 0.0])
+    mean = math.fsum(terms) / K
+    brute2 = math.fsum((t - mean) ** 2 for t in terms) / (K - 1) / K
+    assert math.isclose(est.var_hat[1] * N**2, brute2, rel_tol=1e-12)
+
+
 def test_estimate_rate_serves_every_gamma():
     rng = np.random.default_rng(4)
     p, fail = make_pool(n_wrong=0)
@@ -458,6 +491,22 @@ def test_ci_zero_failures_rule_of_three():
                                budget=K)  # fmt: skip
     assert est.p_hat[0] == 0 and est.ci_low[0] == 0
     assert math.isclose(est.ci_high[0], -math.log(0.05) * 9 / N)
+
+
+@pytest.mark.parametrize("R", [0.0, 3.0])
+def test_gamma_interval_without_variance_or_extra_weight(R):
+    # v = 0 and w = 0: a point mass at R (the Gamma's shape R^2/0 gave NaN before).
+    lo, hi = _gamma_interval(np.array([R]), np.zeros(1), np.zeros(1), 0.1)
+    assert lo[0] == hi[0] == R
+
+
+def test_with_replacement_certain_segment_interval_is_finite():
+    # U is one segment with q = 1, drawn K = 3 times, a failure: T = 3/(3 * 1) = 1 failure
+    # for sure, v = 0 and its weight (1 - q)/(K q) = 0. Interval [1, 1]/N, not NaN.
+    est = estimate_from_sample(
+        [1.0], [True], design="with-replacement", counts=[3], n_pool=5, n_unknown=1, budget=3
+    )
+    assert est.p_hat[0] == est.ci_low[0] == est.ci_high[0] == 0.2
 
 
 def test_ci_contains_found_and_excludes_passed():
