@@ -65,6 +65,13 @@ Finally the interval is intersected with what is certain: at least the failures 
 most the segments not seen to pass (HT totals are not range-respecting, so in a rare sample
 p_hat exceeds that cap and the interval lies below it).
 
+The standard error follows the same reasoning. The HT variance estimate sums over the
+sampled failures with pi < 1, so it is 0 whenever none was sampled, even when failures
+sampled with certainty (pi = 1) make p_hat > 0. The design is still random there (failures
+may hide among the pi < 1 segments), so ``se`` is then that of one failure of the weight w
+the upper limit allows for, sqrt(w)/N, and ``variance_note`` says so; ``var_hat`` stays the
+HT estimate. se = 0 is reported only for a census of U, which is exact.
+
 Measured coverage (``bench/bench_estimate.py --coverage``, 2,000 repeats, N = 5,000,
 nominal 0.90; poisson / fixed / with-replacement): calibrated p_n, alpha 1, eps 0.1,
 K = 5 F: 0.885 / 0.905 / 0.921; alpha 2.5: 0.926 / 0.925 / 0.873; eps 0: 0.996 / 0.998 /
@@ -567,14 +574,17 @@ class RateEstimate:
     p_hat : float
         Unbiased estimate of the failure rate over the pool.
     se : float
-        Estimated standard error, sqrt(var_hat).
+        Estimated standard error: sqrt(var_hat), except where var_hat = 0 while failures
+        could still hide among the segments sampled with pi < 1: then the standard error of
+        one such failure of the weight the upper limit allows for (``variance_note`` says
+        so). 0 only for a census of U; inf when undefined (one draw with replacement).
     var_hat : float
         Variance estimate (unbiased for poisson and with-replacement; approximate for fixed).
     ci_low, ci_high : float
         Confidence interval (gamma interval unless asked otherwise; see the module docstring).
     confidence : float
     rel_var : float
-        Estimated relative variance var_hat / p_hat^2 (NaN when p_hat = 0).
+        Estimated relative variance se^2 / p_hat^2 (NaN when p_hat = 0; ``rel_var_note``).
     n_sampled : int
         Distinct segments simulated.
     n_failures_sampled : int
@@ -587,6 +597,11 @@ class RateEstimate:
         Effective number of failures in the random part, R^2 / v (inf when it has no
         variance, 0 when none was sampled).
     design : str
+    variance_note : str or None
+        What ``se`` rests on when it is not sqrt(var_hat) (``variance_note``); None when it
+        is the design's variance estimate.
+    rel_var_note : str or None
+        Why ``rel_var`` is undefined (NaN), else None.
     """
 
     p_hat: float
@@ -602,6 +617,8 @@ class RateEstimate:
     n_failures_found: int
     n_eff: float
     design: str
+    variance_note: str | None = None
+    rel_var_note: str | None = None
 
 
 @dataclass(frozen=True)
@@ -609,8 +626,10 @@ class RateEstimates:
     """``RateEstimate`` for m columns (gammas, or repeats in a simulation), as arrays.
 
     Every field but ``confidence`` and ``design`` is an ndarray of shape (m,), with the
-    meaning of the ``RateEstimate`` field of the same name. Index it (``est[j]``) or call
-    ``to_list()`` for per-gamma ``RateEstimate`` objects.
+    meaning of the ``RateEstimate`` field of the same name, and two more: ``variance_basis``
+    (int8, a ``BASIS_*`` code: what ``se`` rests on) and ``w_allow`` (the weight of the one
+    more failure the gamma upper limit allows for). Index it (``est[j]``) or call
+    ``to_list()`` for per-gamma ``RateEstimate`` objects, whose notes spell these out.
     """
 
     p_hat: FloatArray
@@ -624,6 +643,8 @@ class RateEstimates:
     n_known_failures: IntArray
     n_failures_found: IntArray
     n_eff: FloatArray
+    variance_basis: NDArray[np.int8]
+    w_allow: FloatArray
     confidence: float
     design: str
 
@@ -635,11 +656,87 @@ class RateEstimates:
         for name in _ESTIMATE_FIELDS:
             v = getattr(self, name)[j]
             kw[name] = int(v) if np.issubdtype(np.asarray(v).dtype, np.integer) else float(v)
-        return RateEstimate(confidence=self.confidence, design=self.design, **kw)  # type: ignore[arg-type]
+        basis = int(self.variance_basis[j])
+        return RateEstimate(
+            confidence=self.confidence,
+            design=self.design,
+            variance_note=variance_note(basis, float(self.w_allow[j])),
+            rel_var_note=rel_var_note(float(kw["p_hat"]), float(kw["se"])),
+            **kw,  # type: ignore[arg-type]
+        )
 
     def to_list(self) -> list[RateEstimate]:
         """One ``RateEstimate`` per column (gamma)."""
         return [self[j] for j in range(len(self))]
+
+
+# What a reported se rests on (``RateEstimates.variance_basis``).
+#: The design's variance estimate v: se = sqrt(var_hat).
+BASIS_HT = 0
+#: v = 0 because every sampled failure had pi = 1; se allows for one failure among pi < 1.
+BASIS_CERTAIN_FAILURES = 1
+#: v = 0 because no failure was sampled; se allows for one failure among pi < 1.
+BASIS_NO_FAILURE = 2
+#: The sampled terms show no spread (with replacement: every draw a failure of one weight;
+#: fixed: one sampled failure with pi < 1 and no other sampled segment with pi < 1).
+BASIS_NO_SPREAD = 3
+#: Every segment of U was simulated: the estimate is exact, se = 0.
+BASIS_CENSUS = 4
+#: One draw with replacement: no sample variance, se undefined (inf).
+BASIS_SINGLE_DRAW = 5
+
+
+def variance_note(basis: int, w_allow: float) -> str | None:
+    """What a reported se rests on, in words, when it is not the design's variance estimate.
+
+    Parameters
+    ----------
+    basis : int
+        A ``BASIS_*`` code (``RateEstimates.variance_basis``).
+    w_allow : float
+        Weight (variance-to-mean ratio, (1 - pi)/pi) of the one more failure that the
+        interval's upper limit allows for.
+
+    Returns
+    -------
+    note : str or None
+        None for ``BASIS_HT``.
+    """
+    allow = (
+        f"se is that of one failure of weight {w_allow:.4g} among them, the same allowance "
+        "the interval's upper limit makes"
+    )
+    if basis == BASIS_CERTAIN_FAILURES:
+        return (
+            "every sampled failure was included with certainty (pi = 1), so the HT variance "
+            "estimate is 0; the variance comes from the segments sampled with pi < 1, none of "
+            f"which failed: {allow}"
+        )
+    if basis == BASIS_NO_FAILURE:
+        return (
+            "no failure was sampled, so the HT variance estimate is 0; the variance comes from "
+            f"the segments sampled with pi < 1, none of which failed: {allow}"
+        )
+    if basis == BASIS_NO_SPREAD:
+        return (
+            "the sampled terms y/pi (with replacement: the draws' y/(K q)) show no spread, so the "
+            "variance estimate is 0; failures may remain among the segments with pi < 1 not "
+            f"sampled: {allow}"
+        )
+    if basis == BASIS_CENSUS:
+        return "every segment of U was simulated (pi = 1): the estimate is exact and se = 0"
+    if basis == BASIS_SINGLE_DRAW:
+        return "one draw (K = 1): a sample variance needs at least two, so se is undefined"
+    return None
+
+
+def rel_var_note(p_hat: float, se: float) -> str | None:
+    """Why the relative variance se^2 / p_hat^2 is undefined, or None when it is defined."""
+    if not math.isfinite(se):
+        return "se is undefined (see variance_note), and so is se^2 / p_hat^2"
+    if p_hat <= 0:
+        return "p_hat = 0: the relative variance se^2 / p_hat^2 is undefined"
+    return None
 
 
 _ESTIMATE_FIELDS = (
@@ -787,6 +884,7 @@ def estimate_from_sample(
         n_rand_fail = n_fail_s
         wt = failure_weights(np.where(pf > 0, pf, 1.0), design=design, K=K)
         w0 = (n_unknown - 1.0) / K  # the same at uniform q = 1/|U|
+        n_certain = 0
     else:
         certain = pf >= 1.0
         rand = ~certain
@@ -821,9 +919,42 @@ def estimate_from_sample(
     N = float(n_pool)
     p_hat = total / N
     var_hat = v / N**2
-    se = np.sqrt(var_hat)
+
+    # The weight of the one more failure the gamma upper limit allows for: the heaviest
+    # failure seen, or the model's typical failure if heavier; with no model, the design's
+    # typical segment when no failure was seen.
+    w_seen = np.where(yr > 0, wt[:, None], 0.0).max(axis=0, initial=0.0)
+    wm = (
+        np.full(m, np.nan)
+        if w_model is None
+        else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
+    )
+    w_allow = np.where(np.isnan(wm), np.where(n_rand_fail > 0, w_seen, w0), np.maximum(w_seen, wm))
+
+    # v sums over the sampled failures with pi < 1 (with replacement: the spread of the
+    # draws), so it is 0 when none was sampled, even when failures sampled with pi = 1
+    # carry p_hat. se = 0 would then claim a certainty the design does not have: failures
+    # may sit among the pi < 1 segments unseen. So se is that of one such failure, of the
+    # weight w_allow the upper limit allows for (the rule of three's reasoning, applied to
+    # the se), and ``variance_basis`` records why. Only a census of U is exact.
+    basis = np.full(m, BASIS_HT, np.int8)
+    if design == "with-replacement":
+        has_random = n_unknown > 1
+        if not float(budget) > 1:
+            basis[:] = BASIS_SINGLE_DRAW
+    else:
+        has_random = n_unknown - n_certain > 0
+    no_var = (v <= 0) & (basis == BASIS_HT)
+    if not has_random:
+        basis[no_var] = BASIS_CENSUS
+    else:
+        basis[no_var] = np.where(
+            R > 0, BASIS_NO_SPREAD, np.where(D > 0, BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE)
+        )[no_var]
+    floor = np.isin(basis, (BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE, BASIS_NO_SPREAD))
+    se = np.where(floor, np.sqrt(w_allow) / N, np.sqrt(var_hat))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel_var = np.where(p_hat > 0, var_hat / p_hat**2, np.nan)
+        rel_var = np.where((p_hat > 0) & np.isfinite(se), se**2 / p_hat**2, np.nan)
         n_eff = np.where(R > 0, np.where(v > 0, R**2 / np.where(v > 0, v, 1.0), np.inf), 0.0)
 
     a = 1.0 - confidence
@@ -831,17 +962,7 @@ def estimate_from_sample(
     hi_cap = known + n_unknown - n_pass_s
     if interval in ("gamma", "fay-feuer"):
         if interval == "gamma":
-            w_seen = np.where(yr > 0, wt[:, None], 0.0).max(axis=0, initial=0.0)
-            wm = (
-                np.full(m, np.nan)
-                if w_model is None
-                else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
-            )
-            # Heaviest failure seen, or the model's typical failure if heavier; with no
-            # model, the design's typical segment when no failure was seen.
-            w_next = np.where(
-                np.isnan(wm), np.where(n_rand_fail > 0, w_seen, w0), np.maximum(w_seen, wm)
-            )
+            w_next = w_allow
         else:
             if w_max is None:
                 raise ValueError("interval='fay-feuer' needs w_max (estimate_rate computes it)")
@@ -855,6 +976,10 @@ def estimate_from_sample(
         hi = total + z * np.sqrt(v)
     else:
         raise ValueError(f"interval must be one of {INTERVALS}; got {interval!r}")
+    # No variance estimate (one draw with replacement): nothing narrower than the feasible
+    # range below can be claimed.
+    lo = np.where(np.isfinite(v), lo, -np.inf)
+    hi = np.where(np.isfinite(v), hi, np.inf)
     # Intersect with the feasible range: the failures in hand are a sure lower bound, and
     # segments seen to pass cannot fail. HT totals are not range-respecting, so in rare
     # samples p_hat exceeds the cap and the interval then lies below p_hat.
@@ -872,6 +997,8 @@ def estimate_from_sample(
         n_known_failures=known.astype(np.int64),
         n_failures_found=found.astype(np.int64),
         n_eff=n_eff,
+        variance_basis=basis,
+        w_allow=w_allow,
         confidence=confidence,
         design=design,
     )

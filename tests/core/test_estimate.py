@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 from scipy.special import ndtr
+from scipy.stats import gamma as gamma_dist
 from scipy.stats import multivariate_normal
 
 from bams_cli.core.estimate import (
@@ -507,6 +508,96 @@ def test_with_replacement_certain_segment_interval_is_finite():
         [1.0], [True], design="with-replacement", counts=[3], n_pool=5, n_unknown=1, budget=3
     )
     assert est.p_hat[0] == est.ci_low[0] == est.ci_high[0] == 0.2
+
+
+def test_gamma_upper_limit_at_moderate_pi_by_hand():
+    # Poisson, N = 100, |U| = 50; sampled pi = [0.5, 0.8, 0.5], failures [T, T, F].
+    #   R = 1/0.5 + 1/0.8 = 2 + 1.25 = 3.25 failures
+    #   v = (1 - 0.5)/0.5^2 + (1 - 0.8)/0.8^2 = 2 + 0.3125 = 2.3125
+    #   failure weights (1 - pi)/pi = [1, 0.25]; no model weight: w = heaviest seen = 1
+    #   upper: Gamma with mean M = R + w = 4.25 and variance V = v + w^2 = 3.3125,
+    #          shape M^2/V = 18.0625/3.3125 = 5.45283, scale V/M = 0.779412
+    #   lower: Gamma with mean 3.25, variance 2.3125 (shape 4.56757, scale 0.711538):
+    #          its 5% point (1.21) is below the 2 failures in hand, so lower = 2.
+    # Weight 1/pi instead of (1 - pi)/pi would give w = 2, M = 5.25, V = 6.3125.
+    kw = dict(design="poisson", n_pool=100, n_unknown=50, budget=10.0)
+    pi = np.array([0.5, 0.8, 0.5])
+    f = np.array([True, True, False])
+    est = estimate_from_sample(pi, f, **kw)
+    upper = gamma_dist.ppf(0.95, 18.0625 / 3.3125, scale=3.3125 / 4.25)
+    assert math.isclose(upper, 7.6175, rel_tol=1e-4)  # 1/pi weights would give 9.95
+    assert math.isclose(est.ci_high[0], upper / 100, rel_tol=1e-10)
+    assert est.ci_low[0] == 2 / 100
+    assert math.isclose(est.var_hat[0], 2.3125 / 100**2, rel_tol=1e-14)
+    assert est.variance_basis[0] == 0 and math.isclose(est.se[0], math.sqrt(2.3125) / 100)
+    # A model weight heavier than any failure seen takes over: w = 1.5, M = 4.75,
+    # V = 2.3125 + 2.25 = 4.5625.
+    est = estimate_from_sample(pi, f, w_model=1.5, **kw)
+    upper = gamma_dist.ppf(0.95, 4.75**2 / 4.5625, scale=4.5625 / 4.75)
+    assert math.isclose(est.ci_high[0], upper / 100, rel_tol=1e-10)
+
+
+def test_model_weight_by_hand():
+    # U_r = two segments with pi = [0.5, 0.8] and p_n = [0.1, 0.3]; the pi = 1 segment is
+    # left out. w = (1 - pi)/pi = [1, 0.25]: (0.1 * 1 + 0.3 * 0.25)/0.4 = 0.175/0.4 = 0.4375
+    # (1/pi would give (0.2 + 0.375)/0.4 = 1.4375).
+    w = model_weight([0.1, 0.3, 0.9], [0.5, 0.8, 1.0], design="poisson", K=2.3)
+    assert math.isclose(w, 0.4375, rel_tol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "w_model, w",
+    [
+        (2.0, 2.0),  # the plan's model weight
+        # No model: the design's typical segment of U_r: |U_r| = 50 - 2 certain = 48 with
+        # K_r = 10 - 2 = 8 expected draws, w0 = (48 - 8)/8 = 5 (rule of three at pi = 1/6).
+        (None, 5.0),
+    ],
+)
+def test_failures_sampled_with_certainty_keep_a_variance(w_model, w):
+    # N = 100, |U| = 50, K = 10; sampled pi = [1, 1, 0.5, 0.5], the two pi = 1 segments fail.
+    # The HT variance estimate is 0 (it sums over failures with pi < 1), but failures may
+    # hide among the 48 segments with pi < 1: se = sqrt(w)/N, and the upper limit is
+    # 2 + w (-ln 0.05) failures, the zero-failure rule of three on top of the two in hand.
+    est = estimate_from_sample(
+        [1.0, 1.0, 0.5, 0.5], [True, True, False, False], design="poisson", n_pool=100,
+        n_unknown=50, budget=10.0, w_model=w_model,
+    )[0]  # fmt: skip
+    assert est.p_hat == 0.02 and est.var_hat == 0.0
+    assert math.isclose(est.se, math.sqrt(w) / 100, rel_tol=1e-14)
+    assert math.isclose(est.rel_var, (w / 100**2) / 0.02**2, rel_tol=1e-14)
+    assert est.ci_low == 0.02
+    assert math.isclose(est.ci_high, (2 + w * -math.log(0.05)) / 100, rel_tol=1e-12)
+    assert "included with certainty (pi = 1)" in est.variance_note
+    assert f"weight {w:.4g}" in est.variance_note and est.rel_var_note is None
+
+
+def test_se_is_zero_only_for_a_census():
+    # Every segment of U sampled with pi = 1: exact, se = 0, and a note says so.
+    est = estimate_from_sample(
+        [1.0, 1.0, 1.0], [True, False, False], design="poisson", n_pool=10, n_unknown=3,
+        budget=3.0, known_failures=1,
+    )[0]  # fmt: skip
+    assert est.p_hat == est.ci_low == est.ci_high == 0.2 and est.se == 0
+    assert "exact" in est.variance_note
+    # Nothing found and p_hat = 0: se allows for one failure, rel_var is undefined, said why.
+    est = estimate_from_sample(
+        np.full(100, 0.1), np.zeros(100, bool), design="poisson", n_pool=1000, n_unknown=1000,
+        budget=100.0,
+    )[0]  # fmt: skip
+    assert est.p_hat == 0 and math.isclose(est.se, 3 / 1000)  # sqrt(w0 = 900/100) / N
+    assert math.isnan(est.rel_var) and "p_hat = 0" in est.rel_var_note
+
+
+def test_single_draw_with_replacement_is_undefined_not_nan_interval():
+    # One draw: no sample variance (se = inf, said why); the interval is the feasible range,
+    # [1 failure in hand, 3 segments not seen to pass] / N, not NaN.
+    est = estimate_from_sample(
+        [0.5], [True], design="with-replacement", counts=[1], n_pool=5, n_unknown=3, budget=1
+    )[0]
+    assert math.isinf(est.se) and "K = 1" in est.variance_note
+    assert (est.ci_low, est.ci_high) == (0.2, 0.6)
+    assert math.isnan(est.rel_var) and "undefined" in est.rel_var_note
 
 
 def test_ci_contains_found_and_excludes_passed():
