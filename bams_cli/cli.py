@@ -24,7 +24,7 @@ import click
 import typer
 
 from bams_cli import __version__, console, defaults, pipeline
-from bams_cli.errors import BamsError
+from bams_cli.errors import BamsError, OptionError
 from bams_cli.status import status as study_status
 
 app = typer.Typer(
@@ -542,11 +542,11 @@ def estimate(
     ] = None,
     alpha: Annotated[
         float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
-    ] = 0.75,
+    ] = defaults.ALPHA,
     defensive: Annotated[
         float,
         typer.Option("--defensive", help="Uniform share eps mixed into the sampling distribution."),
-    ] = 0.1,
+    ] = defaults.DEFENSIVE,
     design: Annotated[
         str,
         typer.Option(
@@ -554,6 +554,14 @@ def estimate(
             help="poisson (Horvitz-Thompson), fixed (systematic), or with-replacement (the paper's).",
         ),
     ] = "poisson",
+    seed: Annotated[
+        int | None,
+        typer.Option(
+            "--seed",
+            help="With --plan: draw a fresh plan from this seed (recorded in the plan) "
+            "\\[default: the study seed and the plan number, so re-runs reproduce].",
+        ),
+    ] = None,
     plan_number: Annotated[
         int | None,
         typer.Option(
@@ -582,9 +590,20 @@ def estimate(
 
     then simulate the hand-off list, ingest the results, and: bams-cli estimate -w study
     """
+    if seed is not None and not plan:
+        raise OptionError(
+            f"--seed {seed} seeds the sample's draw: pass it with --plan (computing the "
+            "estimate from a drawn plan involves no randomness)"
+        )
     if plan:
         summary = pipeline.estimate_plan(
-            workspace, samples=samples, alpha=alpha, defensive=defensive, design=design, wait=wait
+            workspace,
+            samples=samples,
+            alpha=alpha,
+            defensive=defensive,
+            design=design,
+            seed=seed,
+            wait=wait,
         )
         _show(summary, json_out, f"estimate plan {summary['plan']}")
         return
@@ -604,9 +623,9 @@ def estimate(
         [
             e["gamma"],
             e["p_hat"],
-            e["se"],
+            "n/a" if e["se"] is None else e["se"],
             f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
-            e["rel_var"],
+            "n/a" if e["rel_var"] is None else e["rel_var"],
             e["distinct_failures_found"],
         ]
         for e in summary["estimates"]
@@ -616,6 +635,10 @@ def estimate(
         ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
         rows,
     )
+    for e in summary["estimates"]:  # what se rests on, why a number is n/a
+        for key in ("variance_note", "rel_var_note"):
+            if e.get(key):
+                console.note(f"gamma {e['gamma']:g}: {e[key]}")
     gp = [
         [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
         for g in summary["gp"]

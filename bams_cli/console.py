@@ -29,7 +29,8 @@ def note(message: str) -> None:
 
 
 def print_json(summary: Mapping[str, Any]) -> None:
-    sys.stdout.write(json.dumps(summary, indent=2, default=str) + "\n")
+    # allow_nan=False: a bare NaN/Infinity is not JSON; an undefined number must be null.
+    sys.stdout.write(json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n")
 
 
 def kv_table(title: str, rows: Mapping[str, Any]) -> None:

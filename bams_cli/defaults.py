@@ -17,3 +17,14 @@ TRANSFORM = "auto"
 #: Budget of ``select`` in cost units (a level-0 run costs 1), and of the first batch that
 #: ``status`` suggests.
 BUDGET = 5.0
+
+#: Sharpening exponent of the rate-estimation sample: segments are sampled in proportion to
+#: p_n^alpha (``core.estimate.selection_distribution``). DESIGN.md ("Rate estimate"):
+#: alpha = 2.5 (the paper's) was worse than 1 or 0.5 for every strategy; with a calibrated
+#: p_n, 1/2 minimises the Poisson design's variance.
+ALPHA = 0.75
+
+#: Defensive uniform share eps mixed into the sampling distribution: it bounds every
+#: inclusion probability below by ~eps K / |U|, so a failure the GP rules out with
+#: confidence costs a bounded, not an astronomical, variance (DESIGN.md, "Rate estimate").
+DEFENSIVE = 0.1

@@ -1400,11 +1400,18 @@ def estimate_plan(
     root: Path,
     *,
     samples: float | None = None,
-    alpha: float = 0.75,
-    defensive: float = 0.1,
+    alpha: float = defaults.ALPHA,
+    defensive: float = defaults.DEFENSIVE,
     design: str = "poisson",
+    seed: int | None = None,
 ) -> dict[str, Any]:
-    """Plan the rate-estimation sample: inclusion probabilities and the hand-off list."""
+    """Plan the rate-estimation sample: inclusion probabilities and the hand-off list.
+
+    The draw is seeded by the study seed and the plan's number (so re-running a study
+    reproduces its plans), or by ``seed`` alone when given: the same seed then gives the
+    same plan from the same scores, and another seed a fresh one, without editing the
+    settings. The seed and the random stream are recorded in the plan's metadata.
+    """
     from bams_cli.core.estimate import DESIGNS, gp_estimate, inclusion_probabilities, plan_sample
 
     if design not in DESIGNS:
@@ -1436,7 +1443,8 @@ def estimate_plan(
     if design != "with-replacement":
         samples = min(samples, float(n_unknown))
     number = (_plan_numbers(ws) or [0])[-1] + 1
-    rng = np.random.default_rng([settings.seed, 10_000 + number])
+    stream = [settings.seed, 10_000 + number] if seed is None else [int(seed), 10_000]
+    rng = np.random.default_rng(stream)
     with np.errstate(divide="ignore"):
         plan = plan_sample(
             p,
@@ -1482,14 +1490,18 @@ def estimate_plan(
         "defensive": defensive,
         "n_pool": n,
         "n_unknown": n_unknown,
-        "w_max": max_failure_weight(plan),
-        "w_model": w_model,
+        # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
+        # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
+        "w_max": _finite_or_none(max_failure_weight(plan)),
+        "w_model": [_finite_or_none(w) for w in w_model],
         "plan_gamma": settings.gammas[g_plan],
         "model_hash": model["observations_hash"],
         # The GP's own estimate (mean p_n, variance bound) per gamma, as of this plan:
         # `estimate` reports it when the plan's results have not been fitted yet.
         "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
-        "seed": settings.seed,
+        "seed": stream[0],
+        "seed_source": "study settings" if seed is None else "--seed",
+        "rng_stream": stream,
     }
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
     handoff = pl.DataFrame(
@@ -1512,7 +1524,15 @@ def estimate_plan(
         "gp_rate_estimate": gp_rate,
         "alpha": alpha,
         "defensive": defensive,
+        "seed": stream[0],
+        "seed_source": meta["seed_source"],
     }
+
+
+def _finite_or_none(x: float) -> float | None:
+    """x as a JSON number, or None (JSON null) when it is NaN or infinite."""
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 @locked
@@ -1568,7 +1588,7 @@ def estimate_compute(
         counts=sampled["draws"].to_numpy(),
         known_failures=known_fails,
         confidence=confidence,
-        w_model=np.asarray(meta["w_model"], dtype=np.float64),
+        w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
     )
     rows = []
     gp_rows = []
@@ -1595,11 +1615,15 @@ def estimate_compute(
             {
                 "gamma": float(gamma),
                 "p_hat": e.p_hat,
-                "se": e.se,
+                # Undefined numbers are null beside a note saying why, never NaN (issue 12):
+                # the note says what se rests on when it is not the HT variance estimate.
+                "se": _finite_or_none(e.se),
+                "variance_note": e.variance_note,
                 "ci_low": e.ci_low,
                 "ci_high": e.ci_high,
                 "confidence": confidence,
-                "rel_var": e.rel_var,
+                "rel_var": _finite_or_none(e.rel_var),
+                "rel_var_note": e.rel_var_note,
                 "n_sampled": e.n_sampled,
                 "failures_sampled": e.n_failures_sampled,
                 "failures_known": e.n_known_failures,
@@ -1622,7 +1646,7 @@ def estimate_compute(
     }
     out = ws.estimates_dir / f"estimate-{number:04d}.json"
     with transaction() as tx:
-        tx.write_text(out, json.dumps(summary, indent=2) + "\n")
+        tx.write_text(out, json.dumps(summary, indent=2, allow_nan=False) + "\n")
     summary["estimate_file"] = str(out)
     return summary
 
@@ -1910,7 +1934,10 @@ def report(
     out = ws.report_dir
     with transaction() as tx:
         tx.write_text(out / "report.html", rep.render_html(summary, figures))
-        tx.write_text(out / "summary.json", json.dumps(summary, indent=2, default=str) + "\n")
+        tx.write_text(
+            out / "summary.json",
+            json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n",
+        )
         tx.write_text(out / "summary.md", rep.render_markdown(summary))
     return {
         "report": str(out / "report.html"),

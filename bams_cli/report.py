@@ -286,9 +286,9 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                     [
                         e["gamma"],
                         e["p_hat"],
-                        e["se"],
+                        _na(e["se"]),
                         f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
-                        e["rel_var"],
+                        _na(e["rel_var"]),
                         e["n_sampled"],
                         e["distinct_failures_found"],
                     ]
@@ -296,6 +296,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                 ],
             )
         )
+        parts += [f"<p class='note'>{html.escape(n)}</p>" for n in estimate_notes(s["estimates"])]
         if "rate" in figures:
             parts.append(_img(figures["rate"], "rate estimate with interval"))
     else:
@@ -380,6 +381,23 @@ def _cell(v: Any) -> Any:
     return ", ".join(f"{x:g}" for x in v) if isinstance(v, list) else v
 
 
+def _na(v: float | None, spec: str | None = None) -> Any:
+    """An estimate's number, or "n/a" where it is undefined (null; its note says why)."""
+    if v is None:
+        return "n/a"
+    return v if spec is None else format(v, spec)
+
+
+def estimate_notes(estimates: list[dict[str, Any]]) -> list[str]:
+    """One line per note of the estimate rows: what se rests on, why rel_var is undefined."""
+    out = []
+    for e in estimates:
+        for key, what in (("variance_note", "se"), ("rel_var_note", "relative variance")):
+            if e.get(key):
+                out.append(f"gamma {e['gamma']:g}, {what}: {e[key]}")
+    return out
+
+
 def _maybe(v: Any) -> Any:
     return "" if v is None else v
 
@@ -411,10 +429,11 @@ def render_markdown(summary: dict[str, Any]) -> str:
         ]
         for e in s["estimates"]:
             lines.append(
-                f"| {e['gamma']:g} | {e['p_hat']:.4g} | {e['se']:.3g} | [{e['ci_low']:.4g}, {e['ci_high']:.4g}] "
-                f"| {e['rel_var']:.3g} | {e['distinct_failures_found']} |"
+                f"| {e['gamma']:g} | {e['p_hat']:.4g} | {_na(e['se'], '.3g')} | [{e['ci_low']:.4g}, {e['ci_high']:.4g}] "
+                f"| {_na(e['rel_var'], '.3g')} | {e['distinct_failures_found']} |"
             )
         lines.append("")
+        lines += [f"{n}\n" for n in estimate_notes(s["estimates"])]
     if s["batches"]:
         lines += [
             "| batch | strategy | picks | cost | mean level-0 f (SE) | pending |",

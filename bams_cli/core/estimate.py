@@ -65,6 +65,13 @@ Finally the interval is intersected with what is certain: at least the failures 
 most the segments not seen to pass (HT totals are not range-respecting, so in a rare sample
 p_hat exceeds that cap and the interval lies below it).
 
+The standard error follows the same reasoning. The HT variance estimate sums over the
+sampled failures with pi < 1, so it is 0 whenever none was sampled, even when failures
+sampled with certainty (pi = 1) make p_hat > 0. The design is still random there (failures
+may hide among the pi < 1 segments), so ``se`` is then that of one failure of the weight w
+the upper limit allows for, sqrt(w)/N, and ``variance_note`` says so; ``var_hat`` stays the
+HT estimate. se = 0 is reported only for a census of U, which is exact.
+
 Measured coverage (``bench/bench_estimate.py --coverage``, 2,000 repeats, N = 5,000,
 nominal 0.90; poisson / fixed / with-replacement): calibrated p_n, alpha 1, eps 0.1,
 K = 5 F: 0.885 / 0.905 / 0.921; alpha 2.5: 0.926 / 0.925 / 0.873; eps 0: 0.996 / 0.998 /
@@ -96,6 +103,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import gammaincinv, ndtr, ndtri
 
+from bams_cli import defaults
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
@@ -118,8 +127,7 @@ class ZeroInclusionWarning(UserWarning):
 def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> FloatArray:
     """q = (1 - eps) p^alpha / sum(p^alpha) + eps / |U| (paper section 4.1, with DESIGN.md's eps).
 
-    p^alpha is formed as exp(alpha (log p - max log p)), so p_n down to 1e-300 and alpha up to
-    a few keep their ratios instead of underflowing in the sum.
+    ``exp(log_selection_distribution(...))``: see there for how the extremes are kept.
 
     Parameters
     ----------
@@ -133,7 +141,31 @@ def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> F
     Returns
     -------
     q : ndarray of shape (n_unknown,)
-        Non-negative, sums to 1.
+        Non-negative, sums to 1 (entries below ~1e-308 underflow; their logs do not).
+    """
+    return np.exp(log_selection_distribution(p, alpha=alpha, defensive=defensive))
+
+
+def log_selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> FloatArray:
+    """log q, q = (1 - eps) p^alpha / sum(p^alpha) + eps / |U|, without under- or overflow.
+
+    p^alpha is formed as alpha (log p - max log p), so p_n down to 1e-300 and alpha up to a
+    few keep their ratios: at eps = 0 and alpha = 2.5, p_n = 1e-150 gives q ~ 1e-375, which
+    no float64 holds but its log does. ``inclusion_probabilities`` works from these logs.
+
+    Parameters
+    ----------
+    p : array_like of shape (n_unknown,)
+        Failure probabilities p_n over U, in [0, 1].
+    alpha : float
+        Sharpening exponent, >= 0 (0 gives uniform sampling).
+    defensive : float
+        Defensive uniform share eps, in [0, 1].
+
+    Returns
+    -------
+    log_q : ndarray of shape (n_unknown,)
+        -inf where q = 0 (p = 0 with eps = 0); logsumexp(log_q) = 0.
     """
     p = np.asarray(p, dtype=np.float64)
     if p.ndim != 1 or p.size == 0:
@@ -146,19 +178,24 @@ def selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) -> F
         raise ValueError(f"defensive must lie in [0, 1]; got {defensive}")
     n = p.size
     if alpha == 0.0:
-        base = np.full(n, 1.0 / n)
+        log_base = np.full(n, -math.log(n))
     else:
         pos = p > 0.0
         if not np.any(pos):
             if defensive == 0.0:
                 raise ValueError("all p are 0 and defensive = 0: q is undefined; set defensive > 0")
-            base = np.zeros(n)
+            log_base = np.full(n, -np.inf)
         else:
-            logp = np.full(n, -np.inf)
-            logp[pos] = np.log(p[pos])
-            w = np.exp(alpha * (logp - logp[pos].max()))
-            base = w / w.sum()
-    return (1.0 - defensive) * base + defensive / n
+            a = np.full(n, -np.inf)
+            a[pos] = alpha * np.log(p[pos])
+            a -= a[pos].max()
+            # The largest term is exp(0) = 1, so the sum lies in [1, n]: no under/overflow.
+            log_base = a - math.log(float(np.exp(a[pos]).sum()))
+    if defensive == 0.0:
+        return log_base
+    if defensive == 1.0:
+        return np.full(n, -math.log(n))
+    return np.logaddexp(math.log1p(-defensive) + log_base, math.log(defensive / n))
 
 
 def inclusion_probabilities(
@@ -168,15 +205,25 @@ def inclusion_probabilities(
 
     q is ``selection_distribution(p, alpha=alpha, defensive=defensive)``. The capped set is
     found exactly, not by iteration: sort q descending; if the m largest are capped at 1, the
-    rest share K - m, so lam_m = (K - m) / (sum of the other q); m is the smallest count with
-    lam_m q_(m) <= 1. The uncapped pi are then (K - m) q / sum(q_uncapped), summed pairwise,
-    so sum(pi) = K to rounding (~1e-16 relative).
+    rest share K - m, so lam_m = (K - m) / S_m with S_m the sum of the other q, and m is the
+    smallest count with lam_m q_(m) <= 1, i.e. with
 
-    Segments with q = 0 (p = 0 with eps = 0) get pi = 0 and can never be sampled: a failure
-    among them makes the HT estimate biased low, and a ``ZeroInclusionWarning`` says so.
-    Tiny but positive pi keep the estimate unbiased at the price of a variance that can be
-    astronomically large (a failure with inclusion probability pi adds (1 - pi)/(N^2 pi) to
-    Var(p_hat)); the defensive share eps bounds pi below by ~eps K / |U|.
+        K - m <= S_m / q_(m) = sum_{j >= m} q_(j) / q_(m).
+
+    Both sides are formed from log q rescaled by q_(m) (every ratio in [0, 1], the sum in
+    [1, n]), never as lam = (K - m) / S_m: at eps = 0 the tail sums S_m of a confident GP
+    are subnormal (q ~ 1e-310), and the division overflowed to inf, no m passed, and every
+    segment with q > 0 got pi = 1 (sum(pi) 1,541 against K = 1,489, issue 12). The test is
+    monotone in m (S_m / q_(m) - (K - m) never decreases), so m is found by bisection,
+    O(n log K). The uncapped pi are then (K - m) r / sum(r), r = q / q_(m), summed
+    pairwise, so sum(pi) = K to rounding (~1e-16 relative).
+
+    Segments with q = 0 (p = 0 with eps = 0), or with pi below ~1e-308, get pi = 0 and can
+    never be sampled: a failure among them makes the HT estimate biased low, and a
+    ``ZeroInclusionWarning`` says so. Tiny but positive pi keep the estimate unbiased at the
+    price of a variance that can be astronomically large (a failure with inclusion
+    probability pi adds (1 - pi)/(N^2 pi) to Var(p_hat)); the defensive share eps bounds pi
+    below by ~eps K / |U|.
 
     Parameters
     ----------
@@ -195,41 +242,50 @@ def inclusion_probabilities(
         In [0, 1], non-decreasing in p, summing to min(K, |U|) (less only if fewer than K
         segments have q > 0, with a warning).
     """
-    q = selection_distribution(p, alpha=alpha, defensive=defensive)
-    n = q.size
+    log_q = log_selection_distribution(p, alpha=alpha, defensive=defensive)
+    n = log_q.size
     if K < 0 or not np.isfinite(K):
         raise ValueError(f"K must be a finite number >= 0; got {K}")
     if K >= n:
         return np.ones(n)
     if K == 0:
         return np.zeros(n)
-    order = np.argsort(-q, kind="stable")
-    qs = q[order]
-    # suffix[m] = sum of qs[m:], the mass left for the uncapped when the m largest are capped.
-    suffix = np.cumsum(qs[::-1])[::-1]
-    m_max = min(n - 1, int(math.floor(K)))
-    ms = np.arange(m_max + 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (K - ms) / suffix[ms]
-        ok = (lam * qs[ms] <= 1.0 + 1e-12) & np.isfinite(lam)
+    order = np.argsort(-log_q, kind="stable")
+    ls = log_q[order]
+    n_pos = int(np.count_nonzero(ls > -np.inf))
     pi_sorted = np.zeros(n)
-    if not np.any(ok):
-        # Fewer than K segments have q > 0: every one of them is taken for sure and the rest
+    if n_pos <= K:
+        # At most K segments have q > 0: every one of them is taken for sure and the rest
         # of the budget cannot be placed (q = 0 means "never sample").
-        pi_sorted[qs > 0.0] = 1.0
+        pi_sorted[:n_pos] = 1.0
     else:
-        m = int(np.argmax(ok))
+
+        def ratios(m: int) -> FloatArray:
+            return np.exp(ls[m:] - ls[m])  # q_(j) / q_(m) for j >= m, in [0, 1]
+
+        def uncapped_fits(m: int) -> bool:
+            return K - m <= float(ratios(m).sum()) * (1.0 + 1e-12)
+
+        # uncapped_fits(floor(K)) holds (K - floor(K) < 1 <= the sum), so bisect below it.
+        lo, hi = 0, min(n - 1, int(math.floor(K)))
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if uncapped_fits(mid):
+                hi = mid
+            else:
+                lo = mid + 1
+        m = lo
+        r = ratios(m)
         pi_sorted[:m] = 1.0
-        rest = qs[m:]
-        pi_sorted[m:] = np.minimum(1.0, (K - m) * rest / rest.sum())
+        pi_sorted[m:] = np.minimum(1.0, (K - m) * r / r.sum())
     pi = np.empty(n)
     pi[order] = pi_sorted
     n_zero = int(np.count_nonzero(pi == 0.0))
     if n_zero:
         warnings.warn(
-            f"{n_zero} of {n} segments have inclusion probability 0 (p = 0 with defensive = 0): "
-            "failures among them are never sampled and the rate estimate is biased low; "
-            "set defensive > 0",
+            f"{n_zero} of {n} segments have inclusion probability 0 (p = 0 with defensive = 0, "
+            "or p_n so small that pi underflows): failures among them are never sampled and "
+            "the rate estimate is biased low; set defensive > 0",
             ZeroInclusionWarning,
             stacklevel=2,
         )
@@ -445,8 +501,8 @@ def plan_sample(
     K: float,
     rng: np.random.Generator,
     known: ArrayLike | None = None,
-    alpha: float = 1.0,
-    defensive: float = 0.1,
+    alpha: float = defaults.ALPHA,
+    defensive: float = defaults.DEFENSIVE,
     design: Design = "poisson",
     permute: bool = True,
 ) -> SamplePlan:
@@ -463,7 +519,8 @@ def plan_sample(
         True where the level-0 value is already known: excluded from sampling and counted
         exactly by the estimator.
     alpha, defensive : float
-        See ``inclusion_probabilities``.
+        See ``inclusion_probabilities``; defaults ``defaults.ALPHA`` and
+        ``defaults.DEFENSIVE``, the values the CLI uses.
     design : {"poisson", "fixed", "with-replacement"}
     permute : bool
         "fixed" only: randomise the systematic order (see ``draw_systematic``).
@@ -517,14 +574,17 @@ class RateEstimate:
     p_hat : float
         Unbiased estimate of the failure rate over the pool.
     se : float
-        Estimated standard error, sqrt(var_hat).
+        Estimated standard error: sqrt(var_hat), except where var_hat = 0 while failures
+        could still hide among the segments sampled with pi < 1: then the standard error of
+        one such failure of the weight the upper limit allows for (``variance_note`` says
+        so). 0 only for a census of U; inf when undefined (one draw with replacement).
     var_hat : float
         Variance estimate (unbiased for poisson and with-replacement; approximate for fixed).
     ci_low, ci_high : float
         Confidence interval (gamma interval unless asked otherwise; see the module docstring).
     confidence : float
     rel_var : float
-        Estimated relative variance var_hat / p_hat^2 (NaN when p_hat = 0).
+        Estimated relative variance se^2 / p_hat^2 (NaN when p_hat = 0; ``rel_var_note``).
     n_sampled : int
         Distinct segments simulated.
     n_failures_sampled : int
@@ -537,6 +597,11 @@ class RateEstimate:
         Effective number of failures in the random part, R^2 / v (inf when it has no
         variance, 0 when none was sampled).
     design : str
+    variance_note : str or None
+        What ``se`` rests on when it is not sqrt(var_hat) (``variance_note``); None when it
+        is the design's variance estimate.
+    rel_var_note : str or None
+        Why ``rel_var`` is undefined (NaN), else None.
     """
 
     p_hat: float
@@ -552,6 +617,8 @@ class RateEstimate:
     n_failures_found: int
     n_eff: float
     design: str
+    variance_note: str | None = None
+    rel_var_note: str | None = None
 
 
 @dataclass(frozen=True)
@@ -559,8 +626,10 @@ class RateEstimates:
     """``RateEstimate`` for m columns (gammas, or repeats in a simulation), as arrays.
 
     Every field but ``confidence`` and ``design`` is an ndarray of shape (m,), with the
-    meaning of the ``RateEstimate`` field of the same name. Index it (``est[j]``) or call
-    ``to_list()`` for per-gamma ``RateEstimate`` objects.
+    meaning of the ``RateEstimate`` field of the same name, and two more: ``variance_basis``
+    (int8, a ``BASIS_*`` code: what ``se`` rests on) and ``w_allow`` (the weight of the one
+    more failure the gamma upper limit allows for). Index it (``est[j]``) or call
+    ``to_list()`` for per-gamma ``RateEstimate`` objects, whose notes spell these out.
     """
 
     p_hat: FloatArray
@@ -574,6 +643,8 @@ class RateEstimates:
     n_known_failures: IntArray
     n_failures_found: IntArray
     n_eff: FloatArray
+    variance_basis: NDArray[np.int8]
+    w_allow: FloatArray
     confidence: float
     design: str
 
@@ -585,11 +656,87 @@ class RateEstimates:
         for name in _ESTIMATE_FIELDS:
             v = getattr(self, name)[j]
             kw[name] = int(v) if np.issubdtype(np.asarray(v).dtype, np.integer) else float(v)
-        return RateEstimate(confidence=self.confidence, design=self.design, **kw)  # type: ignore[arg-type]
+        basis = int(self.variance_basis[j])
+        return RateEstimate(
+            confidence=self.confidence,
+            design=self.design,
+            variance_note=variance_note(basis, float(self.w_allow[j])),
+            rel_var_note=rel_var_note(float(kw["p_hat"]), float(kw["se"])),
+            **kw,  # type: ignore[arg-type]
+        )
 
     def to_list(self) -> list[RateEstimate]:
         """One ``RateEstimate`` per column (gamma)."""
         return [self[j] for j in range(len(self))]
+
+
+# What a reported se rests on (``RateEstimates.variance_basis``).
+#: The design's variance estimate v: se = sqrt(var_hat).
+BASIS_HT = 0
+#: v = 0 because every sampled failure had pi = 1; se allows for one failure among pi < 1.
+BASIS_CERTAIN_FAILURES = 1
+#: v = 0 because no failure was sampled; se allows for one failure among pi < 1.
+BASIS_NO_FAILURE = 2
+#: The sampled terms show no spread (with replacement: every draw a failure of one weight;
+#: fixed: one sampled failure with pi < 1 and no other sampled segment with pi < 1).
+BASIS_NO_SPREAD = 3
+#: Every segment of U was simulated: the estimate is exact, se = 0.
+BASIS_CENSUS = 4
+#: One draw with replacement: no sample variance, se undefined (inf).
+BASIS_SINGLE_DRAW = 5
+
+
+def variance_note(basis: int, w_allow: float) -> str | None:
+    """What a reported se rests on, in words, when it is not the design's variance estimate.
+
+    Parameters
+    ----------
+    basis : int
+        A ``BASIS_*`` code (``RateEstimates.variance_basis``).
+    w_allow : float
+        Weight (variance-to-mean ratio, (1 - pi)/pi) of the one more failure that the
+        interval's upper limit allows for.
+
+    Returns
+    -------
+    note : str or None
+        None for ``BASIS_HT``.
+    """
+    allow = (
+        f"se is that of one failure of weight {w_allow:.4g} among them, the same allowance "
+        "the interval's upper limit makes"
+    )
+    if basis == BASIS_CERTAIN_FAILURES:
+        return (
+            "every sampled failure was included with certainty (pi = 1), so the HT variance "
+            "estimate is 0; the variance comes from the segments sampled with pi < 1, none of "
+            f"which failed: {allow}"
+        )
+    if basis == BASIS_NO_FAILURE:
+        return (
+            "no failure was sampled, so the HT variance estimate is 0; the variance comes from "
+            f"the segments sampled with pi < 1, none of which failed: {allow}"
+        )
+    if basis == BASIS_NO_SPREAD:
+        return (
+            "the sampled terms y/pi (with replacement: the draws' y/(K q)) show no spread, so the "
+            "variance estimate is 0; failures may remain among the segments with pi < 1 not "
+            f"sampled: {allow}"
+        )
+    if basis == BASIS_CENSUS:
+        return "every segment of U was simulated (pi = 1): the estimate is exact and se = 0"
+    if basis == BASIS_SINGLE_DRAW:
+        return "one draw (K = 1): a sample variance needs at least two, so se is undefined"
+    return None
+
+
+def rel_var_note(p_hat: float, se: float) -> str | None:
+    """Why the relative variance se^2 / p_hat^2 is undefined, or None when it is defined."""
+    if not math.isfinite(se):
+        return "se is undefined (see variance_note), and so is se^2 / p_hat^2"
+    if p_hat <= 0:
+        return "p_hat = 0: the relative variance se^2 / p_hat^2 is undefined"
+    return None
 
 
 _ESTIMATE_FIELDS = (
@@ -724,15 +871,20 @@ def estimate_from_sample(
         K = float(budget)
         yc = np.broadcast_to(y * c, (fr.size, m))
         T = (inv @ yc) / K
-        sum_sq = (inv**2) @ yc
-        # s^2 of the K terms Y_k = y/q; v = s^2 / K. (sum Y^2 - K Ybar^2) can round below 0.
-        v = np.maximum(sum_sq - K * T**2, 0.0) / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
+        # s^2 of the K terms Y_k = y/q; v = s^2 / K. Two passes: the squared deviations
+        # from T, the failure draws' (1/q - T)^2 and T^2 for each of the other draws. The
+        # one-pass sum Y^2 - K T^2 cancels when every draw is a failure of similar weight
+        # (terms 1e9 +- 1: every digit lost, v = 0); these terms are all >= 0.
+        n_zero_draws = K - yc.sum(axis=0)
+        ss = ((inv[:, None] - T[None, :]) ** 2 * yc).sum(axis=0) + n_zero_draws * T**2
+        v = ss / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
         D = np.zeros(m)
         R = T
         yr = yf
         n_rand_fail = n_fail_s
         wt = failure_weights(np.where(pf > 0, pf, 1.0), design=design, K=K)
         w0 = (n_unknown - 1.0) / K  # the same at uniform q = 1/|U|
+        n_certain = 0
     else:
         certain = pf >= 1.0
         rand = ~certain
@@ -767,9 +919,42 @@ def estimate_from_sample(
     N = float(n_pool)
     p_hat = total / N
     var_hat = v / N**2
-    se = np.sqrt(var_hat)
+
+    # The weight of the one more failure the gamma upper limit allows for: the heaviest
+    # failure seen, or the model's typical failure if heavier; with no model, the design's
+    # typical segment when no failure was seen.
+    w_seen = np.where(yr > 0, wt[:, None], 0.0).max(axis=0, initial=0.0)
+    wm = (
+        np.full(m, np.nan)
+        if w_model is None
+        else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
+    )
+    w_allow = np.where(np.isnan(wm), np.where(n_rand_fail > 0, w_seen, w0), np.maximum(w_seen, wm))
+
+    # v sums over the sampled failures with pi < 1 (with replacement: the spread of the
+    # draws), so it is 0 when none was sampled, even when failures sampled with pi = 1
+    # carry p_hat. se = 0 would then claim a certainty the design does not have: failures
+    # may sit among the pi < 1 segments unseen. So se is that of one such failure, of the
+    # weight w_allow the upper limit allows for (the rule of three's reasoning, applied to
+    # the se), and ``variance_basis`` records why. Only a census of U is exact.
+    basis = np.full(m, BASIS_HT, np.int8)
+    if design == "with-replacement":
+        has_random = n_unknown > 1
+        if not float(budget) > 1:
+            basis[:] = BASIS_SINGLE_DRAW
+    else:
+        has_random = n_unknown - n_certain > 0
+    no_var = (v <= 0) & (basis == BASIS_HT)
+    if not has_random:
+        basis[no_var] = BASIS_CENSUS
+    else:
+        basis[no_var] = np.where(
+            R > 0, BASIS_NO_SPREAD, np.where(D > 0, BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE)
+        )[no_var]
+    floor = np.isin(basis, (BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE, BASIS_NO_SPREAD))
+    se = np.where(floor, np.sqrt(w_allow) / N, np.sqrt(var_hat))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel_var = np.where(p_hat > 0, var_hat / p_hat**2, np.nan)
+        rel_var = np.where((p_hat > 0) & np.isfinite(se), se**2 / p_hat**2, np.nan)
         n_eff = np.where(R > 0, np.where(v > 0, R**2 / np.where(v > 0, v, 1.0), np.inf), 0.0)
 
     a = 1.0 - confidence
@@ -777,17 +962,7 @@ def estimate_from_sample(
     hi_cap = known + n_unknown - n_pass_s
     if interval in ("gamma", "fay-feuer"):
         if interval == "gamma":
-            w_seen = np.where(yr > 0, wt[:, None], 0.0).max(axis=0, initial=0.0)
-            wm = (
-                np.full(m, np.nan)
-                if w_model is None
-                else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
-            )
-            # Heaviest failure seen, or the model's typical failure if heavier; with no
-            # model, the design's typical segment when no failure was seen.
-            w_next = np.where(
-                np.isnan(wm), np.where(n_rand_fail > 0, w_seen, w0), np.maximum(w_seen, wm)
-            )
+            w_next = w_allow
         else:
             if w_max is None:
                 raise ValueError("interval='fay-feuer' needs w_max (estimate_rate computes it)")
@@ -801,6 +976,10 @@ def estimate_from_sample(
         hi = total + z * np.sqrt(v)
     else:
         raise ValueError(f"interval must be one of {INTERVALS}; got {interval!r}")
+    # No variance estimate (one draw with replacement): nothing narrower than the feasible
+    # range below can be claimed.
+    lo = np.where(np.isfinite(v), lo, -np.inf)
+    hi = np.where(np.isfinite(v), hi, np.inf)
     # Intersect with the feasible range: the failures in hand are a sure lower bound, and
     # segments seen to pass cannot fail. HT totals are not range-respecting, so in rare
     # samples p_hat exceeds the cap and the interval then lies below p_hat.
@@ -818,6 +997,8 @@ def estimate_from_sample(
         n_known_failures=known.astype(np.int64),
         n_failures_found=found.astype(np.int64),
         n_eff=n_eff,
+        variance_basis=basis,
+        w_allow=w_allow,
         confidence=confidence,
         design=design,
     )
@@ -831,7 +1012,7 @@ def _gamma_interval(
     lower = Gamma quantile a/2 with mean R and variance v;
     upper = Gamma quantile 1 - a/2 with mean R + w and variance v + w^2, w = ``w_next``.
     A Gamma with mean M and variance V has shape M^2/V and scale V/M; with R = 0 the upper
-    limit is w (-ln(a/2)), the rule of three.
+    limit is w (-ln(a/2)), the rule of three. With v = 0 and w = 0 both limits are R.
 
     Parameters
     ----------
@@ -854,8 +1035,11 @@ def _gamma_interval(
         lo[pos] = (v[pos] / R[pos]) * gammaincinv(R[pos] ** 2 / v[pos], a / 2.0)
     M = R + w_next
     V = v + w_next**2
-    hi = R.copy()
-    ok = M > 0
+    # V = 0 (no variance and no extra failure allowed for, w = 0: every segment of U_r has
+    # pi = 1, or with replacement q = 1) is a point mass at M; the Gamma's shape M^2/V
+    # would be inf and its scale 0, and their product NaN.
+    hi = M.copy()
+    ok = (M > 0) & (V > 0)
     # P(Gamma(k) <= x) = 1 - a/2  <=>  x = gammaincinv(k, 1 - a/2).
     hi[ok] = (V[ok] / M[ok]) * gammaincinv(M[ok] ** 2 / V[ok], 1.0 - a / 2.0)
     return lo, hi

@@ -48,7 +48,8 @@ def stamp(table: pa.Table, schema_version: int, extra: dict[str, Any] | None = N
         "written_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
     for key, value in (extra or {}).items():
-        fields[key] = value if isinstance(value, str) else json.dumps(value)
+        # allow_nan=False: metadata is JSON; an undefined number must be written as null.
+        fields[key] = value if isinstance(value, str) else json.dumps(value, allow_nan=False)
     for key, value in fields.items():
         meta[(META_PREFIX + key).encode()] = str(value).encode()
     return table.replace_schema_metadata(meta)

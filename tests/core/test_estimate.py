@@ -12,11 +12,13 @@ import math
 import numpy as np
 import pytest
 from scipy.special import ndtr
+from scipy.stats import gamma as gamma_dist
 from scipy.stats import multivariate_normal
 
 from bams_cli.core.estimate import (
     RateEstimate,
     ZeroInclusionWarning,
+    _gamma_interval,
     bvn_cov,
     draw_poisson,
     draw_systematic,
@@ -28,6 +30,7 @@ from bams_cli.core.estimate import (
     gp_estimate,
     gp_variance_exact,
     inclusion_probabilities,
+    log_selection_distribution,
     model_weight,
     plan_sample,
     selection_distribution,
@@ -164,6 +167,40 @@ def test_selection_distribution_survives_tiny_p():
     np.testing.assert_allclose(q, np.array([1.0, 2**2.5]) / (1 + 2**2.5))
 
 
+def subnormal_tail_pool() -> np.ndarray:
+    # 1,480 likely segments and 61 whose p_n falls from 1e-306 to 1e-315: at eps = 0 their
+    # q (p / 740) lies below 2.2e-308, so every tail sum S_m is subnormal and the old
+    # lam = (K - m) / S_m overflowed (issue 12: every pi became 1, sum 1,541 vs K).
+    return np.concatenate([np.full(1480, 0.5), np.logspace(-306, -315, 61)])
+
+
+@pytest.mark.parametrize(
+    "pool, alpha",
+    [
+        # q spanning 1e-300..1 log-uniformly (alpha 1: q = p / sum p).
+        pytest.param(lambda: np.logspace(0, -300, 1541), 1.0, id="q-1e-300..1"),
+        pytest.param(subnormal_tail_pool, 1.0, id="subnormal-tail"),
+        # alpha 2.5 takes p = 1e-150 to q ~ 1e-375: no float64 holds it, its log does.
+        pytest.param(lambda: np.logspace(0, -150, 1541), 2.5, id="q-below-float64"),
+    ],
+)
+@pytest.mark.parametrize("K", [10.0, 1485.5, 1489.0, 1540.5])
+@pytest.mark.filterwarnings("ignore::bams_cli.core.estimate.ZeroInclusionWarning")
+def test_inclusion_probabilities_at_the_float_edge(pool, alpha, K):
+    p = pool()
+    pi = inclusion_probabilities(p, alpha=alpha, defensive=0.0, K=K)
+    assert math.isclose(pi.sum(), K, rel_tol=1e-9), (pi.sum(), int((pi == 1).sum()))
+    assert np.all((pi >= 0) & (pi <= 1))
+    # pi = lam q for the uncapped, checked in logs (q itself underflows): log pi - log q is
+    # one constant log lam, and every capped segment would exceed 1 at that lam.
+    log_q = log_selection_distribution(p, alpha=alpha, defensive=0.0)
+    unc = (pi < 1) & (pi > 1e-300)
+    log_lam = np.log(pi[unc]) - log_q[unc]
+    np.testing.assert_allclose(log_lam, log_lam[0], rtol=0, atol=1e-9)
+    assert np.all(log_lam[0] + log_q[pi == 1] >= -1e-9)
+    assert np.count_nonzero(pi == 1) < K  # the budget left for the tail is really placed
+
+
 # --------------------------------------------------------------------------------------------
 # Designs: the draws have the inclusion probabilities they claim
 # --------------------------------------------------------------------------------------------
@@ -227,6 +264,38 @@ def test_estimates_hand_example():
     )  # fmt: skip
     assert math.isclose(est.p_hat[0], 0.6)
     assert math.isclose(est.var_hat[0], 50 / 12 / 100)
+
+
+def test_with_replacement_variance_keeps_its_digits():
+    # K = 4 draws, every one a failure: rows drawn [2, 1, 1] times with 1/q ~ [1e9, 1e9 + 1,
+    # 1e9 + 3], terms ~ [1e9, 1e9, 1e9 + 1, 1e9 + 3]: mean 1e9 + 1, deviations [-1, -1, 0, 2],
+    # s^2 = 6/3 = 2, v = s^2/K = 0.5. The one-pass sum Y^2 - K T^2 is a difference of two
+    # ~4e18 numbers whose spacing is 512: all digits lost.
+    q = 1.0 / np.array([1e9, 1e9 + 1, 1e9 + 3])
+    counts = np.array([2, 1, 1])
+    K = 4
+    terms = np.repeat(1.0 / q, counts)  # brute force: the K terms themselves, in fsum
+    mean = math.fsum(terms) / K
+    brute = math.fsum((t - mean) ** 2 for t in terms) / (K - 1) / K
+    assert math.isclose(brute, 0.5, rel_tol=1e-6)
+    one_pass = (math.fsum(terms**2) - K * mean**2) / (K - 1) / K
+    assert abs(one_pass - brute) > 0.5 * brute  # the case really defeats the one-pass form
+    N = 10**10
+    est = estimate_from_sample(
+        q, np.ones(3, bool), design="with-replacement", counts=counts, n_pool=N,
+        n_unknown=10**9, budget=K,
+    )  # fmt: skip
+    assert math.isclose(est.var_hat[0] * N**2, brute, rel_tol=1e-9)
+    # With draws of passing segments too (repeat columns), still the brute-force value.
+    counts2 = np.array([[2, 1], [1, 0], [1, 1]])  # column 1: two failure draws, two passes
+    est = estimate_from_sample(
+        q, np.ones(3, bool), design="with-replacement", counts=counts2, n_pool=N,
+        n_unknown=10**9, budget=K,
+    )  # fmt: skip
+    terms = np.array([1.0 / q[0], 1.0 / q[2], 0.0, 0.0])
+    mean = math.fsum(terms) / K
+    brute2 = math.fsum((t - mean) ** 2 for t in terms) / (K - 1) / K
+    assert math.isclose(est.var_hat[1] * N**2, brute2, rel_tol=1e-12)
 
 
 def test_estimate_rate_serves_every_gamma():
@@ -423,6 +492,112 @@ def test_ci_zero_failures_rule_of_three():
                                budget=K)  # fmt: skip
     assert est.p_hat[0] == 0 and est.ci_low[0] == 0
     assert math.isclose(est.ci_high[0], -math.log(0.05) * 9 / N)
+
+
+@pytest.mark.parametrize("R", [0.0, 3.0])
+def test_gamma_interval_without_variance_or_extra_weight(R):
+    # v = 0 and w = 0: a point mass at R (the Gamma's shape R^2/0 gave NaN before).
+    lo, hi = _gamma_interval(np.array([R]), np.zeros(1), np.zeros(1), 0.1)
+    assert lo[0] == hi[0] == R
+
+
+def test_with_replacement_certain_segment_interval_is_finite():
+    # U is one segment with q = 1, drawn K = 3 times, a failure: T = 3/(3 * 1) = 1 failure
+    # for sure, v = 0 and its weight (1 - q)/(K q) = 0. Interval [1, 1]/N, not NaN.
+    est = estimate_from_sample(
+        [1.0], [True], design="with-replacement", counts=[3], n_pool=5, n_unknown=1, budget=3
+    )
+    assert est.p_hat[0] == est.ci_low[0] == est.ci_high[0] == 0.2
+
+
+def test_gamma_upper_limit_at_moderate_pi_by_hand():
+    # Poisson, N = 100, |U| = 50; sampled pi = [0.5, 0.8, 0.5], failures [T, T, F].
+    #   R = 1/0.5 + 1/0.8 = 2 + 1.25 = 3.25 failures
+    #   v = (1 - 0.5)/0.5^2 + (1 - 0.8)/0.8^2 = 2 + 0.3125 = 2.3125
+    #   failure weights (1 - pi)/pi = [1, 0.25]; no model weight: w = heaviest seen = 1
+    #   upper: Gamma with mean M = R + w = 4.25 and variance V = v + w^2 = 3.3125,
+    #          shape M^2/V = 18.0625/3.3125 = 5.45283, scale V/M = 0.779412
+    #   lower: Gamma with mean 3.25, variance 2.3125 (shape 4.56757, scale 0.711538):
+    #          its 5% point (1.21) is below the 2 failures in hand, so lower = 2.
+    # Weight 1/pi instead of (1 - pi)/pi would give w = 2, M = 5.25, V = 6.3125.
+    kw = dict(design="poisson", n_pool=100, n_unknown=50, budget=10.0)
+    pi = np.array([0.5, 0.8, 0.5])
+    f = np.array([True, True, False])
+    est = estimate_from_sample(pi, f, **kw)
+    upper = gamma_dist.ppf(0.95, 18.0625 / 3.3125, scale=3.3125 / 4.25)
+    assert math.isclose(upper, 7.6175, rel_tol=1e-4)  # 1/pi weights would give 9.95
+    assert math.isclose(est.ci_high[0], upper / 100, rel_tol=1e-10)
+    assert est.ci_low[0] == 2 / 100
+    assert math.isclose(est.var_hat[0], 2.3125 / 100**2, rel_tol=1e-14)
+    assert est.variance_basis[0] == 0 and math.isclose(est.se[0], math.sqrt(2.3125) / 100)
+    # A model weight heavier than any failure seen takes over: w = 1.5, M = 4.75,
+    # V = 2.3125 + 2.25 = 4.5625.
+    est = estimate_from_sample(pi, f, w_model=1.5, **kw)
+    upper = gamma_dist.ppf(0.95, 4.75**2 / 4.5625, scale=4.5625 / 4.75)
+    assert math.isclose(est.ci_high[0], upper / 100, rel_tol=1e-10)
+
+
+def test_model_weight_by_hand():
+    # U_r = two segments with pi = [0.5, 0.8] and p_n = [0.1, 0.3]; the pi = 1 segment is
+    # left out. w = (1 - pi)/pi = [1, 0.25]: (0.1 * 1 + 0.3 * 0.25)/0.4 = 0.175/0.4 = 0.4375
+    # (1/pi would give (0.2 + 0.375)/0.4 = 1.4375).
+    w = model_weight([0.1, 0.3, 0.9], [0.5, 0.8, 1.0], design="poisson", K=2.3)
+    assert math.isclose(w, 0.4375, rel_tol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "w_model, w",
+    [
+        (2.0, 2.0),  # the plan's model weight
+        # No model: the design's typical segment of U_r: |U_r| = 50 - 2 certain = 48 with
+        # K_r = 10 - 2 = 8 expected draws, w0 = (48 - 8)/8 = 5 (rule of three at pi = 1/6).
+        (None, 5.0),
+    ],
+)
+def test_failures_sampled_with_certainty_keep_a_variance(w_model, w):
+    # N = 100, |U| = 50, K = 10; sampled pi = [1, 1, 0.5, 0.5], the two pi = 1 segments fail.
+    # The HT variance estimate is 0 (it sums over failures with pi < 1), but failures may
+    # hide among the 48 segments with pi < 1: se = sqrt(w)/N, and the upper limit is
+    # 2 + w (-ln 0.05) failures, the zero-failure rule of three on top of the two in hand.
+    est = estimate_from_sample(
+        [1.0, 1.0, 0.5, 0.5], [True, True, False, False], design="poisson", n_pool=100,
+        n_unknown=50, budget=10.0, w_model=w_model,
+    )[0]  # fmt: skip
+    assert est.p_hat == 0.02 and est.var_hat == 0.0
+    assert math.isclose(est.se, math.sqrt(w) / 100, rel_tol=1e-14)
+    assert math.isclose(est.rel_var, (w / 100**2) / 0.02**2, rel_tol=1e-14)
+    assert est.ci_low == 0.02
+    assert math.isclose(est.ci_high, (2 + w * -math.log(0.05)) / 100, rel_tol=1e-12)
+    assert "included with certainty (pi = 1)" in est.variance_note
+    assert f"weight {w:.4g}" in est.variance_note and est.rel_var_note is None
+
+
+def test_se_is_zero_only_for_a_census():
+    # Every segment of U sampled with pi = 1: exact, se = 0, and a note says so.
+    est = estimate_from_sample(
+        [1.0, 1.0, 1.0], [True, False, False], design="poisson", n_pool=10, n_unknown=3,
+        budget=3.0, known_failures=1,
+    )[0]  # fmt: skip
+    assert est.p_hat == est.ci_low == est.ci_high == 0.2 and est.se == 0
+    assert "exact" in est.variance_note
+    # Nothing found and p_hat = 0: se allows for one failure, rel_var is undefined, said why.
+    est = estimate_from_sample(
+        np.full(100, 0.1), np.zeros(100, bool), design="poisson", n_pool=1000, n_unknown=1000,
+        budget=100.0,
+    )[0]  # fmt: skip
+    assert est.p_hat == 0 and math.isclose(est.se, 3 / 1000)  # sqrt(w0 = 900/100) / N
+    assert math.isnan(est.rel_var) and "p_hat = 0" in est.rel_var_note
+
+
+def test_single_draw_with_replacement_is_undefined_not_nan_interval():
+    # One draw: no sample variance (se = inf, said why); the interval is the feasible range,
+    # [1 failure in hand, 3 segments not seen to pass] / N, not NaN.
+    est = estimate_from_sample(
+        [0.5], [True], design="with-replacement", counts=[1], n_pool=5, n_unknown=3, budget=1
+    )[0]
+    assert math.isinf(est.se) and "K = 1" in est.variance_note
+    assert (est.ci_low, est.ci_high) == (0.2, 0.6)
+    assert math.isnan(est.rel_var) and "undefined" in est.rel_var_note
 
 
 def test_ci_contains_found_and_excludes_passed():
