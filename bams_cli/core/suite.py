@@ -260,6 +260,9 @@ RARE_REGIONS = 5
 RARE_REGION_DIMS = 4
 RARE_CENTER_NORM = 2.2
 RARE_WIDTH = 0.45
+RARE_CORE_DEPTH = 1.1
+RARE_BASIN_RADIUS = 2.2
+RARE_BASIN_DEPTH = 1.2
 RARE_GAMMA = 0.45
 RARE_COST = 0.15
 
@@ -315,7 +318,12 @@ def _rare_levels(U: FloatArray, rng: np.random.Generator) -> tuple[FloatArray, F
     for k in range(RARE_REGIONS):
         dims = slice(RARE_REGION_DIMS * k, RARE_REGION_DIMS * (k + 1))
         bump = _bump(U, C[k, dims], dims, RARE_WIDTH)
-        f0 = f0 - 2.6 * bump
+        # A basin that slopes toward the region from RARE_BASIN_RADIUS away, with a narrow
+        # core at its bottom where the failures are: rare failures at the end of a trend a
+        # model can follow, as in real data, not needles no sampler could find.
+        dist = np.linalg.norm(U[:, dims] - C[k, dims], axis=1)
+        basin = np.maximum(0.0, 1.0 - dist / RARE_BASIN_RADIUS) ** 2
+        f0 = f0 - RARE_BASIN_DEPTH * basin - RARE_CORE_DEPTH * bump
         # The cheap level sees every region, but at a different depth in each: it
         # overstates some (false alarms) and understates others (missed failures).
         bias = bias + 0.5 * (k % 3 - 1) * bump
@@ -324,11 +332,12 @@ def _rare_levels(U: FloatArray, rng: np.random.Generator) -> tuple[FloatArray, F
 
 
 def rare_regions(n: int = DEFAULT_N["rare_regions"], seed: int = 0) -> SyntheticPool:
-    """Rare failures (about 0.3 %) in 5 small separated regions of a 24-d latent.
+    """Rare failures (about 0.4 %) in 5 small separated regions of a 24-d latent.
 
     Latent u ~ N(0, I_24); features = 96-d random tanh map of u + N(0, 0.05^2).
-    f0 = smooth drift minus a narrow Gaussian dip (width 0.45) around each of the
-    ``rare_region_centers``; f1 = f0 + a bias that varies with u and from region to region
+    f0 = smooth drift minus, around each of the ``rare_region_centers``, a basin sloping
+    down over a radius of 2.2 and a narrow Gaussian core (width 0.45) at its bottom;
+    every failure lies in a core; f1 = f0 + a bias that varies with u and from region to region
     + N(0, 0.2^2); corr(f0, f1) about 0.8. gamma = 0.5; cheap level cost 0.15.
 
     Parameters

@@ -112,8 +112,8 @@ def test_rare_regions_are_rare_small_and_separated(seed):
     assert set(region) == set(range(suite.RARE_REGIONS)) and 4 <= suite.RARE_REGIONS <= 6
     C = suite.rare_region_centers()
     gaps = np.linalg.norm(C[:, None] - C[None], axis=-1)[np.triu_indices(len(C), 1)]
-    # Every failure lies within 1 of its region's centre; centres are 3 or more apart.
-    assert dist.max() < 1.0 and gaps.min() > 3.0
+    # Every failure lies within 1.1 of its region's centre; centres are 3 or more apart.
+    assert dist.max() < 1.1 and gaps.min() > 3.0
     assert 0.7 <= np.corrcoef(f0, f1)[0, 1] <= 0.85
 
 
