@@ -1126,8 +1126,15 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
             "gp_rate_ratio": float(np.mean(ratio)) if ratio else None,
             "gp_rate_ratio_range": [min(ratio), max(ratio)] if ratio else None,
         }
-    keys = ("pool_size", "failures", "rate", "K", "seeds", "true_discrepancy_sd", "corr_levels")
-    keys += ("failures_unseen_by_level1", "m1", "mb", "batches")
+    keys: tuple[str, ...] = ("pool_size", "failures", "rate", "K", "seeds")
+    keys += (
+        "true_discrepancy_sd",
+        "corr_levels",
+        "failures_unseen_by_level1",
+        "m1",
+        "mb",
+        "batches",
+    )
     return {"setup": {k: st.get(k) for k in keys}, "strategies": rows}
 
 

@@ -973,8 +973,8 @@ def fit(
         "warnings": warnings,
     }
     cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
-    for g in range(p.shape[1]):
-        cols[f"p_{g}"] = p[:, g]
+    for j in range(p.shape[1]):
+        cols[f"p_{j}"] = p[:, j]
     meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
     # A snapshot of p_n after every batch feeds the report's per-batch retention-recall.
     # It is taken only when the newest results belong to a batch: a refit after ingesting
@@ -1037,7 +1037,7 @@ def _fit_up_to_date(
     if not same:
         return None
     _, _, _, p = _read_scores(ws, len(settings.gammas))
-    n = int(sum(n_obs))
+    n = int(np.sum(n_obs or []))
     return {
         "up_to_date": True,
         "message": f"model is up to date (fitted on {n} observations); nothing to do "

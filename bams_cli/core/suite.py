@@ -243,7 +243,7 @@ def digits(n: int = DIGITS_N, seed: int = 0) -> SyntheticPool:
         keep = np.sort(np.random.default_rng([seed, 31]).choice(DIGITS_N, n, replace=False))
     return SyntheticPool(
         ids=[f"digit-{i:04d}" for i in keep],
-        features=X[keep],
+        features=X[keep].astype(np.float64),
         truth=np.column_stack([f0[keep], f1[keep]]),
         gamma=DIGITS_GAMMA,
         costs=[1.0, DIGITS_COST],
