@@ -32,6 +32,7 @@ The embedding maps depend on the seed alone, so pools of every size share them.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -76,6 +77,35 @@ def _embed(
     A1 = map_rng.standard_normal((d, hidden)) / np.sqrt(d)
     A2 = map_rng.standard_normal((hidden, dim)) / np.sqrt(hidden)
     return np.tanh(U @ A1) @ A2 + noise * rng.standard_normal((U.shape[0], dim))
+
+
+def _latent_problem(
+    prefix: str,
+    n: int,
+    seed: int,
+    stream: int,
+    latent_dim: int,
+    embed_dim: int,
+    hidden: int,
+    levels: Callable[[FloatArray, np.random.Generator], tuple[FloatArray, FloatArray]],
+    gamma: float,
+    cost: float,
+) -> SyntheticPool:
+    """A pool of n latent points u ~ N(0, I), seen through ``_embed``, with (f0, f1) =
+    ``levels(u, rng)``; random streams [seed, stream] and [seed, stream + 1]."""
+    rng = np.random.default_rng([seed, stream])
+    U = rng.standard_normal((n, latent_dim))
+    E = _embed(U, embed_dim, hidden, 0.05, [seed, stream + 1], rng)
+    f0, f1 = levels(U, rng)
+    return SyntheticPool(
+        ids=[f"{prefix}-{i:06d}" for i in range(n)],
+        features=E,
+        truth=np.column_stack([f0, f1]),
+        gamma=gamma,
+        costs=[1.0, cost],
+        extra={},
+        latent=U,
+    )
 
 
 def _bump(U: FloatArray, center: FloatArray, dims: slice, width: float) -> FloatArray:
@@ -127,18 +157,8 @@ def weak_cheap(n: int = DEFAULT_N["weak_cheap"], seed: int = 0) -> SyntheticPool
     -------
     SyntheticPool
     """
-    rng = np.random.default_rng([seed, 11])
-    U = rng.standard_normal((n, WEAK_LATENT_DIM))
-    E = _embed(U, WEAK_EMBED_DIM, 48, 0.05, [seed, 12], rng)
-    f0, f1 = _weak_levels(U, rng)
-    return SyntheticPool(
-        ids=[f"wc-{i:06d}" for i in range(n)],
-        features=E,
-        truth=np.column_stack([f0, f1]),
-        gamma=WEAK_GAMMA,
-        costs=[1.0, WEAK_COST],
-        extra={},
-        latent=U,
+    return _latent_problem(
+        "wc", n, seed, 11, WEAK_LATENT_DIM, WEAK_EMBED_DIM, 48, _weak_levels, WEAK_GAMMA, WEAK_COST
     )
 
 
@@ -351,18 +371,8 @@ def rare_regions(n: int = DEFAULT_N["rare_regions"], seed: int = 0) -> Synthetic
     SyntheticPool
         ``latent`` holds u; ``rare_region_of`` says which region a point is in.
     """
-    rng = np.random.default_rng([seed, 41])
-    U = rng.standard_normal((n, RARE_LATENT_DIM))
-    E = _embed(U, RARE_EMBED_DIM, 128, 0.05, [seed, 42], rng)
-    f0, f1 = _rare_levels(U, rng)
-    return SyntheticPool(
-        ids=[f"rr-{i:06d}" for i in range(n)],
-        features=E,
-        truth=np.column_stack([f0, f1]),
-        gamma=RARE_GAMMA,
-        costs=[1.0, RARE_COST],
-        extra={},
-        latent=U,
+    return _latent_problem(
+        "rr", n, seed, 41, RARE_LATENT_DIM, RARE_EMBED_DIM, 128, _rare_levels, RARE_GAMMA, RARE_COST
     )
 
 
