@@ -63,6 +63,13 @@ Wait = Annotated[
     bool,
     typer.Option("--wait", help="Wait for another command's workspace lock instead of failing."),
 ]
+HandoffInternal = Annotated[
+    bool,
+    typer.Option(
+        "--handoff-internal",
+        help="Also put the internal columns (kept in the Parquet state file) in the CSV hand-off.",
+    ),
+]
 
 
 def _one_line_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
@@ -297,7 +304,11 @@ def embed_reduce(
 @command("ingest-results")
 def ingest_results(
     results: Annotated[
-        Path, typer.Argument(help="Parquet or CSV: segment_id, fidelity, value (+ extra columns).")
+        Path,
+        typer.Argument(
+            help="Parquet or CSV: request_id or segment_id + fidelity (number or level name), "
+            "value, optional status (+ extra columns)."
+        ),
     ],
     workspace: Workspace = Path(DEFAULT_WORKSPACE),
     replace: Annotated[
@@ -312,6 +323,11 @@ def ingest_results(
 ) -> None:
     """Append simulation results to the observation log.
 
+    Each row is keyed by request_id (from the hand-off list), or by segment_id and fidelity
+    (the level's number or its name in settings). A row whose status is neither empty nor
+    ok (e.g. crashed) is not ingested: its request stays pending. The results template
+    beside each hand-off list has the columns to fill.
+
     [bold]Example[/]: bams-cli ingest-results -w study results-0001.parquet
     """
     summary = pipeline.ingest_results(
@@ -323,9 +339,15 @@ def ingest_results(
     if "message" in summary:
         console.note(summary["message"])
     else:
-        pend = summary.pop("pending")
-        console.kv_table("ingest-results", summary)
-        summary["pending"] = pend
+        shown = {k: v for k, v in summary.items() if k not in ("pending", "not_run")}
+        console.kv_table("ingest-results", shown)
+    not_run = summary["not_run"]
+    if not_run["count"]:
+        first = not_run["first"][0]
+        console.note(
+            f"{not_run['count']} rows were not run (status {first['status']!r} ...): "
+            "not ingested, their requests stay pending"
+        )
     pend = summary["pending"]
     if pend["count"]:
         rows = [[r["segment_id"], r["fidelity"], r["batch"]] for r in pend["first"]]
@@ -494,6 +516,7 @@ def select(
         str | None,
         typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
     ] = None,
+    handoff_internal: HandoffInternal = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -519,6 +542,7 @@ def select(
             include_observed=include_observed,
             workers=workers,
             scheduler=scheduler,
+            handoff_internal=handoff_internal,
             wait=wait,
             progress=bar,
         )
@@ -578,6 +602,7 @@ def estimate(
             help="Also compute the GP estimate's exact variance (pools <= 50,000).",
         ),
     ] = False,
+    handoff_internal: HandoffInternal = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -603,6 +628,7 @@ def estimate(
             defensive=defensive,
             design=design,
             seed=seed,
+            handoff_internal=handoff_internal,
             wait=wait,
         )
         _show(summary, json_out, f"estimate plan {summary['plan']}")
