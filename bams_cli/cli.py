@@ -23,7 +23,7 @@ from typing import Annotated, Any
 import click
 import typer
 
-from bams_cli import __version__, console, defaults, pipeline
+from bams_cli import __version__, console, defaults, pipeline, schemas_json
 from bams_cli.errors import BamsError, OptionError
 from bams_cli.status import status as study_status
 
@@ -139,9 +139,14 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     return values
 
 
-def _show(summary: dict[str, Any], json_out: bool, title: str) -> None:
+def _json(name: str, summary: dict[str, Any]) -> None:
+    """Print a command's --json output, led by the version of its schema (``bams-cli schema``)."""
+    console.print_json({"schema_version": schemas_json.version(name), **summary})
+
+
+def _show(summary: dict[str, Any], json_out: bool, title: str, name: str) -> None:
     if json_out:
-        console.print_json(summary)
+        _json(name, summary)
     else:
         console.kv_table(title, summary)
 
@@ -225,7 +230,7 @@ def init(
             highlight=False,
         )
         return
-    _show(summary, json_out, "workspace created")
+    _show(summary, json_out, "workspace created", "init")
 
 
 @command("embed-reduce")
@@ -298,7 +303,7 @@ def embed_reduce(
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, "embed-reduce")
+    _show(summary, json_out, "embed-reduce", "embed-reduce")
 
 
 @command("ingest-results")
@@ -334,7 +339,7 @@ def ingest_results(
         workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
     )
     if json_out:
-        console.print_json(summary)
+        _json("ingest-results", summary)
         return
     if "message" in summary:
         console.note(summary["message"])
@@ -378,7 +383,8 @@ def simulate(
     [bold]Example[/]: bams-cli simulate study/batches/batch-0001.parquet
     --truth sample_data/toy2d/truth.parquet -o results-0001.parquet
     """
-    _show(pipeline.simulate(handoff, truth, output), json_out, "simulate (sample data only)")
+    summary = pipeline.simulate(handoff, truth, output)
+    _show(summary, json_out, "simulate (sample data only)", "simulate")
 
 
 @command()
@@ -431,7 +437,7 @@ def fit(
             progress=bar,
         )
     if json_out:
-        console.print_json(summary)
+        _json("fit", summary)
         return
     if summary.get("up_to_date"):
         console.out.print(summary["message"], markup=False, highlight=False)
@@ -546,7 +552,7 @@ def select(
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, f"select: batch {summary['batch']}")
+    _show(summary, json_out, f"select: batch {summary['batch']}", "select")
 
 
 @command()
@@ -631,7 +637,7 @@ def estimate(
             handoff_internal=handoff_internal,
             wait=wait,
         )
-        _show(summary, json_out, f"estimate plan {summary['plan']}")
+        _show(summary, json_out, f"estimate plan {summary['plan']}", "estimate-plan")
         return
     with console.progress(not json_out) as bar:
         summary = pipeline.estimate_compute(
@@ -643,7 +649,7 @@ def estimate(
             progress=bar,
         )
     if json_out:
-        console.print_json(summary)
+        _json("estimate", summary)
         return
     rows = [
         [
@@ -698,7 +704,7 @@ def report(
     [bold]Example[/]: bams-cli report -w study   (sample data: add --truth sample_data/toy2d/truth.parquet)
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
-    _show(summary, json_out, "report")
+    _show(summary, json_out, "report", "report")
 
 
 @command()
@@ -717,11 +723,35 @@ def status(
     """
     summary = study_status(workspace)
     if json_out:
-        console.print_json(summary)
+        _json("status", summary)
     else:
         console.study_status(summary)
     if summary["exit_code"]:
         raise typer.Exit(summary["exit_code"])
+
+
+@command()
+def schema(
+    name: Annotated[
+        str | None,
+        typer.Argument(
+            help=f"Which output: {', '.join(schemas_json.NAMES)} \\[default: all, by name]."
+        ),
+    ] = None,
+) -> None:
+    """Print the JSON Schema of a command's --json output, or of report/summary.json.
+
+    Each output carries schema_version; it rises when a key changes meaning or goes away
+    (new keys may appear without it).
+
+    [bold]Example[/]: bams-cli schema select
+    """
+    if name is None:
+        console.print_json(schemas_json.all_schemas())
+        return
+    if name not in schemas_json.NAMES:
+        raise OptionError(f"schema {name!r}: choose one of {', '.join(schemas_json.NAMES)}")
+    console.print_json(schemas_json.schema(name))
 
 
 @command()

@@ -25,7 +25,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from bams_cli import defaults
+from bams_cli import defaults, schemas_json
 from bams_cli.errors import (
     ConflictError,
     DuplicateError,
@@ -2100,6 +2100,7 @@ def report(
         figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
     summary: dict[str, Any] = {
+        "schema_version": schemas_json.version("summary.json"),
         "tool_version": __version__,
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "workspace": str(root),
