@@ -618,12 +618,12 @@ def _read_results(
         )
     if df.filter(pl.col(rid_col).is_not_null()).select(rid_col).is_duplicated().any():
         rows = df.filter(pl.col(rid_col).is_not_null())
-        dup = rows.filter(rows.select(rid_col).is_duplicated())
+        twice = rows.filter(rows.select(rid_col).is_duplicated())
         raise DuplicateError(
             path,
-            f"request_id {dup[rid_col][0]!r} appears again (first at row {dup['_row'][0]})",
+            f"request_id {twice[rid_col][0]!r} appears again (first at row {twice['_row'][0]})",
             column=rid_col,
-            row=int(dup["_row"][1]),
+            row=int(twice["_row"][1]),
         )
 
     given_sid = df[SID].cast(pl.String)
