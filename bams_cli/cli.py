@@ -23,7 +23,7 @@ from typing import Annotated, Any
 import click
 import typer
 
-from bams_cli import __version__, console, defaults, pipeline
+from bams_cli import __version__, console, defaults, pipeline, schemas_json
 from bams_cli.errors import BamsError, OptionError
 from bams_cli.status import status as study_status
 
@@ -62,6 +62,13 @@ Json = Annotated[
 Wait = Annotated[
     bool,
     typer.Option("--wait", help="Wait for another command's workspace lock instead of failing."),
+]
+HandoffInternal = Annotated[
+    bool,
+    typer.Option(
+        "--handoff-internal",
+        help="Also put the internal columns (kept in the Parquet state file) in the CSV hand-off.",
+    ),
 ]
 
 
@@ -132,9 +139,14 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     return values
 
 
-def _show(summary: dict[str, Any], json_out: bool, title: str) -> None:
+def _json(name: str, summary: dict[str, Any]) -> None:
+    """Print a command's --json output, led by the version of its schema (``bams-cli schema``)."""
+    console.print_json({"schema_version": schemas_json.version(name), **summary})
+
+
+def _show(summary: dict[str, Any], json_out: bool, title: str, name: str) -> None:
     if json_out:
-        console.print_json(summary)
+        _json(name, summary)
     else:
         console.kv_table(title, summary)
 
@@ -218,7 +230,7 @@ def init(
             highlight=False,
         )
         return
-    _show(summary, json_out, "workspace created")
+    _show(summary, json_out, "workspace created", "init")
 
 
 @command("embed-reduce")
@@ -291,13 +303,17 @@ def embed_reduce(
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, "embed-reduce")
+    _show(summary, json_out, "embed-reduce", "embed-reduce")
 
 
 @command("ingest-results")
 def ingest_results(
     results: Annotated[
-        Path, typer.Argument(help="Parquet or CSV: segment_id, fidelity, value (+ extra columns).")
+        Path,
+        typer.Argument(
+            help="Parquet or CSV: request_id or segment_id + fidelity (number or level name), "
+            "value, optional status (+ extra columns)."
+        ),
     ],
     workspace: Workspace = Path(DEFAULT_WORKSPACE),
     replace: Annotated[
@@ -312,20 +328,31 @@ def ingest_results(
 ) -> None:
     """Append simulation results to the observation log.
 
+    Each row is keyed by request_id (from the hand-off list), or by segment_id and fidelity
+    (the level's number or its name in settings). A row whose status is neither empty nor
+    ok (e.g. crashed) is not ingested: its request stays pending. The results template
+    beside each hand-off list has the columns to fill.
+
     [bold]Example[/]: bams-cli ingest-results -w study results-0001.parquet
     """
     summary = pipeline.ingest_results(
         workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
     )
     if json_out:
-        console.print_json(summary)
+        _json("ingest-results", summary)
         return
     if "message" in summary:
         console.note(summary["message"])
     else:
-        pend = summary.pop("pending")
-        console.kv_table("ingest-results", summary)
-        summary["pending"] = pend
+        shown = {k: v for k, v in summary.items() if k not in ("pending", "not_run")}
+        console.kv_table("ingest-results", shown)
+    not_run = summary["not_run"]
+    if not_run["count"]:
+        first = not_run["first"][0]
+        console.note(
+            f"{not_run['count']} rows were not run (status {first['status']!r} ...): "
+            "not ingested, their requests stay pending"
+        )
     pend = summary["pending"]
     if pend["count"]:
         rows = [[r["segment_id"], r["fidelity"], r["batch"]] for r in pend["first"]]
@@ -356,7 +383,8 @@ def simulate(
     [bold]Example[/]: bams-cli simulate study/batches/batch-0001.parquet
     --truth sample_data/toy2d/truth.parquet -o results-0001.parquet
     """
-    _show(pipeline.simulate(handoff, truth, output), json_out, "simulate (sample data only)")
+    summary = pipeline.simulate(handoff, truth, output)
+    _show(summary, json_out, "simulate (sample data only)", "simulate")
 
 
 @command()
@@ -409,7 +437,7 @@ def fit(
             progress=bar,
         )
     if json_out:
-        console.print_json(summary)
+        _json("fit", summary)
         return
     if summary.get("up_to_date"):
         console.out.print(summary["message"], markup=False, highlight=False)
@@ -494,6 +522,7 @@ def select(
         str | None,
         typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
     ] = None,
+    handoff_internal: HandoffInternal = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -519,10 +548,11 @@ def select(
             include_observed=include_observed,
             workers=workers,
             scheduler=scheduler,
+            handoff_internal=handoff_internal,
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, f"select: batch {summary['batch']}")
+    _show(summary, json_out, f"select: batch {summary['batch']}", "select")
 
 
 @command()
@@ -578,6 +608,7 @@ def estimate(
             help="Also compute the GP estimate's exact variance (pools <= 50,000).",
         ),
     ] = False,
+    handoff_internal: HandoffInternal = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -603,9 +634,10 @@ def estimate(
             defensive=defensive,
             design=design,
             seed=seed,
+            handoff_internal=handoff_internal,
             wait=wait,
         )
-        _show(summary, json_out, f"estimate plan {summary['plan']}")
+        _show(summary, json_out, f"estimate plan {summary['plan']}", "estimate-plan")
         return
     with console.progress(not json_out) as bar:
         summary = pipeline.estimate_compute(
@@ -617,7 +649,7 @@ def estimate(
             progress=bar,
         )
     if json_out:
-        console.print_json(summary)
+        _json("estimate", summary)
         return
     rows = [
         [
@@ -672,7 +704,7 @@ def report(
     [bold]Example[/]: bams-cli report -w study   (sample data: add --truth sample_data/toy2d/truth.parquet)
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
-    _show(summary, json_out, "report")
+    _show(summary, json_out, "report", "report")
 
 
 @command()
@@ -691,11 +723,35 @@ def status(
     """
     summary = study_status(workspace)
     if json_out:
-        console.print_json(summary)
+        _json("status", summary)
     else:
         console.study_status(summary)
     if summary["exit_code"]:
         raise typer.Exit(summary["exit_code"])
+
+
+@command()
+def schema(
+    name: Annotated[
+        str | None,
+        typer.Argument(
+            help=f"Which output: {', '.join(schemas_json.NAMES)} \\[default: all, by name]."
+        ),
+    ] = None,
+) -> None:
+    """Print the JSON Schema of a command's --json output, or of report/summary.json.
+
+    Each output carries schema_version; it rises when a key changes meaning or goes away
+    (new keys may appear without it).
+
+    [bold]Example[/]: bams-cli schema select
+    """
+    if name is None:
+        console.print_json(schemas_json.all_schemas())
+        return
+    if name not in schemas_json.NAMES:
+        raise OptionError(f"schema {name!r}: choose one of {', '.join(schemas_json.NAMES)}")
+    console.print_json(schemas_json.schema(name))
 
 
 @command()

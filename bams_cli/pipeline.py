@@ -25,7 +25,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from bams_cli import defaults
+from bams_cli import defaults, schemas_json
 from bams_cli.errors import (
     ConflictError,
     DuplicateError,
@@ -38,12 +38,14 @@ from bams_cli.errors import (
     WorkspaceError,
 )
 from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
+from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
     journal_in,
     read_metadata,
     read_state,
+    read_state_schema,
     read_table,
     recover,
     require_columns,
@@ -535,16 +537,45 @@ def _sample_rows(stream: _EmbeddingStream, take: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # ingest-results
 # ---------------------------------------------------------------------------------------
-def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
-    """A results file as (segment_id, fidelity, value, extra), every bad row named."""
+def _read_results(
+    path: Path, settings: Settings, ws: Workspace
+) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """A results file as rows to ingest and rows the team marked as not run.
+
+    Rows to ingest: ``_row``, segment_id, fidelity (a level number, resolved from a number
+    or a level name), value, extra (the file's other columns as JSON), ``_keyed`` (the row
+    names a request) and that request's ``_req_batch`` / ``_req_plan``. A row is keyed by
+    ``request_id`` (segment_id and fidelity may then be left out, and must agree with the
+    request when given) or by segment_id and fidelity. Rows whose ``status`` is neither
+    empty nor ``ok`` (``crashed``, ``skipped``) say why there is no value: they are set
+    aside, and their requests stay pending. Every bad row is named.
+    """
+    rid_col = contract.REQUEST_ID
     table = read_table(path, what="results")
-    require_columns(table, [SID, "fidelity", "value"], path)
+    keyed_file = rid_col in table.column_names
+    if keyed_file:
+        require_columns(table, ["value"], path)
+    elif "value" in table.column_names and (
+        SID not in table.column_names or "fidelity" not in table.column_names
+    ):
+        missing = [c for c in (SID, "fidelity") if c not in table.column_names]
+        raise SchemaError(
+            path,
+            f"missing required column(s) {', '.join(map(repr, missing))}; key each result by "
+            f"request_id (from the hand-off list), or by segment_id and fidelity",
+            column=missing[0],
+        )
+    else:
+        require_columns(table, [SID, "fidelity", "value"], path)
     for name in ("fidelity", "value"):
+        if name not in table.column_names:
+            continue
         t = table.schema.field(name).type
         if not (
             pa.types.is_integer(t)
             or pa.types.is_floating(t)
             or pa.types.is_string(t)
+            or pa.types.is_large_string(t)
             or pa.types.is_null(t)
         ):
             raise SchemaError(path, f"expected numbers, got {t}", column=name)
@@ -553,42 +584,110 @@ def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
     df = pl.from_arrow(table)
     assert isinstance(df, pl.DataFrame)
     df = df.with_row_index("_row", offset=1)
+    extra_cols = [c for c in df.columns if c not in {SID, "fidelity", "value", "_row"}]
+    for name in (SID, "fidelity", rid_col, "status"):
+        if name not in df.columns:
+            df = df.with_columns(pl.lit(None, dtype=pl.String).alias(name))
 
-    sid = df[SID]
-    if sid.null_count():
-        raise InputError(
-            path, "segment id is missing", column=SID, row=int(df.filter(sid.is_null())["_row"][0])
-        )
-    df = df.with_columns(pl.col(SID).cast(pl.String))
+    status = pl.col("status").cast(pl.String).str.strip_chars().str.to_lowercase()
+    not_run = status.is_not_null() & ~status.is_in(list(contract.STATUS_OK))
+    skipped = df.filter(not_run).select(
+        "_row", pl.col(rid_col).cast(pl.String), pl.col(SID).cast(pl.String),
+        pl.col("fidelity").cast(pl.String), pl.col("status").cast(pl.String),
+    )  # fmt: skip
+    df = df.filter(~not_run)
 
-    fid = df["fidelity"].cast(pl.Float64, strict=False)
-    bad = fid.is_null() | (fid != fid.round(0))
-    if bad.any():
-        row = int(df.filter(bad)["_row"][0])
+    # Requests: a row's request_id names its segment and level (and its batch or plan).
+    df = df.with_columns(
+        pl.col(rid_col).cast(pl.String).str.strip_chars().replace("", None).alias(rid_col)
+    )
+    requests = ws.requests().rename(
+        {SID: "_req_sid", "fidelity": "_req_fid", "batch": "_req_batch", "plan": "_req_plan"}
+    )
+    df = df.join(requests, on=rid_col, how="left").sort("_row")
+    df = df.with_columns(pl.col(rid_col).is_not_null().alias("_keyed"))
+    unknown = df.filter(pl.col("_keyed") & pl.col("_req_sid").is_null())
+    if unknown.height:
+        first = unknown.row(0, named=True)
         raise InputError(
             path,
-            f"fidelity must be an integer level, got {df['fidelity'][row - 1]!r}",
-            column="fidelity",
-            row=row,
+            f"request_id {first[rid_col]!r} is not in any hand-off list ({unknown.height} unknown "
+            f"in all); copy request ids from batches/batch-NNNN.csv or estimates/plan-NNNN-handoff.csv",
+            column=rid_col,
+            row=int(first["_row"]),
         )
-    df = df.with_columns(fid.cast(pl.Int64).alias("fidelity"))
-    out = df.filter((pl.col("fidelity") < 0) | (pl.col("fidelity") >= n_levels))
-    if out.height:
+    if df.filter(pl.col(rid_col).is_not_null()).select(rid_col).is_duplicated().any():
+        rows = df.filter(pl.col(rid_col).is_not_null())
+        twice = rows.filter(rows.select(rid_col).is_duplicated())
+        raise DuplicateError(
+            path,
+            f"request_id {twice[rid_col][0]!r} appears again (first at row {twice['_row'][0]})",
+            column=rid_col,
+            row=int(twice["_row"][1]),
+        )
+
+    given_sid = df[SID].cast(pl.String)
+    lacking = given_sid.is_null() & ~df["_keyed"]
+    if lacking.any():
         raise InputError(
             path,
-            f"fidelity {out['fidelity'][0]} is not a configured level (0..{n_levels - 1}); "
-            f"add it to settings.toml [[levels]]",
-            column="fidelity",
-            row=int(out["_row"][0]),
+            "segment id is missing (give the row's request_id, or its segment_id and fidelity)",
+            column=SID,
+            row=int(df.filter(lacking)["_row"][0]),
         )
+    clash = given_sid.is_not_null() & df["_keyed"] & (given_sid != df["_req_sid"])
+    if clash.any():
+        c = df.filter(clash).row(0, named=True)
+        raise InputError(
+            path,
+            f"request_id {c[rid_col]!r} is segment {c['_req_sid']!r}, but this row names "
+            f"{str(c[SID])!r}; fix the segment_id or the request_id",
+            column=SID,
+            row=int(c["_row"]),
+        )
+
+    given = df["fidelity"]
+    if given.dtype == pl.String:
+        given = given.str.strip_chars().replace("", None)
+    has_fid = given.is_not_null()
+    lacking = ~has_fid & ~df["_keyed"]
+    if lacking.any():
+        contract.resolve_fidelity(  # raises, naming the row and the known levels
+            given.filter(lacking), df["_row"].filter(lacking), settings, path
+        )
+    levels = df["_req_fid"].clone()
+    if has_fid.any():
+        resolved = contract.resolve_fidelity(
+            given.filter(has_fid), df["_row"].filter(has_fid), settings, path
+        )
+        levels = levels.scatter(has_fid.arg_true(), resolved)
+    clash = has_fid & df["_keyed"] & (levels != df["_req_fid"])
+    if clash.any():
+        c = df.with_columns(levels.alias("_fid")).filter(clash).row(0, named=True)
+        raise InputError(
+            path,
+            f"request_id {c[rid_col]!r} asks for fidelity {c['_req_fid']}, but this row gives "
+            f"{c['fidelity']!r} (level {c['_fid']}); fix the fidelity or the request_id",
+            column="fidelity",
+            row=int(c["_row"]),
+        )
+    df = df.with_columns(
+        pl.coalesce(given_sid, pl.col("_req_sid")).alias(SID), levels.alias("fidelity")
+    )
 
     val = df["value"].cast(pl.Float64, strict=False)
     bad = val.is_null() | ~val.is_finite()
     if bad.any():
         row = int(df.filter(bad)["_row"][0])
+        got = df.filter(bad)["value"][0]
+        hint = (
+            "; fill it in, or say why there is none in the status column (e.g. crashed)"
+            if got is None or str(got).strip() == ""
+            else ""
+        )
         raise InputError(
             path,
-            f"value must be a finite number, got {df['value'][row - 1]!r}",
+            f"value must be a finite number, got {got!r}{hint}",
             column="value",
             row=row,
         )
@@ -605,7 +704,6 @@ def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
             column=SID,
             row=again,
         )
-    extra_cols = [c for c in df.columns if c not in {SID, "fidelity", "value", "_row"}]
     if extra_cols:
         extra = df.select(extra_cols).to_dicts()
         df = df.with_columns(
@@ -613,7 +711,8 @@ def _read_results(path: Path, n_levels: int) -> pl.DataFrame:
         )
     else:
         df = df.with_columns(pl.lit(None, dtype=pl.String).alias("extra"))
-    return df.select("_row", SID, "fidelity", "value", "extra")
+    keep = ["_row", SID, "fidelity", "value", "extra", "_keyed", "_req_batch", "_req_plan"]
+    return df.select(keep), skipped
 
 
 @locked
@@ -628,7 +727,7 @@ def ingest_results(
     ws = Workspace(root)
     settings = ws.require_initialised()
     ws.require_segments()
-    results = _read_results(source, settings.n_levels)
+    results, not_run = _read_results(source, settings, ws)
     digest = file_sha256(source)
     log = ws.read_observations(active_only=False)
 
@@ -638,8 +737,18 @@ def ingest_results(
             "already_ingested": True,
             "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed",
             "pending": _pending_summary(ws),
+            "not_run": _not_run_summary(not_run),
         }
 
+    if results.height == 0:
+        return {
+            "ingested": 0,
+            "already_ingested": False,
+            "message": f"{source}: every row's status says it was not run; nothing ingested, "
+            f"those requests stay pending",
+            "pending": _pending_summary(ws),
+            "not_run": _not_run_summary(not_run),
+        }
     pool_ids = pl.from_arrow(ws.read_segments([SID]).column(SID)).alias(SID)  # type: ignore[union-attr]
     unknown = results.filter(~pl.col(SID).is_in(pool_ids.implode()))
     if unknown.height:
@@ -652,7 +761,15 @@ def ingest_results(
             row=int(first["_row"]),
         )
 
-    matched = results.join(ws.selections(), on=[SID, "fidelity"], how="left")
+    # A row keyed by request_id belongs to that request's batch or plan; one keyed by
+    # (segment_id, fidelity) to the latest batch and plan that selected the pair.
+    matched = results.join(ws.selections(), on=[SID, "fidelity"], how="left").with_columns(
+        pl.when(pl.col("_keyed"))
+        .then(pl.col("_req_batch"))
+        .otherwise(pl.col("batch"))
+        .alias("batch"),
+        pl.when(pl.col("_keyed")).then(pl.col("_req_plan")).otherwise(pl.col("plan")).alias("plan"),
+    )
     unselected = matched.filter(pl.col("batch").is_null() & pl.col("plan").is_null())
     if unselected.height and not allow_unselected:
         names = ", ".join(unselected[SID].head(3).to_list())
@@ -685,6 +802,7 @@ def ingest_results(
             "already_ingested": False,
             "message": f"{source}: every value is already in the log; nothing changed",
             "pending": _pending_summary(ws),
+            "not_run": _not_run_summary(not_run),
         }
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     new_rows = new.select(
@@ -720,6 +838,15 @@ def ingest_results(
         "log_rows": combined.height,
         "by_fidelity": {int(k): int(v) for k, v in new.group_by("fidelity").len().iter_rows()},
         "pending": _pending_summary(ws),
+        "not_run": _not_run_summary(not_run),
+    }
+
+
+def _not_run_summary(not_run: pl.DataFrame, limit: int = 20) -> dict[str, Any]:
+    """Rows a results file marked as not run (a status other than ok): they stay pending."""
+    return {
+        "count": not_run.height,
+        "first": not_run.head(limit).drop("_row").to_dicts(),
     }
 
 
@@ -782,7 +909,9 @@ def simulate(handoff: Path, truth: Path, output: Path) -> dict[str, Any]:
             column=SID,
             row=int(missing["_row"][0]),
         )
-    result = out.sort("_row").select(SID, "fidelity", "value")
+    # A hand-off list with request ids (state.handoff) is answered by request id too.
+    keys = [contract.REQUEST_ID] if contract.REQUEST_ID in out.columns else []
+    result = out.sort("_row").select(*keys, SID, "fidelity", "value")
     with transaction() as tx:
         if output.suffix.lower() == ".csv":
             tx.write_with(output, lambda path: result.write_csv(path))
@@ -1127,6 +1256,39 @@ def _observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     return np.isin(ids, obs[SID].to_numpy())
 
 
+# Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
+BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
+PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "prob", "p_n")
+
+
+def _passthrough_columns(ws: Workspace, index: np.ndarray, taken: dict[str, Any]) -> dict[str, Any]:
+    """The pool's pass-through columns (scenario tags ...) for the picked rows. A column
+    named like one of the hand-off's own, or the results' (value, status), is left out:
+    the contract's meaning wins."""
+    reserved = {SID, *taken, *BATCH_INTERNAL, *PLAN_INTERNAL, *contract.TEMPLATE_COLUMNS}
+    coords = set(ws.coordinate_columns())
+    names = [
+        c
+        for c in read_state_schema(ws.segments_path).names
+        if c not in coords and c not in reserved
+    ]
+    if not names:
+        return {}
+    rows = ws.read_segments([SID, *names]).take(pa.array(np.asarray(index, np.int64)))
+    return {name: rows.column(name) for name in names}
+
+
+def _write_handoff(
+    tx: Any, table: pa.Table, csv: Path, internal: tuple[str, ...], with_internal: bool
+) -> tuple[Path, Path]:
+    """Stage a hand-off CSV and its results template (``state.handoff``) in ``tx``."""
+    frame = contract.handoff_frame(table, internal, with_internal=with_internal)
+    template = contract.template_path(csv)
+    tx.write_with(csv, lambda p: frame.write_csv(p))
+    tx.write_with(template, lambda p: contract.template_frame(frame).write_csv(p))
+    return csv, template
+
+
 @locked
 def select(
     root: Path,
@@ -1144,9 +1306,14 @@ def select(
     include_observed: bool = False,
     workers: int | None = None,
     scheduler: str | None = None,
+    handoff_internal: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
+
+    The Parquet state file holds every column; the CSV hand-off and its results template
+    follow the contract in ``state.handoff`` (internal columns only with
+    ``handoff_internal``).
 
     For ``strategy="bams"`` in a study with cheap levels, ``confirm_share`` of the budget
     first buys level-0 runs of unconfirmed cheap-level failures (leads), then of the
@@ -1305,24 +1472,21 @@ def select(
         raise WorkspaceError(
             f"select: nothing fits budget {budget} (cheapest level costs {costs.min():g}); raise --budget"
         )
-    segs = ws.read_segments()
-    passthrough = [
-        c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)
-    ]
-    cols: dict[str, Any] = {
-        SID: pa.array(ids[picks["index"]], pa.string()),
-        "fidelity": picks["level"],
-        "cost": costs[picks["level"]],
+    cols: dict[str, Any] = contract.contract_columns(
+        "batch",
+        number,
+        ids[picks["index"]],
+        picks["level"],
+        settings,
+        list(purpose) if purpose is not None else ["discover"] * k,
+    )
+    cols |= {
         "delta_j": picks["delta_j"],
         "cluster": picks["cluster"],
         "rank": np.arange(k, dtype=np.int64),
         "strategy": [strategy] * k,
-        "purpose": list(purpose) if purpose is not None else ["discover"] * k,
     }
-    if passthrough:
-        rest = segs.select(passthrough).take(pa.array(picks["index"]))
-        for name in passthrough:
-            cols[name] = rest.column(name)
+    cols |= _passthrough_columns(ws, picks["index"], taken=cols)
     options = {
         "strategy": strategy,
         "budget": budget,
@@ -1347,17 +1511,18 @@ def select(
     }
     table = schemas.BATCH.conform(pa.table(cols), meta)
     path = schemas.batch_path(ws.root, number)
-    frame = pl.from_arrow(table)
-    assert isinstance(frame, pl.DataFrame)
     with transaction() as tx:
         tx.write_parquet(path, table)
-        tx.write_with(path.with_suffix(".csv"), lambda p: frame.write_csv(p))
+        csv, template = _write_handoff(
+            tx, table, path.with_suffix(".csv"), BATCH_INTERNAL, handoff_internal
+        )
     per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
     per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
     return {
         "batch": number,
         "handoff": str(path),
-        "handoff_csv": str(path.with_suffix(".csv")),
+        "handoff_csv": str(csv),
+        "results_template": str(template),
         "strategy": strategy,
         "picks": k,
         "total_cost": float(costs[picks["level"]].sum()),
@@ -1404,6 +1569,7 @@ def estimate_plan(
     defensive: float = defaults.DEFENSIVE,
     design: str = "poisson",
     seed: int | None = None,
+    handoff_internal: bool = False,
 ) -> dict[str, Any]:
     """Plan the rate-estimation sample: inclusion probabilities and the hand-off list.
 
@@ -1471,17 +1637,34 @@ def estimate_plan(
     sampled_idx = plan.sampled_pool_index
     known_idx = np.flatnonzero(known)
     prob = plan.sampled_prob
-    table = pa.table(
-        {
-            SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]), pa.string()),
-            "stratum": ["sampled"] * len(sampled_idx) + ["known"] * len(known_idx),
-            "pi": np.concatenate([plan.pi[plan.sampled], np.ones(len(known_idx))]),
-            "draws": np.concatenate([plan.counts, np.zeros(len(known_idx), np.int64)]),
-            "q": np.concatenate([plan.q[plan.sampled], np.zeros(len(known_idx))]),
-            "prob": np.concatenate([prob, np.ones(len(known_idx))]),
-            "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
-        }
+    # The sampled rows are the plan's requests (level 0, in hand-off order); the known
+    # stratum's rows follow with the contract's columns null: nothing to simulate there.
+    requests = contract.contract_columns(
+        "plan",
+        number,
+        ids[sampled_idx],
+        np.zeros(len(sampled_idx), np.int64),
+        settings,
+        ["estimate"] * len(sampled_idx),
     )
+    n_known = len(known_idx)
+    cols: dict[str, Any] = {
+        name: pa.concat_arrays([arr, pa.nulls(n_known, arr.type)])
+        for name, arr in requests.items()
+        if name != SID
+    }
+    cols = {
+        SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]).astype(str), pa.string()),
+        "stratum": ["sampled"] * len(sampled_idx) + ["known"] * n_known,
+        "pi": np.concatenate([plan.pi[plan.sampled], np.ones(n_known)]),
+        "draws": np.concatenate([plan.counts, np.zeros(n_known, np.int64)]),
+        "q": np.concatenate([plan.q[plan.sampled], np.zeros(n_known)]),
+        "prob": np.concatenate([prob, np.ones(n_known)]),
+        "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
+        **cols,
+    }
+    cols |= _passthrough_columns(ws, np.concatenate([sampled_idx, known_idx]), taken=cols)
+    table = pa.table(cols)
     meta = {
         "plan": number,
         "design": design,
@@ -1504,17 +1687,18 @@ def estimate_plan(
         "rng_stream": stream,
     }
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
-    handoff = pl.DataFrame(
-        {SID: ids[sampled_idx].astype(str), "fidelity": np.zeros(len(sampled_idx), np.int64)}
-    )
     handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
+    state = schemas.PLAN.conform(table, meta)
     with transaction() as tx:
-        tx.write_parquet(path, schemas.PLAN.conform(table, meta))
-        tx.write_with(handoff_path, lambda f: handoff.write_csv(f))
+        tx.write_parquet(path, state)
+        _, template = _write_handoff(
+            tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
+        )
     return {
         "plan": number,
         "plan_file": str(path),
         "handoff": str(handoff_path),
+        "results_template": str(template),
         "design": design,
         "samples_K": samples,
         "to_simulate": len(sampled_idx),
@@ -1916,6 +2100,7 @@ def report(
         figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
     summary: dict[str, Any] = {
+        "schema_version": schemas_json.version("summary.json"),
         "tool_version": __version__,
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "workspace": str(root),

@@ -21,6 +21,7 @@ import numpy as np  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 
 SUMMARY_KEYS = (
+    "schema_version",
     "tool_version",
     "generated_at",
     "workspace",

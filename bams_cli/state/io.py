@@ -246,8 +246,10 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
         if suffix == ".csv":
             import pyarrow.csv as pacsv
 
-            # Ids stay text: type inference would turn "029" into 29.
-            convert = pacsv.ConvertOptions(column_types={"segment_id": pa.string()})
+            # Ids stay text: type inference would turn "029" into 29; an empty status
+            # column is still text.
+            text = {name: pa.string() for name in ("segment_id", "request_id", "status")}
+            convert = pacsv.ConvertOptions(column_types=text)
             table = pacsv.read_csv(path, convert_options=convert)
         else:
             table = pq.read_table(path)

@@ -3,7 +3,9 @@
 Each ``StateFile`` names its path inside the workspace, its required columns with their
 Arrow types, and a schema version stamped into the file's metadata. Files may carry more
 columns than these (pass-through columns a simulation team needs); they may not carry
-fewer, and a required column must have its declared type.
+fewer, and a required column must have its declared type. Optional columns are those a
+newer version writes and an older file may lack (readers derive them then); when present
+they must have their declared type too.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ class StateFile:
     relpath: str
     schema: pa.Schema
     version: int = 1
+    optional: pa.Schema = pa.schema([])
 
     def path(self, workspace: Path) -> Path:
         return workspace / self.relpath
@@ -33,7 +36,7 @@ class StateFile:
         """Cast required columns to their declared types, put them first, stamp metadata."""
         require_columns(table, self.schema.names, self.name)
         arrays, names = [], []
-        for fld in self.schema:
+        for fld in [*self.schema, *(f for f in self.optional if f.name in table.column_names)]:
             col = table.column(fld.name)
             if col.type != fld.type:
                 try:
@@ -53,7 +56,7 @@ class StateFile:
     def check(self, table: pa.Table, source: object) -> pa.Table:
         """Validate a table read from disk against the declared schema."""
         require_columns(table, self.schema.names, source)
-        for fld in self.schema:
+        for fld in [*self.schema, *(f for f in self.optional if f.name in table.column_names)]:
             got = table.schema.field(fld.name).type
             if got != fld.type:
                 raise SchemaError(source, f"expected type {fld.type}, got {got}", column=fld.name)
@@ -92,6 +95,14 @@ SCORES = StateFile(
     pa.schema([(SEGMENT_ID, pa.string()), ("mu", pa.float64()), ("sd", pa.float64())]),
 )
 
+# The hand-off contract's columns (state.handoff), optional in state files written before it.
+_REQUEST_COLUMNS = [
+    ("request_id", pa.string()),
+    ("source", pa.string()),
+    ("fidelity_name", pa.string()),
+    ("purpose", pa.string()),
+]
+
 # One hand-off list per selected batch.
 BATCH = StateFile(
     "batch",
@@ -107,6 +118,7 @@ BATCH = StateFile(
             ("strategy", pa.string()),
         ]
     ),
+    optional=pa.schema(_REQUEST_COLUMNS),
 )
 
 # Results a simulation team hands back (input, not state; declared here with the rest).
@@ -128,6 +140,8 @@ PLAN = StateFile(
             ("draws", pa.int64()),
         ]
     ),
+    # request_id and the rest are null on the known stratum's rows (nothing to simulate).
+    optional=pa.schema(_REQUEST_COLUMNS),
 )
 
 ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN)

@@ -30,6 +30,7 @@ import pyarrow as pa
 from bams_cli.errors import SchemaError, StaleStateError, WorkspaceError
 from bams_cli.settings import SETTINGS_FILE, Settings, load_settings
 from bams_cli.state import schemas
+from bams_cli.state.handoff import REQUEST_ID, request_ids
 from bams_cli.state.io import read_metadata, read_state, read_state_schema
 
 REDUCER_FILE = "reducer.npz"
@@ -176,15 +177,21 @@ class Workspace:
         return sorted(found)
 
     def read_batch(self, n: int) -> pl.DataFrame:
+        """Batch ``n``'s picks, with its number as ``batch`` and every pick's ``request_id``
+        (derived from the row for a batch written before request ids existed)."""
         path = schemas.batch_path(self.root, n)
         table = schemas.BATCH.check(read_state(path), path)
         df = pl.from_arrow(table)
         assert isinstance(df, pl.DataFrame)
+        if REQUEST_ID not in df.columns:
+            df = df.with_columns(pl.Series(REQUEST_ID, request_ids("batch", n, df.height)))
         return df.with_columns(pl.lit(n, dtype=pl.Int64).alias("batch"))
 
     def read_batches(self) -> pl.DataFrame:
         frames = [
-            self.read_batch(n).select(schemas.SEGMENT_ID, "fidelity", "batch", "cost", "strategy")
+            self.read_batch(n).select(
+                schemas.SEGMENT_ID, "fidelity", "batch", "cost", "strategy", REQUEST_ID
+            )
             for n in self.batch_numbers()
         ]
         if not frames:
@@ -195,31 +202,57 @@ class Workspace:
                     "batch": pl.Int64,
                     "cost": pl.Float64,
                     "strategy": pl.String,
+                    REQUEST_ID: pl.String,
                 }
             )
         return pl.concat(frames)
 
     def read_plan_picks(self) -> pl.DataFrame:
-        """Segments estimate plans sent to level-0 simulation: (segment_id, fidelity, plan)."""
+        """Segments estimate plans sent to level-0 simulation: (segment_id, fidelity, plan,
+        request_id), the request id derived from the row for plans written before them."""
         frames = []
         if self.estimates_dir.is_dir():
             for p in sorted(self.estimates_dir.glob("plan-*.parquet")):
                 if not p.stem[5:].isdigit():
                     continue
-                df = pl.from_arrow(read_state(p, columns=[schemas.SEGMENT_ID, "stratum"]))
+                number = int(p.stem[5:])
+                names = read_state_schema(p).names
+                cols = [schemas.SEGMENT_ID, "stratum"] + (
+                    [REQUEST_ID] if REQUEST_ID in names else []
+                )
+                df = pl.from_arrow(read_state(p, columns=cols))
                 assert isinstance(df, pl.DataFrame)
+                df = df.filter(pl.col("stratum") == "sampled")
+                if REQUEST_ID not in df.columns:
+                    df = df.with_columns(
+                        pl.Series(REQUEST_ID, request_ids("plan", number, df.height))
+                    )
                 frames.append(
-                    df.filter(pl.col("stratum") == "sampled").select(
+                    df.select(
                         schemas.SEGMENT_ID,
                         pl.lit(0, dtype=pl.Int64).alias("fidelity"),
-                        pl.lit(int(p.stem[5:]), dtype=pl.Int64).alias("plan"),
+                        pl.lit(number, dtype=pl.Int64).alias("plan"),
+                        pl.col(REQUEST_ID).cast(pl.String),
                     )
                 )
         if not frames:
             return pl.DataFrame(
-                schema={schemas.SEGMENT_ID: pl.String, "fidelity": pl.Int64, "plan": pl.Int64}
+                schema={
+                    schemas.SEGMENT_ID: pl.String,
+                    "fidelity": pl.Int64,
+                    "plan": pl.Int64,
+                    REQUEST_ID: pl.String,
+                }
             )
         return pl.concat(frames)
+
+    def requests(self) -> pl.DataFrame:
+        """Every request of every hand-off list: (request_id, segment_id, fidelity, batch,
+        plan), ``batch`` null on a plan's requests and ``plan`` null on a batch's."""
+        keys = [REQUEST_ID, schemas.SEGMENT_ID, "fidelity"]
+        batches = self.read_batches().select(*keys, "batch")
+        plans = self.read_plan_picks().select(*keys, "plan")
+        return pl.concat([batches, plans], how="diagonal")
 
     def selections(self) -> pl.DataFrame:
         """Every selected (segment_id, fidelity) with the latest batch and plan that chose it."""

@@ -1,0 +1,468 @@
+"""JSON Schemas of every command's ``--json`` output and of ``report/summary.json``.
+
+Written by hand from the commands' real outputs (``tests/test_schemas_json.py`` runs each
+command and validates what it prints), so a script can rely on them: every key listed as
+required is always there with that type. Outputs may carry more keys than a schema lists
+(``additionalProperties`` is left open); a key that goes away or changes meaning raises
+that output's ``schema_version``, which each output carries. ``bams-cli schema [NAME]``
+prints them.
+
+The schemas use a small subset of JSON Schema (draft 2020-12): ``type``, ``required``,
+``properties``, ``additionalProperties``, ``items``, ``const``, ``enum``, ``minimum``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from bams_cli.status import STATUS_SCHEMA_VERSION
+
+DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+#: Version of each output; bump one when a key changes meaning or goes away.
+VERSIONS: dict[str, int] = {
+    "init": 1,
+    "embed-reduce": 1,
+    "ingest-results": 1,
+    "simulate": 1,
+    "fit": 1,
+    "select": 1,
+    "estimate-plan": 1,
+    "estimate": 1,
+    "report": 1,
+    "status": STATUS_SCHEMA_VERSION,
+    "summary.json": 1,
+}
+
+Schema = dict[str, Any]
+
+STR: Schema = {"type": "string"}
+INT: Schema = {"type": "integer"}
+COUNT: Schema = {"type": "integer", "minimum": 0}
+NUM: Schema = {"type": "number"}
+BOOL: Schema = {"type": "boolean"}
+PATH: Schema = {"type": "string", "description": "a file or folder path"}
+ANY: Schema = {}
+
+
+def nullable(schema: Schema) -> Schema:
+    """``schema`` or null (JSON has no NaN: an undefined number is null)."""
+    kind = schema["type"]
+    return {**schema, "type": [*(kind if isinstance(kind, list) else [kind]), "null"]}
+
+
+def array(items: Schema) -> Schema:
+    return {"type": "array", "items": items}
+
+
+def obj(required: dict[str, Schema], optional: dict[str, Schema] | None = None) -> Schema:
+    """An object with these required keys, these optional ones, and possibly more."""
+    return {
+        "type": "object",
+        "required": list(required),
+        "properties": {**required, **(optional or {})},
+    }
+
+
+def mapping(values: Schema, keys: str) -> Schema:
+    """An object used as a map, e.g. level number -> count (JSON keys are strings)."""
+    return {"type": "object", "description": f"keys: {keys}", "additionalProperties": values}
+
+
+LEVELS: Schema = array(obj({"name": STR, "cost": NUM}))
+PENDING: Schema = obj(
+    {
+        "count": COUNT,
+        "by_batch": mapping(COUNT, "batch number"),
+        "first": array(obj({"segment_id": STR, "fidelity": INT, "batch": nullable(INT)})),
+    }
+)
+HYPERPARAMETERS: Schema = obj(
+    {
+        "mean": NUM,
+        "outputscale0": NUM,
+        "lengthscales0": array(NUM),
+        "outputscales": array(NUM),
+        "lengthscales": array(array(NUM)),
+        "noise": array(NUM),
+    },
+    {"offsets": array(NUM)},
+)
+CHECKS: Schema = obj(
+    {
+        "loo_level0": obj(
+            {},
+            {
+                "n": COUNT,
+                "mean_z2": nullable(NUM),
+                "max_abs_z": nullable(NUM),
+                "p_value": nullable(NUM),
+            },
+        ),
+        "pairs": array(
+            obj(
+                {"level": INT, "n_pairs": COUNT},
+                {
+                    "sd_observed": nullable(NUM),
+                    "sd_fitted": nullable(NUM),
+                    "p_value": nullable(NUM),
+                },
+            )
+        ),
+    }
+)
+ESTIMATE_ROW: Schema = obj(
+    {
+        "gamma": NUM,
+        "p_hat": NUM,
+        "se": nullable(NUM),
+        "ci_low": NUM,
+        "ci_high": NUM,
+        "confidence": NUM,
+        "rel_var": nullable(NUM),
+        "n_sampled": COUNT,
+        "failures_sampled": COUNT,
+        "failures_known": COUNT,
+        "distinct_failures_found": COUNT,
+    },
+    {"variance_note": nullable(STR), "rel_var_note": nullable(STR)},
+)
+GP_ROW: Schema = obj(
+    {"gamma": NUM, "gp_p_hat": NUM, "gp_var_bound": NUM}, {"gp_var_exact": nullable(NUM)}
+)
+
+_OUTPUTS: dict[str, tuple[str, Schema]] = {
+    "init": (
+        "bams-cli init --json",
+        obj(
+            {
+                "workspace": PATH,
+                "settings": PATH,
+                "gammas": array(NUM),
+                "levels": LEVELS,
+                "seed": INT,
+                "embedding_dim": INT,
+            },
+            {"unchanged": BOOL},
+        ),
+    ),
+    "embed-reduce": (
+        "bams-cli embed-reduce --json",
+        obj(
+            {
+                "segments": PATH,
+                "added": COUNT,
+                "pool_size": COUNT,
+                "method": {"enum": ["pca", "autoencoder", "identity"]},
+                "dim": INT,
+                "passthrough_columns": array(STR),
+            },
+            {"input_dim": INT, "reconstruction_error": {"type": "object"}},
+        ),
+    ),
+    "ingest-results": (
+        "bams-cli ingest-results --json",
+        obj(
+            {
+                "ingested": COUNT,
+                "already_ingested": BOOL,
+                "pending": PENDING,
+                "not_run": obj(
+                    {
+                        "count": COUNT,
+                        "first": array(
+                            obj(
+                                {"status": STR},
+                                {
+                                    "request_id": nullable(STR),
+                                    "segment_id": nullable(STR),
+                                    "fidelity": nullable(STR),
+                                },
+                            )
+                        ),
+                    }
+                ),
+            },
+            {
+                "message": STR,
+                "replaced": COUNT,
+                "already_known": COUNT,
+                "observations": PATH,
+                "log_rows": COUNT,
+                "by_fidelity": mapping(COUNT, "level number"),
+            },
+        ),
+    ),
+    "simulate": (
+        "bams-cli simulate --json (sample data only)",
+        obj({"results": PATH, "rows": COUNT, "note": STR}),
+    ),
+    "fit": (
+        "bams-cli fit --json (a fit, or with up_to_date: true the model fit left as it was)",
+        obj(
+            {
+                "model": PATH,
+                "scores": PATH,
+                "observations": COUNT,
+                "n_observations_per_level": array(COUNT),
+                "log_marginal_likelihood": NUM,
+                "log_posterior": NUM,
+                "hyperparameters": HYPERPARAMETERS,
+                "checks": CHECKS,
+                "jitter": NUM,
+                "transform": obj({"kind": STR}),
+                "warnings": array(STR),
+            },
+            {
+                "gp_rate_estimate": mapping(NUM, "gamma"),
+                "up_to_date": {"const": True},
+                "message": STR,
+            },
+        ),
+    ),
+    "select": (
+        "bams-cli select --json",
+        obj(
+            {
+                "batch": INT,
+                "handoff": PATH,
+                "handoff_csv": PATH,
+                "results_template": PATH,
+                "strategy": STR,
+                "picks": COUNT,
+                "total_cost": NUM,
+                "budget": NUM,
+                "picks_per_level": mapping(COUNT, "level number"),
+                "picks_per_cluster": mapping(COUNT, "cluster (-1: confirmation picks)"),
+                "confirm_picks": COUNT,
+                "confirm_leads": COUNT,
+                "j_before": nullable(NUM),
+                "j_after": nullable(NUM),
+                "timings_s": mapping(NUM, "stage"),
+            }
+        ),
+    ),
+    "estimate-plan": (
+        "bams-cli estimate --plan --json",
+        obj(
+            {
+                "plan": INT,
+                "plan_file": PATH,
+                "handoff": PATH,
+                "results_template": PATH,
+                "design": {"enum": ["poisson", "fixed", "with-replacement"]},
+                "samples_K": NUM,
+                "to_simulate": COUNT,
+                "simulations_certain": COUNT,
+                "known_stratum": COUNT,
+                "simulations_saved_by_known_stratum": NUM,
+                "gp_rate_estimate": NUM,
+                "alpha": NUM,
+                "defensive": NUM,
+                "seed": INT,
+                "seed_source": {"enum": ["study settings", "--seed"]},
+            }
+        ),
+    ),
+    "estimate": (
+        "bams-cli estimate --json (computing a plan's estimate)",
+        obj(
+            {
+                "plan": INT,
+                "design": {"enum": ["poisson", "fixed", "with-replacement"]},
+                "samples_K": NUM,
+                "estimates": array(ESTIMATE_ROW),
+                "gp": array(GP_ROW),
+                "gp_model": STR,
+                "estimate_file": PATH,
+            }
+        ),
+    ),
+    "report": (
+        "bams-cli report --json",
+        obj(
+            {
+                "report": PATH,
+                "summary_json": PATH,
+                "summary_md": PATH,
+                "figures": array(STR),
+                "notices": array(STR),
+                "estimates": array(
+                    obj({"gamma": NUM, "p_hat": NUM, "ci_low": NUM, "ci_high": NUM})
+                ),
+            }
+        ),
+    ),
+    "status": (
+        "bams-cli status --json",
+        obj(
+            {
+                "workspace": PATH,
+                "gammas": array(NUM),
+                "levels": array(STR),
+                "pool_size": nullable(COUNT),
+                "observations": COUNT,
+                "observations_per_level": array(COUNT),
+                "batches": array(
+                    obj(
+                        {
+                            "batch": INT,
+                            "strategy": nullable(STR),
+                            "picks": COUNT,
+                            "cost": NUM,
+                            "budget": nullable(NUM),
+                            "pending": COUNT,
+                            "handoff": PATH,
+                        }
+                    )
+                ),
+                "plans": array(
+                    obj(
+                        {
+                            "plan": INT,
+                            "sampled": COUNT,
+                            "pending": COUNT,
+                            "handoff": PATH,
+                            "estimate": nullable(PATH),
+                        }
+                    )
+                ),
+                "pending": COUNT,
+                "model": nullable(
+                    obj(
+                        {"fresh": BOOL},
+                        {"fitted_on": COUNT, "fitted_at": STR, "reason": nullable(STR)},
+                    )
+                ),
+                "latest_estimate": nullable(
+                    obj(
+                        {
+                            "plan": INT,
+                            "file": PATH,
+                            "estimates": array(obj({"gamma": NUM, "p_hat": NUM})),
+                        }
+                    )
+                ),
+                "commit_in_progress": BOOL,
+                "waiting_on_results": BOOL,
+                "next": obj(
+                    {"step": STR, "command": nullable(STR), "text": STR}, {"handoffs": array(PATH)}
+                ),
+                "exit_code": {"enum": [0, 3]},
+            }
+        ),
+    ),
+    "summary.json": (
+        "report/summary.json, written by bams-cli report",
+        obj(
+            {
+                "tool_version": STR,
+                "generated_at": STR,
+                "workspace": PATH,
+                "notices": array(
+                    obj(
+                        {
+                            "kind": {
+                                "enum": [
+                                    "stale_model",
+                                    "no_model",
+                                    "pending_batches",
+                                    "pending_plan",
+                                ]
+                            },
+                            "severity": {"enum": ["warning", "info"]},
+                            "text": STR,
+                        }
+                    )
+                ),
+                "study": obj(
+                    {
+                        "gammas": array(NUM),
+                        "levels": LEVELS,
+                        "seed": INT,
+                        "embedding_dim": INT,
+                        "pool_size": COUNT,
+                        "dim": INT,
+                    }
+                ),
+                "simulation_spent": obj(
+                    {
+                        "per_level": mapping(obj({"count": COUNT, "cost": NUM}), "level number"),
+                        "count": COUNT,
+                        "cost": NUM,
+                    }
+                ),
+                "model": nullable(
+                    obj(
+                        {"hyperparameters": HYPERPARAMETERS, "fresh": BOOL},
+                        {"checks": CHECKS, "warnings": array(STR)},
+                    )
+                ),
+                "batches": array(
+                    obj(
+                        {
+                            "batch": INT,
+                            "strategy": nullable(STR),
+                            "picks": COUNT,
+                            "picks_per_level": mapping(COUNT, "level number"),
+                            "picks_per_cluster": mapping(COUNT, "cluster"),
+                            "cost": NUM,
+                            "pending": COUNT,
+                        },
+                        {"mean_f0": nullable(NUM), "mean_f0_se": nullable(NUM), "n_f0": COUNT},
+                    )
+                ),
+                "estimates": array(ESTIMATE_ROW),
+                "gp_estimate": array(GP_ROW),
+                "confirmed_failures": array(
+                    obj(
+                        {
+                            "segment_id": STR,
+                            "observed_f0": NUM,
+                            "fails_at_gamma": array(NUM),
+                            "p_n": nullable(NUM),
+                        }
+                    )
+                ),
+                "diverse_failures": array(
+                    obj({"segment_id": STR, "p_n": NUM}, {"mu": nullable(NUM)})
+                ),
+                "truth": nullable(
+                    obj(
+                        {
+                            "rate": array(NUM),
+                            "failures": array(COUNT),
+                            "estimate_recall": array(nullable(NUM)),
+                            "retention_recall": {"type": "object"},
+                        }
+                    )
+                ),
+                "figures": array(STR),
+            }
+        ),
+    ),
+}
+
+NAMES = tuple(_OUTPUTS)
+
+
+def version(name: str) -> int:
+    """The schema version of output ``name``."""
+    return VERSIONS[name]
+
+
+def schema(name: str) -> Schema:
+    """The JSON Schema of output ``name`` (one of ``NAMES``), a fresh dict."""
+    title, body = _OUTPUTS[name]
+    body = {**body, "required": ["schema_version", *body["required"]]}
+    body["properties"] = {"schema_version": {"const": VERSIONS[name]}, **body["properties"]}
+    return {
+        "$schema": DIALECT,
+        "$id": f"bams-cli/{name}/v{VERSIONS[name]}",
+        "title": title,
+        **body,
+    }
+
+
+def all_schemas() -> dict[str, Schema]:
+    return {name: schema(name) for name in NAMES}
