@@ -241,7 +241,11 @@ def embed_reduce(
     workspace: Workspace = Path(DEFAULT_WORKSPACE),
     method: Annotated[
         str,
-        typer.Option("--method", help="pca (streaming IncrementalPCA), autoencoder, or identity."),
+        typer.Option(
+            "--method",
+            help="pca (exact, streaming), autoencoder, identity, or ipca (the older "
+            "IncrementalPCA, for comparison).",
+        ),
     ] = "pca",
     dim: Annotated[
         int | None, typer.Option("--dim", help="Reduced dimension \\[default: settings, 12].")
@@ -284,8 +288,8 @@ def embed_reduce(
 
     [bold]Example[/]: bams-cli embed-reduce -w study sample_data/av_like/segments.parquet --dim 12
     """
-    if method not in {"pca", "autoencoder", "identity"}:
-        raise BamsError(f"--method {method!r}: choose pca, autoencoder or identity")
+    if method not in {"pca", "ipca", "autoencoder", "identity"}:
+        raise BamsError(f"--method {method!r}: choose pca, autoencoder, identity or ipca")
     with console.progress(not json_out) as bar:
         summary = pipeline.embed_reduce(
             workspace,

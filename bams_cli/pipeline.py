@@ -316,7 +316,10 @@ class _EmbeddingStream:
 
     def __call__(self) -> Iterator[np.ndarray]:
         offset = 0
-        pf = pq.ParquetFile(self.path)
+        # Read column chunks through a small buffer, without pre-buffering: by default
+        # pyarrow pre-reads whole row groups' chunks ahead, and its pool grew to the size
+        # of the file (2 GB for 1M x 512 float32) during one pass.
+        pf = pq.ParquetFile(self.path, buffer_size=1 << 22, pre_buffer=False)
         for batch in pf.iter_batches(batch_size=self.batch_size, columns=self.read_columns):
             yield _batch_matrix(batch, self.list_col, self.cols, self.path, offset)
             offset += batch.num_rows
@@ -443,9 +446,12 @@ def embed_reduce(
             )
         dim = settings.embedding_dim if dim is None else dim
         # A random sample of rows (streamed, never the whole pool) trains the autoencoder
-        # and measures reconstruction error.
-        take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
-        sample = _sample_rows(stream, take)
+        # and measures ipca's reconstruction error. Exact PCA takes its error from the
+        # eigenvalues, so it skips this pass: it reads the file twice (fit, transform).
+        sample = None
+        if method in ("autoencoder", "ipca"):
+            take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
+            sample = _sample_rows(stream, take)
         try:
             reducer = fit_reducer(
                 stream,
@@ -455,6 +461,7 @@ def embed_reduce(
                 sample=sample,
                 rng=rng,
                 progress=progress,  # type: ignore[arg-type]
+                n_rows=n,
             )
         except ValueError as exc:
             raise InputError(source, str(exc)) from None

@@ -1,9 +1,15 @@
 """Dimensionality reduction of segment embeddings (paper section 4, "Embedding model").
 
-Embeddings arrive as 512-d vectors; the GP works in d ~ 12 dimensions. Two reducers:
+Embeddings arrive as 512-d vectors; the GP works in d ~ 12 dimensions. Reducers:
 
-- ``pca``: optional standardisation, then ``IncrementalPCA`` fed one batch at a time, so
-  memory stays flat in the pool size N (two streaming passes: statistics, then PCA).
+- ``pca``: exact PCA from one streaming pass. Each batch adds its centred scatter
+  ``Bc^T Bc`` (one BLAS product, float64) to a running D x D scatter matrix with Chan,
+  Golub & LeVeque's pairwise update, which also yields the mean and per-column scale for
+  the optional standardisation; an eigendecomposition of the D x D covariance (or
+  correlation) matrix gives the components. Memory is O(D^2 + batch), flat in the pool
+  size N.
+- ``ipca``: the previous reducer, kept for comparison: standardisation statistics in one
+  pass, then ``IncrementalPCA`` fed one batch at a time (approximate; ~7x slower).
 - ``autoencoder``: the paper's encoder-decoder, an MLP 512 -> h -> d -> h -> 512 trained to
   reconstruct (standardised) embeddings on a random sample; the encoder half maps segments.
 - ``identity``: keep the columns as they are (for inputs that are already low-dimensional,
@@ -24,7 +30,7 @@ from numpy.typing import NDArray
 from sklearn.decomposition import PCA, IncrementalPCA
 from sklearn.neural_network import MLPRegressor
 
-Method = Literal["pca", "autoencoder", "identity"]
+Method = Literal["pca", "ipca", "autoencoder", "identity"]
 BatchSource = Callable[[], Iterable[NDArray[np.float64]]]
 Progress = Callable[[str, int, int], None]
 
@@ -39,6 +45,8 @@ class Reducer:
     weights: list[NDArray[np.float64]] = field(default_factory=list)
     biases: list[NDArray[np.float64]] = field(default_factory=list)
     reconstruction_error: dict[str, float] = field(default_factory=dict)
+    # PCA only: variance along each component (ddof = 1, standardised units if standardised).
+    explained_variance: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     @property
     def dim(self) -> int:
@@ -60,7 +68,7 @@ class Reducer:
         Z = (np.asarray(E, dtype=np.float64) - self.mean) / self.scale
         if self.method == "identity":
             return Z
-        if self.method == "pca":
+        if self.method in ("pca", "ipca"):
             return Z @ self.weights[0]
         # Encoder half of the autoencoder: tanh hidden layers, bottleneck activations.
         for W, b in zip(self.weights, self.biases, strict=True):
@@ -78,6 +86,10 @@ class Reducer:
             out[f"W{i}"], out[f"b{i}"] = W, b
         for key, value in self.reconstruction_error.items():
             out[f"err_{key}"] = np.array(value)
+        if len(self.explained_variance):
+            # An extra key only: files without it (written before exact PCA) still load,
+            # and older readers ignore it.
+            out["explained_variance"] = self.explained_variance
         return out
 
     @classmethod
@@ -92,6 +104,9 @@ class Reducer:
             reconstruction_error={
                 k[4:]: float(v) for k, v in arrays.items() if k.startswith("err_")
             },
+            explained_variance=np.asarray(
+                arrays.get("explained_variance", np.zeros(0)), dtype=np.float64
+            ),
         )
 
 
@@ -122,6 +137,95 @@ def _moments(batches: BatchSource) -> tuple[NDArray, NDArray, int]:
     return mean, std, n
 
 
+class Scatter:
+    """Running mean and scatter matrix of a stream of row batches.
+
+    After rows ``x_1 .. x_n``: ``mean = sum x_i / n`` and
+    ``M2 = sum (x_i - mean)(x_i - mean)^T``, so the sample covariance is ``M2 / (n - 1)``.
+
+    Each batch ``B`` is centred on its own mean before its scatter ``Bc^T Bc`` is formed
+    (one BLAS product), and batches are merged with the pairwise update of Chan, Golub &
+    LeVeque (1979, eq. 2.1):
+
+        delta = mean_B - mean_A
+        M2_AB = M2_A + M2_B + delta delta^T n_A n_B / (n_A + n_B)
+
+    The naive form ``(sum x x^T - n mean mean^T) / (n - 1)`` subtracts two numbers of size
+    ``n (offset^2 + var)`` to get one of size ``n var``: with a common offset of 1e4 and
+    unit variance it loses eight of float64's sixteen digits. Centring each batch first
+    keeps every term of size ``var``; the correction term involves only differences of
+    batch means, which are small whatever the offset.
+    """
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.mean: NDArray[np.float64] | None = None  # (D,)
+        self.M2: NDArray[np.float64] | None = None  # (D, D)
+
+    def update(self, B: NDArray) -> None:
+        """Add a batch.
+
+        Parameters
+        ----------
+        B : ndarray of shape (b, D)
+        """
+        B = np.asarray(B, dtype=np.float64)
+        nb = B.shape[0]
+        if nb == 0:
+            return
+        mb = B.mean(axis=0)
+        Bc = B - mb
+        # numpy computes Bc.T @ Bc with one symmetric rank-k update (BLAS syrk): half a gemm.
+        M2b = Bc.T @ Bc
+        if self.mean is None or self.M2 is None:
+            self.n, self.mean, self.M2 = nb, mb, M2b
+            return
+        na, total = self.n, self.n + nb
+        delta = mb - self.mean
+        self.mean = self.mean + delta * (nb / total)
+        M2b += np.outer(delta, delta * (na * nb / total))
+        self.M2 += M2b
+        self.n = total
+
+    def covariance(self) -> NDArray[np.float64]:
+        """Sample covariance (ddof = 1, as sklearn's ``PCA``), shape (D, D)."""
+        if self.M2 is None:
+            raise ValueError("no rows to fit the reducer on")
+        return self.M2 / max(self.n - 1, 1)
+
+
+def pca_from_covariance(
+    C: NDArray[np.float64], dim: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Leading eigenpairs of a covariance matrix, with a deterministic sign.
+
+    Parameters
+    ----------
+    C : ndarray of shape (D, D)
+        Symmetric positive semi-definite.
+    dim : int
+        Number of components kept, ``1 <= dim <= D``.
+
+    Returns
+    -------
+    components : ndarray of shape (dim, D)
+        Orthonormal rows, by decreasing variance; each row's largest-magnitude loading is
+        positive (the first such loading on a tie), so re-runs and other BLAS builds give the
+        same coordinates rather than a sign-flipped copy.
+    explained_variance : ndarray of shape (dim,)
+        Eigenvalues ``lambda_1 >= ... >= lambda_dim``, rounding negatives clipped to 0.
+    """
+    D = C.shape[0]
+    # LAPACK syevd on the symmetric matrix: eigenvalues ascending, vectors in the columns.
+    lam, V = np.linalg.eigh(C)
+    lam, V = lam[::-1][:dim], V[:, ::-1][:, :dim]
+    components = V.T.copy()
+    lead = np.argmax(np.abs(components), axis=1)
+    components *= np.sign(components[np.arange(dim), lead])[:, None]
+    assert components.shape == (dim, D)
+    return components, np.clip(lam, 0.0, None)
+
+
 def fit_reducer(
     batches: BatchSource,
     *,
@@ -133,19 +237,35 @@ def fit_reducer(
     hidden: int = 128,
     max_iter: int = 200,
     progress: Progress | None = None,
+    n_rows: int | None = None,
 ) -> Reducer:
     """Fit a reducer on a stream of embedding batches.
 
     Parameters
     ----------
     batches : callable returning an iterable of ndarray of shape (b, D)
-        Called once per pass; each call must restart the stream.
+        Called once per pass; each call must restart the stream. ``pca`` reads it once,
+        ``ipca`` twice.
     sample : ndarray of shape (s, D), optional
-        Random sample of rows: trains the autoencoder and measures reconstruction error.
+        Random sample of rows: trains the autoencoder and measures its error (and
+        ``ipca``'s). ``pca`` does not need it: its error comes from the eigenvalues.
+    n_rows : int, optional
+        Rows in the stream, for progress reports only.
     """
+    if method in ("pca", "autoencoder"):
+        pca = _fit_exact_pca(batches, dim, standardize, progress, n_rows)
+        if method == "pca":
+            return pca
+        if sample is None or len(sample) < 2 * dim:
+            raise ValueError("the autoencoder needs a training sample of at least 2 * dim rows")
+        Zs = (np.asarray(sample, dtype=np.float64) - pca.mean) / pca.scale
+        return _fit_autoencoder(
+            Zs, pca.mean, pca.scale, dim, hidden, max_iter, rng, pca.reconstruction_error
+        )
+
     mean, scale, n = _moments(batches)
     if progress:
-        progress("statistics", 1, 1)
+        progress("statistics", n, n)
     if not standardize:
         scale = np.ones_like(scale)
     D = mean.shape[0]
@@ -172,16 +292,59 @@ def fit_reducer(
             progress("pca", done, n)
     if carry is not None:
         ipca.partial_fit(carry)
-    pca = Reducer("pca", mean, scale, weights=[ipca.components_.T.copy()], biases=[np.zeros(dim)])
-
+    reducer = Reducer(
+        "ipca",
+        mean,
+        scale,
+        weights=[ipca.components_.T.copy()],
+        biases=[np.zeros(dim)],
+        explained_variance=np.asarray(ipca.explained_variance_, dtype=np.float64),
+    )
     if sample is not None and len(sample):
         Zs = (np.asarray(sample, dtype=np.float64) - mean) / scale
-        pca.reconstruction_error["pca"] = _pca_error(ipca, Zs)
-    if method == "pca":
-        return pca
-    if sample is None or len(sample) < 2 * dim:
-        raise ValueError("the autoencoder needs a training sample of at least 2 * dim rows")
-    return _fit_autoencoder(Zs, mean, scale, dim, hidden, max_iter, rng, pca.reconstruction_error)
+        reducer.reconstruction_error["pca"] = _pca_error(ipca, Zs)
+    return reducer
+
+
+def _fit_exact_pca(
+    batches: BatchSource,
+    dim: int,
+    standardize: bool,
+    progress: Progress | None,
+    n_rows: int | None,
+) -> Reducer:
+    """Exact PCA (optionally of standardised columns) in one pass over the stream."""
+    acc = Scatter()
+    for B in batches():
+        acc.update(B)
+        if progress:
+            progress("pca", acc.n, max(n_rows or acc.n, acc.n))
+    C = acc.covariance()
+    assert acc.mean is not None
+    D = C.shape[0]
+    if dim > D:
+        raise ValueError(f"--dim {dim} exceeds the embedding's {D} columns")
+    std = np.sqrt(np.diag(C))
+    # Constant columns carry no information; leave them unscaled rather than divide by 0.
+    std[std == 0] = 1.0
+    scale = std if standardize else np.ones(D)
+    # Covariance of the standardised columns S = (X - mean) / scale: C_ij / (s_i s_j).
+    C = C / np.outer(scale, scale)
+    components, lam = pca_from_covariance(C, dim)
+    # Mean squared reconstruction error per coordinate over the whole pool (ddof = 0):
+    # the variance left in the discarded directions, trace(C) - sum of kept eigenvalues.
+    # Clipped at 0: when dim = D (or the rank is lower) the difference is pure rounding.
+    left = max(float(np.trace(C) - lam.sum()), 0.0)
+    error = left * (acc.n - 1) / acc.n / D if acc.n > 1 else 0.0
+    return Reducer(
+        "pca",
+        acc.mean,
+        scale,
+        weights=[components.T.copy()],
+        biases=[np.zeros(dim)],
+        reconstruction_error={"pca": error},
+        explained_variance=lam,
+    )
 
 
 def _pca_error(pca: IncrementalPCA | PCA, Z: NDArray) -> float:

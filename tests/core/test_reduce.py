@@ -1,0 +1,157 @@
+"""Exact streaming PCA (core/reduce.py) against scikit-learn's batch PCA."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.decomposition import PCA
+
+from bams_cli.core.reduce import Reducer, Scatter, fit_reducer, pca_from_covariance
+
+N, D, DIM = 5_000, 64, 12
+
+
+def _data(offset: float = 0.0, seed: int = 0) -> np.ndarray:
+    """N x D rows with covariance Q diag(lambda) Q^T, lambda from 1 down to 1e-3.
+
+    Consecutive eigenvalues differ by 12 %, far above the sampling noise sqrt(2 / N) = 2 %,
+    so the leading DIM eigenvectors are well determined (an error of eps in the covariance
+    moves them by ~ eps / gap).
+    """
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.normal(size=(D, D)))
+    lam = 10 ** np.linspace(0, -3, D)
+    return (rng.normal(size=(N, D)) * np.sqrt(lam)) @ Q.T + offset
+
+
+def _chunks(X: np.ndarray, size: int):
+    return lambda: (X[i : i + size] for i in range(0, len(X), size))
+
+
+def _naive_covariance(X: np.ndarray, size: int) -> np.ndarray:
+    """Textbook one-pass accumulation: (sum x x^T - n mean mean^T) / (n - 1)."""
+    S, s = np.zeros((D, D)), np.zeros(D)
+    for B in _chunks(X, size)():
+        S += B.T @ B
+        s += B.sum(axis=0)
+    m = s / len(X)
+    return (S - len(X) * np.outer(m, m)) / (len(X) - 1)
+
+
+def _streaming_covariance(X: np.ndarray, size: int) -> np.ndarray:
+    acc = Scatter()
+    for B in _chunks(X, size)():
+        acc.update(B)
+    assert acc.n == len(X)
+    return acc.covariance()
+
+
+def _assert_matches_sklearn(components, explained, ref: PCA) -> None:
+    # sklearn fixes signs its own way; compare up to one sign per component.
+    sign = np.sign(np.sum(components * ref.components_, axis=1))
+    np.testing.assert_allclose(components, sign[:, None] * ref.components_, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(explained, ref.explained_variance_, rtol=1e-8)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+@pytest.mark.parametrize("size", [N, 997, 7])
+def test_streaming_covariance_gives_sklearns_pca(offset, size):
+    X = _data(offset)
+    ref = PCA(DIM, svd_solver="full").fit(X)
+    components, explained = pca_from_covariance(_streaming_covariance(X, size), DIM)
+    _assert_matches_sklearn(components, explained, ref)
+    np.testing.assert_allclose(_streaming_covariance(X, size), np.cov(X.T), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("size", [N, 997, 7])
+def test_naive_accumulation_fails_the_same_test_under_an_offset(size):
+    """The test above has teeth: sum-of-squares accumulation loses ~8 digits at 1e4 + N(0, 1),
+    and the sub-unit eigenvalues then miss 1e-8 by a factor of 20 or more."""
+    X = _data(1e4)
+    ref = PCA(DIM, svd_solver="full").fit(X)
+    # without the offset the naive form is fine: the failure is cancellation, not the test
+    _assert_matches_sklearn(*pca_from_covariance(_naive_covariance(X - 1e4, size), DIM), ref)
+    components, explained = pca_from_covariance(_naive_covariance(X, size), DIM)
+    assert np.max(np.abs(explained / ref.explained_variance_ - 1)) > 1e-7
+    with pytest.raises(AssertionError):
+        _assert_matches_sklearn(components, explained, ref)
+
+
+@pytest.mark.parametrize("standardize", [False, True])
+@pytest.mark.parametrize(("offset", "size"), [(0.0, 8192), (1e4, 333)])
+def test_fit_reducer_transforms_like_sklearn(standardize, offset, size):
+    X = _data(offset, seed=1)
+    scale = X.std(axis=0, ddof=1) if standardize else np.ones(D)
+    S = X / scale  # sklearn centres; scaling first is the same standardisation
+    ref = PCA(DIM, svd_solver="full").fit(S)
+    calls = []
+
+    def batches():
+        calls.append(1)
+        return _chunks(X, size)()
+
+    r = fit_reducer(batches, method="pca", dim=DIM, standardize=standardize, rng=None)  # type: ignore[arg-type]
+    assert len(calls) == 1  # one pass over the data
+    np.testing.assert_allclose(r.scale, scale, rtol=1e-10)
+    np.testing.assert_allclose(r.mean, X.mean(axis=0), rtol=1e-12, atol=1e-12)
+    _assert_matches_sklearn(r.weights[0].T, r.explained_variance, ref)
+    Z, Zref = r.transform(X), ref.transform(S)
+    sign = np.sign(np.sum(Z * Zref, axis=0))
+    np.testing.assert_allclose(Z, sign * Zref, rtol=0, atol=1e-8 * np.abs(Zref).max())
+    # Its reported error is the pool's mean squared residual per coordinate, exactly.
+    Sc = (X - r.mean) / r.scale
+    residual = Sc - Z @ r.weights[0].T
+    assert r.reconstruction_error["pca"] == pytest.approx(np.mean(residual**2), rel=1e-8)
+
+
+def test_sign_is_fixed_by_the_largest_loading_and_reruns_are_identical():
+    X = _data(1e4, seed=2)
+
+    def fit(size: int) -> Reducer:
+        return fit_reducer(_chunks(X, size), method="pca", dim=DIM, rng=None)  # type: ignore[arg-type]
+
+    a, b, c = fit(500), fit(500), fit(61)
+    np.testing.assert_array_equal(a.transform(X), b.transform(X))
+    W = a.weights[0]
+    lead = np.argmax(np.abs(W), axis=0)
+    assert np.all(W[lead, np.arange(DIM)] > 0)
+    # another chunking rounds differently but picks the same sign for every component
+    np.testing.assert_allclose(c.weights[0], W, rtol=0, atol=1e-9)
+
+
+def test_sign_convention_flips_eigh_output_consistently():
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    C = Q @ np.diag([5.0, 4.0, 3.0, 2.0, 1.0]) @ Q.T
+    components, explained = pca_from_covariance(C, 3)
+    np.testing.assert_allclose(explained, [5.0, 4.0, 3.0], rtol=1e-12)
+    expected = Q[:, :3].T * np.sign(Q[np.argmax(np.abs(Q[:, :3]), axis=0), range(3)])[:, None]
+    np.testing.assert_allclose(components, expected, atol=1e-12)
+
+
+def test_constant_columns_and_full_dim_are_safe():
+    X = _data(seed=4)[:200, :6]
+    X[:, 2] = 7.0
+    r = fit_reducer(_chunks(X, 50), method="pca", dim=6, rng=None)  # type: ignore[arg-type]
+    assert r.scale[2] == 1.0 and np.all(np.isfinite(r.transform(X)))
+    assert r.explained_variance[-1] == pytest.approx(0.0, abs=1e-12)
+    assert r.reconstruction_error["pca"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_no_rows_and_too_many_dims_are_value_errors():
+    with pytest.raises(ValueError, match="no rows"):
+        fit_reducer(lambda: iter([]), method="pca", dim=2, rng=None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="--dim 9 exceeds the embedding's 4 columns"):
+        fit_reducer(_chunks(np.eye(4), 2), method="pca", dim=9, rng=None)  # type: ignore[arg-type]
+
+
+def test_reducer_files_without_explained_variance_still_load():
+    """reducer.npz written before exact PCA has no explained_variance key."""
+    r = fit_reducer(_chunks(_data(seed=5), 1000), method="pca", dim=3, rng=None)  # type: ignore[arg-type]
+    arrays = r.to_arrays()
+    np.testing.assert_array_equal(arrays["explained_variance"], r.explained_variance)
+    del arrays["explained_variance"]
+    old = Reducer.from_arrays(arrays)
+    X = _data(seed=6)[:10]
+    np.testing.assert_array_equal(old.transform(X), r.transform(X))
+    assert old.explained_variance.shape == (0,)
