@@ -613,6 +613,13 @@ def estimate(
         ),
     ] = False,
     handoff_internal: HandoffInternal = False,
+    allow_pending: Annotated[
+        bool,
+        typer.Option(
+            "--allow-pending",
+            help="With --plan: draw another plan although an earlier one awaits results.",
+        ),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -639,6 +646,7 @@ def estimate(
             design=design,
             seed=seed,
             handoff_internal=handoff_internal,
+            allow_pending=allow_pending,
             wait=wait,
         )
         _show(summary, json_out, f"estimate plan {summary['plan']}", "estimate-plan")

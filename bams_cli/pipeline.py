@@ -1577,8 +1577,12 @@ def estimate_plan(
     design: str = "poisson",
     seed: int | None = None,
     handoff_internal: bool = False,
+    allow_pending: bool = False,
 ) -> dict[str, Any]:
     """Plan the rate-estimation sample: inclusion probabilities and the hand-off list.
+
+    While an earlier plan awaits results this refuses (exit code 3, so a Makefile re-run
+    does not draw a second plan); ``allow_pending`` draws another anyway.
 
     The draw is seeded by the study seed and the plan's number (so re-running a study
     reproduces its plans), or by ``seed`` alone when given: the same seed then gives the
@@ -1595,6 +1599,17 @@ def estimate_plan(
         raise WorkspaceError(f"--samples {samples}: must be a number >= 1 (simulations to plan)")
     ws = Workspace(root)
     settings = ws.require_initialised()
+    pend = ws.pending()
+    waiting = sorted(set(pend["plan"].drop_nulls().to_list())) if pend.height else []
+    if waiting and not allow_pending:
+        # A second plan while the first awaits results would be drawn from the same scores
+        # and double-count the rate's sample; Make re-running a target must not do that.
+        raise PendingResultsError(
+            f"{ws.root}: estimate plan {waiting[-1]} awaits results for "
+            f"{int(pend['plan'].is_in(waiting).sum())} picks; simulate its hand-off list, "
+            "ingest the results and run `bams-cli estimate`, or pass --allow-pending to "
+            "draw another plan beside it"
+        )
     model = ws.require_fresh_model()
     ids, _, _, p_all = _read_scores(ws, len(settings.gammas))
     # The largest gamma's p_n bounds every other gamma's (f <= g_small implies f <= g_large),

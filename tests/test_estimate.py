@@ -126,7 +126,13 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
         return strict_json(ok(runner, *args).stdout)
 
     default = plan()
-    s7, _, s8 = plan("--seed", "7"), plan("--seed", "7"), plan("--seed", "8")
+    # While plan 1 awaits results a second plan is refused with exit code 3 (waiting) ...
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--samples", "60")
+    assert r.exit_code == 3 and "estimate plan 1 awaits results" in r.stderr
+    assert not (ws / "estimates" / "plan-0002.parquet").exists()
+    # ... unless asked for: fresh plans from one fitted workspace, as a design study wants.
+    more = ("--allow-pending", "--seed")
+    s7, _, s8 = plan(*more, "7"), plan(*more, "7"), plan(*more, "8")
     assert (default["seed"], default["seed_source"]) == (STUDY_SEED, "study settings")
     assert (s7["seed"], s7["seed_source"], s8["seed"]) == (7, "--seed", 8)
     # Same seed, same plan (plans 2 and 3); another seed, another plan; recorded in the file.
