@@ -1947,11 +1947,18 @@ def report(
     }
 
     model_doc = None
+    unusable = None
     if ws.model_path.exists():
         # A model fitted before the latest results still describes the pool; the report
         # shows it marked stale rather than refusing (the estimate needs no refit either).
-        model_doc = ws.require_model(allow_newer_observations=True)
+        # One fitted for other gammas does not: its p columns answer other thresholds.
+        try:
+            model_doc = ws.require_model(allow_newer_observations=True)
+        except StaleStateError as exc:
+            unusable = str(exc)
     notices = _report_model_notices(ws, model_doc, active)
+    if unusable is not None:
+        notices = [{"kind": "stale_model", "severity": "warning", "text": unusable}]
 
     pos = {sid: i for i, sid in enumerate(ids)}
     obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())
@@ -2005,7 +2012,7 @@ def report(
             row["mean_f0_se"] = None if not np.isfinite(se) else float(se)
 
     scores = None
-    if ws.scores_path.exists():
+    if ws.scores_path.exists() and unusable is None:
         _, mu, sd, p_all = _read_scores(ws, len(gammas))
         scores = (mu, sd, p_all)
 

@@ -231,3 +231,24 @@ def test_fit_force_and_other_options_fit_again(fitted_ws, runner):
     r = invoke(runner, "fit", "-w", fitted_ws, "--json")
     assert r.exit_code == 0 and "up_to_date" not in json.loads(r.stdout)
     assert json.loads(ws.model_path.read_text())["gammas"] == [0.5]
+
+
+def test_edited_gammas_make_the_model_stale_for_every_command(fitted_ws, runner):
+    """settings.toml says "edit by hand": after a gamma edit the scores' p_<k> columns
+    answer for the old thresholds, so select and estimate --plan refuse and name fit,
+    status says fit, and report still renders."""
+    ws = Workspace(fitted_ws)
+    text = ws.settings_path.read_text()
+    assert "0.56" in text
+    ws.settings_path.write_text(text.replace("0.56", "0.6"))
+    for args in (["select", "--budget", "2", "--clusters", "1"], ["estimate", "--plan"]):
+        r = invoke(runner, *args, "-w", fitted_ws)
+        assert r.exit_code == 1
+        assert "fitted for gammas [0.56]" in r.stderr and "bams-cli fit" in r.stderr
+    r = invoke(runner, "status", "-w", fitted_ws, "--json")
+    assert json.loads(r.stdout)["next"]["step"] == "fit"
+    assert invoke(runner, "report", "-w", fitted_ws).exit_code == 0
+    assert invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2").exit_code == 0
+    assert (
+        invoke(runner, "select", "-w", fitted_ws, "--budget", "2", "--clusters", "1").exit_code == 0
+    )

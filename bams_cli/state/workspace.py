@@ -309,6 +309,17 @@ class Workspace:
                 f"({model.get('pool')} != {pool}, e.g. after embed-reduce --apply); "
                 f"run `bams-cli fit -w {self.root}`"
             )
+        settings = self.require_initialised()
+        if "gammas" in model and [float(g) for g in model["gammas"]] != [
+            float(g) for g in settings.gammas
+        ]:
+            # The scores' p_<k> columns are read by position: after an edit of the gammas
+            # they would answer for the old thresholds under the new ones' names.
+            raise StaleStateError(
+                f"{self.model_path}: fitted for gammas {model['gammas']}, but "
+                f"{self.settings_path.name} now says {list(settings.gammas)}; "
+                f"run `bams-cli fit -w {self.root}`"
+            )
         scored = read_metadata(self.scores_path) if self.scores_path.exists() else {}
         if scored.get("observations_hash") != model.get("observations_hash"):
             raise StaleStateError(
