@@ -391,6 +391,35 @@ def embed_reduce(
         schema = pq.read_schema(source)
     except (pa.ArrowInvalid, OSError) as exc:
         raise InputError(source, f"cannot read as Parquet ({str(exc).splitlines()[0]})") from None
+    request = {
+        "source_sha256": file_sha256(source),
+        "reduce_options": {
+            "method": method,
+            "dim": settings.embedding_dim if dim is None else dim,
+            "standardize": standardize,
+            "columns": columns,
+            "embedding_column": embedding_column,
+            "id_column": id_column,
+        },
+    }
+    if not apply and not force and ws.segments_path.exists():
+        # A re-run of the step that made the pool (a Makefile target, a CI retry) is a
+        # no-op; a different file or other options need --force or --apply.
+        done = read_metadata_json(ws.segments_path)
+        if all(done.get(k) == v for k, v in request.items()):
+            names = pq.read_schema(ws.segments_path).names
+            return {
+                "segments": str(ws.segments_path),
+                "added": 0,
+                "pool_size": int(pq.read_metadata(ws.segments_path).num_rows),
+                "method": done.get("method"),
+                "dim": done.get("dim"),
+                "passthrough_columns": [
+                    c for c in names if c != SID and not (c[:1] == "z" and c[1:].isdigit())
+                ],
+                "unchanged": True,
+                "note": "the pool was already reduced from this file with these options",
+            }
     layout: dict[str, Any] | None = None
     if apply:
         if not ws.reducer_path.exists():
@@ -505,6 +534,7 @@ def embed_reduce(
         "source": str(source),
         "seed": settings.seed,
         "reconstruction_error": reducer.reconstruction_error,
+        **({} if apply else request),
     }
     with transaction() as tx:
         if not apply:

@@ -153,11 +153,16 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "segments": PATH,
                 "added": COUNT,
                 "pool_size": COUNT,
-                "method": {"enum": ["pca", "autoencoder", "identity"]},
+                "method": {"enum": ["pca", "ipca", "autoencoder", "identity"]},
                 "dim": INT,
                 "passthrough_columns": array(STR),
             },
-            {"input_dim": INT, "reconstruction_error": {"type": "object"}},
+            {
+                "input_dim": INT,
+                "reconstruction_error": {"type": "object"},
+                "unchanged": BOOL,
+                "note": STR,
+            },
         ),
     ),
     "ingest-results": (

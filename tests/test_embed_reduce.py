@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -189,12 +190,25 @@ def test_integer_ids_are_accepted_as_strings(av_ws, runner, tmp_path):
     assert list(ids) == ["10", "11", "12"]
 
 
-def test_refit_needs_force(av_ws, runner, tmp_path):
+def test_rerun_is_a_no_op_and_a_refit_needs_force(av_ws, runner, tmp_path):
     seg = _av_files(tmp_path / "d")
     assert invoke(runner, "embed-reduce", "-w", av_ws, seg).exit_code == 0
-    r = invoke(runner, "embed-reduce", "-w", av_ws, seg)
+    before = tree_hash(av_ws)
+    # The same file with the same options (a Makefile re-run): nothing to do, exit 0.
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--json")
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.stdout)
+    assert doc["unchanged"] is True and doc["added"] == 0 and doc["pool_size"] > 0
+    assert tree_hash(av_ws) == before
+    # Other options, or another file: a refit, which needs --force.
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--dim", "3")
     assert r.exit_code == 1 and "--force" in r.stderr
-    assert invoke(runner, "embed-reduce", "-w", av_ws, seg, "--force").exit_code == 0
+    other = tmp_path / "other.parquet"
+    pq.write_table(pq.read_table(seg).slice(0, 50), other)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, other)
+    assert r.exit_code == 1 and "--force" in r.stderr
+    assert tree_hash(av_ws) == before
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg, "--force", "--dim", "3").exit_code == 0
 
 
 def test_uninitialised_workspace_is_not_created(runner, tmp_path):
@@ -255,9 +269,13 @@ def test_model_is_stale_after_the_same_segments_are_reduced_again(
     _fit_ten(toy_ws, runner, truth, tmp_path)
     r = invoke(runner, "embed-reduce", "-w", toy_ws, seg, "--columns", "x*", "--force")
     assert r.exit_code == 0, r.output
-    for args in (["select", "--budget", "2", "--clusters", "1", "--workers", "1"], ["report"]):
-        r = invoke(runner, args[0], "-w", toy_ws, *args[1:])
-        assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr, args
+    r = invoke(runner, "select", "-w", toy_ws, "--budget", "2", "--clusters", "1", "--workers", "1")
+    assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr
+    # The report still renders, the stale model a banner at the top and its scores unused.
+    r = invoke(runner, "report", "-w", toy_ws)
+    assert r.exit_code == 0, r.output
+    summary = (toy_ws / "report" / "summary.md").read_text()
+    assert "fitted on a different segment pool" in summary.split("\n## ")[0]
 
 
 def test_a_damaged_reducer_is_a_one_line_error(toy_ws, runner, tmp_path):
