@@ -405,15 +405,15 @@ def embed_reduce(
     if not apply and not force and ws.segments_path.exists():
         # A re-run of the step that made the pool (a Makefile target, a CI retry) is a
         # no-op; a different file or other options need --force or --apply.
-        done = read_metadata_json(ws.segments_path)
-        if all(done.get(k) == v for k, v in request.items()):
+        made = read_metadata_json(ws.segments_path)
+        if all(made.get(k) == v for k, v in request.items()):
             names = pq.read_schema(ws.segments_path).names
             return {
                 "segments": str(ws.segments_path),
                 "added": 0,
                 "pool_size": int(pq.read_metadata(ws.segments_path).num_rows),
-                "method": done.get("method"),
-                "dim": done.get("dim"),
+                "method": made.get("method"),
+                "dim": made.get("dim"),
                 "passthrough_columns": [
                     c for c in names if c != SID and not (c[:1] == "z" and c[1:].isdigit())
                 ],
