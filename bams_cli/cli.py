@@ -527,6 +527,14 @@ def select(
         typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
     ] = None,
     handoff_internal: HandoffInternal = False,
+    batch: Annotated[
+        int | None,
+        typer.Option(
+            "--batch",
+            help="The batch number this call makes, a stable Make target: a no-op when it "
+            "exists with the same options, an error when it is not the next one.",
+        ),
+    ] = None,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -553,6 +561,7 @@ def select(
             workers=workers,
             scheduler=scheduler,
             handoff_internal=handoff_internal,
+            batch=batch,
             wait=wait,
             progress=bar,
         )

@@ -1282,6 +1282,59 @@ MODEL_STRATEGIES = ("bams", "bas")
 STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
 
 
+def _existing_batch(
+    ws: Workspace, batch: int, asked: dict[str, Any], n_levels: int
+) -> dict[str, Any] | None:
+    """``select --batch N``: N's summary if it exists with these options, None if N is next."""
+    from bams_cli.state.handoff import template_path
+
+    numbers = ws.batch_numbers()
+    following = (numbers or [0])[-1] + 1
+    if batch not in numbers:
+        if batch != following:
+            raise OptionError(
+                f"--batch {batch}: the next batch is {following}"
+                + (f" (batches {numbers[0]}..{numbers[-1]} exist)" if numbers else "")
+            )
+        return None
+    path = schemas.batch_path(ws.root, batch)
+    made = read_metadata_json(path).get("options") or {}
+    differ = [
+        f"{k} {made[k]!r} there, {v!r} asked"
+        for k, v in asked.items()
+        if k in made and made[k] != v
+    ]
+    if differ:
+        raise OptionError(
+            f"{path}: batch {batch} exists with other options ({'; '.join(differ)}); "
+            f"pass the same options, or --batch {following} for a new batch"
+        )
+    df = ws.read_batch(batch)
+    level = df["fidelity"].to_numpy()
+    purpose = df["purpose"].to_list() if "purpose" in df.columns else ["discover"] * df.height
+    csv = path.with_suffix(".csv")
+    return {
+        "batch": batch,
+        "handoff": str(path),
+        "handoff_csv": str(csv),
+        "results_template": str(template_path(csv)),
+        "strategy": str(made.get("strategy", asked["strategy"])),
+        "picks": df.height,
+        "total_cost": math.fsum(df["cost"].to_list()),
+        "budget": float(made.get("budget", asked["budget"])),
+        "picks_per_level": {lv: int((level == lv).sum()) for lv in range(n_levels)},
+        "picks_per_cluster": {
+            int(c): int((df["cluster"] == c).sum()) for c in df["cluster"].unique().sort()
+        },
+        "confirm_picks": sum(p != "discover" for p in purpose),
+        "confirm_leads": sum(p == "confirm lead" for p in purpose),
+        "j_before": None,
+        "j_after": None,
+        "timings_s": {},
+        "unchanged": True,
+    }
+
+
 def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
     """Segments seen at or below gamma at some cheap level (a lead until level 0 confirms)."""
     obs = ws.read_observations().filter((pl.col("fidelity") > 0) & (pl.col("value") <= gamma))
@@ -1344,9 +1397,14 @@ def select(
     workers: int | None = None,
     scheduler: str | None = None,
     handoff_internal: bool = False,
+    batch: int | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
+
+    ``batch`` names the batch this call makes, a stable target for Make: when it exists
+    already with the same options the call is a no-op (``unchanged``); when it exists with
+    other options, or is not the next number, it is an error naming the next one.
 
     The Parquet state file holds every column; the CSV hand-off and its results template
     follow the contract in ``state.handoff`` (internal columns only with
@@ -1386,6 +1444,20 @@ def select(
             f"--budget {budget}: buys more simulations than the pool has "
             f"({len(ids)} segments x {settings.n_levels} levels)"
         )
+    if batch is not None:
+        asked = {
+            "strategy": strategy,
+            "budget": budget,
+            "clusters": clusters,
+            "overbudget": overbudget,
+            "pooling": pooling,
+            "mixed_fidelity": mixed_fidelity,
+            "level0_share": level0_share,
+            "confirm_share": confirm_share,
+        }
+        done = _existing_batch(ws, batch, asked, settings.n_levels)
+        if done is not None:
+            return done
     pend = ws.pending()
     if pend.height and not allow_pending:
         where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
@@ -1562,7 +1634,7 @@ def select(
         "results_template": str(template),
         "strategy": strategy,
         "picks": k,
-        "total_cost": float(costs[picks["level"]].sum()),
+        "total_cost": math.fsum(costs[picks["level"]].tolist()),
         "budget": budget,
         "picks_per_level": per_level,
         "picks_per_cluster": per_cluster,

@@ -244,7 +244,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "j_before": nullable(NUM),
                 "j_after": nullable(NUM),
                 "timings_s": mapping(NUM, "stage"),
-            }
+            },
+            {"unchanged": BOOL},
         ),
     ),
     "estimate-plan": (

@@ -8,7 +8,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from tests.conftest import invoke, ok, write_batch
+from tests.conftest import invoke, ok, tree_hash, write_batch
 
 
 @pytest.fixture
@@ -67,3 +67,28 @@ def test_confirm_share_zero_is_the_plain_greedy(lead_ws, runner):
 def test_confirm_share_out_of_range_is_refused(lead_ws, runner):
     r = invoke(runner, "select", "-w", lead_ws, "--confirm-share", "1.5")
     assert r.exit_code != 0 and "--confirm-share 1.5: must lie in [0, 1]" in r.stderr
+
+
+def test_select_batch_is_a_stable_make_target(lead_ws, runner):
+    from bams_cli import schemas_json
+    from tests.jsonschema_subset import errors
+
+    # batch 1 is the hand-made one; --batch 2 makes batch 2 ...
+    first, batch = _select(runner, lead_ws, "--batch", "2")
+    assert first["batch"] == 2 and "unchanged" not in first
+    before = tree_hash(lead_ws)
+    # ... and again is a no-op with the same summary, even while its results are pending.
+    again, _ = _select(runner, lead_ws, "--batch", "2")
+    assert again["unchanged"] is True and tree_hash(lead_ws) == before
+    for key in ("batch", "handoff_csv", "picks", "total_cost", "confirm_picks"):
+        assert again[key] == first[key], key
+    assert errors({"schema_version": 1, **again}, schemas_json.schema("select")) == []
+    # Other options for an existing batch, or a number that is not next: one-line errors.
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "2", "--budget", "4")
+    assert (
+        r.exit_code == 1
+        and "batch 2 exists with other options (budget 5.0 there, 4.0 asked;" in r.stderr
+    )
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "5")
+    assert r.exit_code == 1 and "--batch 5: the next batch is 3" in r.stderr
+    assert tree_hash(lead_ws) == before
