@@ -290,6 +290,7 @@ def _batch_matrix(
             raise InputError(
                 source, "embedding holds a non-finite value", column=list_col, row=offset + r + 1
             )
+        _refuse_huge(M, source, list_col, offset)
         return M
     mats = []
     for name in cols:
@@ -303,8 +304,32 @@ def _batch_matrix(
                 column=name,
                 row=offset + int(np.flatnonzero(bad)[0]) + 1,
             )
+        _refuse_huge(v[:, None], source, name, offset)
         mats.append(v)
     return np.column_stack(mats) if mats else np.empty((batch.num_rows, 0))
+
+
+#: Largest magnitude accepted for an observed value: the model's variances are squares of
+#: the values' spread, which overflow float64 beyond ~1.3e154 (``core.gp`` refuses a
+#: spread above 1e150 too).
+MAX_VALUE = 1e150
+#: Largest magnitude accepted for an embedding entry: the reducer's covariance sums
+#: squares over every row, so millions of rows need room below the float64 limit.
+MAX_EMBEDDING = 1e100
+
+
+def _refuse_huge(M: np.ndarray, source: Path, column: str, offset: int) -> None:
+    """InputError naming the first row with an entry beyond +-MAX_EMBEDDING."""
+    huge = np.abs(M) > MAX_EMBEDDING
+    if huge.any():
+        r = int(np.flatnonzero(huge.any(axis=1))[0])
+        raise InputError(
+            source,
+            f"embedding value {M[r][huge[r]][0]:.3g} is beyond +-{MAX_EMBEDDING:g}: its square "
+            "overflows the reducer's covariance; rescale the embedding",
+            column=column,
+            row=offset + r + 1,
+        )
 
 
 class _EmbeddingStream:
@@ -725,6 +750,17 @@ def _read_results(
         raise InputError(
             path,
             f"value must be a finite number, got {got!r}{hint}",
+            column="value",
+            row=row,
+        )
+    huge = val.abs() > MAX_VALUE
+    if huge.any():
+        row = int(df.filter(huge)["_row"][0])
+        raise InputError(
+            path,
+            f"value {df.filter(huge)['value'][0]} is beyond +-{MAX_VALUE:g}: the model's "
+            "variances (the square of the values' spread) would overflow; report the metric "
+            "in larger units, or correct the value",
             column="value",
             row=row,
         )

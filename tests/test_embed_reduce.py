@@ -149,6 +149,16 @@ def _write(path: Path, cols: dict) -> Path:
             "column 'e0', row 2: non-finite or missing value",
         ),
         (
+            {"segment_id": ["a", "b", "c"], "e0": [1.0, 2, 3], "e1": [1.0, 1e308, 1]},
+            ["--columns", "e*"],
+            "column 'e1', row 2: embedding value 1e+308 is beyond +-1e+100",
+        ),
+        (
+            {"segment_id": ["a", "b", "c"], "emb": [[1.0, 2.0], [0.5, 0.1], [-3e200, 1.0]]},
+            [],
+            "column 'emb', row 3: embedding value -3e+200 is beyond +-1e+100",
+        ),
+        (
             {"id": ["a", "b", "c"], "e0": [1.0, 2, 3]},
             ["--columns", "e*"],
             "column 'segment_id': no id column 'segment_id'",

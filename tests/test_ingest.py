@@ -239,3 +239,15 @@ def test_same_values_from_another_file_change_nothing(ws, runner, tmp_path):
     r = invoke(runner, "ingest-results", "-w", ws, _results(tmp_path / "b.csv", [(IDS[0], 0, 1.5)]))
     assert r.exit_code == 0 and "already in the log; nothing changed" in r.stderr
     assert tree_hash(ws) == before
+
+
+@pytest.mark.parametrize("value", [1e308, -1e200, 2e150])
+def test_a_value_the_model_cannot_hold_is_refused_naming_its_row(ws, runner, tmp_path, value):
+    """1e308 used to be ingested, and then every fit failed from all starts naming no row."""
+    res = tmp_path / "r.csv"
+    res.write_text(f"segment_id,fidelity,value\n{IDS[0]},0,1.5\n{IDS[1]},0,{value!r}\n")
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "column 'value', row 2" in r.stderr and "beyond +-1e+150" in r.stderr
+    assert tree_hash(ws) == before
