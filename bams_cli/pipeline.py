@@ -645,6 +645,10 @@ def _read_results(
         raise InputError(path, "has no rows; nothing to ingest")
     df = pl.from_arrow(table)
     assert isinstance(df, pl.DataFrame)
+    if "_row" in df.columns:
+        raise SchemaError(
+            path, "this column name is reserved by bams-cli; rename it", column="_row"
+        )
     df = df.with_row_index("_row", offset=1)
     extra_cols = [c for c in df.columns if c not in {SID, "fidelity", "value", "_row"}]
     for name in (SID, "fidelity", rid_col, "status"):

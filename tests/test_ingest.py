@@ -251,3 +251,30 @@ def test_a_value_the_model_cannot_hold_is_refused_naming_its_row(ws, runner, tmp
     assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
     assert "column 'value', row 2" in r.stderr and "beyond +-1e+150" in r.stderr
     assert tree_hash(ws) == before
+
+
+@pytest.mark.parametrize(
+    ("fidelity", "needle"),
+    [
+        ("1e20", "fidelity 1e+20 is not a configured level"),
+        ("9223372036854775808", "is not a configured level"),  # 2^63: beyond Int64
+        ("-3", "fidelity -3 is not a configured level"),
+        ("nan", "fidelity must be an integer level or a level name"),
+        ("inf", "fidelity must be an integer level or a level name, got inf"),
+    ],
+)
+def test_a_fidelity_that_is_no_level_is_named_not_a_crash(ws, runner, tmp_path, fidelity, needle):
+    res = tmp_path / "r.csv"
+    res.write_text(f"segment_id,fidelity,value\n{IDS[0]},{fidelity},1.5\n")
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "column 'fidelity', row 1" in r.stderr and needle in r.stderr
+    assert "unexpected" not in r.stderr and tree_hash(ws) == before
+
+
+def test_a_results_column_named_like_the_tools_own_is_refused(ws, runner, tmp_path):
+    res = tmp_path / "r.csv"
+    res.write_text(f"segment_id,fidelity,value,_row\n{IDS[0]},0,1.5,9\n")
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 1 and "column '_row': this column name is reserved" in r.stderr

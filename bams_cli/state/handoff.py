@@ -165,6 +165,14 @@ def resolve_fidelity(
                     column="fidelity",
                     row=int(row),
                 )
+            if not 0 <= level < len(names):  # before an Int64 column could overflow
+                raise InputError(
+                    path,
+                    f"fidelity {value!r} is not a configured level (known levels: {known}); "
+                    "add it to settings.toml [[levels]]",
+                    column="fidelity",
+                    row=int(row),
+                )
         levels = pl.Series("fidelity", found, pl.Int64)
     outside = (levels < 0) | (levels >= len(names))
     if outside.any():
