@@ -8,6 +8,7 @@ as a table, or as-is under ``--json``). Progress is reported through an optional
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import fnmatch
 import functools
@@ -1046,7 +1047,20 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
 
     model = ws.require_fresh_model()
     idx, lv, y = _training_data(ws, ids, X)
-    hp = Hyperparameters.from_dict(model["hyperparameters"])
+    try:
+        hp = Hyperparameters.from_dict(model["hyperparameters"])
+        if hp.n_levels != settings.n_levels or hp.d != X.shape[1]:
+            raise ValueError(
+                f"they are for {hp.n_levels} levels and d = {hp.d}, the study has "
+                f"{settings.n_levels} levels and d = {X.shape[1]}"
+            )
+    except (KeyError, ValueError, TypeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise InputError(
+            ws.model_path,
+            f"hyperparameters: {what.removeprefix('Hyperparameters: ')}; rewrite it with "
+            f"`bams-cli fit -w {ws.root} --force`",
+        ) from None
     g = _model_transform(ws, model)
     return fit_mfgp(
         X[idx], lv, g.forward(y), settings.n_levels, rng=np.random.default_rng(settings.seed),
@@ -1322,6 +1336,17 @@ MODEL_STRATEGIES = ("bams", "bas")
 STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
 
 
+@contextlib.contextmanager
+def _memory_limit_is_an_option() -> Iterator[None]:
+    """select_batch's refusal of a cluster too large for memory, as a one-line error."""
+    try:
+        yield
+    except ValueError as exc:
+        if "GiB" not in str(exc):
+            raise
+        raise OptionError(f"select: {str(exc).replace('n_clusters', '--clusters')}") from None
+
+
 def _existing_batch(
     ws: Workspace, batch: int, asked: dict[str, Any], n_levels: int
 ) -> dict[str, Any] | None:
@@ -1532,7 +1557,7 @@ def select(
         taken0[confirm] = True
         result = None
         if rest >= costs.min() - 1e-12:
-            with executor(workers, scheduler) as pool:
+            with executor(workers, scheduler) as pool, _memory_limit_is_an_option():
                 result = select_batch(
                     posterior,
                     X,

@@ -92,3 +92,37 @@ def test_select_batch_is_a_stable_make_target(lead_ws, runner):
     r = invoke(runner, "select", "-w", lead_ws, "--batch", "5")
     assert r.exit_code == 1 and "--batch 5: the next batch is 3" in r.stderr
     assert tree_hash(lead_ws) == before
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        (lambda hp: hp.pop("noise"), "hyperparameters: missing key 'noise'"),
+        (lambda hp: hp.clear(), "hyperparameters: missing key"),
+        (lambda hp: hp.update(lengthscales0=[-1.0, -1.0]), "lengthscales0 must be finite and > 0"),
+        (lambda hp: hp["noise"].__setitem__(0, float("nan")), "noise must be finite and >= 0"),
+        (lambda hp: hp.update(lengthscales0=[1.0] * 5), "cannot reshape"),
+        (lambda hp: hp.update(mean="abc"), "could not convert string to float"),
+        (lambda hp: hp.update(mean=1e308), "mean must be finite and within +-1e+150"),
+    ],
+)
+def test_a_hand_edited_model_is_named_with_the_command_that_rewrites_it(
+    lead_ws, runner, edit, needle
+):
+    path = lead_ws / "model.json"
+    doc = json.loads(path.read_text())
+    edit(doc["hyperparameters"])
+    path.write_text(json.dumps(doc))
+    before = tree_hash(lead_ws)
+    r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "2")
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "model.json" in r.stderr and needle in r.stderr and "--force" in r.stderr
+    assert "unexpected" not in r.stderr and tree_hash(lead_ws) == before
+
+
+def test_a_cluster_too_large_for_memory_names_the_flag(lead_ws, runner, monkeypatch):
+    import bams_cli.core.select as core_select
+
+    monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 1)
+    r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "1")
+    assert r.exit_code == 1 and "raise --clusters" in r.stderr and "unexpected" not in r.stderr

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bams_cli.core.gp._numerics import FloatArray
+from bams_cli.core.gp._numerics import MAX_SCALE, FloatArray
 
 
 @dataclass(frozen=True)
@@ -83,8 +83,12 @@ class Hyperparameters:
                 f"Hyperparameters: offsets must be {s.size} finite numbers (one per level >= 1), "
                 f"got {offsets}"
             )
-        if not math.isfinite(float(self.mean)):
-            raise ValueError(f"Hyperparameters: mean must be finite, got {self.mean}")
+        if not (math.isfinite(float(self.mean)) and abs(float(self.mean)) <= MAX_SCALE):
+            raise ValueError(
+                f"Hyperparameters: mean must be finite and within +-{MAX_SCALE:g}, got {self.mean}"
+            )
+        if np.any(np.abs(offsets) > MAX_SCALE):
+            raise ValueError(f"Hyperparameters: offsets must be within +-{MAX_SCALE:g}")
         # Frozen means frozen: store float64 copies and make them read-only.
         object.__setattr__(self, "mean", float(self.mean))
         object.__setattr__(self, "outputscale0", float(self.outputscale0))
