@@ -97,6 +97,15 @@ class Settings:
         except tomllib.TOMLDecodeError as exc:
             raise SettingsError(f"{source}: not valid TOML ({exc})") from None
         study = doc.get("study", {})
+        for name, want in (("study", dict), ("levels", list), ("extra", dict)):
+            if name in doc and not isinstance(doc[name], want):
+                kind = "a [study] table" if want is dict else "a list of {name, cost} tables"
+                if name == "extra":
+                    kind = "an [extra] table"
+                raise SettingsError(
+                    f"{source}: '{name}' must be {kind}, got {type(doc[name]).__name__} "
+                    f"{doc[name]!r}; fix it by hand or rewrite it with `bams-cli init --force`"
+                )
         try:
             levels = tuple(
                 Level(str(lv["name"]), float(lv["cost"])) for lv in doc.get("levels", [])

@@ -274,3 +274,22 @@ def test_without_chromium_the_browser_test_skips_and_in_ci_fails(tmp_path, requi
     assert outcome in r.stdout, r.stdout + r.stderr
     assert "no chromium on PATH: the report's browser test needs Debian's chromium" in r.stdout
     assert ("CI must run this test" in r.stdout) == bool(require)
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        (
+            "study = 5\nlevels = [{name = 'high', cost = 1.0}]\n",
+            "'study' must be a [study] table, got int 5",
+        ),
+        ("levels = 3\n[study]\ngammas = [0.5]\n", "'levels' must be a list of {name, cost} tables"),
+        ("extra = 1\n[study]\ngammas = [0.5]\n", "'extra' must be an [extra] table"),
+    ],
+)
+def test_a_settings_section_of_the_wrong_kind_is_named(text, needle):
+    from bams_cli.errors import SettingsError
+    from bams_cli.settings import Settings
+
+    with pytest.raises(SettingsError, match=re.escape(needle)):
+        Settings.from_toml(text, source="ws/settings.toml")
