@@ -1509,17 +1509,18 @@ def select(
             f"--budget {budget}: buys more simulations than the pool has "
             f"({len(ids)} segments x {settings.n_levels} levels)"
         )
+    # The options that decide the picks: recorded in the batch, compared by --batch.
+    asked = {
+        "strategy": strategy,
+        "budget": budget,
+        "clusters": clusters,
+        "overbudget": overbudget,
+        "pooling": pooling,
+        "mixed_fidelity": mixed_fidelity,
+        "level0_share": level0_share,
+        "confirm_share": confirm_share,
+    }
     if batch is not None:
-        asked = {
-            "strategy": strategy,
-            "budget": budget,
-            "clusters": clusters,
-            "overbudget": overbudget,
-            "pooling": pooling,
-            "mixed_fidelity": mixed_fidelity,
-            "level0_share": level0_share,
-            "confirm_share": confirm_share,
-        }
         done = _existing_batch(ws, batch, asked, settings.n_levels)
         if done is not None:
             return done
@@ -1662,14 +1663,7 @@ def select(
     }
     cols |= _passthrough_columns(ws, picks["index"], taken=cols)
     options = {
-        "strategy": strategy,
-        "budget": budget,
-        "clusters": clusters,
-        "overbudget": overbudget,
-        "pooling": pooling,
-        "mixed_fidelity": mixed_fidelity,
-        "level0_share": level0_share,
-        "confirm_share": confirm_share,
+        **asked,
         "include_observed": include_observed,
         "allow_pending": allow_pending,
         "difficulty_column": difficulty_column,
