@@ -304,26 +304,36 @@ CHURN = """
 import sys, time
 from pathlib import Path
 from bams_cli.state.lock import workspace_lock
-end = time.monotonic() + float(sys.argv[2])
+stop = Path(sys.argv[2])
+end = time.monotonic() + 60.0
 print("go", flush=True)
-while time.monotonic() < end:
+while not stop.exists() and time.monotonic() < end:
     with workspace_lock(Path(sys.argv[1]), wait=True):
         pass
 """
 
 
 def test_refusal_names_the_holder_even_while_it_takes_and_releases(tmp_path):
+    stop = tmp_path / "stop"
     proc = subprocess.Popen(
-        [sys.executable, "-c", CHURN, str(tmp_path), "1.5"], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", CHURN, str(tmp_path), str(stop)], stdout=subprocess.PIPE, text=True
     )
     assert proc.stdout is not None and proc.stdout.readline().strip() == "go"
     refusals: list[str] = []
-    while proc.poll() is None:
-        try:
-            with workspace_lock(tmp_path):
-                pass
-        except WorkspaceLockedError as exc:
-            refusals.append(str(exc))
+    # Until 50 refusals are seen (or 30 s pass: a loaded machine). After each success
+    # pause a moment, so the other process, which waits for the lock, gets its turn.
+    deadline = time.monotonic() + 30.0
+    try:
+        while len(refusals) < 50 and time.monotonic() < deadline:
+            try:
+                with workspace_lock(tmp_path):
+                    pass
+                time.sleep(0.001)
+            except WorkspaceLockedError as exc:
+                refusals.append(str(exc))
+    finally:
+        stop.touch()
+        proc.wait(timeout=30)
     assert refusals, "never caught the other process holding the lock"
     nameless = [r for r in refusals if f"locked by pid {proc.pid} on " not in r]
     assert nameless == [], f"{len(nameless)} of {len(refusals)}: {nameless[0]}"
