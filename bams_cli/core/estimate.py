@@ -101,7 +101,7 @@ from typing import Literal
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import gammaincinv, ndtr, ndtri
+from scipy.special import gammaincinv, logsumexp, ndtr, ndtri
 
 from bams_cli import defaults
 
@@ -188,9 +188,7 @@ def log_selection_distribution(p: ArrayLike, *, alpha: float, defensive: float) 
         else:
             a = np.full(n, -np.inf)
             a[pos] = alpha * np.log(p[pos])
-            a -= a[pos].max()
-            # The largest term is exp(0) = 1, so the sum lies in [1, n]: no under/overflow.
-            log_base = a - math.log(float(np.exp(a[pos]).sum()))
+            log_base = a - logsumexp(a[pos])  # shifts by the max: no under/overflow
     if defensive == 0.0:
         return log_base
     if defensive == 1.0:
