@@ -741,15 +741,13 @@ def true_discrepancy_sd(
 
 
 def discrepancy_sd(hyperparameters: dict[str, Any]) -> float:
-    """The model's sd of y1 - y0 at one segment, in the metric's units.
+    """The model's sd of y1 - y0 at one segment (``checks.fitted_discrepancy_sd``), in the
+    model's units. Set beside the true sd(f1 - f0) over the pool, it shows whether the fit
+    trusts the cheap level more than it deserves."""
+    from bams_cli.core.gp import Hyperparameters
+    from bams_cli.core.gp.checks import fitted_discrepancy_sd
 
-    Under the model y_l = theta0 + alpha_l + eps_l, so y1 - y0 = alpha_1 + eps_1 - eps_0
-    has variance outputscale_1 + tau_1^2 + tau_0^2 (``fit`` reports variances in the
-    metric's units). Set beside the true sd(f1 - f0) over the pool, it shows whether the
-    fit trusts the cheap level more than it deserves.
-    """
-    hp = hyperparameters
-    return float(math.sqrt(hp["outputscales"][0] + hp["noise"][1] + hp["noise"][0]))
+    return fitted_discrepancy_sd(Hyperparameters.from_dict(hyperparameters))
 
 
 def evaluate_runs(
