@@ -836,20 +836,20 @@ def benchmark(
 
     if protocol not in (*PROTOCOLS, "suite"):
         raise BamsError(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}, or suite")
+    options: dict[str, Any] = {
+        "seeds": seeds,
+        "quick": quick,
+        "out_dir": out,
+        "strategies": strategies.split(",") if strategies else None,
+        "level0_share": level0_share,
+        "workers": workers,
+        "n": n,
+        "clusters": clusters,
+        "command": shlex.join(["bams-cli", *sys.argv[1:]]),
+    }
     if protocol == "suite":
         with console.progress(not json_out) as bar:
-            results = run_suite(
-                seeds=seeds,
-                quick=quick,
-                out_dir=out,
-                strategies=strategies.split(",") if strategies else None,
-                level0_share=level0_share,
-                workers=workers,
-                progress=bar,
-                n=n,
-                clusters=clusters,
-                command=shlex.join(["bams-cli", *sys.argv[1:]]),
-            )
+            results = run_suite(progress=bar, **options)
         if json_out:
             console.print_json({p: suite_rows(r) for p, r in results.items()})
             return
@@ -857,19 +857,7 @@ def benchmark(
         console.note(f"results: {out / 'suite.json'} and one folder per problem")
         return
     with console.progress(not json_out) as bar:
-        result = run_benchmark(
-            protocol,
-            seeds=seeds,
-            quick=quick,
-            out_dir=out,
-            strategies=strategies.split(",") if strategies else None,
-            level0_share=level0_share,
-            workers=workers,
-            progress=bar,
-            n=n,
-            clusters=clusters,
-            command=shlex.join(["bams-cli", *sys.argv[1:]]),
-        )
+        result = run_benchmark(protocol, progress=bar, **options)
     if json_out:
         console.print_json(result)
         return
