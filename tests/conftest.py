@@ -34,6 +34,12 @@ def ok(runner: CliRunner, *args: object):
     return r
 
 
+def simulate_and_ingest(runner: CliRunner, ws: Path, handoff: Path, truth: Path, results: Path):
+    """The sample simulator answers a hand-off list; its results are ingested."""
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", results)
+    return ok(runner, "ingest-results", "-w", ws, results)
+
+
 def tree_hash(root: Path) -> dict[str, str]:
     """Content hash of every file under root, to prove a failing command changed nothing.
 

@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 
 from bams_cli.report import SUMMARY_KEYS
 from bams_cli.state.workspace import Workspace
-from tests.conftest import ok
+from tests.conftest import ok, simulate_and_ingest
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
 AV = SAMPLE / "av_like"
@@ -42,8 +42,7 @@ class Study:
 
     def simulate_and_ingest(self, handoff: Path) -> None:
         res = self.tmp / f"results-{handoff.stem}.parquet"
-        self.run("simulate", handoff, "--truth", self.truth, "-o", res)
-        self.run("ingest-results", "-w", self.ws, res)
+        simulate_and_ingest(self.runner, self.ws, handoff, self.truth, res)
 
     def report(self, stage: str) -> dict:
         self.run("report", "-w", self.ws)  # no --truth: what a real study has

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from tests.conftest import invoke, ok, tree_hash, write_toy
+from tests.conftest import invoke, ok, simulate_and_ingest, tree_hash, write_toy
 
 
 class Study:
@@ -30,8 +30,7 @@ class Study:
 
     def ingest(self, handoff: Path) -> None:
         res = self.tmp / f"res-{handoff.stem}.parquet"
-        self.run("simulate", handoff, "--truth", self.truth, "-o", res)
-        self.run("ingest-results", "-w", self.ws, res)
+        simulate_and_ingest(self.runner, self.ws, handoff, self.truth, res)
 
     def status(self, stage: str, *, keep: bool = False) -> None:
         r = invoke(self.runner, "status", "-w", self.ws, "--json")
