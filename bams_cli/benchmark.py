@@ -449,14 +449,18 @@ def run_one(spec: RunSpec) -> RunResult:
             # recall and variance instead (module docstring).
             t0 = time.perf_counter()
             plan = pipeline.estimate_plan(root, samples=spec.K)
-            est_results = root / "estimate-results.parquet"
-            pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
-            pipeline.ingest_results(root, est_results)
-            # estimate_compute sets the GP's own estimate beside the IS one, so it wants a
-            # model fitted on the log that now holds the plan's results: condition on them
-            # with the batch-3 hyperparameters (fit --fixed-hyperparameters) rather than
-            # retrain on ~K more points, which would cost more than the whole protocol.
-            pipeline.fit(root, fixed_hyperparameters=root / "model.json")
+            while True:
+                est_results = root / f"estimate-results-{plan['plan']}.parquet"
+                pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
+                pipeline.ingest_results(root, est_results)
+                # Each later stage wants, and estimate_compute's GP estimate too, a model
+                # fitted on the log that now holds the stage's results: condition on them
+                # with the batch-3 hyperparameters (fit --fixed-hyperparameters) rather than
+                # retrain on ~K more points, which would cost more than the whole protocol.
+                pipeline.fit(root, fixed_hyperparameters=root / "model.json")
+                if plan["stage"] >= plan["stages"]:
+                    break
+                plan = pipeline.estimate_plan(root)
             e = pipeline.estimate_compute(root)["estimates"][0]
             realised = {
                 k: e[k]
@@ -864,6 +868,7 @@ def run_benchmark(
     clusters: int = 6,
     first_seed: int = 0,
     command: str | None = None,
+    save_arrays: bool = False,
 ) -> dict[str, Any]:
     """Run a paper protocol over seeds and write its tables, plots and results.json.
 
@@ -896,6 +901,11 @@ def run_benchmark(
     first_seed : int
     command : str, optional
         The command line to record (default: this process's argv).
+    save_arrays : bool
+        Also write ``runs.npz``: the true level-0 values and gamma, and per run
+        (``<strategy>-<seed>-p``, ``-known``) the final p_n (or importance scores) and the
+        known stratum, in truth-file order. Estimate designs can then be studied on the
+        runs without repeating them (``core.design``, ``docs/suite/estimate_design.py``).
 
     Returns
     -------
@@ -970,6 +980,14 @@ def run_benchmark(
                     for fut in done:
                         finished(fut.result())
         table = evaluate_runs(proto, runs, f0, gamma, K=K, estimator=estimator, f1=f1)
+        if save_arrays:
+            arrays: dict[str, np.ndarray] = {"f0": f0, "gamma": np.array(gamma), "K": np.array(K)}
+            for r in runs:
+                score = r.p_after[-1] if r.p_after[-1] is not None else r.scores
+                if score is not None:
+                    arrays[f"{r.strategy}-{r.seed}-p"] = np.asarray(score, np.float64)
+                arrays[f"{r.strategy}-{r.seed}-known"] = np.asarray(r.known, bool)
+            np.savez_compressed(out_dir / "runs.npz", **arrays)  # type: ignore[arg-type]
     wall = time.perf_counter() - t_start
 
     p = F / N
@@ -1045,6 +1063,7 @@ def run_suite(
     first_seed: int = 0,
     problems: Sequence[str] = SUITE,
     command: str | None = None,
+    save_arrays: bool = False,
 ) -> dict[str, Any]:
     """Run every suite problem (``run_benchmark`` each) and write ``suite.md`` over them.
 
@@ -1058,7 +1077,8 @@ def run_suite(
     n : int, optional
         Pool size of every problem (capped at digits' 1,797 images); default each
         problem's own.
-    seeds, quick, out_dir, level0_share, workers, progress, clusters, first_seed, command
+    seeds, quick, out_dir, level0_share, workers, progress, clusters, first_seed, command,
+    save_arrays
         As ``run_benchmark``.
 
     Returns
@@ -1095,6 +1115,7 @@ def run_suite(
             clusters=clusters,
             first_seed=first_seed,
             command=command,
+            save_arrays=save_arrays,
         )
     condensed = {p: suite_rows(r) for p, r in results.items()}
     (out_dir / "suite.json").write_text(json.dumps(condensed, indent=1, default=_json) + "\n")

@@ -583,8 +583,35 @@ def estimate(
             "--samples", "-K", help="Simulation budget K \\[default: 5 x the GP's p x N]."
         ),
     ] = None,
+    weighting: Annotated[
+        str,
+        typer.Option(
+            "--weighting",
+            help="With --plan: auto (the design with the smallest variance the checked model "
+            "predicts: uniform, calibrated or p^alpha), uniform, or p-alpha (--alpha, --defensive).",
+        ),
+    ] = "auto",
+    stages: Annotated[
+        int,
+        typer.Option(
+            "--stages",
+            help="With --plan, for a new estimate: how many stages K is spent in; each stage's "
+            "results check the model before the next is drawn.",
+        ),
+    ] = defaults.STAGES,
+    stage1_share: Annotated[
+        float,
+        typer.Option("--stage1-share", help="With --plan: share of K that stage 1 spends."),
+    ] = defaults.STAGE1_SHARE,
+    new_series: Annotated[
+        bool,
+        typer.Option(
+            "--new-series",
+            help="With --plan: start a new estimate although the last one has stages to go.",
+        ),
+    ] = False,
     alpha: Annotated[
-        float, typer.Option("--alpha", help="Sample in proportion to p_n^alpha.")
+        float, typer.Option("--alpha", help="The p^alpha design's exponent.")
     ] = defaults.ALPHA,
     defensive: Annotated[
         float,
@@ -632,14 +659,18 @@ def estimate(
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
-    """Estimate the failure rate with an unbiased importance sample, in two phases.
+    """Estimate the failure rate with an unbiased importance sample, in stages.
 
-    Phase 1 (--plan) draws the sample and writes a hand-off list; once its results are
-    ingested, phase 2 (no --plan) computes the estimate for every configured gamma.
+    --plan draws a stage's sample and writes its hand-off list; once its results are
+    ingested, estimate (no --plan) computes the estimate for every configured gamma. By
+    default K is spent in two stages: after stage 1's results, refit and run --plan again
+    for stage 2, whose design rests on the model as checked against stage 1's outcomes.
+    The stages' weights are fixed at stage 1, so the combined estimate stays unbiased.
 
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
 
-    then simulate the hand-off list, ingest the results, and: bams-cli estimate -w study
+    then simulate the hand-off list, ingest the results, `bams-cli fit -w study`,
+    `bams-cli estimate -w study --plan` (stage 2), simulate, ingest, and: bams-cli estimate -w study
     """
     if seed is not None and not plan:
         raise OptionError(
@@ -653,12 +684,24 @@ def estimate(
             alpha=alpha,
             defensive=defensive,
             design=design,
+            weighting=weighting,
+            stages=stages,
+            stage1_share=stage1_share,
+            new_series=new_series,
             seed=seed,
             handoff_internal=handoff_internal,
             allow_pending=allow_pending,
             wait=wait,
         )
-        _show(summary, json_out, f"estimate plan {summary['plan']}", "estimate-plan")
+        _show(
+            summary,
+            json_out,
+            f"estimate plan {summary['plan']} (stage {summary['stage']} of {summary['stages']})",
+            "estimate-plan",
+        )
+        if not json_out:
+            for note in summary["notes"]:
+                console.note(note)
         return
     with console.progress(not json_out) as bar:
         summary = pipeline.estimate_compute(
@@ -688,6 +731,8 @@ def estimate(
         ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
         rows,
     )
+    if summary["staging"]["note"]:
+        console.note(summary["staging"]["note"])
     for e in summary["estimates"]:  # what se rests on, why a number is n/a
         for key in ("variance_note", "rel_var_note"):
             if e.get(key):
@@ -814,6 +859,13 @@ def benchmark(
     ] = None,
     clusters: Annotated[int, typer.Option("--clusters", help="BAMS/BAS clusters S.")] = 6,
     workers: Annotated[int, typer.Option("--workers", help="Runs in parallel processes.")] = 2,
+    save_arrays: Annotated[
+        bool,
+        typer.Option(
+            "--save-arrays",
+            help="Also write runs.npz: per run the final p_n and known stratum, and the truth.",
+        ),
+    ] = False,
     json_out: Json = False,
 ) -> None:
     """Reproduce the paper's experiments through the same code a user runs.
@@ -846,6 +898,7 @@ def benchmark(
         "n": n,
         "clusters": clusters,
         "command": shlex.join(["bams-cli", *sys.argv[1:]]),
+        "save_arrays": save_arrays,
     }
     if protocol == "suite":
         with console.progress(not json_out) as bar:

@@ -28,3 +28,22 @@ ALPHA = 0.75
 #: inclusion probability below by ~eps K / |U|, so a failure the GP rules out with
 #: confidence costs a bounded, not an astronomical, variance (DESIGN.md, "Rate estimate").
 DEFENSIVE = 0.1
+
+#: The rate estimate runs in stages (``estimate --plan`` once per stage): stage 1 spends
+#: this share of the budget K, and its level-0 outcomes check the model before the later
+#: stages spend the rest (``core.design``).
+STAGES = 2
+STAGE1_SHARE = 0.5
+
+#: Beta prior on lam, the share of the failure mass the model does not explain
+#: (``core.design.risk_mix_posterior``); its mean is the trust the first stage places in p_n.
+RISK_MIX_PRIOR = (1.0, 1.0)
+
+#: Posterior quantile of lam at which the interval's allowance for an unseen failure is
+#: computed: the least trust in p_n that the earlier stages cannot rule out.
+RISK_MIX_UPPER = 0.9
+
+#: How far (log-sd) the failure rate of what the model explains may stray from its own
+#: mean p_n before the count of failures an estimate stage finds says "the model misses
+#: failures" (``core.design.risk_posterior``).
+RISK_ANCHOR_SD = 1.0

@@ -44,7 +44,7 @@ from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
     journal_in,
-    read_metadata,
+    read_metadata_json,
     read_state,
     read_state_schema,
     read_table,
@@ -1736,11 +1736,25 @@ def estimate_plan(
     alpha: float = defaults.ALPHA,
     defensive: float = defaults.DEFENSIVE,
     design: str = "poisson",
+    weighting: str = "auto",
+    stages: int = defaults.STAGES,
+    stage1_share: float = defaults.STAGE1_SHARE,
+    new_series: bool = False,
     seed: int | None = None,
     handoff_internal: bool = False,
     allow_pending: bool = False,
 ) -> dict[str, Any]:
-    """Plan the rate-estimation sample: inclusion probabilities and the hand-off list.
+    """Plan one stage of the rate-estimation sample: inclusion probabilities and the hand-off.
+
+    The estimate runs in ``stages`` stages (``core.design``, ``stages``): the first plan of
+    a series fixes the total budget K (``samples``) and the stages' weights, and spends
+    ``stage1_share`` of K; each later call, once the previous stage's results are in and
+    the model refitted on them, draws the next stage with the rest. Every stage's design
+    comes from the model checked against the level-0 outcomes of every finished plan
+    (``weighting="auto"``): the candidate with the smallest predicted variance among
+    uniform, the calibrated design and the paper's p^alpha form. ``weighting`` "uniform"
+    or "p-alpha" (with ``alpha``, ``defensive``) forces one; designs "fixed" and
+    "with-replacement" are single-stage p^alpha plans, as the paper's.
 
     While an earlier plan awaits results this refuses (exit code 3, so a Makefile re-run
     does not draw a second plan); ``allow_pending`` draws another anyway.
@@ -1750,14 +1764,29 @@ def estimate_plan(
     same plan from the same scores, and another seed a fresh one, without editing the
     settings. The seed and the random stream are recorded in the plan's metadata.
     """
-    from bams_cli.core.estimate import DESIGNS, gp_estimate, inclusion_probabilities, plan_sample
+    from bams_cli import stages as st
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import (
+        DESIGNS,
+        gp_estimate,
+        inclusion_probabilities,
+        max_failure_weight,
+        model_weight,
+        plan_sample,
+    )
 
     if design not in DESIGNS:
         raise WorkspaceError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
+    if weighting not in WEIGHTINGS:
+        raise WorkspaceError(f"--weighting {weighting!r}: choose one of {', '.join(WEIGHTINGS)}")
     if not (0 <= alpha < np.inf) or not 0 <= defensive <= 1:
         raise WorkspaceError(f"--alpha {alpha} must be >= 0 and --defensive {defensive} in [0, 1]")
     if samples is not None and not (1 <= samples < np.inf):
         raise WorkspaceError(f"--samples {samples}: must be a number >= 1 (simulations to plan)")
+    if not 1 <= stages <= 10:
+        raise WorkspaceError(f"--stages {stages}: must be between 1 and 10")
+    if not 0 < stage1_share < 1:
+        raise WorkspaceError(f"--stage1-share {stage1_share}: must lie in (0, 1), e.g. 0.5")
     ws = Workspace(root)
     settings = ws.require_initialised()
     pend = ws.pending()
@@ -1780,43 +1809,99 @@ def estimate_plan(
     known = _observed_level0(ws, ids)
     n = len(ids)
     gp_rate, _ = gp_estimate(p)
-    if samples is None:
-        # The paper's K = 5 p N with the GP's own p; a GP that explains failures away can
-        # put p N near 0, so the failures already seen at level 0 set a floor.
-        obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
-        seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
-        samples = float(round(5 * max(gp_rate * n, seen + 1)))
-    if design == "with-replacement":
-        samples = float(round(samples))
     n_unknown = int((~known).sum())
-    if design != "with-replacement":
-        samples = min(samples, float(n_unknown))
     number = (_plan_numbers(ws) or [0])[-1] + 1
+
+    # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
+    staged = design == "poisson"
+    prev = st.plan_info(ws, number - 1) if number > 1 else None
+    # A stage is drawn from the model checked on the previous stage's outcomes, so a plan
+    # drawn beside a pending one (--allow-pending) starts a new estimate instead.
+    continuing = (
+        staged
+        and not new_series
+        and prev is not None
+        and prev.stage < prev.stages
+        and st.plan_complete(ws, prev.number)
+    )
+    if continuing:
+        assert prev is not None
+        if samples is not None and not math.isclose(samples, prev.series_K, rel_tol=1e-9):
+            raise WorkspaceError(
+                f"--samples: plan {prev.number} is stage {prev.stage} of {prev.stages} of an "
+                f"estimate with K = {prev.series_K:g} fixed at its stage 1; this plan is its "
+                "next stage and spends the rest (drop --samples, or pass the same K); pass "
+                "--new-series to start a new estimate instead"
+            )
+        series, stage, n_stages = prev.series, prev.stage + 1, prev.stages
+        series_K, weights = prev.series_K, prev.weights
+        K_stage = series_K * weights[stage - 1]
+    else:
+        if samples is None:
+            # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
+            # can put p N near 0, so the failures already seen at level 0 set a floor.
+            obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
+            seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
+            samples = float(round(5 * max(gp_rate * n, seen + 1)))
+        if design == "with-replacement":
+            samples = float(round(samples))
+        if design != "with-replacement":
+            samples = min(samples, float(n_unknown))
+        n_stages = stages if staged and samples >= 2 * stages else 1
+        series, stage, series_K = number, 1, float(samples)
+        rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
+        weights = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
+        K_stage = series_K * weights[0]
+    K_stage = min(K_stage, float(n_unknown))
     stream = [settings.seed, 10_000 + number] if seed is None else [int(seed), 10_000]
     rng = np.random.default_rng(stream)
-    with np.errstate(divide="ignore"):
-        plan = plan_sample(
-            p,
-            K=samples,
-            rng=rng,
-            known=known,
-            alpha=alpha,
-            defensive=defensive,
-            design=design,  # type: ignore[arg-type]
-        )
-    from bams_cli.core.estimate import max_failure_weight, model_weight
+    unknown = np.flatnonzero(~known)
+    pu = p[unknown]
+    # What the finished plans say about trusting p_n (lam: the share of failure mass it
+    # does not explain); the prior alone before any plan has results.
+    evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
+    post = dz.risk_posterior(evidence)
+    choice = None
+    if staged:
+        with np.errstate(divide="ignore"):
+            if weighting == "auto":
+                choice = dz.choose_design(
+                    pu, K=K_stage, posterior=post, alpha=alpha, defensive=defensive
+                )
+                pi_u = choice.pi
+            elif weighting == "uniform":
+                pi_u = np.full(unknown.size, K_stage / max(unknown.size, 1))
+            else:
+                pi_u = inclusion_probabilities(pu, alpha=alpha, defensive=defensive, K=K_stage)
+        from bams_cli.core.estimate import SamplePlan, draw_poisson
 
+        sampled = draw_poisson(pi_u, rng)
+        plan = SamplePlan(
+            "poisson", n, unknown.astype(np.int64), pi_u / max(K_stage, 1e-300), pi_u,
+            K_stage, sampled, np.ones(sampled.size, np.int64),
+        )  # fmt: skip
+        # The interval's allowance for a failure no stage has seen, per gamma: where the
+        # least-trusted calibrated model the evidence allows puts failures.
+        w_model = [
+            dz.unseen_failure_weight(post.risk(p_all[unknown, g]), pi_u)
+            for g in range(len(settings.gammas))
+        ]
+    else:
+        with np.errstate(divide="ignore"):
+            plan = plan_sample(
+                p, K=K_stage, rng=rng, known=known, alpha=alpha, defensive=defensive,
+                design=design,  # type: ignore[arg-type]
+            )  # fmt: skip
+        prob_u = plan.q if design == "with-replacement" else plan.pi
+        w_model = [
+            model_weight(p_all[plan.unknown, g], prob_u, design=design, K=plan.budget)  # type: ignore[arg-type]
+            for g in range(len(settings.gammas))
+        ]
     # What the known stratum saved: the inclusion probability its segments would have had.
     saved = 0.0
     if known.any() and design != "with-replacement":
-        full = inclusion_probabilities(p, alpha=alpha, defensive=defensive, K=min(samples, n))
+        full = inclusion_probabilities(p, alpha=alpha, defensive=defensive, K=min(K_stage, n))
         saved = float(full[known].sum())
-    # The interval's weight for an unseen failure, per gamma: where p_n puts failures.
-    prob_u = plan.q if design == "with-replacement" else plan.pi
-    w_model = [
-        model_weight(p_all[plan.unknown, g], prob_u, design=design, K=plan.budget)  # type: ignore[arg-type]
-        for g in range(len(settings.gammas))
-    ]
     sampled_idx = plan.sampled_pool_index
     known_idx = np.flatnonzero(known)
     prob = plan.sampled_prob
@@ -1848,14 +1933,35 @@ def estimate_plan(
     }
     cols |= _passthrough_columns(ws, np.concatenate([sampled_idx, known_idx]), taken=cols)
     table = pa.table(cols)
+    predicted = (
+        {k: round(v, 6) for k, v in choice.predicted.items()} if choice is not None else None
+    )
+    weighting_used = (
+        choice.name if choice is not None else ("p^alpha" if weighting != "uniform" else "uniform")
+    )
+    stage_info = {
+        "series": series,
+        "stage": stage,
+        "stages": n_stages,
+        "series_K": series_K,
+        "stage_weights": weights,
+    }
+    check = {**post.summary(), "plans": evidence_plans}
     meta = {
         "plan": number,
         "design": design,
-        "samples": samples,
+        "samples": K_stage,
         "alpha": alpha,
         "defensive": defensive,
+        "weighting": weighting_used,
+        "weighting_option": weighting,
+        "predicted_vs_uniform": predicted,
+        "model_check": check,
+        **stage_info,
         "n_pool": n,
         "n_unknown": n_unknown,
+        "p_mean_unknown": float(pu.mean()) if pu.size else None,
+        "risk_norms": dz.risk_norms(dz.relative_risk(pu)).tolist(),
         # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
         # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
         "w_max": _finite_or_none(max_failure_weight(plan)),
@@ -1877,13 +1983,24 @@ def estimate_plan(
         _, template = _write_handoff(
             tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
         )
+    notes = []
+    if choice is not None and choice.predicted[choice.name] > UNIFORM_NOTE_RATIO:
+        notes.append(
+            f"the checked model predicts no design much better than uniform sampling "
+            f"(best: {choice.name}, predicted variance {choice.predicted[choice.name]:.2f}x "
+            "uniform's); the estimate rests on the sample, not the model"
+        )
     return {
         "plan": number,
         "plan_file": str(path),
         "handoff": str(handoff_path),
         "results_template": str(template),
         "design": design,
-        "samples_K": samples,
+        "samples_K": K_stage,
+        **stage_info,
+        "weighting": weighting_used,
+        "predicted_vs_uniform": predicted,
+        "model_check": check,
         "to_simulate": len(sampled_idx),
         "simulations_certain": int((plan.pi[plan.sampled] >= 1.0).sum()),
         "known_stratum": int(len(known_idx)),
@@ -1893,13 +2010,59 @@ def estimate_plan(
         "defensive": defensive,
         "seed": stream[0],
         "seed_source": meta["seed_source"],
+        "notes": notes,
     }
+
+
+#: ``estimate --plan --weighting``: "auto" picks the design with the smallest predicted
+#: variance under the checked model; the others force one.
+WEIGHTINGS = ("auto", "uniform", "p-alpha")
+
+#: A chosen design predicted to reach at most this fraction of uniform's variance saving
+#: gets a note: the model does not help the estimate.
+UNIFORM_NOTE_RATIO = 0.9
 
 
 def _finite_or_none(x: float) -> float | None:
     """x as a JSON number, or None (JSON null) when it is NaN or infinite."""
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def _plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: float):  # noqa: ANN202
+    """The HT estimate of one plan from its ingested level-0 results, per gamma."""
+    from bams_cli.core.estimate import estimate_from_sample
+
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    meta = read_metadata_json(path)
+    plan = pl.from_arrow(schemas.PLAN.check(read_state(path), path))
+    assert isinstance(plan, pl.DataFrame)
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
+    joined = plan.join(obs, on=SID, how="left")
+    missing = joined.filter(pl.col("value").is_null())
+    if missing.height:
+        names = ", ".join(missing[SID].head(3).to_list())
+        raise PendingResultsError(
+            f"{path}: {missing.height} planned segments have no level-0 result ({names}"
+            f"{', ...' if missing.height > 3 else ''}); simulate "
+            f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
+        )
+    sampled = joined.filter(pl.col("stratum") == "sampled")
+    known = joined.filter(pl.col("stratum") == "known")
+    fails = sampled["value"].to_numpy()[:, None] <= gammas[None, :]
+    known_fails = (known["value"].to_numpy()[:, None] <= gammas[None, :]).sum(axis=0)
+    return estimate_from_sample(
+        sampled["prob"].to_numpy(),
+        fails,
+        design=meta["design"],
+        n_pool=int(meta["n_pool"]),
+        n_unknown=int(meta["n_unknown"]),
+        budget=float(meta["samples"]),
+        counts=sampled["draws"].to_numpy(),
+        known_failures=known_fails,
+        confidence=confidence,
+        w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
+    )
 
 
 @locked
@@ -1911,8 +2074,15 @@ def estimate_compute(
     exact_variance: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Compute the rate estimate from an ingested plan, for every configured gamma."""
-    from bams_cli.core.estimate import estimate_from_sample, gp_estimate
+    """Compute the rate estimate from an ingested plan, for every configured gamma.
+
+    A plan that is a later stage of a staged estimate is combined with its earlier stages
+    (``core.design.combine_stages``); while stages remain, the estimate rests on the
+    stages so far and says so.
+    """
+    from bams_cli import stages as stages_mod
+    from bams_cli.core.design import combine_stages
+    from bams_cli.core.estimate import gp_estimate
 
     if not 0 < confidence < 1:
         raise WorkspaceError(f"--confidence {confidence}: must lie in (0, 1), e.g. 0.9")
@@ -1927,36 +2097,16 @@ def estimate_compute(
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
     if not path.exists():
         raise WorkspaceError(f"{path}: no such plan (plans: {', '.join(map(str, plans))})")
-    meta = read_metadata_json(path)
-    plan = pl.from_arrow(schemas.PLAN.check(read_state(path), path))
-    assert isinstance(plan, pl.DataFrame)
-    obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
-    joined = plan.join(obs, on=SID, how="left")
-    missing = joined.filter(pl.col("value").is_null())
-    if missing.height:
-        names = ", ".join(missing[SID].head(3).to_list())
-        raise PendingResultsError(
-            f"{path}: {missing.height} planned segments have no level-0 result ({names}"
-            f"{', ...' if missing.height > 3 else ''}); simulate "
-            f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
-        )
     gammas = np.asarray(settings.gammas)
-    sampled = joined.filter(pl.col("stratum") == "sampled")
-    known = joined.filter(pl.col("stratum") == "known")
-    fails = sampled["value"].to_numpy()[:, None] <= gammas[None, :]
-    known_fails = (known["value"].to_numpy()[:, None] <= gammas[None, :]).sum(axis=0)
-    est = estimate_from_sample(
-        sampled["prob"].to_numpy(),
-        fails,
-        design=meta["design"],
-        n_pool=int(meta["n_pool"]),
-        n_unknown=int(meta["n_unknown"]),
-        budget=float(meta["samples"]),
-        counts=sampled["draws"].to_numpy(),
-        known_failures=known_fails,
-        confidence=confidence,
-        w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
-    )
+    # A staged estimate combines its series' stages up to this plan, with the weights
+    # fixed at stage 1 (renormalised while later stages are still to come).
+    series = stages_mod.series_plans(ws, number)
+    stage_est = [_plan_estimate(ws, k.number, gammas, confidence) for k in series]
+    meta = series[-1].meta
+    weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
+    weights /= weights.sum()
+    est = combine_stages(stage_est, weights, n_pool=int(meta["n_pool"]))
+    remaining = series[-1].stages - series[-1].stage
     rows = []
     gp_rows = []
     # The IS estimate needs no model. Beside it goes the GP's own estimate: from the
@@ -2003,10 +2153,27 @@ def estimate_compute(
             g_model = float(_model_transform(ws, model).forward(float(gamma)))
             gp_row["gp_var_exact"] = _gp_exact_variance(ws, settings, mu, sd, g_model, progress)
         gp_rows.append(gp_row)
+    staging = {
+        "series": series[-1].series,
+        "plans": [k.number for k in series],
+        "stages_done": len(series),
+        "stages": series[-1].stages,
+        "weights": [round(float(w), 12) for w in weights],
+        "series_K": series[-1].series_K,
+        "note": (
+            f"{remaining} more stage{'s' if remaining > 1 else ''} of this estimate "
+            f"{'are' if remaining > 1 else 'is'} planned: refit on these results and run "
+            f"`bams-cli estimate --plan -w {ws.root}`; until then the estimate rests on "
+            f"{len(series)} of {series[-1].stages} stages"
+            if remaining
+            else None
+        ),
+    }
     summary = {
         "plan": number,
-        "design": meta["design"],
-        "samples_K": meta["samples"],
+        "design": meta["design"] if len(series) == 1 else "staged",
+        "samples_K": sum(float(k.meta["samples"]) for k in series),
+        "staging": staging,
         "estimates": rows,
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
@@ -2044,17 +2211,6 @@ def _gp_exact_variance(
         else None,
     )
     return float(res.var)
-
-
-def read_metadata_json(path: Path) -> dict[str, Any]:
-    """A state file's metadata with JSON values decoded (numbers, lists, dicts)."""
-    out: dict[str, Any] = {}
-    for key, value in read_metadata(path).items():
-        try:
-            out[key] = json.loads(value)
-        except ValueError:
-            out[key] = value
-    return out
 
 
 # ---------------------------------------------------------------------------------------

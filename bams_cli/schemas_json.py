@@ -27,8 +27,8 @@ VERSIONS: dict[str, int] = {
     "simulate": 1,
     "fit": 1,
     "select": 1,
-    "estimate-plan": 1,
-    "estimate": 1,
+    "estimate-plan": 2,
+    "estimate": 2,
     "report": 1,
     "status": STATUS_SCHEMA_VERSION,
     "summary.json": 1,
@@ -267,6 +267,23 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "defensive": NUM,
                 "seed": INT,
                 "seed_source": {"enum": ["study settings", "--seed"]},
+                "series": INT,
+                "stage": INT,
+                "stages": INT,
+                "series_K": NUM,
+                "stage_weights": array(NUM),
+                "weighting": {"enum": ["calibrated", "uniform", "p^alpha"]},
+                "predicted_vs_uniform": nullable({"type": "object"}),
+                "model_check": obj(
+                    {
+                        "lam": NUM,
+                        "lam_high": NUM,
+                        "failures": COUNT,
+                        "sampled": COUNT,
+                        "plans": array(INT),
+                    }
+                ),
+                "notes": array(STR),
             }
         ),
     ),
@@ -275,8 +292,19 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
         obj(
             {
                 "plan": INT,
-                "design": {"enum": ["poisson", "fixed", "with-replacement"]},
+                "design": {"enum": ["poisson", "fixed", "with-replacement", "staged"]},
                 "samples_K": NUM,
+                "staging": obj(
+                    {
+                        "series": INT,
+                        "plans": array(INT),
+                        "stages_done": COUNT,
+                        "stages": COUNT,
+                        "weights": array(NUM),
+                        "series_K": NUM,
+                        "note": nullable(STR),
+                    }
+                ),
                 "estimates": array(ESTIMATE_ROW),
                 "gp": array(GP_ROW),
                 "gp_model": STR,

@@ -25,7 +25,7 @@ from bams_cli import defaults
 from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
 from bams_cli.settings import Settings
 from bams_cli.state import schemas
-from bams_cli.state.io import JOURNAL_NAME, read_metadata
+from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json
 from bams_cli.state.workspace import Workspace
 
 #: Version of the ``status --json`` object; bump it when a key changes meaning or goes away.
@@ -117,9 +117,15 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
     for k in _plan_numbers(ws):
         sampled = picks.filter(pl.col("plan") == k).select(SID)
         estimate = ws.estimates_dir / f"estimate-{k:04d}.json"
+        try:
+            meta = read_metadata_json(ws.estimates_dir / f"plan-{k:04d}.parquet")
+        except (OSError, ValueError):  # status reads what it can: a damaged plan shows as 1 of 1
+            meta = {}
         out.append(
             {
                 "plan": k,
+                "stage": int(meta.get("stage") or 1),
+                "stages": int(meta.get("stages") or 1),
                 "sampled": sampled.height,
                 "pending": sampled.join(level0, on=SID, how="anti").height,
                 "handoff": str(plan_handoff(ws, k)),
@@ -215,6 +221,21 @@ def _next_step(
         return step("select", cmd, f"no batch yet: run `{cmd}` for a random first batch")
     if plans and _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet"):
         k = plans[-1]["plan"]
+        stage, stages = plans[-1]["stage"], plans[-1]["stages"]
+        if stage < stages:
+            # A staged estimate: the next stage is drawn from the model refitted on this
+            # stage's results (``core.design``).
+            if stale:
+                return step(
+                    "fit", fit, f"{why_fit}; run `{fit}` before stage {stage + 1} of the estimate"
+                )
+            cmd = f"bams-cli estimate -w {w} --plan"
+            return step(
+                "estimate",
+                cmd,
+                f"stage {stage} of {stages} of the estimate has its results: run `{cmd}` "
+                f"for stage {stage + 1}",
+            )
         if plans[-1]["estimate"] is None:
             cmd = f"bams-cli estimate -w {w}"
             return step("estimate", cmd, f"estimate plan {k} has all its results: run `{cmd}`")

@@ -28,11 +28,18 @@ for batch in 1 2 3; do
 done
 
 # Rate estimate: plan the importance sample (K = 200, about 2 p N as in the paper's
-# synthetic protocol), simulate it, compute.
+# synthetic protocol) in two stages; stage 1's results check the model before stage 2 is
+# drawn. Simulate each stage, ingest, refit, then compute.
 step bams-cli estimate -w "$WS" --plan --samples 200
-step bams-cli simulate "$WS/estimates/plan-0001-handoff.csv" --truth "$TRUTH" -o "$RES/estimate-0001.parquet"
-step bams-cli ingest-results -w "$WS" "$RES/estimate-0001.parquet"
-step bams-cli fit -w "$WS"
+for k in 1 2; do
+  n=$(printf '%04d' "$k")
+  if [ "$k" -gt 1 ]; then
+    step bams-cli estimate -w "$WS" --plan
+  fi
+  step bams-cli simulate "$WS/estimates/plan-$n-handoff.csv" --truth "$TRUTH" -o "$RES/estimate-$n.parquet"
+  step bams-cli ingest-results -w "$WS" "$RES/estimate-$n.parquet"
+  step bams-cli fit -w "$WS"
+done
 step bams-cli estimate -w "$WS"
 step bams-cli report -w "$WS" --truth "$TRUTH"
 

@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 
+import numpy as np
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
@@ -146,3 +147,82 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     # --seed without --plan is a usage error that names the fix.
     r = invoke(runner, "estimate", "-w", ws, "--seed", "7")
     assert r.exit_code != 0 and "pass it with --plan" in r.output + r.stderr
+
+
+def _simulate_and_ingest(runner, ws, truth, number: int, tmp_path):
+    res = tmp_path / f"plan-{number}.parquet"
+    handoff = ws / "estimates" / f"plan-{number:04d}-handoff.csv"
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", ws, res)
+
+
+def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitted_ws, tmp_path):
+    # Issue 12, point 1, the way a Makefile drives it: stage 1, its results, a refit, stage 2
+    # from the model checked on stage 1's outcomes, its results, the combined estimate.
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    s1 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80", "--json").stdout)
+    assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, 2, 1, 80)
+    assert s1["samples_K"] == pytest.approx(80 * defaults.STAGE1_SHARE)
+    assert s1["model_check"]["sampled"] == 0  # the prior alone: nothing checked yet
+    assert s1["predicted_vs_uniform"]["uniform"] == 1.0
+    assert s1["predicted_vs_uniform"][s1["weighting"]] == min(s1["predicted_vs_uniform"].values())
+    # Stage 2 waits for stage 1's results (exit code 3) ...
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code == 3
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    # ... stage 1 alone is an estimate already, and says that a stage remains ...
+    part = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert part["staging"]["stages_done"] == 1 and "1 more stage" in part["staging"]["note"]
+    # ... and stage 2 needs the model refitted on stage 1's results; status says so.
+    nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
+    assert nxt["step"] == "fit" and "before stage 2" in nxt["text"]
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code != 0 and "fit" in r.stderr
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
+    assert nxt["command"].endswith("--plan") and "for stage 2" in nxt["text"]
+    # A different K for the running estimate is refused, naming the way out.
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--samples", "50")
+    assert r.exit_code == 1 and "--new-series" in r.stderr
+    s2 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80", "--json").stdout)
+    assert (s2["stage"], s2["series"], s2["stage_weights"]) == (2, 1, s1["stage_weights"])
+    assert s2["samples_K"] == pytest.approx(80 * (1 - defaults.STAGE1_SHARE))
+    assert s2["model_check"]["plans"] == [1] and s2["model_check"]["sampled"] == s1["to_simulate"]
+    # Stage 2 never re-draws what stage 1 simulated: those are known now.
+    assert not set(_plan_ids(ws, 1)) & set(_plan_ids(ws, 2))
+    _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert out["design"] == "staged" and out["staging"]["plans"] == [1, 2]
+    assert out["staging"]["note"] is None
+    # The combined estimate is the weighted sum of the stages' own (computed one by one).
+    w1, w2 = out["staging"]["weights"]
+    one = pipeline._plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
+    two = pipeline._plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
+    for g, e in enumerate(out["estimates"]):
+        assert e["p_hat"] == pytest.approx(w1 * one.p_hat[g] + w2 * two.p_hat[g], rel=1e-12)
+        assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
+    # The third plan starts a new estimate: the series is complete.
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert (s3["stage"], s3["series"]) == (1, 3)
+    assert s3["model_check"]["plans"] == [1, 2]
+
+
+def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    args = ("estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1", "--json")
+    s1 = strict_json(ok(runner, *args).stdout)
+    assert (s1["stages"], s1["samples_K"], s1["stage_weights"]) == (1, 40, [1.0])
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert out["design"] == "poisson" and out["staging"]["note"] is None

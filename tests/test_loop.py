@@ -259,7 +259,7 @@ def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
     shutil.copytree(ws, copy)
     runner = CliRunner()
     ok(runner, "fit", "-w", copy, "--restarts", "1")
-    ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40")
+    ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40", "--new-series")
     before = tree_hash(copy)
     r = invoke(runner, "estimate", "-w", copy)
     assert r.exit_code == 3 and "planned segments have no level-0 result" in r.stderr

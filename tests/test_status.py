@@ -71,6 +71,12 @@ def study(tmp_path_factory) -> Study:
     s.status("plan pending", keep=True)
     s.ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.status("plan in")
+    s.run("fit", "-w", ws, "--restarts", "1")
+    s.status("stage 1 in, fitted")
+    s.run("estimate", "-w", ws, "--plan")
+    s.status("stage 2 pending")
+    s.ingest(ws / "estimates" / "plan-0002-handoff.csv")
+    s.status("stage 2 in")
     s.run("estimate", "-w", ws)
     s.status("estimated")
     s.run("fit", "-w", ws, "--restarts", "1")
@@ -91,7 +97,10 @@ NEXT = {
     "batch 2 in": (0, "fit", "bams-cli fit -w {ws}"),
     "refitted": (0, "select", "bams-cli select -w {ws} --budget 2"),
     "plan pending": (3, "ingest-results", "bams-cli ingest-results -w {ws} RESULTS.parquet"),
-    "plan in": (0, "estimate", "bams-cli estimate -w {ws}"),
+    "plan in": (0, "fit", "bams-cli fit -w {ws}"),
+    "stage 1 in, fitted": (0, "estimate", "bams-cli estimate -w {ws} --plan"),
+    "stage 2 pending": (3, "ingest-results", "bams-cli ingest-results -w {ws} RESULTS.parquet"),
+    "stage 2 in": (0, "estimate", "bams-cli estimate -w {ws}"),
     "estimated": (0, "fit", "bams-cli fit -w {ws}"),
     "estimated, fitted": (0, "report", "bams-cli report -w {ws}"),
     "done": (0, "done", None),
@@ -143,9 +152,11 @@ def test_status_reports_batches_plans_model_and_estimate(study):
     assert "model: stale" in study.stages["batch 2 in"]["text"]
     assert study.stages["plan in"]["json"]["plans"][0]["estimate"] is None
     done = study.stages["done"]["json"]
-    assert done["plans"][0]["estimate"] == str(study.ws / "estimates" / "estimate-0001.json")
+    # The estimate combines both stages; it is filed under the last one's plan.
+    assert [(p["stage"], p["stages"]) for p in done["plans"]] == [(1, 2), (2, 2)]
+    assert done["plans"][1]["estimate"] == str(study.ws / "estimates" / "estimate-0002.json")
     est = done["latest_estimate"]
-    assert est["plan"] == 1 and est["estimates"][0]["gamma"] == 0.56
+    assert est["plan"] == 2 and est["estimates"][0]["gamma"] == 0.56
     assert (
         est["estimates"][0]["ci_low"]
         <= est["estimates"][0]["p_hat"]

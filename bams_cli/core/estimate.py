@@ -624,9 +624,12 @@ class RateEstimates:
     """``RateEstimate`` for m columns (gammas, or repeats in a simulation), as arrays.
 
     Every field but ``confidence`` and ``design`` is an ndarray of shape (m,), with the
-    meaning of the ``RateEstimate`` field of the same name, and two more: ``variance_basis``
-    (int8, a ``BASIS_*`` code: what ``se`` rests on) and ``w_allow`` (the weight of the one
-    more failure the gamma upper limit allows for). Index it (``est[j]``) or call
+    meaning of the ``RateEstimate`` field of the same name, and four more: ``variance_basis``
+    (int8, a ``BASIS_*`` code: what ``se`` rests on), ``w_allow`` (the weight of the one
+    more failure the gamma upper limit allows for), ``certain`` (the part of p_hat that is
+    not random: known failures and those sampled with pi = 1) and ``cap`` (the largest rate
+    the sample allows: every segment not seen to pass failing); the last two let
+    ``core.design.combine_stages`` combine stages. Index it (``est[j]``) or call
     ``to_list()`` for per-gamma ``RateEstimate`` objects, whose notes spell these out.
     """
 
@@ -645,6 +648,8 @@ class RateEstimates:
     w_allow: FloatArray
     confidence: float
     design: str
+    certain: FloatArray | None = None
+    cap: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.p_hat.size)
@@ -999,6 +1004,8 @@ def estimate_from_sample(
         w_allow=w_allow,
         confidence=confidence,
         design=design,
+        certain=(known + D) / N,
+        cap=hi_cap / N,
     )
 
 

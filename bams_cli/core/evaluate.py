@@ -8,7 +8,9 @@ failures for display (paper Figure 3).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -245,3 +247,158 @@ def batch_mean_f(values_per_batch: Sequence[ArrayLike]) -> tuple[FloatArray, Flo
         means[b] = v.mean() if v.size else np.nan
         ses[b] = v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
     return means, ses
+
+
+@dataclass(frozen=True)
+class StagedTrials:
+    """Repeated draws of the staged estimate design from a known truth (``staged_trials``).
+
+    Attributes
+    ----------
+    p_hat, ci_low, ci_high : ndarray of shape (n_trials,)
+        The combined estimate and its interval in each trial.
+    lam : ndarray of shape (n_trials,)
+        The uniform share stage 2 used (posterior mean after stage 1).
+    stage2_design : list of str
+        The design stage 2 chose in each trial.
+    var : float
+        The design's variance of p_hat: sum_s w_s^2 Var(T_s) / N^2, exact for stage 1 and
+        averaged over the trials' stage-1 draws for stage 2.
+    var_uniform : float
+        Variance of the uniform Poisson design of the same expected size K over U.
+    stage1_design : str
+    rate : float
+        True failure rate.
+    """
+
+    p_hat: FloatArray
+    ci_low: FloatArray
+    ci_high: FloatArray
+    lam: FloatArray
+    stage2_design: list[str]
+    var: float
+    var_uniform: float
+    stage1_design: str
+    rate: float
+
+    @property
+    def coverage(self) -> float:
+        """Share of trials whose interval holds the true rate."""
+        return float(np.mean((self.ci_low <= self.rate) & (self.rate <= self.ci_high)))
+
+    @property
+    def below(self) -> float:
+        """Share of trials whose interval lies wholly below the true rate."""
+        return float(np.mean(self.ci_high < self.rate))
+
+    @property
+    def above(self) -> float:
+        """Share of trials whose interval lies wholly above the true rate."""
+        return float(np.mean(self.ci_low > self.rate))
+
+
+def staged_trials(
+    p: ArrayLike,
+    is_failure: ArrayLike,
+    *,
+    K: float,
+    known: ArrayLike | None = None,
+    share: float | None = None,
+    prior: tuple[float, float] | None = None,
+    confidence: float = 0.9,
+    n_trials: int = 1000,
+    rng: np.random.Generator,
+) -> StagedTrials:
+    """Draw the default two-stage estimate design ``n_trials`` times from a known truth.
+
+    Each trial draws stage 1 (the calibrated design at the prior mean of lam, K_1 =
+    share K), updates lam from where its sampled failures fell, plans stage 2 over what is
+    left (K_2 = K - K_1) as ``estimate --plan`` does, draws it, and combines the stages'
+    estimates (``core.design.combine_stages``). Stage 2 keeps stage 1's p_n: the real loop
+    refits the model on stage 1's results first, which the evaluation cannot afford a
+    thousand times; the design is otherwise exactly the tool's.
+
+    Parameters
+    ----------
+    p : array_like of shape (n_pool,)
+        p_n after discovery (ones for a strategy without a model: uniform designs).
+    is_failure : bool array_like of shape (n_pool,)
+        True level-0 outcomes.
+    K : float
+        Total expected sample size over both stages.
+    known : bool array_like of shape (n_pool,), optional
+        The known stratum after discovery.
+    share : float, optional
+        Stage 1's share of K; default ``defaults.STAGE1_SHARE``.
+    prior : (float, float), optional
+        Beta prior on lam; default ``defaults.RISK_MIX_PRIOR``.
+    confidence : float
+    n_trials : int
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    StagedTrials
+    """
+    from bams_cli import defaults
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import estimate_from_sample
+
+    share = defaults.STAGE1_SHARE if share is None else share
+    prior = defaults.RISK_MIX_PRIOR if prior is None else prior
+    p = np.asarray(p, dtype=np.float64)
+    fail = np.asarray(is_failure, dtype=bool)
+    N = p.size
+    known_m = np.zeros(N, bool) if known is None else np.asarray(known, dtype=bool)
+    U1 = np.flatnonzero(~known_m)
+    n1 = U1.size
+    known_f = int(fail[known_m].sum())
+    K = min(float(K), float(n1))
+    K1, K2 = share * K, (1.0 - share) * K
+    p1, f1 = p[U1], fail[U1]
+    u1 = dz.relative_risk(p1)
+    norms1 = dz.risk_norms(u1)
+    post0 = dz.risk_posterior([], prior=prior)
+    c1 = dz.choose_design(p1, K=K1, posterior=post0)
+    pi1 = c1.pi
+    wm1 = dz.unseen_failure_weight(c1.risk, pi1)
+    V1 = float(((1.0 - pi1[f1]) / pi1[f1]).sum())
+    weights = [share, 1.0 - share]
+    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2")}
+    names: list[str] = []
+    for t in range(n_trials):
+        s1 = np.flatnonzero(rng.random(n1) < pi1)
+        fs1 = f1[s1]
+        e1 = estimate_from_sample(
+            pi1[s1], fs1, design="poisson", n_pool=N, n_unknown=n1, budget=K1,
+            known_failures=known_f, confidence=confidence, w_model=wm1,
+        )  # fmt: skip
+        post = dz.risk_posterior(
+            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))], prior=prior
+        )
+        rest = np.ones(n1, bool)
+        rest[s1] = False
+        p2, f2 = p1[rest], f1[rest]
+        c2 = dz.choose_design(p2, K=min(K2, float(p2.size)), posterior=post)
+        pi2 = c2.pi
+        wm2 = dz.unseen_failure_weight(c2.risk, pi2)
+        s2 = np.flatnonzero(rng.random(p2.size) < pi2)
+        e2 = estimate_from_sample(
+            pi2[s2], f2[s2], design="poisson", n_pool=N, n_unknown=p2.size,
+            budget=min(K2, float(p2.size)), known_failures=known_f + int(fs1.sum()),
+            confidence=confidence, w_model=wm2,
+        )  # fmt: skip
+        comb = dz.combine_stages([e1, e2], weights, n_pool=N)
+        out["p_hat"][t], out["lo"][t], out["hi"][t] = comb.p_hat[0], comb.ci_low[0], comb.ci_high[0]
+        out["lam"][t] = post.lam_mean
+        pf = pi2[f2]
+        out["V2"][t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+        names.append(c2.name)
+    n_fail_u = int(f1.sum())
+    var = (weights[0] ** 2 * V1 + weights[1] ** 2 * float(out["V2"].mean())) / N**2
+    var_u = n_fail_u * (n1 - K) / K / N**2 if K > 0 else math.inf
+    return StagedTrials(
+        p_hat=out["p_hat"], ci_low=out["lo"], ci_high=out["hi"], lam=out["lam"],
+        stage2_design=names, var=var, var_uniform=var_u, stage1_design=c1.name,
+        rate=float(fail.mean()),
+    )  # fmt: skip

@@ -89,6 +89,17 @@ def read_metadata(path: Path) -> dict[str, str]:
     return out
 
 
+def read_metadata_json(path: Path) -> dict[str, Any]:
+    """A state file's metadata with JSON values decoded (numbers, lists, dicts)."""
+    out: dict[str, Any] = {}
+    for key, value in read_metadata(path).items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            out[key] = value
+    return out
+
+
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)

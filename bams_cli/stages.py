@@ -1,0 +1,120 @@
+"""Staged rate estimates: which stage the next plan is, and what earlier stages showed.
+
+A *series* is the set of estimate plans that make one estimate: stage 1 fixes the total
+budget K, the number of stages and their weights (w_s = K_s / K) before anything is drawn;
+each later ``estimate --plan`` draws the next stage once the previous one's results are in
+(``core.design``). The plans' metadata carries the series: ``series`` (the plan number of
+its stage 1), ``stage``, ``stages``, ``series_K`` and ``stage_weights``. Plans written
+before stages existed are single-stage series of their own.
+
+Every finished plan is also evidence on how far the model's p_n can be trusted: its sampled
+segments are a random sample with their planning-time p_n stored beside them
+(``mix_evidence``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from bams_cli.core.design import TAUS, StageEvidence
+from bams_cli.state import schemas
+from bams_cli.state.io import read_metadata_json, read_state
+from bams_cli.state.workspace import Workspace
+
+SID = schemas.SEGMENT_ID
+
+
+@dataclass(frozen=True)
+class PlanInfo:
+    """One estimate plan's place in its series (from its metadata)."""
+
+    number: int
+    series: int
+    stage: int
+    stages: int
+    series_K: float
+    weights: list[float]
+    meta: dict[str, Any]
+
+
+def plan_numbers(ws: Workspace) -> list[int]:
+    """Numbers of the estimate plans in the workspace, ascending."""
+    if not ws.estimates_dir.is_dir():
+        return []
+    out = []
+    for p in ws.estimates_dir.glob("plan-*.parquet"):
+        stem = p.stem[len("plan-") :]
+        if stem.isdigit():
+            out.append(int(stem))
+    return sorted(out)
+
+
+def plan_info(ws: Workspace, number: int) -> PlanInfo:
+    """Series, stage and weights of plan ``number``; a plan without them is its own series."""
+    meta = read_metadata_json(ws.estimates_dir / f"plan-{number:04d}.parquet")
+    stages = int(meta.get("stages") or 1)
+    return PlanInfo(
+        number=number,
+        series=int(meta.get("series") or number),
+        stage=int(meta.get("stage") or 1),
+        stages=stages,
+        series_K=float(meta.get("series_K") or meta["samples"]),
+        weights=[float(w) for w in meta.get("stage_weights") or [1.0]],
+        meta=meta,
+    )
+
+
+def series_plans(ws: Workspace, last: int) -> list[PlanInfo]:
+    """The plans of the series that plan ``last`` belongs to, up to it, in stage order."""
+    info = plan_info(ws, last)
+    plans = [plan_info(ws, k) for k in plan_numbers(ws) if info.series <= k <= last]
+    return [p for p in plans if p.series == info.series]
+
+
+def plan_complete(ws: Workspace, number: int) -> bool:
+    """Whether every sampled segment of plan ``number`` has a level-0 result."""
+    pend = ws.pending()
+    if not pend.height:
+        return True
+    return not bool((pend["plan"] == number).any())
+
+
+def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list[int]]:
+    """What finished estimate plans say about how far p_n can be trusted at ``gamma``.
+
+    For each plan whose results are all in and that recorded its U's mean p_n and risk
+    norms (``p_mean_unknown``, ``risk_norms``): its sampled segments' relative risk
+    u = p_n / mean_U(p_n) at planning, and whether their level-0 value is <= gamma
+    (``core.design.risk_posterior`` reads them). Plans made for another gamma, or by an
+    older version, are skipped. Returns the evidence and the plan numbers it came from.
+    """
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
+    evidence: list[StageEvidence] = []
+    used: list[int] = []
+    for k in plan_numbers(ws):
+        path = ws.estimates_dir / f"plan-{k:04d}.parquet"
+        meta = read_metadata_json(path)
+        mean, norms = meta.get("p_mean_unknown"), meta.get("risk_norms")
+        if not mean or not norms or meta.get("plan_gamma") != gamma or not plan_complete(ws, k):
+            continue
+        if len(norms) != len(TAUS):
+            continue
+        t = pl.from_arrow(read_state(path, columns=[SID, "stratum", "p_n"]))
+        assert isinstance(t, pl.DataFrame)
+        t = t.filter(pl.col("stratum") == "sampled").join(obs, on=SID, how="inner")
+        if not t.height:
+            continue
+        evidence.append(
+            StageEvidence(
+                t["p_n"].to_numpy() / float(mean),
+                t["value"].to_numpy() <= gamma,
+                np.asarray(norms, dtype=np.float64),
+                p_mean=float(mean),
+            )
+        )
+        used.append(k)
+    return evidence, used

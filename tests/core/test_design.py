@@ -1,0 +1,223 @@
+"""The estimate's design: calibrated risk, its posterior, the design choice, staged estimates.
+
+References: scipy.optimize for the variance-minimising design, numerical integration for the
+posterior, Monte Carlo over repeated draws for unbiasedness, variance and coverage.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import integrate, optimize, stats
+
+from bams_cli.core import design as dz
+from bams_cli.core.estimate import estimate_from_sample
+from bams_cli.core.evaluate import staged_trials
+
+
+def _evidence(u: np.ndarray, failed: np.ndarray, pool_u: np.ndarray) -> dz.StageEvidence:
+    return dz.StageEvidence(u, failed, dz.risk_norms(pool_u))
+
+
+def test_calibrated_design_minimises_the_predicted_variance():
+    # Brute force: minimise sum r (1 - pi)/pi subject to sum pi = K, 0 < pi <= 1 with SLSQP.
+    rng = np.random.default_rng(3)
+    r = rng.gamma(0.4, size=9) + 1e-3
+    r = r / r.mean()
+    K = 3.0
+    pi = dz.calibrated_design(r, K=K)
+    assert pi.sum() == pytest.approx(K, rel=1e-12)
+    res = optimize.minimize(
+        lambda x: np.sum(r * (1 - x) / x),
+        np.full(r.size, K / r.size),
+        method="SLSQP",
+        bounds=[(1e-6, 1.0)] * r.size,
+        constraints=[{"type": "eq", "fun": lambda x: x.sum() - K}],
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
+    assert res.success
+    assert dz.predicted_variance(pi, r) == pytest.approx(res.fun, rel=1e-6)
+    np.testing.assert_allclose(pi, res.x, atol=1e-4)
+
+
+def test_calibrated_design_is_proportional_to_sqrt_risk_below_the_cap():
+    r = np.array([0.25, 1.0, 4.0, 16.0])
+    pi = dz.calibrated_design(r, K=0.5)
+    np.testing.assert_allclose(pi / pi[0], np.sqrt(r / r[0]), rtol=1e-12)
+
+
+def test_predicted_variance_is_the_ht_variance_when_failures_follow_the_risk():
+    # Monte Carlo: failures ~ Bernoulli(p), Poisson sample with pi; Var(T_hat - T) = sum p (1-pi)/pi.
+    rng = np.random.default_rng(7)
+    n = 40
+    p = rng.uniform(0.01, 0.3, n)
+    pi = rng.uniform(0.1, 0.9, n)
+    reps = 200_000
+    fail = rng.random((reps, n)) < p
+    take = rng.random((reps, n)) < pi
+    err = (fail * take / pi).sum(axis=1) - fail.sum(axis=1)
+    assert err.var() == pytest.approx(dz.predicted_variance(pi, p), rel=0.02)
+
+
+def test_the_prior_alone_before_any_stage_has_results():
+    post = dz.risk_posterior([], prior=(2.0, 5.0))
+    assert post.lam_mean == pytest.approx(2 / 7, abs=2e-3)
+    assert post.lam_quantile(0.9) == pytest.approx(stats.beta(2, 5).ppf(0.9), abs=0.02)
+    # tau uniform over the grid
+    np.testing.assert_allclose(post.weights.sum(axis=1), 1 / len(dz.TAUS), rtol=1e-9)
+    assert post.failures == post.sampled == 0
+
+
+def test_lam_posterior_matches_numerical_integration():
+    # One tau: the posterior mean of lam by quad over the same likelihood and prior.
+    rng = np.random.default_rng(11)
+    pool = rng.gamma(0.3, size=500)
+    pool = pool / pool.mean()
+    s = rng.choice(500, 60, replace=False)
+    failed = np.zeros(60, bool)
+    failed[[0, 5, 9]] = True
+    ev = dz.StageEvidence(pool[s], failed, dz.risk_norms(pool, taus=[1.0]))
+    post = dz.risk_posterior([ev], prior=(1.5, 2.0), taus=[1.0])
+    u = pool[s]
+
+    def density(lam: float) -> float:
+        r = (1 - lam) * u + lam
+        like = np.prod(r[failed]) / r.sum() ** failed.sum()
+        return like * stats.beta(1.5, 2.0).pdf(lam)
+
+    z = integrate.quad(density, 0, 1, limit=200)[0]
+    mean = integrate.quad(lambda x: x * density(x), 0, 1, limit=200)[0] / z
+    assert post.lam_mean == pytest.approx(mean, abs=5e-3)
+
+
+def test_failures_where_the_model_is_sure_raise_trust_and_elsewhere_lower_it():
+    rng = np.random.default_rng(5)
+    pool = rng.gamma(0.2, size=2000)
+    pool = pool / pool.mean()
+    s = rng.choice(2000, 200, replace=False)
+    u = pool[s]
+    order = np.argsort(u)
+    high = np.zeros(200, bool)
+    high[order[-5:]] = True  # failures at the largest u sampled
+    low = np.zeros(200, bool)
+    low[order[:5]] = True  # failures where the model sees nothing
+    prior = dz.risk_posterior([])
+    trusted = dz.risk_posterior([_evidence(u, high, pool)])
+    doubted = dz.risk_posterior([_evidence(u, low, pool)])
+    assert trusted.lam_mean < prior.lam_mean < doubted.lam_mean
+    assert doubted.lam_mean > 0.8
+
+
+def test_lam_is_recovered_from_many_failures():
+    # Failures drawn from r = (1 - lam) u + lam: the posterior concentrates near lam.
+    rng = np.random.default_rng(2)
+    pool = rng.gamma(0.3, size=20_000)
+    pool = pool / pool.mean()
+    for lam in (0.1, 0.6):
+        r = (1 - lam) * pool + lam
+        failed = rng.random(pool.size) < 0.02 * r
+        post = dz.risk_posterior([_evidence(pool, failed, pool)])
+        assert post.lam_mean == pytest.approx(lam, abs=0.08)
+        assert post.tau_mean == pytest.approx(1.0, abs=0.3)
+
+
+def test_posterior_risk_has_mean_one_and_a_floor():
+    rng = np.random.default_rng(0)
+    p = rng.beta(0.1, 30, 1000)
+    post = dz.risk_posterior([])
+    r = post.risk(p)
+    assert r.mean() == pytest.approx(1.0, rel=1e-9)
+    assert r.min() >= post.lam_mean * (1 - 1e-12)
+
+
+def test_choose_design_takes_uniform_when_the_model_says_nothing():
+    choice = dz.choose_design(np.full(100, 0.01), K=10, posterior=dz.risk_posterior([]))
+    assert choice.name == "uniform"
+    np.testing.assert_allclose(choice.pi, 0.1)
+    assert choice.predicted["uniform"] == 1.0
+
+
+def test_choose_design_predicts_each_candidate_and_takes_the_smallest():
+    rng = np.random.default_rng(1)
+    p = rng.beta(0.05, 10, 5000)
+    choice = dz.choose_design(p, K=100, posterior=dz.risk_posterior([]))
+    assert choice.predicted[choice.name] == min(choice.predicted.values())
+    assert choice.name == "calibrated" and choice.predicted["calibrated"] < 1.0
+    assert choice.pi.sum() == pytest.approx(100, rel=1e-9)
+
+
+def _stage(pi, fail, take, *, n_pool, known_failures=0):
+    s = np.flatnonzero(take)
+    return estimate_from_sample(
+        pi[s], fail[s], design="poisson", n_pool=n_pool, n_unknown=pi.size,
+        budget=float(pi.sum()), known_failures=known_failures,
+    )  # fmt: skip
+
+
+def test_combine_stages_is_the_weighted_sum_with_weighted_variance():
+    rng = np.random.default_rng(4)
+    n = 300
+    fail = rng.random(n) < 0.05
+    pi1 = rng.uniform(0.05, 0.5, n)
+    pi2 = rng.uniform(0.05, 0.5, n)
+    e1 = _stage(pi1, fail, rng.random(n) < pi1, n_pool=n)
+    e2 = _stage(pi2, fail, rng.random(n) < pi2, n_pool=n)
+    c = dz.combine_stages([e1, e2], [0.3, 0.7], n_pool=n)
+    assert c.p_hat[0] == pytest.approx(0.3 * e1.p_hat[0] + 0.7 * e2.p_hat[0], rel=1e-12)
+    assert c.var_hat[0] == pytest.approx(0.09 * e1.var_hat[0] + 0.49 * e2.var_hat[0], rel=1e-12)
+    assert c.ci_low[0] <= c.p_hat[0] <= c.ci_high[0]
+    assert c.design == "staged"
+    with pytest.raises(ValueError, match="sum to 1"):
+        dz.combine_stages([e1, e2], [0.5, 0.6], n_pool=n)
+    assert dz.combine_stages([e1], [1.0], n_pool=n) is e1
+
+
+@pytest.mark.parametrize("model", ["calibrated", "useless"])
+def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
+    # Repeated draws of the whole two-stage design from a known truth: the mean of p_hat is
+    # the rate within 3 SE, and its spread matches the design's stated variance.
+    rng = np.random.default_rng(9)
+    N = 1000
+    p = rng.beta(0.3, 8, N)
+    fail = rng.random(N) < p
+    if model == "useless":
+        p = rng.permutation(p)
+    res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=400, rng=rng)
+    se = res.p_hat.std(ddof=1) / np.sqrt(res.p_hat.size)
+    assert abs(res.p_hat.mean() - res.rate) < 3 * se
+    assert res.p_hat.var(ddof=1) == pytest.approx(res.var, rel=0.2)
+    assert res.coverage >= 0.85
+
+
+@pytest.mark.slow
+def test_default_design_drawn_ten_thousand_times_is_unbiased_and_covers():
+    # Issue 12: >= 10,000 draws of the default design from a known truth.
+    rng = np.random.default_rng(12)
+    N = 2000
+    p = rng.beta(0.05, 10, N)
+    fail = rng.random(N) < np.clip(p * 1.5, 0, 1)  # the model under-predicts
+    known = np.zeros(N, bool)
+    known[rng.choice(N, 40, replace=False)] = True
+    res = staged_trials(p, fail, K=5.0 * fail.sum() * 0.6, known=known, n_trials=10_000, rng=rng)
+    se = res.p_hat.std(ddof=1) / np.sqrt(res.p_hat.size)
+    assert abs(res.p_hat.mean() - res.rate) < 3 * se
+    assert res.coverage >= 0.88
+    assert res.var <= 1.2 * res.var_uniform
+
+
+def test_a_count_far_above_what_p_n_predicts_says_the_model_misses_failures():
+    # p_n predicts 0.5 failures among 500 sampled segments; 30 were found. Where they fell
+    # says little (at random), how many says the model misses most of the failure mass.
+    rng = np.random.default_rng(8)
+    pool = rng.gamma(0.3, size=5000)
+    pool = pool / pool.mean()
+    s = rng.choice(5000, 500, replace=False)
+    failed = np.zeros(500, bool)
+    failed[rng.choice(500, 30, replace=False)] = True
+    ev = dz.StageEvidence(pool[s], failed, dz.risk_norms(pool), p_mean=0.001)
+    anchored = dz.risk_posterior([ev])
+    where_only = dz.risk_posterior([ev], anchor_sd=None)
+    assert anchored.lam_mean > 0.9 > where_only.lam_mean
+    # ... and a count in line with p_n leaves trust where where-they-fell puts it.
+    calm = dz.StageEvidence(pool[s], failed, dz.risk_norms(pool), p_mean=30 / pool[s].sum())
+    assert dz.risk_posterior([calm]).lam_mean < anchored.lam_mean - 0.2
