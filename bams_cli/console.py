@@ -120,18 +120,33 @@ def study_status(s: Mapping[str, Any]) -> None:
     if s["batches"]:
         rows_table(
             "batches",
-            ["batch", "strategy", "picks", "cost", "pending", "hand-off"],
+            ["batch", "strategy", "picks", "cost", "pending", "abandoned", "hand-off"],
             [
-                [b["batch"], b["strategy"], b["picks"], b["cost"], b["pending"], b["handoff"]]
+                [
+                    b["batch"],
+                    b["strategy"],
+                    b["picks"],
+                    b["cost"],
+                    b["pending"],
+                    b.get("abandoned", 0),
+                    b["handoff"],
+                ]
                 for b in s["batches"]
             ],
         )
     if s["plans"]:
         rows_table(
             "estimate plans",
-            ["plan", "sampled", "pending", "hand-off", "estimate"],
+            ["plan", "sampled", "pending", "abandoned", "hand-off", "estimate"],
             [
-                [p["plan"], p["sampled"], p["pending"], p["handoff"], p["estimate"] or "-"]
+                [
+                    p["plan"],
+                    p["sampled"],
+                    p["pending"],
+                    p.get("abandoned", 0),
+                    p["handoff"],
+                    p["estimate"] or "-",
+                ]
                 for p in s["plans"]
             ],
         )

@@ -57,6 +57,10 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     lines = [template[0], template[1].rstrip(",") + ",,crashed"]
     (tmp / "crashed.csv").write_text("\n".join(lines) + "\n")
     run("ingest-results", "ingest-results", "-w", ws, tmp / "crashed.csv")
+    # Given up on: the crashed run abandoned, then the rest of the batch; late results count.
+    run("ingest-results", "ingest-results", "-w", ws, tmp / "crashed.csv", "--abandon-failed")
+    run("abandon", "abandon", "-w", ws, "--batch", 2, "--reason", "cluster down")
+    run("abandon", "abandon", "-w", ws, "--batch", 2)  # nothing left to abandon
     run("ingest-results", "ingest-results", "-w", ws, answer(b2["handoff_csv"], 2))
     run("fit", "fit", "-w", ws, "--restarts", 2)
     run("report", "report", "-w", ws)  # no estimate yet
