@@ -25,6 +25,7 @@ import typer
 
 from bams_cli import __version__, console, defaults, pipeline, schemas_json
 from bams_cli import abandon as abandon_runs
+from bams_cli import loop as study_loop
 from bams_cli.errors import BamsError, OptionError
 from bams_cli.status import status as study_status
 
@@ -810,6 +811,98 @@ def abandon(
         )
     pend = summary["pending"]["count"]
     console.note(f"still pending: {pend}" if pend else "nothing pending")
+
+
+@command()
+def loop(
+    simulator: Annotated[
+        str,
+        typer.Option(
+            "--simulator",
+            help="Shell command answering a hand-off list: {handoff} is the list (CSV) to read, "
+            "{results} the results file (CSV) to write.",
+        ),
+    ],
+    batches: Annotated[
+        int, typer.Option("--batches", help="Batches the study should have (the first random).")
+    ],
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    budget: Annotated[
+        float, typer.Option("--budget", "-m", help="Budget of each BAMS batch (cost units).")
+    ] = defaults.BUDGET,
+    first_budget: Annotated[
+        float | None,
+        typer.Option(
+            "--first-budget", help="Budget of the random first batch \\[default: --budget]."
+        ),
+    ] = None,
+    then_estimate: Annotated[
+        bool,
+        typer.Option(
+            "--then-estimate", help="Then plan the rate estimate, simulate it and compute it."
+        ),
+    ] = False,
+    samples: Annotated[
+        float | None,
+        typer.Option("--samples", "-K", help="With --then-estimate: the estimate's budget K."),
+    ] = None,
+    results_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--results-dir",
+            help="Where the simulator's results files go \\[default: WS/loop-results].",
+        ),
+    ] = None,
+    abandon_failed: Annotated[
+        bool,
+        typer.Option(
+            "--abandon-failed",
+            help="Record results rows with a failed status as abandoned and go on (and "
+            "estimate with --failed-as bounds).",
+        ),
+    ] = False,
+    clusters: Annotated[int, typer.Option("--clusters", "-S", help="select: clusters S.")] = 6,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="select: local worker processes.")
+    ] = None,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Run the discovery loop against your own simulator: fit, select, simulate, ingest.
+
+    Reads the workspace before every step and takes the one it needs next, so a loop that
+    was killed resumes where it stopped and a finished one does nothing. Each step is the
+    command you would run by hand; the simulator's results land in --results-dir only when
+    it exits 0.
+
+    [bold]Example[/]: bams-cli loop -w study --batches 3 --budget 5 --then-estimate
+    --simulator 'bams-cli simulate {handoff} --truth sample_data/toy2d/truth.parquet -o {results}'
+    """
+    with console.loop_progress(not json_out) as bar:
+        summary = study_loop.loop(
+            workspace,
+            simulator=simulator,
+            batches=batches,
+            budget=budget,
+            first_budget=first_budget,
+            then_estimate=then_estimate,
+            samples=samples,
+            results_dir=results_dir,
+            abandon_failed=abandon_failed,
+            clusters=clusters,
+            workers=workers,
+            wait=wait,
+            on_step=bar,
+        )
+    if json_out:
+        _json("loop", summary)
+        return
+    if summary["unchanged"]:
+        console.note(f"loop: nothing to do; {summary['batches']} batches are in")
+        return
+    shown = {k: v for k, v in summary.items() if k != "steps"}
+    shown["steps"] = len(summary["steps"])
+    console.kv_table("loop", shown)
 
 
 @command()

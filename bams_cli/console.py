@@ -199,3 +199,34 @@ def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] |
 
     with bars:
         yield update
+
+
+@contextmanager
+def loop_progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None]]:
+    """``bams-cli loop``: one line per step on stderr, and a bar of lists done on a terminal."""
+    if not enabled:
+        yield lambda *_: None
+        return
+    bars = None
+    if err.is_terminal:
+        bars = Progress(
+            TextColumn("{task.description:<30}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        )
+    task = bars.add_task("loop", total=1) if bars is not None else None
+
+    def update(step: str, done: int, total: int) -> None:
+        if bars is not None and task is not None:
+            bars.update(task, description=step, completed=done, total=total)
+        if step != "done":
+            err.print(f"loop [{done}/{total}]: {step}", markup=False, highlight=False)
+
+    if bars is None:
+        yield update
+        return
+    with bars:
+        yield update

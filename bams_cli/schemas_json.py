@@ -33,6 +33,7 @@ VERSIONS: dict[str, int] = {
     "status": STATUS_SCHEMA_VERSION,
     "summary.json": 1,
     "abandon": 1,
+    "loop": 1,
 }
 
 Schema = dict[str, Any]
@@ -500,6 +501,20 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "pending": PENDING,
             },
             {"message": STR},
+        ),
+    ),
+    "loop": (
+        "bams-cli loop --json",
+        obj(
+            {
+                "workspace": PATH,
+                "batches": COUNT,
+                "plans": COUNT,
+                "steps": array(obj({"step": STR, "list": nullable(STR)})),
+                "unchanged": BOOL,
+                "results_dir": PATH,
+                "estimate_file": nullable(PATH),
+            }
         ),
     ),
 }

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -72,6 +73,8 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     run("report", "report", "-w", ws, "--truth", truth)
     out["summary.json"].append(json.loads((ws / "report" / "summary.json").read_text()))
     run("status", "status", "-w", ws)
+    sim = f"{sys.executable} -m bams_cli simulate {{handoff}} --truth {truth} -o {{results}}"
+    run("loop", "loop", "-w", ws, "--simulator", sim, "--batches", 2)  # nothing left to do
     return out
 
 
