@@ -24,6 +24,8 @@ import click
 import typer
 
 from bams_cli import __version__, console, defaults, pipeline, schemas_json
+from bams_cli import abandon as abandon_runs
+from bams_cli import loop as study_loop
 from bams_cli.errors import BamsError, OptionError
 from bams_cli.status import status as study_status
 
@@ -327,6 +329,14 @@ def ingest_results(
     allow_unselected: Annotated[
         bool, typer.Option("--allow-unselected", help="Accept results for pairs no batch selected.")
     ] = False,
+    abandon_failed: Annotated[
+        bool,
+        typer.Option(
+            "--abandon-failed",
+            help="Record the rows whose status is neither empty nor ok (crashed, timeout) as "
+            "abandoned, in the same commit: they stop being pending (see bams-cli abandon).",
+        ),
+    ] = False,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -334,24 +344,36 @@ def ingest_results(
 
     Each row is keyed by request_id (from the hand-off list), or by segment_id and fidelity
     (the level's number or its name in settings). A row whose status is neither empty nor
-    ok (e.g. crashed) is not ingested: its request stays pending. The results template
-    beside each hand-off list has the columns to fill.
+    ok (e.g. crashed) is not ingested: its request stays pending, or, with
+    --abandon-failed, is recorded as never coming back. The results template beside each
+    hand-off list has the columns to fill.
 
     [bold]Example[/]: bams-cli ingest-results -w study results-0001.parquet
     """
-    summary = pipeline.ingest_results(
-        workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
-    )
+    if abandon_failed:
+        summary = abandon_runs.ingest_results_abandoning_failed(
+            workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
+        )
+    else:
+        summary = pipeline.ingest_results(
+            workspace, results, replace=replace, allow_unselected=allow_unselected, wait=wait
+        )
     if json_out:
         _json("ingest-results", summary)
         return
     if "message" in summary:
         console.note(summary["message"])
     else:
-        shown = {k: v for k, v in summary.items() if k not in ("pending", "not_run")}
+        shown = {k: v for k, v in summary.items() if k not in ("pending", "not_run", "abandoned")}
         console.kv_table("ingest-results", shown)
     not_run = summary["not_run"]
-    if not_run["count"]:
+    gone = summary.get("abandoned")
+    if gone is not None:
+        console.note(
+            f"{gone['abandoned']} failed requests recorded as abandoned"
+            + (f" ({gone['already_abandoned']} were already)" if gone["already_abandoned"] else "")
+        )
+    elif not_run["count"]:
         first = not_run["first"][0]
         console.note(
             f"{not_run['count']} rows were not run (status {first['status']!r} ...): "
@@ -359,7 +381,10 @@ def ingest_results(
         )
     pend = summary["pending"]
     if pend["count"]:
-        rows = [[r["segment_id"], r["fidelity"], r["batch"]] for r in pend["first"]]
+        rows = [
+            [r["segment_id"], r["fidelity"], r["batch"] or f"plan {r.get('plan')}"]
+            for r in pend["first"]
+        ]
         console.rows_table(
             f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
         )
@@ -526,6 +551,13 @@ def select(
         str | None,
         typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
     ] = None,
+    retry_abandoned: Annotated[
+        bool,
+        typer.Option(
+            "--retry-abandoned",
+            help="Let pairs recorded as abandoned (bams-cli abandon) be picked again.",
+        ),
+    ] = False,
     handoff_internal: HandoffInternal = False,
     batch: Annotated[
         int | None,
@@ -562,6 +594,7 @@ def select(
             scheduler=scheduler,
             handoff_internal=handoff_internal,
             batch=batch,
+            retry_abandoned=retry_abandoned,
             wait=wait,
             progress=bar,
         )
@@ -656,6 +689,14 @@ def estimate(
             help="With --plan: draw another plan although an earlier one awaits results.",
         ),
     ] = False,
+    failed_as: Annotated[
+        str | None,
+        typer.Option(
+            "--failed-as",
+            help="bounds: when planned segments were abandoned (bams-cli abandon), report the "
+            "worst-case interval, them all passing to them all failing \\[default: refuse].",
+        ),
+    ] = None,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -709,6 +750,7 @@ def estimate(
             plan_number=plan_number,
             confidence=confidence,
             exact_variance=exact_variance,
+            failed_as=failed_as,
             wait=wait,
             progress=bar,
         )
@@ -718,7 +760,9 @@ def estimate(
     rows = [
         [
             e["gamma"],
-            e["p_hat"],
+            e["p_hat"]
+            if "p_hat_low" not in e
+            else f"{e['p_hat_low']:.4g} .. {e['p_hat_high']:.4g}",
             "n/a" if e["se"] is None else e["se"],
             f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
             "n/a" if e["rel_var"] is None else e["rel_var"],
@@ -745,6 +789,165 @@ def estimate(
     if summary["gp_model"] != "current":
         title += " (model as of the plan; `bams-cli fit` adds the plan's results)"
     console.rows_table(title, ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
+
+
+@command()
+def abandon(
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    batch: Annotated[
+        int | None, typer.Option("--batch", help="Abandon batch N's pending requests.")
+    ] = None,
+    plan: Annotated[
+        int | None, typer.Option("--plan", help="Abandon estimate plan N's pending requests.")
+    ] = None,
+    segments: Annotated[
+        Path | None,
+        typer.Option(
+            "--segments",
+            help="CSV or Parquet naming the requests: request_id, or segment_id (+ fidelity); "
+            "e.g. the hand-off list filtered to the lost runs.",
+        ),
+    ] = None,
+    fidelity: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--fidelity", help="Only these levels (number or name; repeat or comma-separate)."
+        ),
+    ] = None,
+    reason: Annotated[
+        str | None,
+        typer.Option("--reason", help="Why they will never come back (kept in the log)."),
+    ] = None,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Record requests that will never come back (a simulation that fails for good).
+
+    Appends them to abandoned.parquet (append-only; a result that arrives later is still
+    ingested and counts). They stop being pending, so select, status and Make go on;
+    select never picks them again (unless --retry-abandoned); estimate refuses a plan with
+    abandoned segments unless --failed-as bounds. A repeat changes nothing.
+
+    [bold]Example[/]: bams-cli abandon -w study --batch 3 --fidelity 0 --reason "simulator crash"
+    """
+    summary = abandon_runs.abandon(
+        workspace,
+        batch=batch,
+        plan=plan,
+        segments=segments,
+        fidelity=fidelity,
+        reason=reason,
+        wait=wait,
+    )
+    if json_out:
+        _json("abandon", summary)
+        return
+    if summary["unchanged"]:
+        console.note(summary["message"])
+    else:
+        rows = [
+            [r["request_id"], r["segment_id"], r["fidelity"], r["batch"] or "", r["plan"] or ""]
+            for r in summary["first"]
+        ]
+        console.rows_table(
+            f"abandoned: {summary['abandoned']} requests (log: {summary['log']})",
+            ["request_id", "segment_id", "fidelity", "batch", "plan"],
+            rows,
+        )
+    pend = summary["pending"]["count"]
+    console.note(f"still pending: {pend}" if pend else "nothing pending")
+
+
+@command()
+def loop(
+    simulator: Annotated[
+        str,
+        typer.Option(
+            "--simulator",
+            help="Shell command answering a hand-off list: {handoff} is the list (CSV) to read, "
+            "{results} the results file (CSV) to write.",
+        ),
+    ],
+    batches: Annotated[
+        int, typer.Option("--batches", help="Batches the study should have (the first random).")
+    ],
+    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    budget: Annotated[
+        float, typer.Option("--budget", "-m", help="Budget of each BAMS batch (cost units).")
+    ] = defaults.BUDGET,
+    first_budget: Annotated[
+        float | None,
+        typer.Option(
+            "--first-budget", help="Budget of the random first batch \\[default: --budget]."
+        ),
+    ] = None,
+    then_estimate: Annotated[
+        bool,
+        typer.Option(
+            "--then-estimate", help="Then plan the rate estimate, simulate it and compute it."
+        ),
+    ] = False,
+    samples: Annotated[
+        float | None,
+        typer.Option("--samples", "-K", help="With --then-estimate: the estimate's budget K."),
+    ] = None,
+    results_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--results-dir",
+            help="Where the simulator's results files go \\[default: WS/loop-results].",
+        ),
+    ] = None,
+    abandon_failed: Annotated[
+        bool,
+        typer.Option(
+            "--abandon-failed",
+            help="Record results rows with a failed status as abandoned and go on (and "
+            "estimate with --failed-as bounds).",
+        ),
+    ] = False,
+    clusters: Annotated[int, typer.Option("--clusters", "-S", help="select: clusters S.")] = 6,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="select: local worker processes.")
+    ] = None,
+    wait: Wait = False,
+    json_out: Json = False,
+) -> None:
+    """Run the discovery loop against your own simulator: fit, select, simulate, ingest.
+
+    Reads the workspace before every step and takes the one it needs next, so a loop that
+    was killed resumes where it stopped and a finished one does nothing. Each step is the
+    command you would run by hand; the simulator's results land in --results-dir only when
+    it exits 0.
+
+    [bold]Example[/]: bams-cli loop -w study --batches 3 --budget 5 --then-estimate
+    --simulator 'bams-cli simulate {handoff} --truth sample_data/toy2d/truth.parquet -o {results}'
+    """
+    with console.loop_progress(not json_out) as bar:
+        summary = study_loop.loop(
+            workspace,
+            simulator=simulator,
+            batches=batches,
+            budget=budget,
+            first_budget=first_budget,
+            then_estimate=then_estimate,
+            samples=samples,
+            results_dir=results_dir,
+            abandon_failed=abandon_failed,
+            clusters=clusters,
+            workers=workers,
+            wait=wait,
+            on_step=bar,
+        )
+    if json_out:
+        _json("loop", summary)
+        return
+    if summary["unchanged"]:
+        console.note(f"loop: nothing to do; {summary['batches']} batches are in")
+        return
+    shown = {k: v for k, v in summary.items() if k != "steps"}
+    shown["steps"] = len(summary["steps"])
+    console.kv_table("loop", shown)
 
 
 @command()

@@ -120,18 +120,33 @@ def study_status(s: Mapping[str, Any]) -> None:
     if s["batches"]:
         rows_table(
             "batches",
-            ["batch", "strategy", "picks", "cost", "pending", "hand-off"],
+            ["batch", "strategy", "picks", "cost", "pending", "abandoned", "hand-off"],
             [
-                [b["batch"], b["strategy"], b["picks"], b["cost"], b["pending"], b["handoff"]]
+                [
+                    b["batch"],
+                    b["strategy"],
+                    b["picks"],
+                    b["cost"],
+                    b["pending"],
+                    b.get("abandoned", 0),
+                    b["handoff"],
+                ]
                 for b in s["batches"]
             ],
         )
     if s["plans"]:
         rows_table(
             "estimate plans",
-            ["plan", "sampled", "pending", "hand-off", "estimate"],
+            ["plan", "sampled", "pending", "abandoned", "hand-off", "estimate"],
             [
-                [p["plan"], p["sampled"], p["pending"], p["handoff"], p["estimate"] or "-"]
+                [
+                    p["plan"],
+                    p["sampled"],
+                    p["pending"],
+                    p.get("abandoned", 0),
+                    p["handoff"],
+                    p["estimate"] or "-",
+                ]
                 for p in s["plans"]
             ],
         )
@@ -182,5 +197,36 @@ def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] |
             tasks[phase] = bars.add_task(phase, total=total)
         bars.update(tasks[phase], completed=done, total=total)
 
+    with bars:
+        yield update
+
+
+@contextmanager
+def loop_progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None]]:
+    """``bams-cli loop``: one line per step on stderr, and a bar of lists done on a terminal."""
+    if not enabled:
+        yield lambda *_: None
+        return
+    bars = None
+    if err.is_terminal:
+        bars = Progress(
+            TextColumn("{task.description:<30}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=err,
+            transient=True,
+        )
+    task = bars.add_task("loop", total=1) if bars is not None else None
+
+    def update(step: str, done: int, total: int) -> None:
+        if bars is not None and task is not None:
+            bars.update(task, description=step, completed=done, total=total)
+        if step != "done":
+            err.print(f"loop [{done}/{total}]: {step}", markup=False, highlight=False)
+
+    if bars is None:
+        yield update
+        return
     with bars:
         yield update

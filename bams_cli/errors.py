@@ -59,6 +59,10 @@ class PendingResultsError(WorkspaceError):
     exit_code = EXIT_PENDING
 
 
+class AbandonedRunsError(WorkspaceError):
+    """Requests an answer needs were abandoned (``bams-cli abandon``); a flag says how to count them."""
+
+
 class SettingsError(BamsError):
     """The settings file or a flag holds an invalid value."""
 

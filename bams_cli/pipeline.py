@@ -9,6 +9,7 @@ as a table, or as-is under ``--json``). Progress is reported through an optional
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as dt
 import fnmatch
 import functools
@@ -930,12 +931,16 @@ def _not_run_summary(not_run: pl.DataFrame, limit: int = 20) -> dict[str, Any]:
 
 def _pending_summary(ws: Workspace, limit: int = 20) -> dict[str, Any]:
     pend = ws.pending()
+
+    def per(key: str) -> dict[int, int]:  # a plan's picks have no batch, and vice versa
+        rows = pend.filter(pl.col(key).is_not_null()).group_by(key).len().sort(key)
+        return {int(k): int(v) for k, v in rows.iter_rows()}
+
     return {
         "count": pend.height,
-        "by_batch": {
-            int(k): int(v) for k, v in pend.group_by("batch").len().sort("batch").iter_rows()
-        },
-        "first": pend.head(limit).select(SID, "fidelity", "batch").to_dicts(),
+        "by_batch": per("batch"),
+        "by_plan": per("plan"),
+        "first": pend.head(limit).select(SID, "fidelity", "batch", "plan").to_dicts(),
     }
 
 
@@ -1463,6 +1468,7 @@ def select(
     scheduler: str | None = None,
     handoff_internal: bool = False,
     batch: int | None = None,
+    retry_abandoned: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
@@ -1537,6 +1543,13 @@ def select(
     costs = np.asarray(settings.costs)
     observed0 = _observed_level0(ws, ids)
     exclude = np.zeros(len(ids), bool) if include_observed else observed0
+    # Abandoned runs (bams_cli.abandon) are done: never offered again unless asked.
+    gone = np.zeros((len(ids), settings.n_levels), bool)
+    if not retry_abandoned:
+        from bams_cli.abandon import abandoned_mask
+
+        gone = abandoned_mask(ws, ids, settings.n_levels)
+    exclude = exclude | gone[:, 0]
     model_hash = None
     j_before = j_after = None
     timings: dict[str, float] = {}
@@ -1574,6 +1587,7 @@ def select(
                     progress=progress,
                     levels=[0] if strategy == "bas" else None,
                     reobserve_level0=include_observed,
+                    excluded_pairs=gone,
                 )
         n_greedy = 0 if result is None else len(result.index)
         picks = {
@@ -1635,6 +1649,8 @@ def select(
             index, level = baselines.pick_cross_entropy(
                 X, o["_i"].to_numpy(), o["value"].to_numpy(), list(settings.costs), budget, rng=rng
             )
+        keep = ~gone[np.asarray(index, np.int64), np.asarray(level, np.int64)]
+        index, level = np.asarray(index)[keep], np.asarray(level)[keep]
         picks = {
             "index": np.asarray(index, np.int64),
             "level": np.asarray(level, np.int64),
@@ -1666,6 +1682,7 @@ def select(
         **asked,
         "include_observed": include_observed,
         "allow_pending": allow_pending,
+        "retry_abandoned": retry_abandoned,
         "difficulty_column": difficulty_column,
         "workers": workers,
         "scheduler": scheduler,
@@ -2029,8 +2046,24 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: float):  # noqa: ANN202
-    """The HT estimate of one plan from its ingested level-0 results, per gamma."""
+@dataclasses.dataclass(frozen=True)
+class _PlanSample:
+    """One plan's sample with its level-0 outcomes, ready for the estimator."""
+
+    sampled_ids: np.ndarray
+    fails: np.ndarray
+    lost: list[str]
+    estimate_with: Callable[[np.ndarray], Any]
+
+
+def _plan_sample(
+    ws: Workspace, number: int, gammas: np.ndarray, confidence: float, failed_as: str | None
+) -> _PlanSample:
+    """Plan ``number``'s sample, outcomes and estimator (``estimate_with(fails)``).
+
+    Abandoned planned segments are refused, or kept for the bounds (``bams_cli.abandon``).
+    """
+    from bams_cli import abandon
     from bams_cli.core.estimate import estimate_from_sample
 
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
@@ -2039,7 +2072,8 @@ def _plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: f
     assert isinstance(plan, pl.DataFrame)
     obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
     joined = plan.join(obs, on=SID, how="left")
-    missing = joined.filter(pl.col("value").is_null())
+    lost = abandon.planned_abandoned(ws, number, path, joined, failed_as)
+    missing = joined.filter(pl.col("value").is_null() & ~pl.col(SID).is_in(lost))
     if missing.height:
         names = ", ".join(missing[SID].head(3).to_list())
         raise PendingResultsError(
@@ -2051,18 +2085,28 @@ def _plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: f
     known = joined.filter(pl.col("stratum") == "known")
     fails = sampled["value"].to_numpy()[:, None] <= gammas[None, :]
     known_fails = (known["value"].to_numpy()[:, None] <= gammas[None, :]).sum(axis=0)
-    return estimate_from_sample(
-        sampled["prob"].to_numpy(),
-        fails,
-        design=meta["design"],
-        n_pool=int(meta["n_pool"]),
-        n_unknown=int(meta["n_unknown"]),
-        budget=float(meta["samples"]),
-        counts=sampled["draws"].to_numpy(),
-        known_failures=known_fails,
-        confidence=confidence,
-        w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
-    )
+
+    def estimate_with(fails: np.ndarray) -> Any:
+        return estimate_from_sample(
+            sampled["prob"].to_numpy(),
+            fails,
+            design=meta["design"],
+            n_pool=int(meta["n_pool"]),
+            n_unknown=int(meta["n_unknown"]),
+            budget=float(meta["samples"]),
+            counts=sampled["draws"].to_numpy(),
+            known_failures=known_fails,
+            confidence=confidence,
+            w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
+        )
+
+    return _PlanSample(sampled[SID].to_numpy(), fails, lost, estimate_with)
+
+
+def _plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: float):  # noqa: ANN202
+    """The HT estimate of one plan from its ingested level-0 results, per gamma."""
+    sample = _plan_sample(ws, number, gammas, confidence, None)
+    return sample.estimate_with(sample.fails)
 
 
 @locked
@@ -2072,14 +2116,18 @@ def estimate_compute(
     plan_number: int | None = None,
     confidence: float = 0.9,
     exact_variance: bool = False,
+    failed_as: str | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Compute the rate estimate from an ingested plan, for every configured gamma.
 
     A plan that is a later stage of a staged estimate is combined with its earlier stages
     (``core.design.combine_stages``); while stages remain, the estimate rests on the
-    stages so far and says so.
+    stages so far and says so. Planned segments abandoned for good (``bams-cli abandon``)
+    are refused, unless ``failed_as="bounds"`` asks for the worst case over them
+    (``bams_cli.abandon``).
     """
+    from bams_cli import abandon
     from bams_cli import stages as stages_mod
     from bams_cli.core.design import combine_stages
     from bams_cli.core.estimate import gp_estimate
@@ -2101,11 +2149,20 @@ def estimate_compute(
     # A staged estimate combines its series' stages up to this plan, with the weights
     # fixed at stage 1 (renormalised while later stages are still to come).
     series = stages_mod.series_plans(ws, number)
-    stage_est = [_plan_estimate(ws, k.number, gammas, confidence) for k in series]
+    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as) for k in series]
     meta = series[-1].meta
     weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
     weights /= weights.sum()
-    est = combine_stages(stage_est, weights, n_pool=int(meta["n_pool"]))
+    splits = np.cumsum([len(x.sampled_ids) for x in samples])[:-1]
+    fails = np.concatenate([x.fails for x in samples])
+    lost = [i for x in samples for i in x.lost]
+
+    def estimate_with(fails: np.ndarray) -> Any:
+        parts = np.split(fails, splits)
+        stage_est = [x.estimate_with(f) for x, f in zip(samples, parts, strict=True)]
+        return combine_stages(stage_est, weights, n_pool=int(meta["n_pool"]))
+
+    est = estimate_with(fails)
     remaining = series[-1].stages - series[-1].stage
     rows = []
     gp_rows = []
@@ -2178,6 +2235,11 @@ def estimate_compute(
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
     }
+    # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
+    abandon.bound_estimates(
+        summary, lost=lost, sampled_ids=np.concatenate([x.sampled_ids for x in samples]),
+        fails=fails, estimate_with=estimate_with,
+    )  # fmt: skip
     out = ws.estimates_dir / f"estimate-{number:04d}.json"
     with transaction() as tx:
         tx.write_text(out, json.dumps(summary, indent=2, allow_nan=False) + "\n")
@@ -2284,7 +2346,9 @@ def report(
     waiting = []
     for b in ws.batch_numbers():
         df = ws.read_batch(b)
-        pending = df.join(observed_pairs, on=[SID, "fidelity"], how="anti").height
+        gone = ws.abandoned_open("batch", b)  # requests that will never come back
+        open_ = df.join(observed_pairs, on=[SID, "fidelity"], how="anti")
+        pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
         if pending:
             waiting.append(f"batch {b} ({pending} of {df.height} picks, batches/batch-{b:04d}.csv)")
         idx = np.array([pos[s] for s in df[SID].to_list() if s in pos], dtype=np.int64)
@@ -2310,6 +2374,7 @@ def report(
                 "cost": float(df["cost"].sum()),
                 "n_f0": int(len(f0)),
                 "pending": pending,
+                "abandoned": gone.height,
             }
         )
     if waiting:
@@ -2521,7 +2586,8 @@ def _report_plan_notices(
         if shown is not None and k <= shown:
             continue
         sampled = picks.filter(pl.col("plan") == k)[SID].to_list()
-        missing = sum(s not in known0 for s in sampled)
+        gone = set(ws.abandoned_open("plan", k)[SID].to_list())
+        missing = sum(s not in known0 and s not in gone for s in sampled)
         shown_text = (
             "no estimate is shown yet" if shown is None else f"the estimate shown is plan {shown}'s"
         )
@@ -2529,6 +2595,12 @@ def _report_plan_notices(
             text = (
                 f"Estimate plan {k} awaits level-0 results for {missing} of its {len(sampled)} "
                 f"sampled segments (estimates/plan-{k:04d}-handoff.csv); {shown_text}."
+            )
+        elif gone:
+            text = (
+                f"Estimate plan {k} has its results but {len(gone)} of its sampled segments "
+                f"were abandoned: run `bams-cli estimate -w {ws.root} --failed-as bounds` for "
+                f"the worst-case interval over them; {shown_text}."
             )
         else:
             text = (

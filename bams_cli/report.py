@@ -242,6 +242,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                     "SE",
                     "n",
                     "pending",
+                    "abandoned",
                 ],
                 [
                     [
@@ -255,6 +256,7 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                         _maybe(b["mean_f0_se"]),
                         b["n_f0"],
                         b["pending"],
+                        b.get("abandoned", 0),
                     ]
                     for b in s["batches"]
                 ],
@@ -265,7 +267,8 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
             "<p class='note'>Mean level-0 f over the picks whose level-0 value is known "
             f"({'from the ground truth table' if s['truth'] else 'from the observation log'}); "
             "the paper's Table 1. Blank where no pick's level-0 value is known yet (only "
-            "cheap-level picks, or results pending); pending: picks without a result.</p>"
+            "cheap-level picks, or results pending); pending: picks without a result; "
+            "abandoned: picks recorded as never coming back (bams-cli abandon).</p>"
         )
     if "pool_map" in figures:
         parts += ["<h2>Pool map</h2>", _img(figures["pool_map"], "pool coloured by p_n with picks")]
@@ -437,8 +440,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
         lines += [f"{n}\n" for n in estimate_notes(s["estimates"])]
     if s["batches"]:
         lines += [
-            "| batch | strategy | picks | cost | mean level-0 f (SE) | pending |",
-            "|---|---|---|---|---|---|",
+            "| batch | strategy | picks | cost | mean level-0 f (SE) | pending | abandoned |",
+            "|---|---|---|---|---|---|---|",
         ]
         for b in s["batches"]:
             mf = (
@@ -447,7 +450,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
                 else f"{b['mean_f0']:.3g} ({_maybe(b['mean_f0_se']) if b['mean_f0_se'] is None else format(b['mean_f0_se'], '.2g')})"
             )
             lines.append(
-                f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} | {b['pending']} |"
+                f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} "
+                f"| {b['pending']} | {b.get('abandoned', 0)} |"
             )
         lines.append("")
     confirmed = s["confirmed_failures"]

@@ -32,6 +32,8 @@ VERSIONS: dict[str, int] = {
     "report": 1,
     "status": STATUS_SCHEMA_VERSION,
     "summary.json": 1,
+    "abandon": 1,
+    "loop": 1,
 }
 
 Schema = dict[str, Any]
@@ -74,8 +76,14 @@ PENDING: Schema = obj(
     {
         "count": COUNT,
         "by_batch": mapping(COUNT, "batch number"),
-        "first": array(obj({"segment_id": STR, "fidelity": INT, "batch": nullable(INT)})),
-    }
+        "first": array(
+            obj(
+                {"segment_id": STR, "fidelity": INT, "batch": nullable(INT)},
+                {"plan": nullable(INT)},
+            )
+        ),
+    },
+    {"by_plan": mapping(COUNT, "plan number")},
 )
 HYPERPARAMETERS: Schema = obj(
     {
@@ -125,7 +133,18 @@ ESTIMATE_ROW: Schema = obj(
         "failures_known": COUNT,
         "distinct_failures_found": COUNT,
     },
-    {"variance_note": nullable(STR), "rel_var_note": nullable(STR)},
+    {
+        "variance_note": nullable(STR),
+        "rel_var_note": nullable(STR),
+        # estimate --failed-as bounds: the range over abandoned planned segments.
+        "p_hat_low": NUM,
+        "p_hat_high": NUM,
+        "abandoned": COUNT,
+    },
+)
+REQUEST: Schema = obj(
+    {"request_id": STR, "segment_id": STR, "fidelity": INT},
+    {"batch": nullable(INT), "plan": nullable(INT)},
 )
 GP_ROW: Schema = obj(
     {"gamma": NUM, "gp_p_hat": NUM, "gp_var_bound": NUM}, {"gp_var_exact": nullable(NUM)}
@@ -195,6 +214,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "observations": PATH,
                 "log_rows": COUNT,
                 "by_fidelity": mapping(COUNT, "level number"),
+                "abandoned": obj(
+                    {"abandoned": COUNT, "already_abandoned": COUNT, "first": array(REQUEST)}
+                ),
             },
         ),
     ),
@@ -309,7 +331,17 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "gp": array(GP_ROW),
                 "gp_model": STR,
                 "estimate_file": PATH,
-            }
+            },
+            {
+                "abandoned": obj(
+                    {
+                        "count": COUNT,
+                        "failed_as": {"enum": ["bounds"]},
+                        "segments": array(STR),
+                        "note": STR,
+                    }
+                )
+            },
         ),
     ),
     "report": (
@@ -346,6 +378,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "cost": NUM,
                             "budget": nullable(NUM),
                             "pending": COUNT,
+                            "abandoned": COUNT,
                             "handoff": PATH,
                         }
                     )
@@ -356,12 +389,14 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "plan": INT,
                             "sampled": COUNT,
                             "pending": COUNT,
+                            "abandoned": COUNT,
                             "handoff": PATH,
                             "estimate": nullable(PATH),
                         }
                     )
                 ),
                 "pending": COUNT,
+                "abandoned": COUNT,
                 "model": nullable(
                     obj(
                         {"fresh": BOOL},
@@ -443,7 +478,12 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "cost": NUM,
                             "pending": COUNT,
                         },
-                        {"mean_f0": nullable(NUM), "mean_f0_se": nullable(NUM), "n_f0": COUNT},
+                        {
+                            "mean_f0": nullable(NUM),
+                            "mean_f0_se": nullable(NUM),
+                            "n_f0": COUNT,
+                            "abandoned": COUNT,
+                        },
                     )
                 ),
                 "estimates": array(ESTIMATE_ROW),
@@ -472,6 +512,36 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                     )
                 ),
                 "figures": array(STR),
+            }
+        ),
+    ),
+    "abandon": (
+        "bams-cli abandon --json",
+        obj(
+            {
+                "abandoned": COUNT,
+                "already_abandoned": COUNT,
+                "unchanged": BOOL,
+                "by_source": mapping(COUNT, "list: batch N or plan N"),
+                "first": array(REQUEST),
+                "log": PATH,
+                "log_rows": COUNT,
+                "pending": PENDING,
+            },
+            {"message": STR},
+        ),
+    ),
+    "loop": (
+        "bams-cli loop --json",
+        obj(
+            {
+                "workspace": PATH,
+                "batches": COUNT,
+                "plans": COUNT,
+                "steps": array(obj({"step": STR, "list": nullable(STR)})),
+                "unchanged": BOOL,
+                "results_dir": PATH,
+                "estimate_file": nullable(PATH),
             }
         ),
     ),

@@ -81,6 +81,7 @@ def status(root: Path) -> dict[str, Any]:
         "batches": batches,
         "plans": plans,
         "pending": sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans),
+        "abandoned": sum(b["abandoned"] for b in batches) + sum(p["abandoned"] for p in plans),
         "model": model,
         "latest_estimate": latest,
         "commit_in_progress": (ws.root / JOURNAL_NAME).exists(),
@@ -94,7 +95,9 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
     out = []
     for n in ws.batch_numbers():
         df = ws.read_batch(n)
-        pending = df.join(observed, on=[SID, "fidelity"], how="anti").height
+        gone = ws.abandoned_open("batch", n)
+        open_ = df.join(observed, on=[SID, "fidelity"], how="anti")
+        pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
         options = _json(read_metadata(schemas.batch_path(ws.root, n)).get("options"))
         out.append(
             {
@@ -104,6 +107,7 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "cost": float(df["cost"].sum()),
                 "budget": options.get("budget") if isinstance(options, dict) else None,
                 "pending": pending,
+                "abandoned": gone.height,
                 "handoff": str(batch_handoff(ws, n)),
             }
         )
@@ -116,6 +120,7 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
     out = []
     for k in _plan_numbers(ws):
         sampled = picks.filter(pl.col("plan") == k).select(SID)
+        gone = ws.abandoned_open("plan", k).select(SID)
         estimate = ws.estimates_dir / f"estimate-{k:04d}.json"
         try:
             meta = read_metadata_json(ws.estimates_dir / f"plan-{k:04d}.parquet")
@@ -127,7 +132,10 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "stage": int(meta.get("stage") or 1),
                 "stages": int(meta.get("stages") or 1),
                 "sampled": sampled.height,
-                "pending": sampled.join(level0, on=SID, how="anti").height,
+                "pending": sampled.join(level0, on=SID, how="anti")
+                .join(gone, on=SID, how="anti")
+                .height,
+                "abandoned": gone.height,
                 "handoff": str(plan_handoff(ws, k)),
                 "estimate": str(estimate) if estimate.exists() else None,
             }
@@ -221,6 +229,15 @@ def _next_step(
         return step("select", cmd, f"no batch yet: run `{cmd}` for a random first batch")
     if plans and _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet"):
         k = plans[-1]["plan"]
+        if plans[-1]["estimate"] is None and plans[-1]["abandoned"]:
+            cmd = f"bams-cli estimate -w {w} --failed-as bounds"
+            return step(
+                "estimate",
+                cmd,
+                f"estimate plan {k} has its results but {plans[-1]['abandoned']} of its "
+                f"segments were abandoned: run `{cmd}` for the worst-case interval over them, "
+                "or simulate them again and ingest the results",
+            )
         stage, stages = plans[-1]["stage"], plans[-1]["stages"]
         if stage < stages:
             # A staged estimate: the next stage is drawn from the model refitted on this

@@ -168,7 +168,7 @@ def test_a_batch_of_cheap_level_picks_only_has_a_blank_mean(study, stage, batch,
     first = r["summary"]["batches"][0]
     assert first["mean_f0"] is not None  # the other batches keep theirs
     md_row = next(line for line in r["md"].splitlines() if line.startswith(f"| {batch} |"))
-    assert md_row.endswith(f"|  | {row['pending']} |")
+    assert md_row.endswith(f"|  | {row['pending']} | {row['abandoned']} |")
 
 
 def test_the_estimate_shown_is_the_latest_computed_plan(study):

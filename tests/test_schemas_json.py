@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -57,6 +58,10 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     lines = [template[0], template[1].rstrip(",") + ",,crashed"]
     (tmp / "crashed.csv").write_text("\n".join(lines) + "\n")
     run("ingest-results", "ingest-results", "-w", ws, tmp / "crashed.csv")
+    # Given up on: the crashed run abandoned, then the rest of the batch; late results count.
+    run("ingest-results", "ingest-results", "-w", ws, tmp / "crashed.csv", "--abandon-failed")
+    run("abandon", "abandon", "-w", ws, "--batch", 2, "--reason", "cluster down")
+    run("abandon", "abandon", "-w", ws, "--batch", 2)  # nothing left to abandon
     run("ingest-results", "ingest-results", "-w", ws, answer(b2["handoff_csv"], 2))
     run("fit", "fit", "-w", ws, "--restarts", 2)
     run("report", "report", "-w", ws)  # no estimate yet
@@ -68,6 +73,8 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     run("report", "report", "-w", ws, "--truth", truth)
     out["summary.json"].append(json.loads((ws / "report" / "summary.json").read_text()))
     run("status", "status", "-w", ws)
+    sim = f"{sys.executable} -m bams_cli simulate {{handoff}} --truth {truth} -o {{results}}"
+    run("loop", "loop", "-w", ws, "--simulator", sim, "--batches", 2)  # nothing left to do
     return out
 
 

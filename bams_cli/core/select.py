@@ -629,6 +629,7 @@ def select_batch(
     reobserve_level0: bool = False,
     n_init_clusters: int | None = None,
     row_drop_rtol: float = 1e-4,
+    excluded_pairs: BoolArray | None = None,
 ) -> SelectionResult:
     """Select the next batch of (segment, level) simulations (paper Algorithm 1).
 
@@ -673,6 +674,8 @@ def select_batch(
         S_hat for Algorithm 2; default 2 S.
     row_drop_rtol : float
         Speed knob of the exact screening (``greedy_cluster``); never changes the result.
+    excluded_pairs : bool ndarray of shape (N, n_levels), optional
+        True at (x, l) pairs that are never candidates (runs abandoned for good).
 
     Returns
     -------
@@ -711,6 +714,11 @@ def select_batch(
             raise ValueError(f"observed_level0_mask must have shape ({N},); got {obs0.shape}")
         if not reobserve_level0:
             cand[obs0, 0] = False
+    if excluded_pairs is not None:
+        gone = np.asarray(excluded_pairs, dtype=bool)
+        if gone.shape != (N, n_levels):
+            raise ValueError(f"excluded_pairs must have shape ({N}, {n_levels}); got {gone.shape}")
+        cand &= ~gone
 
     def report(phase: str, done: int, total: int) -> None:
         if progress is not None:

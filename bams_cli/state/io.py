@@ -228,15 +228,32 @@ class Transaction:
         self._staged.clear()
 
 
+_open_tx: contextvars.ContextVar[Transaction | None] = contextvars.ContextVar(
+    "open_transaction", default=None
+)
+
+
 @contextmanager
 def transaction() -> Iterator[Transaction]:
-    """``with transaction() as tx: tx.write_parquet(...)``: all files land, or none."""
+    """``with transaction() as tx: tx.write_parquet(...)``: all files land, or none.
+
+    A transaction opened inside another joins it: its files are staged in the outer one
+    and land when that commits (``ingest-results --abandon-failed`` writes the observation
+    log and the abandoned log as one commit).
+    """
+    outer = _open_tx.get()
+    if outer is not None:
+        yield outer
+        return
     tx = Transaction()
+    token = _open_tx.set(tx)
     try:
         yield tx
     except BaseException:
         tx.rollback()
         raise
+    finally:
+        _open_tx.reset(token)
     tx.commit()
 
 

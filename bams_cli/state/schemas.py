@@ -144,7 +144,28 @@ PLAN = StateFile(
     optional=pa.schema(_REQUEST_COLUMNS),
 )
 
-ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN)
+# Append-only log of requests that will never come back (`bams-cli abandon`, `ingest-results
+# --abandon-failed`): the (segment, level) a batch or a plan asked for, with why. Exactly one
+# of batch and plan is set on each row. Nothing is ever removed; a result that arrives
+# later is ingested as usual and outranks the abandonment.
+ABANDONED = StateFile(
+    "abandoned.parquet",
+    "abandoned.parquet",
+    pa.schema(
+        [
+            (SEGMENT_ID, pa.string()),
+            ("fidelity", pa.int64()),
+            ("batch", pa.int64()),
+            ("plan", pa.int64()),
+            ("request_id", pa.string()),
+            ("reason", pa.string()),
+            ("source", pa.string()),
+            ("abandoned_at", pa.string()),
+        ]
+    ),
+)
+
+ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN, ABANDONED)
 
 
 def batch_path(workspace: Path, n: int) -> Path:

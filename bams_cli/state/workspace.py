@@ -6,6 +6,7 @@
   reducer.npz              fitted embedding reducer (arrays only, no pickle)
   segments.parquet         reduced pool: segment_id, z0..z{d-1}, pass-through columns
   observations.parquet     append-only observation log
+  abandoned.parquet        append-only log of requests that will never come back
   model.json               fitted GP hyperparameters (human-readable)
   scores.parquet           per-segment posterior mean, sd and failure probabilities
   batches/batch-NNNN.parquet (+ .csv)   hand-off lists
@@ -62,6 +63,10 @@ class Workspace:
         return schemas.OBSERVATIONS.path(self.root)
 
     @property
+    def abandoned_path(self) -> Path:
+        return schemas.ABANDONED.path(self.root)
+
+    @property
     def model_path(self) -> Path:
         return self.root / MODEL_FILE
 
@@ -91,7 +96,7 @@ class Workspace:
             return False
         ws, path = Workspace(self.root.resolve()), path.resolve()
         files = (ws.settings_path, ws.reducer_path, ws.segments_path, ws.observations_path,
-                 ws.model_path, ws.scores_path)  # fmt: skip
+                 ws.model_path, ws.scores_path, ws.abandoned_path)  # fmt: skip
         folders = (ws.batches_dir, ws.estimates_dir, ws.history_dir, ws.report_dir)
         return path in files or path.parent in folders
 
@@ -261,10 +266,43 @@ class Workspace:
         plans = self.read_plan_picks().group_by(keys).agg(pl.col("plan").max())
         return batches.join(plans, on=keys, how="full", coalesce=True)
 
+    def read_abandoned(self) -> pl.DataFrame:
+        """The log of abandoned requests (``schemas.ABANDONED``), empty when there is none."""
+        if not self.abandoned_path.exists():
+            df = pl.from_arrow(schemas.ABANDONED.schema.empty_table())
+        else:
+            df = pl.from_arrow(
+                schemas.ABANDONED.check(read_state(self.abandoned_path), self.abandoned_path)
+            )
+        assert isinstance(df, pl.DataFrame)
+        return df
+
+    def abandoned_open(self, kind: str, number: int) -> pl.DataFrame:
+        """(segment_id, fidelity) pairs batch or plan ``number`` (``kind``) asked for, that
+        were abandoned for it and have no result."""
+        keys = [schemas.SEGMENT_ID, "fidelity"]
+        gone = self.read_abandoned().filter(pl.col(kind) == number).select(*keys).unique()
+        obs = self.read_observations().select(*keys).unique()
+        return gone.join(obs, on=keys, how="anti")
+
     def pending(self) -> pl.DataFrame:
-        """Selected (segment, fidelity) pairs with no active observation yet."""
-        obs = self.read_observations().select(schemas.SEGMENT_ID, "fidelity").unique()
-        return self.selections().join(obs, on=[schemas.SEGMENT_ID, "fidelity"], how="anti")
+        """Selected (segment, fidelity) pairs with no active observation yet, whose latest
+        batch or plan request has not been abandoned; ``batch`` (``plan``) is null where
+        that request was abandoned."""
+        keys = [schemas.SEGMENT_ID, "fidelity"]
+        obs = self.read_observations().select(*keys).unique()
+        pend = self.selections().join(obs, on=keys, how="anti")
+        gone = self.read_abandoned()
+        if gone.height == 0 or pend.height == 0:
+            return pend
+        for key in ("batch", "plan"):
+            mark = gone.filter(pl.col(key).is_not_null()).select(*keys, key).unique()
+            pend = pend.join(mark.with_columns(pl.lit(True).alias("_gone")), on=[*keys, key],
+                             how="left")  # fmt: skip
+            pend = pend.with_columns(
+                pl.when(pl.col("_gone")).then(None).otherwise(pl.col(key)).alias(key)
+            ).drop("_gone")
+        return pend.filter(pl.col("batch").is_not_null() | pl.col("plan").is_not_null())
 
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:

@@ -1,0 +1,270 @@
+"""``bams-cli loop``: the discovery loop against the user's own simulator, resumable.
+
+Every pass reads the workspace and takes the one step the study needs next, so a loop
+killed at any point picks up where it stopped and a finished loop does nothing:
+
+- picks await results, and their results file is in ``--results-dir``: ingest it;
+- picks await results, no results file yet: run the simulator on the hand-off list. It
+  writes to a temporary name that is renamed to the results file only once the command
+  exits 0, so a killed simulator never leaves a half-written file that looks finished;
+- fewer than ``batches`` batches: a random first batch, or ``fit`` (skipped when the model
+  is up to date) then ``select --batch N``;
+- with ``then_estimate``: ``estimate --plan``, its simulation and ingest, ``estimate``;
+- last, ``fit`` when the model is older than the results.
+
+Each step is the command a user would run (the same pipeline function, holding the
+workspace lock and writing atomically); the loop itself writes nothing else but the
+simulator's results files.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bams_cli import abandon, defaults, pipeline
+from bams_cli.errors import BamsError, OptionError, WorkspaceError
+from bams_cli.state.workspace import Workspace
+from bams_cli.status import batch_handoff, plan_handoff
+
+#: ``on_step(description, done, total)``: what the loop is doing, for a progress display.
+OnStep = Callable[[str, int, int], None]
+
+
+class LoopError(BamsError):
+    """The loop cannot go on by itself (a simulator that failed, results still missing)."""
+
+
+@dataclass(frozen=True)
+class Options:
+    simulator: str
+    batches: int
+    budget: float
+    first_budget: float
+    then_estimate: bool
+    samples: float | None
+    results_dir: Path
+    abandon_failed: bool
+    clusters: int
+    workers: int | None
+    wait: bool
+
+
+def loop(
+    root: Path,
+    *,
+    simulator: str,
+    batches: int,
+    budget: float = defaults.BUDGET,
+    first_budget: float | None = None,
+    then_estimate: bool = False,
+    samples: float | None = None,
+    results_dir: Path | None = None,
+    abandon_failed: bool = False,
+    clusters: int = 6,
+    workers: int | None = None,
+    wait: bool = False,
+    on_step: OnStep | None = None,
+) -> dict[str, Any]:
+    """Run the loop until the study has ``batches`` batches with results (and, with
+    ``then_estimate``, an estimate), taking each step the workspace says is next."""
+    if "{handoff}" not in simulator or "{results}" not in simulator:
+        raise OptionError(
+            f"--simulator {simulator!r}: must name {{handoff}} (the hand-off list to read) "
+            "and {results} (the results file to write), e.g. 'my-sim {handoff} -o {results}'"
+        )
+    if batches < 1:
+        raise OptionError(f"--batches {batches}: must be >= 1")
+    ws = Workspace(Path(root))
+    ws.require_initialised()
+    ws.require_segments()
+    opts = Options(
+        simulator=simulator,
+        batches=batches,
+        budget=budget,
+        first_budget=budget if first_budget is None else first_budget,
+        then_estimate=then_estimate,
+        samples=samples,
+        results_dir=Path(results_dir) if results_dir else ws.root / "loop-results",
+        abandon_failed=abandon_failed,
+        clusters=clusters,
+        workers=workers,
+        wait=wait,
+    )
+    total = batches + (1 if then_estimate else 0)
+    steps: list[dict[str, Any]] = []
+    ingested: set[Path] = set()
+    while True:
+        step = _next_step(ws, opts)
+        if step is None:
+            break
+        name, kind, number = step
+        if on_step is not None:
+            on_step(_describe(name, kind, number), _progress(ws, opts), total)
+        steps.append(_run(ws, opts, name, kind, number, ingested))
+    if on_step is not None:
+        on_step("done", total, total)
+    latest = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
+    return {
+        "workspace": str(ws.root),
+        "batches": len(ws.batch_numbers()),
+        "plans": len(pipeline._plan_numbers(ws)),
+        "steps": steps,
+        "unchanged": not steps,
+        "results_dir": str(opts.results_dir),
+        "estimate_file": str(latest[-1]) if latest else None,
+    }
+
+
+def _describe(name: str, kind: str | None, number: int | None) -> str:
+    return name if kind is None else f"{kind} {number}: {name}"
+
+
+def _progress(ws: Workspace, opts: Options) -> int:
+    """Lists finished: batches without pending picks (and the estimate, once written)."""
+    pend = ws.pending()
+    waiting = set(pend["batch"].drop_nulls().to_list())
+    done = sum(1 for b in ws.batch_numbers()[: opts.batches] if b not in waiting)
+    if opts.then_estimate and any(ws.estimates_dir.glob("estimate-*.json")):
+        done += 1
+    return done
+
+
+def _results_file(opts: Options, kind: str, number: int) -> Path:
+    return opts.results_dir / f"{kind}-{number:04d}.csv"
+
+
+def _model_fresh(ws: Workspace) -> bool:
+    try:
+        ws.require_fresh_model()
+    except WorkspaceError:
+        return False
+    return True
+
+
+def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | None] | None:
+    """(step, list kind, list number) the study needs next, or None when the loop is done."""
+    pend = ws.pending()
+    if pend.height:
+        for kind in ("batch", "plan"):
+            numbers = sorted(set(pend[kind].drop_nulls().to_list()))
+            if numbers:
+                n = int(numbers[0])
+                if _results_file(opts, kind, n).exists():
+                    return ("ingest-results", kind, n)
+                return ("simulate", kind, n)
+    numbers = ws.batch_numbers()
+    if len(numbers) < opts.batches:
+        if not numbers:
+            return ("select", "batch", 1)
+        if not _model_fresh(ws):
+            return ("fit", None, None)
+        return ("select", "batch", numbers[-1] + 1)
+    plans = pipeline._plan_numbers(ws)
+    if opts.then_estimate:
+        if not plans:
+            if not _model_fresh(ws):
+                return ("fit", None, None)
+            return ("estimate --plan", "plan", 1)
+        if not (ws.estimates_dir / f"estimate-{plans[-1]:04d}.json").exists():
+            return ("estimate", "plan", plans[-1])
+    if not _model_fresh(ws) and ws.model_path.exists():
+        return ("fit", None, None)
+    return None
+
+
+def _run(
+    ws: Workspace,
+    opts: Options,
+    name: str,
+    kind: str | None,
+    number: int | None,
+    ingested: set[Path],
+) -> dict[str, Any]:
+    root, wait = ws.root, opts.wait
+    record: dict[str, Any] = {"step": name, "list": None if kind is None else f"{kind} {number}"}
+    if name == "fit":
+        out = pipeline.fit(root, wait=wait)
+        record["up_to_date"] = bool(out.get("up_to_date", False))
+    elif name == "select":
+        assert number is not None
+        first = number == 1 and not ws.model_path.exists()
+        out = pipeline.select(
+            root,
+            strategy="random" if first else "bams",
+            mixed_fidelity=first,
+            budget=opts.first_budget if first else opts.budget,
+            clusters=opts.clusters,
+            workers=opts.workers,
+            batch=number,
+            wait=wait,
+        )
+        record["picks"] = out["picks"]
+    elif name == "simulate":
+        assert kind is not None and number is not None
+        record["results"] = str(_simulate(ws, opts, kind, number))
+    elif name == "ingest-results":
+        assert kind is not None and number is not None
+        results = _results_file(opts, kind, number)
+        if results in ingested:
+            _stuck(ws, opts, kind, number, results)
+        ingested.add(results)
+        if opts.abandon_failed:
+            out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
+            record["abandoned"] = out["abandoned"]["abandoned"]
+        else:
+            out = pipeline.ingest_results(root, results, wait=wait)
+        record["ingested"] = out["ingested"]
+    elif name == "estimate --plan":
+        out = pipeline.estimate_plan(root, samples=opts.samples, wait=wait)
+        record["to_simulate"] = out["to_simulate"]
+    elif name == "estimate":
+        out = pipeline.estimate_compute(
+            root, plan_number=number, failed_as="bounds" if opts.abandon_failed else None,
+            wait=wait,
+        )  # fmt: skip
+        record["estimate_file"] = out["estimate_file"]
+    return record
+
+
+def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
+    """Run the user's simulator on a hand-off list; its results land under their final
+    name only when it exits 0."""
+    handoff = batch_handoff(ws, number) if kind == "batch" else plan_handoff(ws, number)
+    results = _results_file(opts, kind, number)
+    results.parent.mkdir(parents=True, exist_ok=True)
+    partial = results.with_name(f".partial-{results.name}")
+    partial.unlink(missing_ok=True)
+    command = opts.simulator.format(
+        handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
+    )
+    done = subprocess.run(command, shell=True, check=False, stdout=subprocess.DEVNULL)
+    if done.returncode != 0:
+        raise LoopError(
+            f"--simulator: `{command}` exited with {done.returncode} on {handoff}; fix it and "
+            "run the same `bams-cli loop` again (it resumes here)"
+        )
+    if not partial.exists():
+        raise LoopError(
+            f"--simulator: `{command}` exited 0 but wrote no {partial}; the command must "
+            "write the results file named by {results}"
+        )
+    os.replace(partial, results)
+    return results
+
+
+def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) -> None:
+    pend = ws.pending()
+    left = pend.filter(pend[kind] == number)
+    flag = f"--{kind} {number}"
+    raise LoopError(
+        f"{results}: ingested, but {left.height} requests of {kind} {number} still have no "
+        f"result (failed runs, or rows missing); rerun them and ingest the results, record "
+        f"them as lost with `bams-cli abandon -w {shlex.quote(str(ws.root))} {flag}` (or run "
+        "the loop with --abandon-failed), or delete the file to run the simulator again"
+    )

@@ -1,0 +1,138 @@
+"""`bams-cli loop`: the whole study against a simulator command, without truth in the
+workspace; killed at random points and run again, it ends where an uninterrupted run ends;
+run again once finished, it does nothing."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import polars as pl
+import pytest
+
+from bams_cli.state.workspace import Workspace
+from tests.conftest import tree_hash, write_toy
+
+BAMS = [sys.executable, "-m", "bams_cli"]
+
+
+def _study(tmp: Path, name: str, seg: Path) -> Path:
+    ws = tmp / name
+    for args in (
+        ["init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2", "--seed", "4"],
+        ["embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+         "--no-standardize"],
+    ):  # fmt: skip
+        subprocess.run([*BAMS, *map(str, args)], check=True, capture_output=True)
+    return ws
+
+
+def _loop_args(ws: Path, truth: Path) -> list[str]:
+    # The simulation team's command: the sample simulator answering from its own table.
+    sim = (
+        f"{shlex.join(BAMS)} simulate {{handoff}} --truth {shlex.quote(str(truth))} -o {{results}}"
+    )
+    return [*BAMS, "loop", "-w", str(ws), "--simulator", sim, "--batches", "3",
+            "--budget", "2", "--first-budget", "4", "--then-estimate", "--samples", "15",
+            "--clusters", "2", "--workers", "1"]  # fmt: skip
+
+
+def _final(ws: Path) -> dict:
+    """What a study's outcome is made of (not when it was written)."""
+    w = Workspace(ws)
+    batches = [
+        sorted(w.read_batch(n).select("segment_id", "fidelity").iter_rows())
+        for n in w.batch_numbers()
+    ]
+    obs = w.read_observations(active_only=False).select("segment_id", "fidelity", "value")
+    plan = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
+    est = json.loads((ws / "estimates" / "estimate-0001.json").read_text())
+    model = json.loads(w.model_path.read_text())
+    return {
+        "batches": batches,
+        "observations": sorted(obs.iter_rows()),
+        "plan": sorted(plan["segment_id"].to_list()),
+        "estimates": est["estimates"],
+        "model": model["observations_hash"],
+    }
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("loop")
+    seg, truth = write_toy(tmp / "data", n=300, seed=2)
+    ws = _study(tmp, "ws", seg)
+    done = subprocess.run(
+        [*_loop_args(ws, truth), "--json"], capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    return tmp, seg, truth, ws, json.loads(done.stdout)
+
+
+def test_loop_runs_the_study_to_an_estimate(data):
+    _, _, _, ws, out = data
+    steps = [(s["step"], s["list"]) for s in out["steps"]]
+    assert steps[:4] == [
+        ("select", "batch 1"),
+        ("simulate", "batch 1"),
+        ("ingest-results", "batch 1"),
+        ("fit", None),
+    ]
+    assert ("estimate --plan", "plan 1") in steps and ("estimate", "plan 1") in steps
+    assert steps[-1] == ("fit", None)  # the model includes the plan's results
+    assert out["batches"] == 3 and out["plans"] == 1 and out["estimate_file"]
+    status = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True,
+                            text=True)  # fmt: skip
+    s = json.loads(status.stdout)
+    assert status.returncode == 0 and s["pending"] == 0 and s["model"]["fresh"]
+    assert s["next"]["step"] == "report"
+    assert s["batches"][1]["strategy"] == "bams"
+
+
+def test_a_finished_loop_does_nothing(data):
+    _, _, truth, ws, _ = data
+    before = tree_hash(ws)
+    again = subprocess.run([*_loop_args(ws, truth), "--json"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout)["unchanged"] is True
+    assert tree_hash(ws) == before
+
+
+def test_a_loop_killed_at_random_points_ends_where_an_uninterrupted_one_does(data):
+    tmp, seg, truth, ws, _ = data
+    resumed = _study(tmp, "killed", seg)
+    rng = random.Random(13)
+    for _ in range(4):
+        proc = subprocess.Popen(
+            _loop_args(resumed, truth),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,  # its simulator and workers die with it, as in a job kill
+        )
+        time.sleep(rng.uniform(1.0, 6.0))
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    done = subprocess.run(_loop_args(resumed, truth), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert _final(resumed) == _final(ws)
+
+
+def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
+    tmp, seg, _, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", "exit 7 # {handoff} {results}",
+            "--batches", "2", "--budget", "2"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True)
+    assert r.returncode == 1 and "exited with 7" in r.stderr and "batch-0001.csv" in r.stderr
+    s = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True, text=True)
+    assert s.returncode == 3  # batch 1 drawn, waiting for its results: resumable
+    r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 1 and "must name {handoff}" in r.stderr
