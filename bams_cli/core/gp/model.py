@@ -23,7 +23,7 @@ from bams_cli.core.gp._numerics import (
 )
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
 from bams_cli.core.gp.priors import PriorSpec, _Priors
-from bams_cli.core.kernels import matern52
+from bams_cli.core.kernels import matern52, matern52_cross_minus
 
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
 
@@ -247,7 +247,13 @@ class MFGP:
         lc = self._levels(levels, B.shape[0])
         V = self._solve_L(self._k0(self._Xt, A))
         W = self._obs_factor(B, lc)
-        return self._k0(A, B) - V.T @ W
+        # k0 depends on the coordinates only, and selection lists a point once per level in
+        # consecutive columns: evaluate it once per run of identical rows.
+        new = np.ones(B.shape[0], dtype=bool)
+        new[1:] = np.any(B[1:] != B[:-1], axis=1)
+        group = np.cumsum(new) - 1
+        P = np.ascontiguousarray(V.T @ W)
+        return matern52_cross_minus(A, B[new], group, self._ell[0], self._s[0], P)
 
     def cov_obs_obs(
         self,
