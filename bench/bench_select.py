@@ -1,36 +1,54 @@
 """Benchmark ``select_batch`` at the paper's AV scale (DESIGN.md "Where the time goes").
 
-Setting: the av_like sample data (``bams_cli.core.synthetic.av_like``) at N in {5k, 20k,
-45k}, its 512-d embeddings reduced to d = 12 by PCA; two levels with costs [1, 5/32];
-budget m = 15; S = 6 clusters; 30 observations (20 at level 0, 10 at level 1) at random
-pool points, with the data set's true values; gamma is its 1% quantile. The GP is
-``bams_cli.core.gp.MFGP`` with hyperparameters fitted once by MAP on the 30 observations
-and then held fixed for every N (falls back to the dense test posterior if gp.py is
-missing). Per-cluster greedies run in a 2-process pool.
+Setting: the av_like sample data (``bams_cli.core.synthetic.av_like``) at N in {45k, 200k},
+its 512-d embeddings reduced to d = 12 by PCA; two levels with costs [1, 5/32]; budget
+m = 15; S = 6 clusters (more with --clusters; 200k needs ~27 to stay under the 4 GiB
+per-cluster limit, see ``select.MAX_CLUSTER_BYTES``); 30 observations (20 at level 0, 10 at
+level 1) at random pool points, with the data set's true values; gamma is its 1% quantile.
+The GP is ``bams_cli.core.gp.MFGP`` with hyperparameters fitted once by MAP on the 30
+observations at N = 2000 and then held fixed for every N. Per-cluster greedies run in a
+2-process pool, as ``bams-cli select`` runs them.
 
-    .venv/bin/python bench/bench_select.py                 # 5k, 20k (3 runs), 45k (2 runs)
-    .venv/bin/python bench/bench_select.py --sizes 5000 --runs 1
+    .venv/bin/python bench/bench_select.py                       # 45k, 3 runs + reference
+    .venv/bin/python bench/bench_select.py --sizes 200000 --clusters 27 --runs 1 --no-reference
     .venv/bin/python bench/bench_select.py --hyper flat   # worst case: few rows can be dropped
 
-Prints the median wall time per N and each phase's share of it. The "greedy.*" lines are
-seconds summed over clusters (they overlap in time across the two processes); "greedy CPU"
-is their CPU time, which on a shared machine is below their wall time.
+For every N it prints the median wall time over --runs runs, the peak resident memory of
+the process tree (this process plus the pool's workers, sampled every 20 ms from /proc),
+each phase's share of one run, and the load average (the machine is shared: CPU seconds
+are the steadier number). "greedy.*" lines are seconds summed over clusters (they overlap
+in time across the two processes).
+
+Reference (--reference, on by default): the exact greedy written densely in numpy with
+``scipy.special.owens_t`` (``reference_greedy``: beta for every row and candidate at every
+pick, no screening, no compiled code) on one cluster of the first N, timed against
+``greedy_cluster`` on the same cluster in the same process. It reports the time ratio,
+whether the picks are identical, and the ratio of the two greedies' J decreases (1 for
+an exact method).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+from scipy.special import owens_t
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from bams_cli.core.select import select_batch  # noqa: E402
+from bams_cli.core.select import (  # noqa: E402
+    V_TINY_REL,
+    _predict,
+    greedy_cluster,
+    select_batch,
+)
 
 D = 12
 COSTS = [1.0, 5 / 32]
@@ -84,11 +102,170 @@ def make_posterior(X, obs, lev, y, hp=None, hyper="map"):
     return fit_mfgp(X[obs], lev, y, 2, rng=np.random.default_rng(0), fixed=hp), hp
 
 
+class PeakRSS:
+    """Peak resident memory (MB) of this process and all its descendants, sampled from /proc.
+
+    ru_maxrss gives one process's peak; the workers of a process pool hold their clusters'
+    matrices at the same time as the parent holds the pool, so the sum is what the machine
+    must have.
+    """
+
+    def __init__(self, interval: float = 0.02) -> None:
+        self.interval, self.peak, self._stop = interval, 0.0, threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    @staticmethod
+    def _tree(pid: int) -> list[int]:
+        out, todo = [], [pid]
+        while todo:
+            p = todo.pop()
+            out.append(p)
+            try:
+                for task in os.listdir(f"/proc/{p}/task"):
+                    with open(f"/proc/{p}/task/{task}/children") as f:
+                        todo += [int(c) for c in f.read().split()]
+            except OSError:
+                pass
+        return out
+
+    @staticmethod
+    def _rss_mb(pid: int) -> float:
+        try:
+            with open(f"/proc/{pid}/statm") as f:
+                return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+        except OSError:
+            return 0.0
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            total = sum(self._rss_mb(p) for p in self._tree(os.getpid()))
+            self.peak = max(self.peak, total)
+            self._stop.wait(self.interval)
+
+    def __enter__(self) -> PeakRSS:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def reference_greedy(post, X, rows, mu, sigma2, cand, gamma, costs, budget, block=256):
+    """The exact per-cluster greedy, densely: every row x every candidate through owens_t.
+
+    Written from DESIGN.md alone (no code shared with ``select``): C = cov(theta0(rows),
+    y_cands), V = var(y_cands); at each pick, for every candidate c,
+    t_c(x) = t_S(x) - C(x, c)^2 / (V(c) sigma_n^2(x)) and
+    Delta_c = sum_x beta(s_x, t_S(x)) - beta(s_x, t_c(x)), beta = 2 T(s, sqrt(t / (2 - t)));
+    take the best Delta_c / c_l among candidates that fit (ties: lowest candidate index),
+    then condition everything on it by one rank-1 step. Candidates are processed in
+    column blocks so memory stays at C plus a rows x block temporary.
+
+    Returns pool indices, levels and the picks' Delta J (mean over the cluster's rows).
+    """
+    cr, cl = np.nonzero(cand)
+    Xc = X[cr]
+    n_s = len(rows)
+    C = post.cov_theta0_obs(X, Xc, cl)  # rows x candidates, dense
+    V = post.obs_var(Xc, cl).astype(np.float64)
+    alive = V > V_TINY_REL * V.max()
+    picked = np.zeros(len(cr), bool)
+    live = sigma2 > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(live, (gamma - mu) / np.sqrt(np.where(live, sigma2, 1.0)), 0.0)
+    s, sig2 = s[live], sigma2[live]
+    C = C[live]
+    tS = np.ones(len(s))
+
+    def b(t):
+        t = np.clip(t, 0.0, 1.0)
+        return 2.0 * owens_t(s[:, None] if t.ndim == 2 else s, np.sqrt(t / (2.0 - t)))
+
+    v_floor = V_TINY_REL * V.max()
+    used: list[float] = []
+    G_hist: list[np.ndarray] = []
+    V_hist: list[float] = []
+    out_i, out_l, out_dj = [], [], []
+    while True:
+        fits = np.array([math.fsum([*used, c]) <= budget for c in costs])[cl]
+        elig = np.flatnonzero(alive & ~picked & fits)
+        if not len(elig):
+            break
+        bS = b(tS)
+        best, best_sc, best_dec = -1, -np.inf, 0.0
+        for j0 in range(0, len(elig), block):
+            B = elig[j0 : j0 + block]
+            t = tS[:, None] - C[:, B] ** 2 / (V[B][None, :] * sig2[:, None])
+            dec = (bS[:, None] - b(t)).sum(axis=0)
+            sc = dec / costs[cl[B]]
+            k = int(np.argmax(sc))  # first maximum: lowest index within the block
+            if sc[k] > best_sc:
+                best, best_sc, best_dec = int(B[k]), float(sc[k]), float(dec[k])
+        out_i.append(int(rows[cr[best]]))
+        out_l.append(int(cl[best]))
+        out_dj.append(best_dec / n_s)
+        used.append(float(costs[cl[best]]))
+        g = post.cov_obs_obs(
+            Xc[best : best + 1],
+            cl[best : best + 1],
+            Xc,
+            cl,
+            same=(np.arange(len(cr)) == best)[None],
+        )[0]
+        picked[best] = True
+        Vs, col = V[best], C[:, best].copy()
+        for gk, vk in zip(G_hist, V_hist, strict=True):  # g conditional on earlier picks
+            g = g - (gk[best] / vk) * gk
+        G_hist.append(g)
+        V_hist.append(float(Vs))
+        tS = np.clip(tS - col**2 / (Vs * sig2), 0.0, 1.0)
+        for i0 in range(0, len(C), block):
+            C[i0 : i0 + block] -= np.outer(col[i0 : i0 + block] / Vs, g)
+        V = V - g**2 / Vs
+        alive &= V > v_floor
+    return np.array(out_i), np.array(out_l), np.array(out_dj)
+
+
+def run_reference(post, X, obs0, gamma, labels, which: str) -> None:
+    """Time greedy_cluster and reference_greedy on one cluster; compare their picks."""
+    sizes = np.bincount(labels)
+    k = int(np.argmin(sizes) if which == "smallest" else np.argmax(sizes))
+    rows = np.flatnonzero(labels == k)
+    costs = np.asarray(COSTS)
+    budget = float(math.ceil(BUDGET * len(rows) / len(X) - 1e-9))  # as select_batch, eta = 1
+    cand = np.ones((len(rows), 2), dtype=bool)
+    cand[obs0[rows], 0] = False
+    mu, sigma2 = _predict(post, X[rows])
+    args = (post, X[rows], rows, mu, sigma2, cand)
+    t0, c0 = time.perf_counter(), time.process_time()
+    q = greedy_cluster(*args, gamma=gamma, costs=costs, budget=budget)
+    t_fast, c_fast = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    idx, lev, dj = reference_greedy(post, X[rows], rows, mu, sigma2, cand, gamma, costs, budget)
+    t_ref, c_ref = time.perf_counter() - t0, time.process_time() - c0
+    same = np.array_equal(q.index, idx) and np.array_equal(q.level, lev)
+    print(
+        f"\nreference on cluster {k} ({which}: {len(rows)} rows, {int(cand.sum())} candidates, "
+        f"budget {budget:g}, {len(idx)} picks); load {os.getloadavg()[0]:.2f}"
+    )
+    print(f"  greedy_cluster      {t_fast:8.2f} s wall {c_fast:8.2f} s CPU")
+    print(f"  dense numpy+owens_t {t_ref:8.2f} s wall {c_ref:8.2f} s CPU")
+    print(
+        f"  ratio (reference / greedy_cluster): {t_ref / t_fast:.1f}x wall, {c_ref / c_fast:.1f}x CPU"
+    )
+    print(
+        f"  picks identical: {same}; J-decrease ratio (greedy_cluster / reference): "
+        f"{math.fsum(q.delta_j.tolist()) / math.fsum(dj.tolist()):.12f}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[5000, 20000, 45000])
-    ap.add_argument("--runs", type=int, nargs="+", default=None, help="runs per size")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[45000])
+    ap.add_argument("--runs", type=int, default=3, help="runs per size (median reported)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--clusters", type=int, default=6)
     ap.add_argument(
         "--hyper",
         choices=["map", "flat"],
@@ -96,18 +273,18 @@ def main() -> None:
         help="map: fitted once on the 30 observations; flat: the worst case (see FLAT)",
     )
     ap.add_argument("--row-drop-rtol", type=float, default=1e-4)
+    ap.add_argument("--no-reference", dest="reference", action="store_false")
+    ap.add_argument("--reference-cluster", choices=["smallest", "largest"], default="smallest")
     args = ap.parse_args()
-    runs = args.runs or [3 if n < 40000 else 2 for n in args.sizes]
-    if len(runs) == 1:
-        runs = runs * len(args.sizes)
 
     X, obs, lev, y, gamma = make_pool(2000)
     _, hp = make_posterior(X, obs, lev, y, hyper=args.hyper)
     print(f"hyperparameters ({args.hyper}; fitted at N = 2000 for map), held fixed: {hp}")
     print(f"machine: {os.cpu_count()} cpus, load average {os.getloadavg()}")
 
+    first = None
     with ProcessPoolExecutor(max_workers=args.workers) as ex:
-        # warm-up: import + load numba's cached kernel in every worker
+        # warm-up: import + load numba's cached kernels in every worker
         post, _ = make_posterior(X, obs, lev, y, hp)
         select_batch(
             post,
@@ -119,34 +296,54 @@ def main() -> None:
             executor=ex,
             rng=np.random.default_rng(0),
         )
-        for n, r in zip(args.sizes, runs, strict=True):
+        for n in args.sizes:
             X, obs, lev, y, gamma = make_pool(n)
             post, _ = make_posterior(X, obs, lev, y, hp)
             obs0 = np.zeros(n, dtype=bool)
             obs0[obs[lev == 0]] = True
-            totals, results = [], []
-            for k in range(r):
-                t0 = time.perf_counter()
-                res = select_batch(
-                    post,
-                    X,
-                    gamma=gamma,
-                    costs=COSTS,
-                    budget=BUDGET,
-                    n_clusters=6,
-                    observed_level0_mask=obs0,
-                    row_drop_rtol=args.row_drop_rtol,
-                    executor=ex,
-                    rng=np.random.default_rng(k),
-                )
-                totals.append(time.perf_counter() - t0)
+            totals, cpus, peaks, loads, results = [], [], [], [], []
+            for k in range(args.runs):
+                loads.append(os.getloadavg()[0])
+                c0 = time.process_time()
+                with PeakRSS() as mem:
+                    t0 = time.perf_counter()
+                    res = select_batch(
+                        post,
+                        X,
+                        gamma=gamma,
+                        costs=COSTS,
+                        budget=BUDGET,
+                        n_clusters=args.clusters,
+                        observed_level0_mask=obs0,
+                        row_drop_rtol=args.row_drop_rtol,
+                        executor=ex,
+                        rng=np.random.default_rng(k),
+                    )
+                    totals.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0 + res.timings["greedy.cpu"])
+                peaks.append(mem.peak)
                 results.append(res)
+            if first is None:
+                first = (post, X, obs0, gamma, results[0].labels)
             med = statistics.median(totals)
             k_med = int(np.argsort(totals)[len(totals) // 2])
             res = results[k_med]
             print(
-                f"\nN = {n}: median {med:.1f} s over {r} run(s) "
-                f"(all: {', '.join(f'{t:.1f}' for t in totals)}); load {os.getloadavg()[0]:.2f}"
+                f"\nN = {n}, {args.clusters} clusters: median {med:.1f} s over {args.runs} run(s) "
+                f"(all: {', '.join(f'{t:.1f}' for t in totals)}); CPU s (parent + workers' "
+                f"greedy): {', '.join(f'{c:.1f}' for c in cpus)}; peak RSS of the process "
+                f"tree {max(peaks):.0f} MB; load average at each start: "
+                f"{', '.join(f'{v:.2f}' for v in loads)}"
+            )
+            same = all(
+                np.array_equal(r.index, results[0].index)
+                and np.array_equal(r.level, results[0].level)
+                for r in results
+            )
+            print(
+                f"  runs agree on the batch: {same} (K-means seeds differ per run)"
+                if not same
+                else "  every run gave the same batch"
             )
             print(f"  phases of run {k_med + 1} ({totals[k_med]:.1f} s):")
             for phase in ("predict", "cluster", "greedy", "pool", "j_after"):
@@ -171,6 +368,8 @@ def main() -> None:
                 f"{res.stats['rows_dropped']}; candidates {res.stats['candidates']}; "
                 f"exact evaluations {res.stats['exact_evaluations']}"
             )
+    if args.reference and first is not None:
+        run_reference(*first, args.reference_cluster)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,10 @@ pick is nevertheless exact; three devices make it cheap, none of which changes t
    lower end can win; those "contenders" are evaluated exactly (``scipy.special.owens_t``
    over every row, dropped ones included), best upper bound first, stopping as soon as the
    next upper bound falls below the best exact score. The pick and its Delta J are exact.
+4. Candidates that can never be picked again (picked, determined, or a level the shrinking
+   budget no longer buys) are dropped from C once they are a quarter of its columns
+   (``_compact_columns``, in place): at N = 45k the cheap level outlives level 0 for the
+   last third of a cluster's picks, and the screen no longer streams those columns.
 
 Multiple thresholds: J is defined for one gamma. ``select_batch`` takes one; the pipeline
 passes the first configured gamma (the others are scored by the same GP afterwards).
@@ -71,6 +75,8 @@ V_TINY_REL = 1e-12
 #: Bytes of rows x candidates float64 one cluster may hold before ``select_batch`` refuses.
 MAX_CLUSTER_BYTES = 4 * 2**30
 _EPS = float(np.finfo(np.float64).eps)
+#: Compact C once fewer than this fraction of its columns can still be picked.
+COMPACT_BELOW = 0.75
 _PREDICT_BLOCK = 8192
 
 
@@ -208,6 +214,28 @@ def _update_and_screen(C, a, g, inv_sig2, tS, b, M, invV, acc):  # pragma: no co
             acc[j] += bi - math.sqrt(t) * v
 
 
+@njit(cache=True)
+def _compact_rows_in_place(flat, n_rows, n_c, keep):  # pragma: no cover
+    k = keep.shape[0]
+    for i in range(n_rows):
+        src = i * n_c
+        dst = i * k
+        for jj in range(k):
+            flat[dst + jj] = flat[src + keep[jj]]
+
+
+def _compact_columns(C: FloatArray, keep: IntArray) -> FloatArray:
+    """C[:, keep] for ascending ``keep``, written over C's own memory (no second copy).
+
+    Row i of the result starts at i * len(keep) <= i * n_c and keep[jj] >= jj, so every
+    element is read before anything overwrites it.
+    """
+    n_rows, n_c = C.shape
+    flat = C.reshape(-1)
+    _compact_rows_in_place(flat, n_rows, n_c, np.ascontiguousarray(keep, dtype=np.int64))
+    return flat[: n_rows * len(keep)].reshape(n_rows, len(keep))
+
+
 # --------------------------------------------------------------------------------------
 # Per-cluster greedy
 # --------------------------------------------------------------------------------------
@@ -322,7 +350,7 @@ def _greedy_cluster(
 
     cand_row, cand_level = np.nonzero(candidate_mask)  # row-major: by pool index, then level
     cand_level = cand_level.astype(np.int64)
-    n_c = len(cand_row)
+    n_c = n_c0 = len(cand_row)
     Xc = np.ascontiguousarray(X[cand_row])
     cc = costs[cand_level]
 
@@ -395,6 +423,22 @@ def _greedy_cluster(
         eligible = alive & ~picked & _level_fits(used, costs, budget)[cand_level]
         if not eligible.any():
             break
+        if eligible.sum() < COMPACT_BELOW * n_c:
+            # Picked, determined and unaffordable candidates are out for good (the remaining
+            # budget only shrinks and V only decreases), but the screen streams every column
+            # of C at every pick: drop them. Column order is kept, so index ties break as
+            # before. The pending rank-1 step (a_vec, g_vec) applies column by column.
+            keep = np.flatnonzero(eligible)
+            t1 = time.perf_counter()
+            C = _compact_columns(C, keep)
+            cand_row, cand_level, Xc, cc = cand_row[keep], cand_level[keep], Xc[keep], cc[keep]
+            V, alive, picked, g_vec = V[keep], alive[keep], picked[keep], g_vec[keep]
+            G_rows = [gk[keep] for gk in G_rows]
+            eligible = eligible[keep]
+            n_c = len(keep)
+            acc = np.zeros(n_c)
+            arange_c = np.arange(n_c)
+            timings["update"] += time.perf_counter() - t1
         t1 = time.perf_counter()
         invV = np.zeros(n_c)
         np.divide(1.0, V, out=invV, where=alive & ~picked)
@@ -476,7 +520,7 @@ def _greedy_cluster(
         stats={
             "rows_screened": len(K),
             "rows_dropped": len(D),
-            "candidates": n_c,
+            "candidates": n_c0,
             "exact_evaluations": n_exact,
         },
     )

@@ -605,3 +605,35 @@ def test_mfgp_satisfies_posterior_protocol():
     np.testing.assert_array_equal(posterior.lengthscales0, model.hyperparameters.lengthscales0)
     for name in ("predict_theta0", "cov_theta0_obs", "cov_obs_obs", "obs_var"):
         assert callable(getattr(posterior, name))
+
+
+def test_cov_obs_obs_reuses_the_factor_of_a_repeated_large_candidate_set():
+    # Selection asks for one row against the same ~15,000 candidates at every pick; the
+    # model remembers their factor. A changed set (same shape) must not get the stale one.
+    rng = np.random.default_rng(3)
+    X, levels, y = mf_data(rng, 2, 2)
+    hp = random_hp(rng, 2, 2)
+    model = fit_mfgp(X, levels, y, 2, rng=rng, fixed=hp)
+    Xc = rng.normal(size=(1100, 2))
+    lc = rng.integers(0, 2, 1100)
+    ref = dense_cov_obs_obs(X, levels, hp, Xc[:3], lc[:3], Xc, lc)
+    first = model.cov_obs_obs(Xc[:3], lc[:3], Xc, lc)
+    again = model.cov_obs_obs(Xc[:3], lc[:3], Xc, lc)
+    np.testing.assert_allclose(first, ref, rtol=1e-8, atol=1e-10)
+    np.testing.assert_array_equal(again, first)
+    Xc2, lc2 = Xc.copy(), lc.copy()
+    Xc2[500] += 0.3
+    lc2[7] = 1 - lc2[7]
+    ref2 = dense_cov_obs_obs(X, levels, hp, Xc2[:3], lc2[:3], Xc2, lc2)
+    np.testing.assert_allclose(
+        model.cov_obs_obs(Xc2[:3], lc2[:3], Xc2, lc2), ref2, rtol=1e-8, atol=1e-10
+    )
+
+
+def dense_cov_obs_obs(X, levels, hp, Xa, la, Xb, lb):
+    K = ref_kaug(X, levels, X, levels, hp) + np.diag(hp.noise[levels])
+    ka, kb = ref_kaug(X, levels, Xa, la, hp), ref_kaug(X, levels, Xb, lb, hp)
+    same = ref_same(Xa, la, Xb, lb)
+    return (
+        ref_kaug(Xa, la, Xb, lb, hp) + same * hp.noise[la][:, None] - ka.T @ np.linalg.solve(K, kb)
+    )

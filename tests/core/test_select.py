@@ -374,3 +374,59 @@ def test_select_batch_refuses_a_cluster_too_big_for_memory(pool_problem, monkeyp
     monkeypatch.setattr(select_mod, "MAX_CLUSTER_BYTES", 10_000)
     with pytest.raises(ValueError, match="raise n_clusters"):
         _select(pool_problem, n_clusters=1)
+
+
+def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch):
+    # The production posterior (core.gp.MFGP, whose cov_theta0_obs evaluates k0 once per
+    # candidate point for all its levels) with the hyperparameters of the dense reference:
+    # the same picks as the brute-force greedy on the dense reference model, also after
+    # the greedy has dropped the columns of candidates that can no longer be picked.
+    from bams_cli.core import select as select_mod
+    from bams_cli.core.gp import Hyperparameters, fit_mfgp
+
+    compactions = []
+    real = select_mod._compact_columns
+    monkeypatch.setattr(
+        select_mod,
+        "_compact_columns",
+        lambda C, keep: compactions.append(len(keep)) or real(C, keep),
+    )
+
+    prob = make_problem(n_pool=200, n_obs=10, n_levels=2, d=3, seed=11)
+    dp = prob.posterior
+    hp = Hyperparameters(
+        mean=dp.mean,
+        outputscale0=float(dp.outputscales[0]),
+        lengthscales0=dp.lengthscales[0],
+        outputscales=dp.outputscales[1:],
+        lengthscales=dp.lengthscales[1:],
+        noise=dp.noise,
+        offsets=np.zeros(1),
+    )
+    mf = fit_mfgp(dp.X_obs, dp.levels_obs, dp.y_obs, 2, rng=np.random.default_rng(0), fixed=hp)
+    costs, budget = np.array([1.0, 0.4]), 4.0
+    mu, sigma2 = mf.predict_theta0(prob.X)
+    cand = np.ones((200, 2), dtype=bool)
+    cand[prob.observed_level0, 0] = False
+    rows = np.arange(200)
+    q = greedy_cluster(
+        mf, prob.X, rows, mu, sigma2, cand, gamma=prob.gamma, costs=costs, budget=budget
+    )
+    bf = BruteForce(dp, prob.X, prob.gamma)
+    idx, lev, dj, _ = bf.greedy(rows, cand, costs, budget)
+    assert len(idx) >= 5 and set(lev) == {0, 1}
+    assert compactions  # level 0 stopped fitting the budget before the end
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
+
+
+@pytest.mark.parametrize("keep", [[0, 2, 3], [1], [0, 1, 2, 3, 4], [4]])
+def test_compact_columns_in_place_equals_fancy_indexing(keep):
+    from bams_cli.core.select import _compact_columns
+
+    C = np.arange(35, dtype=np.float64).reshape(7, 5) * 1.5
+    want = C[:, keep].copy()
+    got = _compact_columns(C, np.array(keep))
+    np.testing.assert_array_equal(got, want)
+    assert got.flags.c_contiguous and np.shares_memory(got, C)
