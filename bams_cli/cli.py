@@ -703,9 +703,12 @@ def estimate(
     """Estimate the failure rate with an unbiased importance sample, in stages.
 
     --plan draws a stage's sample and writes its hand-off list; once its results are
-    ingested, estimate (no --plan) computes the estimate for every configured gamma. By
-    default K is spent in two stages: after stage 1's results, refit and run --plan again
-    for stage 2, whose design rests on the model as checked against stage 1's outcomes.
+    ingested, estimate (no --plan) computes the estimate for every configured gamma.
+
+    By default K is spent in two stages: after stage 1's results, refit and run --plan
+    again for stage 2, whose design rests on the model as checked against stage 1's
+    outcomes.
+
     The stages' weights are fixed at stage 1, so the combined estimate stays unbiased.
 
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200

@@ -171,6 +171,15 @@ def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | Non
             if not _model_fresh(ws):
                 return ("fit", None, None)
             return ("estimate --plan", "plan", 1)
+        from bams_cli import stages  # the numerical stack loads only when a plan exists
+
+        info = stages.plan_info(ws, plans[-1])
+        if info.stage < info.stages:
+            # A staged estimate: the next stage is drawn from the model refitted on this
+            # one's results (``core.design``).
+            if not _model_fresh(ws):
+                return ("fit", None, None)
+            return ("estimate --plan", "plan", plans[-1] + 1)
         if not (ws.estimates_dir / f"estimate-{plans[-1]:04d}.json").exists():
             return ("estimate", "plan", plans[-1])
     if not _model_fresh(ws) and ws.model_path.exists():

@@ -52,8 +52,10 @@ def _final(ws: Path) -> dict:
         for n in w.batch_numbers()
     ]
     obs = w.read_observations(active_only=False).select("segment_id", "fidelity", "value")
-    plan = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
-    est = json.loads((ws / "estimates" / "estimate-0001.json").read_text())
+    plan = pl.concat(
+        [pl.read_parquet(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (1, 2)]
+    )
+    est = json.loads((ws / "estimates" / "estimate-0002.json").read_text())
     model = json.loads(w.model_path.read_text())
     return {
         "batches": batches,
@@ -85,9 +87,11 @@ def test_loop_runs_the_study_to_an_estimate(data):
         ("ingest-results", "batch 1"),
         ("fit", None),
     ]
-    assert ("estimate --plan", "plan 1") in steps and ("estimate", "plan 1") in steps
+    # The estimate's two stages, a refit between them, then the combined estimate.
+    i1, i2 = steps.index(("estimate --plan", "plan 1")), steps.index(("estimate --plan", "plan 2"))
+    assert ("fit", None) in steps[i1:i2] and ("estimate", "plan 2") in steps[i2:]
     assert steps[-1] == ("fit", None)  # the model includes the plan's results
-    assert out["batches"] == 3 and out["plans"] == 1 and out["estimate_file"]
+    assert out["batches"] == 3 and out["plans"] == 2 and out["estimate_file"]
     status = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True,
                             text=True)  # fmt: skip
     s = json.loads(status.stdout)
