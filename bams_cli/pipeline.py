@@ -2179,13 +2179,10 @@ def report(
 
     estimates, gp_rows = [], []
     plans = _plan_numbers(ws)
-    shown_plan = next(
-        (k for k in reversed(plans) if (ws.estimates_dir / f"estimate-{k:04d}.json").exists()),
-        None,
-    )
+    shown_plan = next((k for k in reversed(plans) if ws.estimate_path(k).exists()), None)
     notices += _report_plan_notices(ws, plans, shown_plan, set(obs0))
     if shown_plan is not None:
-        doc = json.loads((ws.estimates_dir / f"estimate-{shown_plan:04d}.json").read_text())
+        doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
         estimates = [{**e, "plan": shown_plan} for e in doc["estimates"]]
         gp_rows = doc["gp"]
     elif scores is not None:
@@ -2263,8 +2260,9 @@ def report(
         fails = truth_f0[:, None] <= np.asarray(gammas)[None, :]
         counts = fails.sum(axis=0)
         est_recall: list[float | None] = [None] * len(gammas)
-        for g, e in enumerate(estimates):
-            if counts[g]:
+        for e in estimates:  # by gamma: the estimate may answer gammas edited since
+            if e["gamma"] in gammas and counts[gammas.index(e["gamma"])]:
+                g = gammas.index(e["gamma"])
                 est_recall[g] = e["distinct_failures_found"] / float(counts[g])
         grid = np.linspace(0, 10, 101)
         curves = {}
@@ -2286,7 +2284,10 @@ def report(
             },
         }
     if estimates:
-        truth_rates = list(truth_doc["rate"]) if truth_doc else None  # type: ignore[call-overload]
+        truth_rates = None
+        if truth_doc is not None:  # by gamma, as the recall above
+            rate = dict(zip(gammas, truth_doc["rate"], strict=True))  # type: ignore[call-overload]
+            truth_rates = [rate.get(e["gamma"], float("nan")) for e in estimates]
         figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
     summary: dict[str, Any] = {
