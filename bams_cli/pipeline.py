@@ -37,12 +37,14 @@ from bams_cli.errors import (
     SettingsError,
     StaleStateError,
     WorkspaceError,
+    shown,
 )
 from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
+    first_valid,
     journal_in,
     read_metadata,
     read_state,
@@ -50,6 +52,7 @@ from bams_cli.state.io import (
     read_table,
     recover,
     require_columns,
+    require_id_column,
     stamp,
     transaction,
 )
@@ -352,15 +355,11 @@ class _EmbeddingStream:
 
 
 def _read_ids(path: Path, id_column: str) -> pa.Array:
-    ids = pq.read_table(path, columns=[id_column]).column(id_column).combine_chunks()
-    if not (
-        pa.types.is_string(ids.type)
-        or pa.types.is_large_string(ids.type)
-        or pa.types.is_integer(ids.type)
-    ):
-        raise SchemaError(
-            path, f"segment ids must be strings or integers, got {ids.type}", column=id_column
-        )
+    table = pq.read_table(path, columns=[id_column])
+    require_id_column(table, id_column, path, "segment id")
+    ids = table.column(id_column).combine_chunks()
+    if pa.types.is_dictionary(ids.type):
+        ids = ids.dictionary_decode()
     if ids.null_count:
         row = int(np.flatnonzero(ids.is_null().to_numpy(zero_copy_only=False))[0]) + 1
         raise InputError(path, "segment id is missing", column=id_column, row=row)
@@ -378,7 +377,7 @@ def _check_unique(ids: pa.Array, source: object, column: str, what: str = "segme
         second = int((s == value).arg_true()[1])
         raise DuplicateError(
             source,
-            f"{what} {value!r} appears again (first at row {first + 1})",
+            f"{what} {shown(value)} appears again (first at row {first + 1})",
             column=column,
             row=second + 1,
         )
@@ -413,6 +412,8 @@ def embed_reduce(
     id_column = id_column or settings.id_column
     if not source.exists():
         raise InputError(source, "segments file not found")
+    if source.is_dir():
+        raise InputError(source, "is a folder; give the segments file itself")
     try:
         schema = pq.read_schema(source)
     except (pa.ArrowInvalid, OSError) as exc:
@@ -489,7 +490,7 @@ def embed_reduce(
             row = int(np.flatnonzero(clash.to_numpy(zero_copy_only=False))[0]) + 1
             raise DuplicateError(
                 source,
-                f"segment id {ids[row - 1].as_py()!r} is already in the pool",
+                f"segment id {shown(ids[row - 1].as_py())} is already in the pool",
                 column=id_column,
                 row=row,
             )
@@ -630,10 +631,19 @@ def _read_results(
         )
     else:
         require_columns(table, [SID, "fidelity", "value"], path)
+    require_id_column(table, SID, path, "segment id")
+    require_id_column(table, rid_col, path, "request id")
+    require_id_column(table, "status", path, "status", "text such as ok or crashed")
     for name in ("fidelity", "value"):
         if name not in table.column_names:
             continue
         t = table.schema.field(name).type
+        # Numbers as decimals (a SQL export), half floats, or categories (pandas) are read
+        # as the numbers or level names they hold; the checks below see float64 or text.
+        if pa.types.is_dictionary(t):
+            t = t.value_type
+        elif pa.types.is_decimal(t) or pa.types.is_float16(t):
+            t = pa.float64()
         if not (
             pa.types.is_integer(t)
             or pa.types.is_floating(t)
@@ -641,7 +651,17 @@ def _read_results(
             or pa.types.is_large_string(t)
             or pa.types.is_null(t)
         ):
-            raise SchemaError(path, f"expected numbers, got {t}", column=name)
+            row, value = first_valid(table.column(name))
+            raise SchemaError(
+                path,
+                f"expected {'a number' if name == 'value' else 'a level number or name'}, "
+                f"got {shown(value)} of type {t}",
+                column=name,
+                row=row,
+            )
+        if t != table.schema.field(name).type:
+            i = table.column_names.index(name)
+            table = table.set_column(i, name, table.column(name).cast(t))
     if table.num_rows == 0:
         raise InputError(path, "has no rows; nothing to ingest")
     df = pl.from_arrow(table)
@@ -678,7 +698,7 @@ def _read_results(
         first = unknown.row(0, named=True)
         raise InputError(
             path,
-            f"request_id {first[rid_col]!r} is not in any hand-off list ({unknown.height} unknown "
+            f"request_id {shown(first[rid_col])} is not in any hand-off list ({unknown.height} unknown "
             f"in all); copy request ids from batches/batch-NNNN.csv or estimates/plan-NNNN-handoff.csv",
             column=rid_col,
             row=int(first["_row"]),
@@ -688,7 +708,7 @@ def _read_results(
         twice = rows.filter(rows.select(rid_col).is_duplicated())
         raise DuplicateError(
             path,
-            f"request_id {twice[rid_col][0]!r} appears again (first at row {twice['_row'][0]})",
+            f"request_id {shown(twice[rid_col][0])} appears again (first at row {twice['_row'][0]})",
             column=rid_col,
             row=int(twice["_row"][1]),
         )
@@ -707,8 +727,8 @@ def _read_results(
         c = df.filter(clash).row(0, named=True)
         raise InputError(
             path,
-            f"request_id {c[rid_col]!r} is segment {c['_req_sid']!r}, but this row names "
-            f"{str(c[SID])!r}; fix the segment_id or the request_id",
+            f"request_id {shown(c[rid_col])} is segment {c['_req_sid']!r}, but this row names "
+            f"{shown(str(c[SID]))}; fix the segment_id or the request_id",
             column=SID,
             row=int(c["_row"]),
         )
@@ -733,8 +753,8 @@ def _read_results(
         c = df.with_columns(levels.alias("_fid")).filter(clash).row(0, named=True)
         raise InputError(
             path,
-            f"request_id {c[rid_col]!r} asks for fidelity {c['_req_fid']}, but this row gives "
-            f"{c['fidelity']!r} (level {c['_fid']}); fix the fidelity or the request_id",
+            f"request_id {shown(c[rid_col])} asks for fidelity {c['_req_fid']}, but this row gives "
+            f"{shown(c['fidelity'])} (level {c['_fid']}); fix the fidelity or the request_id",
             column="fidelity",
             row=int(c["_row"]),
         )
@@ -754,7 +774,7 @@ def _read_results(
         )
         raise InputError(
             path,
-            f"value must be a finite number, got {got!r}{hint}",
+            f"value must be a finite number, got {'nothing' if got is None else shown(got)}{hint}",
             column="value",
             row=row,
         )
@@ -778,7 +798,7 @@ def _read_results(
         again = int(rows["_row"][1])
         raise DuplicateError(
             path,
-            f"({first[SID]!r}, fidelity {first['fidelity']}) appears again (first at row {first['_row']})",
+            f"({shown(first[SID])}, fidelity {first['fidelity']}) appears again (first at row {first['_row']})",
             column=SID,
             row=again,
         )
@@ -809,11 +829,23 @@ def ingest_results(
     digest = file_sha256(source)
     log = ws.read_observations(active_only=False)
 
-    if digest in set(log["source_sha256"].to_list()):
+    # A file ingested before is a no-op, unless --replace asks for its values back (to
+    # undo a later --replace): then it goes through like any file, superseding what differs.
+    if digest in set(log["source_sha256"].to_list()) and not replace:
+        active = log.filter(pl.col("active")).select(SID, "fidelity", pl.col("value").alias("_k"))
+        changed = results.join(active, on=[SID, "fidelity"], how="left").filter(
+            pl.col("_k").is_null() | (pl.col("_k") != pl.col("value"))
+        )
+        since = (
+            f"; {changed.height} of its values were replaced since: pass --replace to restore them"
+            if changed.height
+            else ""
+        )
         return {
             "ingested": 0,
             "already_ingested": True,
-            "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed",
+            "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed"
+            + since,
             "pending": _pending_summary(ws),
             "not_run": _not_run_summary(not_run),
         }
@@ -833,7 +865,7 @@ def ingest_results(
         first = unknown.row(0, named=True)
         raise InputError(
             source,
-            f"segment id {first[SID]!r} is not in the pool ({unknown.height} unknown in all); "
+            f"segment id {shown(first[SID])} is not in the pool ({unknown.height} unknown in all); "
             f"add segments with `bams-cli embed-reduce --apply`",
             column=SID,
             row=int(first["_row"]),
@@ -850,7 +882,8 @@ def ingest_results(
     )
     unselected = matched.filter(pl.col("batch").is_null() & pl.col("plan").is_null())
     if unselected.height and not allow_unselected:
-        names = ", ".join(unselected[SID].head(3).to_list())
+        first3 = unselected[SID].head(3).to_list()
+        names = ", ".join(s if len(s) <= 40 else s[:37] + "..." for s in first3)
         more = "" if unselected.height <= 3 else ", ..."
         raise InputError(
             source,
@@ -866,7 +899,7 @@ def ingest_results(
     if conflicts.height and not replace:
         c = conflicts.row(0, named=True)
         raise ConflictError(
-            f"{source}: column 'value', row {c['_row']}: ({c[SID]!r}, fidelity {c['fidelity']}) "
+            f"{source}: column 'value', row {c['_row']}: ({shown(c[SID])}, fidelity {c['fidelity']}) "
             f"is already known as {c['known']!r}, got {c['value']!r} "
             f"({conflicts.height} conflicts in all); pass --replace to supersede the logged values"
         )
