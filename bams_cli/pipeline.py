@@ -278,6 +278,10 @@ def _batch_matrix(
             row = offset + int(np.flatnonzero(arr.is_null().to_numpy(zero_copy_only=False))[0]) + 1
             raise InputError(source, "embedding is null", column=list_col, row=row)
         lengths = pc.list_value_length(arr).to_numpy(zero_copy_only=False)
+        if len(lengths) and lengths[0] == 0:  # a pool with no coordinates: nothing could use it
+            raise InputError(
+                source, "embedding is empty (0 values)", column=list_col, row=offset + 1
+            )
         if len(lengths) and (lengths != lengths[0]).any():
             row = offset + int(np.flatnonzero(lengths != lengths[0])[0]) + 1
             raise InputError(

@@ -328,6 +328,8 @@ EMBED_CASES = [
          *IDENTITY), S, "embedding holds a non-finite value", column="emb", row=1),
     Case("segments-list-ragged", _segments({"segment_id": ["a", "b"], "emb": [[1.0, 2.0], [1.0]]},
          *IDENTITY), S, "embedding has 1 values, expected 2", column="emb", row=2),
+    Case("segments-list-empty", _segments({"segment_id": ["a", "b"], "emb": [[], []]}, *IDENTITY),
+         S, "embedding is empty (0 values)", column="emb", row=1),
     Case("segments-list-null", _segments({"segment_id": ["a", "b"], "emb": [[1.0, 2.0], None]},
          *IDENTITY), S, "embedding is null", column="emb", row=2),
     Case("segments-no-id-column", _segments({"id": ["a"], "x0": [1.0]}, *COLS), S,
