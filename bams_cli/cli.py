@@ -576,6 +576,8 @@ def select(
 
     [bold]Example[/]: bams-cli select -w study --budget 5 --clusters 6
     """
+    if workers is not None and workers < 1:
+        raise OptionError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
     with console.progress(not json_out) as bar:
         summary = pipeline.select(
             workspace,
@@ -1092,6 +1094,8 @@ def benchmark(
     """
     from bams_cli.benchmark import PROTOCOLS, run_benchmark, run_suite, suite_rows
 
+    if workers < 1:
+        raise OptionError(f"--workers {workers}: must be >= 1")
     if protocol not in (*PROTOCOLS, "suite"):
         raise BamsError(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}, or suite")
     options: dict[str, Any] = {

@@ -8,6 +8,16 @@ from __future__ import annotations
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PENDING = 0, 1, 2, 3
 
 
+def shown(value: object, limit: int = 60) -> str:
+    """``repr(value)`` for an error message, cut to ``limit`` characters: an id or a cell
+    of 100,000 characters is named by its start and its length, not echoed whole."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    size = f" ({len(value)} characters)" if isinstance(value, str | bytes) else ""
+    return f"{text[: limit - 3]}...{size}"
+
+
 class BamsError(Exception):
     """Base class: a problem the user can fix; printed as one line, exit code 1."""
 
@@ -22,9 +32,9 @@ class InputError(BamsError):
     ):
         where = str(file)
         if column is not None:
-            where += f": column {column!r}"
+            where += f": column {shown(column)}"
         if row is not None:
-            where += f", row {row}"
+            where += f", row {row}" if column is not None else f": row {row}"
         super().__init__(f"{where}: {message}")
         self.file, self.column, self.row = str(file), column, row
 

@@ -105,6 +105,8 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
         finally:
             client.close()
         return
+    if workers is not None and workers < 1:
+        raise BamsError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
     n = workers or os.cpu_count() or 1
     if n <= 1:
         yield InlineExecutor()

@@ -38,12 +38,14 @@ from bams_cli.errors import (
     SettingsError,
     StaleStateError,
     WorkspaceError,
+    shown,
 )
 from bams_cli.settings import SETTINGS_FILE, Settings, levels_from_costs
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     file_sha256,
+    first_valid,
     journal_in,
     read_metadata_json,
     read_state,
@@ -51,6 +53,7 @@ from bams_cli.state.io import (
     read_table,
     recover,
     require_columns,
+    require_id_column,
     stamp,
     transaction,
 )
@@ -276,6 +279,10 @@ def _batch_matrix(
             row = offset + int(np.flatnonzero(arr.is_null().to_numpy(zero_copy_only=False))[0]) + 1
             raise InputError(source, "embedding is null", column=list_col, row=row)
         lengths = pc.list_value_length(arr).to_numpy(zero_copy_only=False)
+        if len(lengths) and lengths[0] == 0:  # a pool with no coordinates: nothing could use it
+            raise InputError(
+                source, "embedding is empty (0 values)", column=list_col, row=offset + 1
+            )
         if len(lengths) and (lengths != lengths[0]).any():
             row = offset + int(np.flatnonzero(lengths != lengths[0])[0]) + 1
             raise InputError(
@@ -353,15 +360,11 @@ class _EmbeddingStream:
 
 
 def _read_ids(path: Path, id_column: str) -> pa.Array:
-    ids = pq.read_table(path, columns=[id_column]).column(id_column).combine_chunks()
-    if not (
-        pa.types.is_string(ids.type)
-        or pa.types.is_large_string(ids.type)
-        or pa.types.is_integer(ids.type)
-    ):
-        raise SchemaError(
-            path, f"segment ids must be strings or integers, got {ids.type}", column=id_column
-        )
+    table = pq.read_table(path, columns=[id_column])
+    require_id_column(table, id_column, path, "segment id")
+    ids = table.column(id_column).combine_chunks()
+    if pa.types.is_dictionary(ids.type):
+        ids = ids.dictionary_decode()
     if ids.null_count:
         row = int(np.flatnonzero(ids.is_null().to_numpy(zero_copy_only=False))[0]) + 1
         raise InputError(path, "segment id is missing", column=id_column, row=row)
@@ -379,7 +382,7 @@ def _check_unique(ids: pa.Array, source: object, column: str, what: str = "segme
         second = int((s == value).arg_true()[1])
         raise DuplicateError(
             source,
-            f"{what} {value!r} appears again (first at row {first + 1})",
+            f"{what} {shown(value)} appears again (first at row {first + 1})",
             column=column,
             row=second + 1,
         )
@@ -414,6 +417,8 @@ def embed_reduce(
     id_column = id_column or settings.id_column
     if not source.exists():
         raise InputError(source, "segments file not found")
+    if source.is_dir():
+        raise InputError(source, "is a folder; give the segments file itself")
     try:
         schema = pq.read_schema(source)
     except (pa.ArrowInvalid, OSError) as exc:
@@ -490,7 +495,7 @@ def embed_reduce(
             row = int(np.flatnonzero(clash.to_numpy(zero_copy_only=False))[0]) + 1
             raise DuplicateError(
                 source,
-                f"segment id {ids[row - 1].as_py()!r} is already in the pool",
+                f"segment id {shown(ids[row - 1].as_py())} is already in the pool",
                 column=id_column,
                 row=row,
             )
@@ -631,10 +636,19 @@ def _read_results(
         )
     else:
         require_columns(table, [SID, "fidelity", "value"], path)
+    require_id_column(table, SID, path, "segment id")
+    require_id_column(table, rid_col, path, "request id")
+    require_id_column(table, "status", path, "status", "text such as ok or crashed")
     for name in ("fidelity", "value"):
         if name not in table.column_names:
             continue
         t = table.schema.field(name).type
+        # Numbers as decimals (a SQL export), half floats, or categories (pandas) are read
+        # as the numbers or level names they hold; the checks below see float64 or text.
+        if pa.types.is_dictionary(t):
+            t = t.value_type
+        elif pa.types.is_decimal(t) or pa.types.is_float16(t):
+            t = pa.float64()
         if not (
             pa.types.is_integer(t)
             or pa.types.is_floating(t)
@@ -642,7 +656,17 @@ def _read_results(
             or pa.types.is_large_string(t)
             or pa.types.is_null(t)
         ):
-            raise SchemaError(path, f"expected numbers, got {t}", column=name)
+            row, value = first_valid(table.column(name))
+            raise SchemaError(
+                path,
+                f"expected {'a number' if name == 'value' else 'a level number or name'}, "
+                f"got {shown(value)} of type {t}",
+                column=name,
+                row=row,
+            )
+        if t != table.schema.field(name).type:
+            i = table.column_names.index(name)
+            table = table.set_column(i, name, table.column(name).cast(t))
     if table.num_rows == 0:
         raise InputError(path, "has no rows; nothing to ingest")
     df = pl.from_arrow(table)
@@ -679,7 +703,7 @@ def _read_results(
         first = unknown.row(0, named=True)
         raise InputError(
             path,
-            f"request_id {first[rid_col]!r} is not in any hand-off list ({unknown.height} unknown "
+            f"request_id {shown(first[rid_col])} is not in any hand-off list ({unknown.height} unknown "
             f"in all); copy request ids from batches/batch-NNNN.csv or estimates/plan-NNNN-handoff.csv",
             column=rid_col,
             row=int(first["_row"]),
@@ -689,7 +713,7 @@ def _read_results(
         twice = rows.filter(rows.select(rid_col).is_duplicated())
         raise DuplicateError(
             path,
-            f"request_id {twice[rid_col][0]!r} appears again (first at row {twice['_row'][0]})",
+            f"request_id {shown(twice[rid_col][0])} appears again (first at row {twice['_row'][0]})",
             column=rid_col,
             row=int(twice["_row"][1]),
         )
@@ -708,8 +732,8 @@ def _read_results(
         c = df.filter(clash).row(0, named=True)
         raise InputError(
             path,
-            f"request_id {c[rid_col]!r} is segment {c['_req_sid']!r}, but this row names "
-            f"{str(c[SID])!r}; fix the segment_id or the request_id",
+            f"request_id {shown(c[rid_col])} is segment {c['_req_sid']!r}, but this row names "
+            f"{shown(str(c[SID]))}; fix the segment_id or the request_id",
             column=SID,
             row=int(c["_row"]),
         )
@@ -734,8 +758,8 @@ def _read_results(
         c = df.with_columns(levels.alias("_fid")).filter(clash).row(0, named=True)
         raise InputError(
             path,
-            f"request_id {c[rid_col]!r} asks for fidelity {c['_req_fid']}, but this row gives "
-            f"{c['fidelity']!r} (level {c['_fid']}); fix the fidelity or the request_id",
+            f"request_id {shown(c[rid_col])} asks for fidelity {c['_req_fid']}, but this row gives "
+            f"{shown(c['fidelity'])} (level {c['_fid']}); fix the fidelity or the request_id",
             column="fidelity",
             row=int(c["_row"]),
         )
@@ -755,7 +779,7 @@ def _read_results(
         )
         raise InputError(
             path,
-            f"value must be a finite number, got {got!r}{hint}",
+            f"value must be a finite number, got {'nothing' if got is None else shown(got)}{hint}",
             column="value",
             row=row,
         )
@@ -779,7 +803,7 @@ def _read_results(
         again = int(rows["_row"][1])
         raise DuplicateError(
             path,
-            f"({first[SID]!r}, fidelity {first['fidelity']}) appears again (first at row {first['_row']})",
+            f"({shown(first[SID])}, fidelity {first['fidelity']}) appears again (first at row {first['_row']})",
             column=SID,
             row=again,
         )
@@ -810,11 +834,23 @@ def ingest_results(
     digest = file_sha256(source)
     log = ws.read_observations(active_only=False)
 
-    if digest in set(log["source_sha256"].to_list()):
+    # A file ingested before is a no-op, unless --replace asks for its values back (to
+    # undo a later --replace): then it goes through like any file, superseding what differs.
+    if digest in set(log["source_sha256"].to_list()) and not replace:
+        active = log.filter(pl.col("active")).select(SID, "fidelity", pl.col("value").alias("_k"))
+        changed = results.join(active, on=[SID, "fidelity"], how="left").filter(
+            pl.col("_k").is_null() | (pl.col("_k") != pl.col("value"))
+        )
+        since = (
+            f"; {changed.height} of its values were replaced since: pass --replace to restore them"
+            if changed.height
+            else ""
+        )
         return {
             "ingested": 0,
             "already_ingested": True,
-            "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed",
+            "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed"
+            + since,
             "pending": _pending_summary(ws),
             "not_run": _not_run_summary(not_run),
         }
@@ -834,7 +870,7 @@ def ingest_results(
         first = unknown.row(0, named=True)
         raise InputError(
             source,
-            f"segment id {first[SID]!r} is not in the pool ({unknown.height} unknown in all); "
+            f"segment id {shown(first[SID])} is not in the pool ({unknown.height} unknown in all); "
             f"add segments with `bams-cli embed-reduce --apply`",
             column=SID,
             row=int(first["_row"]),
@@ -851,7 +887,8 @@ def ingest_results(
     )
     unselected = matched.filter(pl.col("batch").is_null() & pl.col("plan").is_null())
     if unselected.height and not allow_unselected:
-        names = ", ".join(unselected[SID].head(3).to_list())
+        first3 = unselected[SID].head(3).to_list()
+        names = ", ".join(s if len(s) <= 40 else s[:37] + "..." for s in first3)
         more = "" if unselected.height <= 3 else ", ..."
         raise InputError(
             source,
@@ -867,7 +904,7 @@ def ingest_results(
     if conflicts.height and not replace:
         c = conflicts.row(0, named=True)
         raise ConflictError(
-            f"{source}: column 'value', row {c['_row']}: ({c[SID]!r}, fidelity {c['fidelity']}) "
+            f"{source}: column 'value', row {c['_row']}: ({shown(c[SID])}, fidelity {c['fidelity']}) "
             f"is already known as {c['known']!r}, got {c['value']!r} "
             f"({conflicts.height} conflicts in all); pass --replace to supersede the logged values"
         )
@@ -2400,13 +2437,10 @@ def report(
 
     estimates, gp_rows = [], []
     plans = _plan_numbers(ws)
-    shown_plan = next(
-        (k for k in reversed(plans) if (ws.estimates_dir / f"estimate-{k:04d}.json").exists()),
-        None,
-    )
+    shown_plan = next((k for k in reversed(plans) if ws.estimate_path(k).exists()), None)
     notices += _report_plan_notices(ws, plans, shown_plan, set(obs0))
     if shown_plan is not None:
-        doc = json.loads((ws.estimates_dir / f"estimate-{shown_plan:04d}.json").read_text())
+        doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
         estimates = [{**e, "plan": shown_plan} for e in doc["estimates"]]
         gp_rows = doc["gp"]
     elif scores is not None:
@@ -2484,8 +2518,9 @@ def report(
         fails = truth_f0[:, None] <= np.asarray(gammas)[None, :]
         counts = fails.sum(axis=0)
         est_recall: list[float | None] = [None] * len(gammas)
-        for g, e in enumerate(estimates):
-            if counts[g]:
+        for e in estimates:  # by gamma: the estimate may answer gammas edited since
+            if e["gamma"] in gammas and counts[gammas.index(e["gamma"])]:
+                g = gammas.index(e["gamma"])
                 est_recall[g] = e["distinct_failures_found"] / float(counts[g])
         grid = np.linspace(0, 10, 101)
         curves = {}
@@ -2507,7 +2542,10 @@ def report(
             },
         }
     if estimates:
-        truth_rates = list(truth_doc["rate"]) if truth_doc else None  # type: ignore[call-overload]
+        truth_rates = None
+        if truth_doc is not None:  # by gamma, as the recall above
+            rate = dict(zip(gammas, truth_doc["rate"], strict=True))  # type: ignore[call-overload]
+            truth_rates = [rate.get(e["gamma"], float("nan")) for e in estimates]
         figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
     summary: dict[str, Any] = {

@@ -112,7 +112,9 @@ def rate_plot(estimates: list[dict[str, Any]], truth_rates: list[float] | None) 
     p = np.array([e["p_hat"] for e in estimates])
     lo = np.array([e["ci_low"] for e in estimates])
     hi = np.array([e["ci_high"] for e in estimates])
-    ax.errorbar(x, p, yerr=[p - lo, hi - p], fmt="o", capsize=6, label="IS estimate and interval")
+    # Clipped at 0: matplotlib refuses a negative error bar (an interval edited by hand).
+    yerr = [np.maximum(p - lo, 0.0), np.maximum(hi - p, 0.0)]
+    ax.errorbar(x, p, yerr=yerr, fmt="o", capsize=6, label="IS estimate and interval")
     if truth_rates is not None:
         ax.scatter(
             x, truth_rates, marker="x", color="C3", s=60, zorder=3, label="true rate (ground truth)"

@@ -175,13 +175,7 @@ def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     if not files:
         return None
     path = files[-1]
-    doc = _json(path.read_text())
-    if not isinstance(doc, dict) or not isinstance(doc.get("estimates"), list):
-        k = int(path.stem[len("estimate-") :])
-        raise StaleStateError(
-            f"{path}: damaged (not an estimate written by estimate); run "
-            f"`bams-cli estimate -w {shlex.quote(str(ws.root))} --plan-number {k}` to write it again"
-        )
+    doc = ws.read_estimate(int(path.stem[len("estimate-") :]))
     keys = ("gamma", "p_hat", "se", "ci_low", "ci_high", "confidence")
     return {
         "plan": doc.get("plan"),

@@ -179,7 +179,7 @@ def _bad(tmp_path: Path, text: str) -> Path:
         ),
         (
             "request_id,value,status\n{r0},,\n",
-            "column 'value', row 1: value must be a finite number, got None; fill it in, or say "
+            "column 'value', row 1: value must be a finite number, got nothing; fill it in, or say "
             "why there is none in the status column",
         ),
         (

@@ -203,7 +203,7 @@ def test_a_command_holds_the_lock_from_first_read(ws, runner, tmp_path):
         ("segment_id,fidelity,value\n", "has no rows; nothing to ingest"),
         (
             "segment_id,fidelity,value\nt000000,true,1.0\n",
-            "column 'fidelity': expected numbers, got bool",
+            "column 'fidelity', row 1: expected a level number or name, got True of type bool",
         ),
         (
             "segment_id,fidelity,value\nt000000,0,abc\n",
@@ -278,3 +278,52 @@ def test_a_results_column_named_like_the_tools_own_is_refused(ws, runner, tmp_pa
     res.write_text(f"segment_id,fidelity,value,_row\n{IDS[0]},0,1.5,9\n")
     r = invoke(runner, "ingest-results", "-w", ws, res)
     assert r.exit_code == 1 and "column '_row': this column name is reserved" in r.stderr
+
+
+def test_decimal_values_and_levels_are_read_as_the_numbers_they_hold(ws, runner, tmp_path):
+    # A SQL export writes decimals; they were refused ("expected numbers, got decimal128").
+    from decimal import Decimal
+
+    res = tmp_path / "dec.parquet"
+    table = pa.table(
+        {
+            "segment_id": [IDS[0], IDS[2]],
+            "fidelity": pa.array([Decimal("0"), Decimal("1.0")], pa.decimal128(4, 1)),
+            "value": pa.array([Decimal("1.25"), Decimal("-0.5")], pa.decimal128(10, 2)),
+        }
+    )
+    pq.write_table(table, res)
+    r = invoke(runner, "ingest-results", "-w", ws, res)
+    assert r.exit_code == 0, r.output
+    log = Workspace(ws).read_observations()
+    assert log.select("segment_id", "fidelity", "value").rows() == [
+        (IDS[0], 0, 1.25),
+        (IDS[2], 1, -0.5),
+    ]
+
+
+def test_the_original_file_with_replace_undoes_a_replace(ws, runner, tmp_path):
+    original = _results(tmp_path / "a.parquet", [(IDS[0], 0, 1.5), (IDS[1], 0, 0.3)])
+    fix = _results(tmp_path / "b.parquet", [(IDS[0], 0, 9.0)])
+    assert invoke(runner, "ingest-results", "-w", ws, original).exit_code == 0
+    assert invoke(runner, "ingest-results", "-w", ws, fix, "--replace").exit_code == 0
+
+    # Without --replace the original is a no-op, and says what --replace would bring back.
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, original)
+    assert r.exit_code == 0 and "already ingested" in r.stderr
+    assert "1 of its values were replaced since: pass --replace to restore them" in r.stderr
+    assert tree_hash(ws) == before
+
+    r = invoke(runner, "ingest-results", "-w", ws, original, "--replace", "--json")
+    assert r.exit_code == 0, r.output
+    assert '"replaced": 1' in r.stdout and '"already_known": 1' in r.stdout
+    full = Workspace(ws).read_observations(active_only=False)
+    assert full.height == 4  # 1.5, 0.3, then 9.0, then 1.5 again: nothing is lost
+    active = Workspace(ws).read_observations()
+    assert dict(active.select("segment_id", "value").rows()) == {IDS[0]: 1.5, IDS[1]: 0.3}
+    assert full.filter(full["value"] == 9.0)["active"].to_list() == [False]
+
+    # Once restored, the original is a plain no-op again.
+    r = invoke(runner, "ingest-results", "-w", ws, original, "--replace")
+    assert r.exit_code == 0 and "already in the log; nothing changed" in r.stderr

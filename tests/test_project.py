@@ -293,3 +293,13 @@ def test_a_settings_section_of_the_wrong_kind_is_named(text, needle):
 
     with pytest.raises(SettingsError, match=re.escape(needle)):
         Settings.from_toml(text, source="ws/settings.toml")
+
+
+def test_the_workspace_promises_name_tests_that_exist():
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("### What the workspace promises", 1)[1].split("\n## ", 1)[0]
+    named = re.findall(r"`(tests/[\w/]+\.py)(?:::(\w+))?`", section)
+    assert len(named) >= 6
+    for path, test in named:
+        assert (ROOT / path).is_file(), path
+        assert not test or f"def {test}(" in (ROOT / path).read_text(), (path, test)

@@ -33,7 +33,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli.errors import InputError
+from bams_cli.errors import InputError, shown
 from bams_cli.settings import Settings
 from bams_cli.state.schemas import SEGMENT_ID
 
@@ -157,7 +157,7 @@ def resolve_fidelity(
         found = [_level_of(v, by_name) for v in values.to_list()]
         for value, level, row in zip(values.to_list(), found, rows.to_list(), strict=True):
             if level is None:
-                got = "nothing" if value is None or str(value).strip() == "" else repr(value)
+                got = "nothing" if value is None or str(value).strip() == "" else shown(value)
                 raise InputError(
                     path,
                     f"fidelity must be an integer level or a level name, got {got}; "
@@ -168,7 +168,7 @@ def resolve_fidelity(
             if not 0 <= level < len(names):  # before an Int64 column could overflow
                 raise InputError(
                     path,
-                    f"fidelity {value!r} is not a configured level (known levels: {known}); "
+                    f"fidelity {shown(value)} is not a configured level (known levels: {known}); "
                     "add it to settings.toml [[levels]]",
                     column="fidelity",
                     row=int(row),

@@ -25,7 +25,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bams_cli import __version__
-from bams_cli.errors import InputError, SchemaError
+from bams_cli.errors import InputError, SchemaError, shown
 
 META_PREFIX = "bams."
 
@@ -269,6 +269,8 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
     """Read a Parquet or CSV file the user handed over; unreadable -> one-line InputError."""
     if not path.exists():
         raise InputError(path, f"{what} file not found")
+    if path.is_dir():
+        raise InputError(path, f"is a folder; give the {what} file itself")
     suffix = path.suffix.lower()
     try:
         if suffix == ".csv":
@@ -278,7 +280,36 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
             # column is still text.
             text = {name: pa.string() for name in ("segment_id", "request_id", "status")}
             convert = pacsv.ConvertOptions(column_types=text)
-            table = pacsv.read_csv(path, convert_options=convert)
+            # One thread: only then does pyarrow number a ragged row (the handler keeps it).
+            ragged: list[Any] = []
+
+            def keep(row: Any) -> str:
+                ragged.append(row)
+                return "error"
+
+            parse = pacsv.ParseOptions(invalid_row_handler=keep)
+            try:
+                table = pacsv.read_csv(
+                    path,
+                    read_options=pacsv.ReadOptions(use_threads=False),
+                    parse_options=parse,
+                    convert_options=convert,
+                )
+            except pa.ArrowInvalid:
+                if ragged and ragged[0].number is not None:
+                    bad = ragged[0]
+                    fix = (
+                        "quote fields that hold commas"
+                        if bad.actual_columns > bad.expected_columns
+                        else "give every column a field, empty ones as ,,"
+                    )
+                    raise InputError(
+                        path,
+                        f"has {bad.actual_columns} fields, the header {bad.expected_columns} "
+                        f"({shown(bad.text)}); {fix}",
+                        row=bad.number - 1,  # counted with the header as row 1
+                    ) from None
+                raise
         else:
             table = pq.read_table(path)
     except (pa.ArrowException, OSError, UnicodeDecodeError) as exc:
@@ -306,3 +337,45 @@ def require_columns(table: pa.Table, columns: list[str], source: object) -> None
             f"found {', '.join(map(repr, table.column_names))}",
             column=missing[0],
         )
+
+
+def is_id_type(t: pa.DataType) -> bool:
+    """Whether an id column of this Arrow type reads as one text id per row: text,
+    integers (their decimal text), all-null, or dictionary-encoded text (pandas categories)."""
+    if pa.types.is_dictionary(t):
+        t = t.value_type
+    return (
+        pa.types.is_string(t)
+        or pa.types.is_large_string(t)
+        or pa.types.is_integer(t)
+        or pa.types.is_null(t)
+    )
+
+
+def first_valid(values: pa.ChunkedArray | pa.Array) -> tuple[int, Any]:
+    """(row counted from 1, value) of a column's first non-null entry; (1, None) if none."""
+    valid = values.is_valid().to_numpy(zero_copy_only=False)
+    if not valid.any():
+        return 1, None
+    row = int(valid.argmax())
+    return row + 1, values[row].as_py()
+
+
+def require_id_column(
+    table: pa.Table,
+    column: str,
+    source: object,
+    what: str,
+    expected: str = "text or an integer, one id per row",
+) -> None:
+    """A SchemaError naming the first row of an id column that holds a list, a struct,
+    bytes, a float ... instead of one text id (or integer) per row."""
+    if column not in table.column_names:
+        return
+    t = table.schema.field(column).type
+    if is_id_type(t):
+        return
+    row, value = first_valid(table.column(column))
+    raise SchemaError(
+        source, f"{what} {shown(value)} is of type {t}; expected {expected}", column=column, row=row
+    )

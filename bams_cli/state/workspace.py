@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +37,7 @@ from bams_cli.state.handoff import REQUEST_ID, request_ids
 from bams_cli.state.io import read_metadata, read_state, read_state_schema
 
 REDUCER_FILE = "reducer.npz"
+ESTIMATE_FILE = "estimate-{k:04d}.json"
 MODEL_FILE = "model.json"
 COORD = re.compile(r"^z(\d+)$")
 
@@ -304,6 +307,33 @@ class Workspace:
             ).drop("_gone")
         return pend.filter(pl.col("batch").is_not_null() | pl.col("plan").is_not_null())
 
+    # ---- estimates -----------------------------------------------------------------------
+    def estimate_path(self, k: int) -> Path:
+        return self.estimates_dir / ESTIMATE_FILE.format(k=k)
+
+    def read_estimate(self, k: int) -> dict[str, Any]:
+        """Plan ``k``'s computed estimate (``estimates/estimate-NNNN.json``), checked key by key.
+
+        The report and ``status`` read every key below; a file that is not valid JSON, lacks
+        one, or holds the wrong kind of value (a string for a number, NaN, a negative count)
+        is a ``StaleStateError`` naming the file, the key and the command that rewrites it.
+        """
+        path = self.estimate_path(k)
+        fix = (
+            f"run `bams-cli estimate -w {shlex.quote(str(self.root))} --plan-number {k}` "
+            "to write it again"
+        )
+        try:
+            doc = json.loads(path.read_text())
+        except (ValueError, UnicodeDecodeError) as exc:
+            why = " ".join(str(exc).split())[:120]
+            raise StaleStateError(f"{path}: damaged, not valid JSON ({why}); {fix}") from None
+        try:
+            _check_estimate(doc)
+        except _BadKey as exc:
+            raise StaleStateError(f"{path}: {exc}; {fix}") from None
+        return doc
+
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:
         if not self.model_path.exists():
@@ -366,3 +396,73 @@ class Workspace:
             )
         model["fresh"] = fresh
         return model
+
+
+# ---- estimate files ---------------------------------------------------------------------------
+class _BadKey(ValueError):
+    """A key of a state JSON file that is missing or of the wrong kind."""
+
+
+#: Per-gamma keys of an estimate file: what each must hold ("count": an integer >= 0).
+_ESTIMATE_ROW = {
+    "gamma": "number",
+    "p_hat": "number",
+    "se": "number or null",
+    "ci_low": "number",
+    "ci_high": "number",
+    "confidence": "number",
+    "rel_var": "number or null",
+    "n_sampled": "count",
+    "failures_sampled": "count",
+    "failures_known": "count",
+    "distinct_failures_found": "count",
+    "variance_note": "text or null",
+    "rel_var_note": "text or null",
+}
+_GP_ROW = {"gamma": "number", "gp_p_hat": "number", "gp_var_bound": "number"}
+
+
+def _fits(value: Any, kind: str) -> bool:
+    if value is None:
+        return kind.endswith("or null")
+    if kind.startswith("text"):
+        return isinstance(value, str)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    if kind == "count":
+        return isinstance(value, int) and value >= 0
+    return math.isfinite(value)
+
+
+def _shown(value: Any) -> str:
+    text = json.dumps(value) if not isinstance(value, float) else repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _check_rows(doc: dict[str, Any], key: str, spec: dict[str, str], optional: set[str]) -> None:
+    rows = doc.get(key)
+    if not isinstance(rows, list) or not rows:
+        got = "nothing" if key not in doc else _shown(rows)
+        raise _BadKey(f"key {key!r}: expected a non-empty list of objects, got {got}")
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict):
+            raise _BadKey(f"key {key}[{i}]: expected an object, got {_shown(row)}")
+        for name, kind in spec.items():
+            if name not in row and name in optional:
+                continue
+            if name not in row:
+                raise _BadKey(f"key {key}[{i}].{name}: missing (expected a {kind})")
+            if not _fits(row[name], kind):
+                raise _BadKey(f"key {key}[{i}].{name}: expected a {kind}, got {_shown(row[name])}")
+
+
+def _check_estimate(doc: Any) -> None:
+    """Raise ``_BadKey`` naming the first key of an estimate file that readers cannot use."""
+    if not isinstance(doc, dict):
+        raise _BadKey(f"expected a JSON object, got {_shown(doc)}")
+    _check_rows(doc, "estimates", _ESTIMATE_ROW, {"variance_note", "rel_var_note"})
+    _check_rows(doc, "gp", _GP_ROW, set())
+    gp_exact = [row.get("gp_var_exact") for row in doc["gp"]]
+    for i, value in enumerate(gp_exact):
+        if value is not None and not _fits(value, "number"):
+            raise _BadKey(f"key gp[{i}].gp_var_exact: expected a number, got {_shown(value)}")
