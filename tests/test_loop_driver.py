@@ -52,9 +52,7 @@ def _final(ws: Path) -> dict:
         for n in w.batch_numbers()
     ]
     obs = w.read_observations(active_only=False).select("segment_id", "fidelity", "value")
-    plan = pl.concat(
-        [pl.read_parquet(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (1, 2)]
-    )
+    plan = pl.concat([pl.read_parquet(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (1, 2)])
     est = json.loads((ws / "estimates" / "estimate-0002.json").read_text())
     model = json.loads(w.model_path.read_text())
     return {
