@@ -56,8 +56,9 @@ def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
     r = _make(tmp_path)
     assert "select -w" in r.stdout and "--batch 1" not in r.stdout  # batch 1 not redone
     assert "--batch 3" in r.stdout
-    doc = json.loads((study / "estimates" / "estimate-0001.json").read_text())
+    doc = json.loads((study / "estimates" / "estimate-0002.json").read_text())
     assert doc["estimates"][0]["p_hat"] >= 0
+    assert doc["design"] == "staged" and doc["staging"]["plans"] == [1, 2]
     assert (study / "report" / "summary.md").exists()
 
     # Finished: nothing to do, and every target is up to date.
@@ -68,5 +69,5 @@ def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
     # A lost report is rebuilt alone (fit is a no-op on an unchanged log).
     (study / "report" / "summary.md").unlink()
     r = _make(tmp_path)
-    assert "report -w" in r.stdout and "select" not in r.stdout
+    assert "report -w" in r.stdout and "select -w" not in r.stdout
     assert "up to date" in r.stdout
