@@ -780,8 +780,9 @@ def estimate(
         ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
         rows,
     )
-    if summary["staging"]["note"]:
-        console.note(summary["staging"]["note"])
+    for note in [summary["staging"]["note"], *summary["notes"]]:
+        if note:
+            console.note(note)
     for e in summary["estimates"]:  # what se rests on, why a number is n/a
         for key in ("variance_note", "rel_var_note"):
             if e.get(key):

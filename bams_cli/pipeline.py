@@ -2037,13 +2037,7 @@ def estimate_plan(
         _, template = _write_handoff(
             tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
         )
-    notes = []
-    if choice is not None and choice.predicted[choice.name] > UNIFORM_NOTE_RATIO:
-        notes.append(
-            f"the checked model predicts no design much better than uniform sampling "
-            f"(best: {choice.name}, predicted variance {choice.predicted[choice.name]:.2f}x "
-            "uniform's); the estimate rests on the sample, not the model"
-        )
+    notes = [n for n in [_design_note(meta)] if n]
     return {
         "plan": number,
         "plan_file": str(path),
@@ -2066,6 +2060,19 @@ def estimate_plan(
         "seed_source": meta["seed_source"],
         "notes": notes,
     }
+
+
+def _design_note(meta: dict[str, Any]) -> str | None:
+    """One line when a plan's design was predicted to do no better than uniform sampling."""
+    predicted = meta.get("predicted_vs_uniform") or {}
+    chosen = predicted.get(meta.get("weighting"))
+    if chosen is None or chosen <= UNIFORM_NOTE_RATIO:
+        return None
+    return (
+        f"plan {meta['plan']}: the checked model predicted no design much better than "
+        f"uniform sampling ({meta['weighting']}, {chosen:.2f}x uniform's variance); the "
+        "estimate rests on the sample, not the model"
+    )
 
 
 #: ``estimate --plan --weighting``: "auto" picks the design with the smallest predicted
@@ -2271,6 +2278,7 @@ def estimate_compute(
         "estimates": rows,
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
+        "notes": [n for n in (_design_note(k.meta) for k in series) if n],
     }
     # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
     abandon.bound_estimates(
@@ -2646,6 +2654,10 @@ def _report_plan_notices(
                 f"to compute it; {shown_text}."
             )
         out.append({"kind": "pending_plan", "severity": "info", "text": text})
+    for k in plans[-1:]:
+        note = _design_note(read_metadata_json(ws.estimates_dir / f"plan-{k:04d}.parquet"))
+        if note:
+            out.append({"kind": "design_like_uniform", "severity": "info", "text": note + "."})
     return out
 
 

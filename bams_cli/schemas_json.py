@@ -330,6 +330,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "estimates": array(ESTIMATE_ROW),
                 "gp": array(GP_ROW),
                 "gp_model": STR,
+                "notes": array(STR),
                 "estimate_file": PATH,
             },
             {

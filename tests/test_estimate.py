@@ -226,3 +226,21 @@ def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
     assert out["design"] == "poisson" and out["staging"]["note"] is None
+
+
+@pytest.mark.parametrize(
+    "predicted, weighting, says",
+    [
+        ({"uniform": 1.0, "calibrated": 0.95, "p^alpha": 3.0}, "calibrated", True),
+        ({"uniform": 1.0, "calibrated": 0.4, "p^alpha": 0.5}, "calibrated", False),
+        ({"uniform": 1.0, "calibrated": 1.0, "p^alpha": 2.0}, "uniform", True),
+        (None, "p^alpha", False),  # a forced design: nothing was predicted
+    ],
+)
+def test_a_design_predicted_no_better_than_uniform_is_said_in_one_line(predicted, weighting, says):
+    note = pipeline._design_note(
+        {"plan": 3, "predicted_vs_uniform": predicted, "weighting": weighting}
+    )
+    assert (note is not None) is says
+    if says:
+        assert note.startswith("plan 3:") and "\n" not in note and "uniform" in note
