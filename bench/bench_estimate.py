@@ -211,6 +211,46 @@ def coverage_table(R: int = 2000, seed: int = 0) -> None:
             )
 
 
+def bench_staged(N: int, repeats: int, seed: int) -> None:
+    """One stage of the default staged design at pool size N: the posterior over the
+    calibration from a finished stage, the design choice (three candidates' inclusion
+    probabilities and predicted variances), the draw; and the combined estimate."""
+    from bams_cli.core import design as dz
+
+    rng = np.random.default_rng(seed)
+    p = ndtr(rng.normal(-4.2, 1.5, N))
+    fail = rng.random(N) < p
+    K = 5 * int(fail.sum())
+    u = dz.relative_risk(p)
+    norms = dz.risk_norms(u)
+    post0 = dz.risk_posterior([])
+    c1 = dz.choose_design(p, K=K / 2, posterior=post0)
+    s1 = draw_poisson(c1.pi, rng)
+    ev = dz.StageEvidence(u[s1], fail[s1], norms, p_mean=float(p.mean()))
+
+    def stage2():
+        post = dz.risk_posterior([ev])
+        choice = dz.choose_design(p, K=K / 2, posterior=post)
+        return choice, draw_poisson(choice.pi, rng)
+
+    t_stage, (choice, s2) = median_time(stage2, repeats)
+
+    def combined():
+        e1 = estimate_from_sample(c1.pi[s1], fail[s1], design="poisson", n_pool=N,
+                                  n_unknown=N, budget=K / 2)  # fmt: skip
+        e2 = estimate_from_sample(choice.pi[s2], fail[s2], design="poisson", n_pool=N,
+                                  n_unknown=N, budget=K / 2)  # fmt: skip
+        return dz.combine_stages([e1, e2], [0.5, 0.5], n_pool=N)
+
+    t_comb, est = median_time(combined, repeats)
+    print(
+        f"staged, N = {N:,}, K = {K:,}: a later stage's plan (posterior + design choice + "
+        f"draw) median {t_stage:.3f} s ({choice.name}, predicted "
+        f"{choice.predicted[choice.name]:.3f}x uniform); combining two stages median "
+        f"{t_comb:.3f} s; p_hat {est.p_hat[0]:.5f} (truth {fail.mean():.5f})"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=1_000_000)
@@ -223,6 +263,7 @@ def main() -> None:
         coverage_table(seed=args.seed)
         return
     bench_plan_compute(args.n, args.repeats, args.seed)
+    bench_staged(args.n, args.repeats, args.seed)
     # Warm the numba kernels (compile or load from cache) outside the timings.
     mu, sigma2, cov_block, gamma = gp_problem(300, args.seed)
     gp_variance_exact(mu, sigma2, cov_block, gamma)
