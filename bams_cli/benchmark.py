@@ -1168,7 +1168,8 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "",
         "Per problem: batch 1 random (mixed fidelity for BAMS and MCM-GP), then the "
         "strategy's batches, then `estimate --plan` with K = k p N (p the true rate). "
-        "Recall and RV are the default design's, exact (see each problem's tables.md). "
+        "Recall and RV are the single-stage p^alpha design's, exact (see each problem's "
+        "tables.md; the staged default design: docs/suite/estimate_design.md). "
         "disc. sd: the fitted model's sd of y1 - y0 at a segment, "
         "sqrt(outputscale_1 + noise_1 + noise_0) from the final hyperparameters, mean "
         "[range] over seeds, beside the true sd(f1 - f0) over the pool, both in the "
@@ -1272,13 +1273,15 @@ def render_tables(result: dict[str, Any]) -> str:
         "",
         f"Batches: m1 = {st['m1']:g} random (level-0 share {st['level0_share']:g} for the "
         f"multifidelity strategies), then {st['batches'] - 1} x {st['mb']:g} by the strategy; "
-        f"{st['clusters']} clusters. Default estimator: {st['estimator_default']}.",
+        f"{st['clusters']} clusters. p^alpha estimator: {st['estimator_default']}.",
         "",
     ]
     titles = {
-        "default": "Default design (Poisson over U, known stratum, "
+        "default": "Single-stage p^alpha design (Poisson over U, known stratum, "
         f"alpha {st['estimator_default']['alpha']:g}, "
-        f"defensive {st['estimator_default']['defensive']:g})",
+        f"defensive {st['estimator_default']['defensive']:g}: `estimate --plan --stages 1 "
+        "--weighting p-alpha`; the staged default's variance and coverage are in "
+        "docs/suite/estimate_design.md)",
         "paper": f"Paper's sampler (K draws with replacement over the pool from "
         f"p_n^{PAPER_ALPHA:g}, no defensive share; MC: random scores^{PAPER_ALPHA:g})",
         "with_replacement": "With replacement at the default alpha and defensive share",
