@@ -1918,7 +1918,9 @@ def estimate_plan(
     choice = None
     if staged:
         with np.errstate(divide="ignore"):
-            if weighting == "auto":
+            if unknown.size == 0:  # every level-0 value is known: a census, nothing to draw
+                pi_u = np.zeros(0)
+            elif weighting == "auto":
                 choice = dz.choose_design(
                     pu, K=K_stage, posterior=post, alpha=alpha, defensive=defensive
                 )

@@ -244,3 +244,27 @@ def test_a_design_predicted_no_better_than_uniform_is_said_in_one_line(predicted
     assert (note is not None) is says
     if says:
         assert note.startswith("plan 3:") and "\n" not in note and "uniform" in note
+
+
+def test_a_pool_known_at_level_0_everywhere_plans_nothing_and_is_exact(tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    seg, truth = write_toy(tmp_path / "data", n=24, seed=3)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,1", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    for batch in (1, 2):  # every segment at level 0, in two random batches of 12
+        ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "12")
+        res = tmp_path / f"r{batch}.parquet"
+        handoff = ws / "batches" / f"batch-{batch:04d}.parquet"
+        ok(runner, "simulate", handoff, "--truth", truth, "-o", res)
+        ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert plan["to_simulate"] == 0 and plan["known_stratum"] == 24
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    e = out["estimates"][0]
+    assert e["ci_low"] == e["p_hat"] == e["ci_high"] and e["se"] == 0
+    assert e["p_hat"] == pytest.approx((pq.read_table(truth)["value_0"].to_numpy() <= 0.56).mean())
