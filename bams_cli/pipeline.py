@@ -28,6 +28,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from bams_cli import defaults, schemas_json
+from bams_cli import stages as stages_mod
 from bams_cli.errors import (
     ConflictError,
     DuplicateError,
@@ -1762,15 +1763,7 @@ def select(
 # ---------------------------------------------------------------------------------------
 # estimate (plan -> simulate -> compute)
 # ---------------------------------------------------------------------------------------
-def _plan_numbers(ws: Workspace) -> list[int]:
-    if not ws.estimates_dir.is_dir():
-        return []
-    out = []
-    for p in ws.estimates_dir.glob("plan-*.parquet"):
-        stem = p.stem[len("plan-") :]
-        if stem.isdigit():
-            out.append(int(stem))
-    return sorted(out)
+_plan_numbers = stages_mod.plan_numbers
 
 
 def _read_scores(
@@ -1818,7 +1811,7 @@ def estimate_plan(
     same plan from the same scores, and another seed a fresh one, without editing the
     settings. The seed and the random stream are recorded in the plan's metadata.
     """
-    from bams_cli import stages as st
+    st = stages_mod  # the series and the evidence of finished plans
     from bams_cli.core import design as dz
     from bams_cli.core.estimate import (
         DESIGNS,
@@ -2174,7 +2167,6 @@ def estimate_compute(
     (``bams_cli.abandon``).
     """
     from bams_cli import abandon
-    from bams_cli import stages as stages_mod
     from bams_cli.core.design import combine_stages
     from bams_cli.core.estimate import gp_estimate
 

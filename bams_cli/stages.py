@@ -15,15 +15,17 @@ segments are a random sample with their planning-time p_n stored beside them
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import polars as pl
 
-from bams_cli.core.design import TAUS, StageEvidence
 from bams_cli.state import schemas
 from bams_cli.state.io import read_metadata_json, read_state
 from bams_cli.state.workspace import Workspace
+
+if TYPE_CHECKING:
+    from bams_cli.core.design import StageEvidence
 
 SID = schemas.SEGMENT_ID
 
@@ -92,6 +94,8 @@ def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list
     (``core.design.risk_posterior`` reads them). Plans made for another gamma, or by an
     older version, are skipped. Returns the evidence and the plan numbers it came from.
     """
+    from bams_cli.core.design import TAUS, StageEvidence
+
     obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
     evidence: list[StageEvidence] = []
     used: list[int] = []
