@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 from typer.main import get_command
 
+import bams_cli
 from bams_cli.cli import app
 from tests.conftest import invoke, ok, tree_hash
 
@@ -82,11 +83,10 @@ def test_cli_starts_without_the_numerical_stack():
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
-def test_python_dash_m_runs(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "bams_cli", "--version"], capture_output=True, text=True
-    )
-    assert out.returncode == 0 and out.stdout.startswith("bams-cli ")
+@pytest.mark.parametrize("flag", ["--version", "-V"])
+def test_python_dash_m_runs(tmp_path, flag):
+    out = subprocess.run([sys.executable, "-m", "bams_cli", flag], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == f"bams-cli {bams_cli.__version__}"
 
 
 def test_sample_data_generator_is_deterministic(tmp_path):
