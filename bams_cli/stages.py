@@ -97,13 +97,15 @@ def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list
     from bams_cli.core.design import TAUS, StageEvidence
 
     obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
+    pend = ws.pending()  # read once: which plans still await results
+    waiting = set(pend["plan"].drop_nulls().to_list()) if pend.height else set()
     evidence: list[StageEvidence] = []
     used: list[int] = []
     for k in plan_numbers(ws):
         path = ws.estimates_dir / f"plan-{k:04d}.parquet"
         meta = read_metadata_json(path)
         mean, norms = meta.get("p_mean_unknown"), meta.get("risk_norms")
-        if not mean or not norms or meta.get("plan_gamma") != gamma or not plan_complete(ws, k):
+        if not mean or not norms or meta.get("plan_gamma") != gamma or k in waiting:
             continue
         if len(norms) != len(TAUS):
             continue

@@ -24,6 +24,7 @@ import polars as pl
 from bams_cli import defaults
 from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
 from bams_cli.settings import Settings
+from bams_cli.stages import plan_numbers
 from bams_cli.state import schemas
 from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json
 from bams_cli.state.workspace import Workspace
@@ -118,7 +119,7 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
     picks = ws.read_plan_picks()
     level0 = observed.filter(pl.col("fidelity") == 0).select(SID)
     out = []
-    for k in _plan_numbers(ws):
+    for k in plan_numbers(ws):
         sampled = picks.filter(pl.col("plan") == k).select(SID)
         gone = ws.abandoned_open("plan", k).select(SID)
         estimate = ws.estimates_dir / f"estimate-{k:04d}.json"
@@ -141,13 +142,6 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
             }
         )
     return out
-
-
-def _plan_numbers(ws: Workspace) -> list[int]:
-    if not ws.estimates_dir.is_dir():
-        return []
-    stems = (p.stem[len("plan-") :] for p in ws.estimates_dir.glob("plan-*.parquet"))
-    return sorted(int(s) for s in stems if s.isdigit())
 
 
 def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
