@@ -126,3 +126,74 @@ def test_a_cluster_too_large_for_memory_names_the_flag(lead_ws, runner, monkeypa
     monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 1)
     r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "1")
     assert r.exit_code == 1 and "raise --clusters" in r.stderr and "unexpected" not in r.stderr
+
+
+def test_select_out_writes_the_handoff_and_a_no_op_rerun_restores_it(lead_ws, runner, tmp_path):
+    out = tmp_path / "make" / "next.csv"
+    first, _ = _select(runner, lead_ws, "--batch", "2", "--out", out)
+    csv = lead_ws / "batches" / "batch-0002.csv"
+    assert first["out"] == str(out) and out.read_bytes() == csv.read_bytes()
+    assert "segment_id" in out.read_text().splitlines()[0]
+    # An identical PATH is left alone (Make sees the target up to date) ...
+    stamp = out.stat().st_mtime_ns
+    before = tree_hash(lead_ws)
+    again, _ = _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert again["unchanged"] is True and again["out"] == str(out)
+    assert out.stat().st_mtime_ns == stamp and tree_hash(lead_ws) == before
+    # ... a lost or hand-edited one is written again, the workspace untouched.
+    out.unlink()
+    _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert out.read_bytes() == csv.read_bytes()
+    out.write_text("segment_id\nedited\n")
+    _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert out.read_bytes() == csv.read_bytes() and tree_hash(lead_ws) == before
+    # A folder is not a file name.
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "2", "--out", tmp_path)
+    assert r.exit_code == 1 and f"--out {tmp_path}: is a folder" in r.stderr
+
+
+KILLED_SELECT = """
+import os, sys
+from bams_cli.state import io
+
+crash_after, renamed, real = int(sys.argv[1]), [], os.replace
+
+def replace(src, dst):
+    # Die like kill -9 (no cleanup, no finally) after `crash_after` renames of the commit;
+    # -1: as the journal is renamed into place, before the commit began.
+    journal = ".bams-journal" in str(dst)
+    if (crash_after < 0 and journal) or (len(renamed) == crash_after and not journal):
+        os._exit(9)
+    real(src, dst)
+    if ".bams-journal" not in str(dst):
+        renamed.append(dst)
+
+io.os.replace = replace
+from bams_cli.cli import app
+app(sys.argv[2:])
+"""
+
+
+@pytest.mark.parametrize("crash_after", [-1, 0, 1, 2, 3])
+def test_select_out_killed_mid_commit_ends_as_an_uninterrupted_run(
+    lead_ws, runner, tmp_path, crash_after
+):
+    import subprocess
+    import sys
+
+    out = tmp_path / "next.csv"
+    args = ["select", "-w", str(lead_ws), "--budget", "5", "--clusters", "2", "--workers", "1",
+            "--batch", "2", "--out", str(out)]  # fmt: skip
+    # The commit renames 4 files (batch Parquet, CSV, results template, --out) after its
+    # journal: killed before the journal nothing landed; after it the journal names them all.
+    proc = subprocess.run([sys.executable, "-c", KILLED_SELECT, str(crash_after), *args])
+    assert proc.returncode == 9
+    assert not out.exists()
+    assert (lead_ws / "batches" / "batch-0002.parquet").exists() == (crash_after >= 1)
+    # The same command again, as make would run it, ends with batch 2 and PATH its copy:
+    # the next command rolls an interrupted commit forward, or draws the batch afresh.
+    again = json.loads(ok(runner, *args, "--json").stdout)
+    assert again["batch"] == 2 and again.get("unchanged", False) == (crash_after >= 0)
+    csv = lead_ws / "batches" / "batch-0002.csv"
+    assert out.read_bytes() == csv.read_bytes()
+    assert not list(lead_ws.rglob(".tmp-*")) and not (lead_ws / ".bams-journal.json").exists()
