@@ -1494,6 +1494,16 @@ def _check_out(out: Path) -> Path:
     return out
 
 
+def _pending_mask(ws: Workspace, ids: np.ndarray, n_levels: int, pend: pl.DataFrame) -> np.ndarray:
+    """bool (N, n_levels): True at the pool's (segment, level) pairs awaiting results."""
+    out = np.zeros((len(ids), n_levels), bool)
+    if pend.height:
+        pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+        rows = pend.join(pos, on=SID).filter(pl.col("fidelity") < n_levels)
+        out[rows["_i"].to_numpy(), rows["fidelity"].to_numpy()] = True
+    return out
+
+
 def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
     """``select --batch N --out PATH`` re-run: (re)write PATH as a copy of batch N's hand-off
     when it is missing or differs; an identical PATH is left alone (Make sees it up to
@@ -1616,7 +1626,10 @@ def select(
         from bams_cli.abandon import abandoned_mask
 
         gone = abandoned_mask(ws, ids, settings.n_levels)
-    exclude = exclude | gone[:, 0]
+    # Pending picks (--allow-pending) are in the batch already: never picked again, and the
+    # BAMS greedy is conditioned on them. Their results land under the batch that asked.
+    waiting = _pending_mask(ws, ids, settings.n_levels, pend)
+    exclude = exclude | gone[:, 0] | waiting[:, 0]
     model_hash = None
     j_before = j_after = None
     timings: dict[str, float] = {}
@@ -1655,6 +1668,7 @@ def select(
                     levels=[0] if strategy == "bas" else None,
                     reobserve_level0=include_observed,
                     excluded_pairs=gone,
+                    pending_pairs=waiting if waiting.any() else None,
                 )
         n_greedy = 0 if result is None else len(result.index)
         picks = {
@@ -1716,7 +1730,7 @@ def select(
             index, level = baselines.pick_cross_entropy(
                 X, o["_i"].to_numpy(), o["value"].to_numpy(), list(settings.costs), budget, rng=rng
             )
-        keep = ~gone[np.asarray(index, np.int64), np.asarray(level, np.int64)]
+        keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
         index, level = np.asarray(index)[keep], np.asarray(level)[keep]
         picks = {
             "index": np.asarray(index, np.int64),

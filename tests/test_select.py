@@ -197,3 +197,45 @@ def test_select_out_killed_mid_commit_ends_as_an_uninterrupted_run(
     csv = lead_ws / "batches" / "batch-0002.csv"
     assert out.read_bytes() == csv.read_bytes()
     assert not list(lead_ws.rglob(".tmp-*")) and not (lead_ws / ".bams-journal.json").exists()
+
+
+def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_batch(
+    lead_ws, runner, tmp_path
+):
+    from bams_cli.state.workspace import Workspace
+
+    first, b2 = _select(runner, lead_ws, "--batch", "2")
+    # Batch 2 awaits results; batch 3 is drawn with it in the batch already.
+    second, b3 = _select(runner, lead_ws, "--allow-pending", "--batch", "3")
+    pairs2 = set(zip(b2["segment_id"], b2["fidelity"], strict=True))
+    pairs3 = set(zip(b3["segment_id"], b3["fidelity"], strict=True))
+    assert second["batch"] == 3 and pairs3 and not pairs2 & pairs3
+    # Its J is the J given batch 2's picks: lower before, and lower after, than batch 2's.
+    assert second["j_before"] < first["j_after"] + 1e-12
+    assert second["j_after"] < second["j_before"]
+    # A baseline strategy leaves pending pairs out as well (an observed cheap pair may be
+    # picked again: it is not pending).
+    _, b4 = _select(runner, lead_ws, "--allow-pending", "--strategy", "random",
+                    "--mixed-fidelity", "--budget", "20")  # fmt: skip
+    pairs4 = set(zip(b4["segment_id"], b4["fidelity"], strict=True))
+    known = {
+        (r["segment_id"], r["fidelity"]): r["value"]
+        for r in Workspace(lead_ws).read_observations().iter_rows(named=True)
+    }
+    assert pairs4 and not pairs4 & (pairs2 | pairs3) - known.keys()
+    ok(runner, "abandon", "-w", lead_ws, "--batch", "4", "--reason", "not run")
+    # Results of both, in either order, land under the batch that asked for each pair. (A
+    # deterministic simulator answers a cheap pair seen before with the value logged.)
+    for n, b in ((3, b3), (2, b2)):
+        keys = list(zip(b["segment_id"], b["fidelity"], strict=True))
+        res = tmp_path / f"r{n}.parquet"
+        values = [known.get(k, 3.0) for k in keys]
+        pq.write_table(pa.table({"segment_id": b["segment_id"], "fidelity": b["fidelity"],
+                                 "value": values}), res)  # fmt: skip
+        ok(runner, "ingest-results", "-w", lead_ws, res)
+    obs = Workspace(lead_ws).read_observations()
+    for n, pairs in ((2, pairs2), (3, pairs3)):
+        got = obs.filter(obs["batch"] == n)
+        new_pairs = {k for k in pairs if k not in known}
+        assert set(zip(got["segment_id"], got["fidelity"], strict=True)) == new_pairs, n
+    assert Workspace(lead_ws).pending().height == 0
