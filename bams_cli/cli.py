@@ -567,6 +567,14 @@ def select(
             "exists with the same options, an error when it is not the next one.",
         ),
     ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Also write the batch's CSV hand-off here, a stable Make target; "
+            "a --batch re-run rewrites it when missing.",
+        ),
+    ] = None,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -597,6 +605,7 @@ def select(
             handoff_internal=handoff_internal,
             batch=batch,
             retry_abandoned=retry_abandoned,
+            out=out,
             wait=wait,
             progress=bar,
         )

@@ -1487,6 +1487,36 @@ def _write_handoff(
     return csv, template
 
 
+def _check_out(out: Path) -> Path:
+    """``select --out PATH``: a file path outside the workspace's own state files."""
+    out = Path(out)
+    if out.is_dir():
+        raise OptionError(f"--out {out}: is a folder; give a file name such as {out / 'batch.csv'}")
+    return out
+
+
+def _pending_mask(ws: Workspace, ids: np.ndarray, n_levels: int, pend: pl.DataFrame) -> np.ndarray:
+    """bool (N, n_levels): True at the pool's (segment, level) pairs awaiting results."""
+    out = np.zeros((len(ids), n_levels), bool)
+    if pend.height:
+        pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+        rows = pend.join(pos, on=SID).filter(pl.col("fidelity") < n_levels)
+        out[rows["_i"].to_numpy(), rows["fidelity"].to_numpy()] = True
+    return out
+
+
+def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
+    """``select --batch N --out PATH`` re-run: (re)write PATH as a copy of batch N's hand-off
+    when it is missing or differs; an identical PATH is left alone (Make sees it up to
+    date). Returns whether PATH was written."""
+    data = csv.read_bytes()
+    if out.exists() and out.read_bytes() == data:
+        return False
+    with transaction() as tx:
+        tx.write_bytes(out, data)
+    return True
+
+
 @locked
 def select(
     root: Path,
@@ -1507,6 +1537,7 @@ def select(
     handoff_internal: bool = False,
     batch: int | None = None,
     retry_abandoned: bool = False,
+    out: Path | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
@@ -1514,6 +1545,10 @@ def select(
     ``batch`` names the batch this call makes, a stable target for Make: when it exists
     already with the same options the call is a no-op (``unchanged``); when it exists with
     other options, or is not the next number, it is an error naming the next one.
+
+    ``out`` is a second, stable path for the batch's CSV hand-off (byte for byte the one in
+    ``batches/``), written in the same transaction; a no-op ``batch`` re-run rewrites it
+    when it is missing or differs.
 
     The Parquet state file holds every column; the CSV hand-off and its results template
     follow the contract in ``state.handoff`` (internal columns only with
@@ -1564,9 +1599,14 @@ def select(
         "level0_share": level0_share,
         "confirm_share": confirm_share,
     }
+    if out is not None:
+        out = _check_out(out)
     if batch is not None:
         done = _existing_batch(ws, batch, asked, settings.n_levels)
         if done is not None:
+            if out is not None:
+                _copy_handoff_if_needed(Path(done["handoff_csv"]), out)
+                done["out"] = str(out)
             return done
     pend = ws.pending()
     if pend.height and not allow_pending:
@@ -1587,7 +1627,10 @@ def select(
         from bams_cli.abandon import abandoned_mask
 
         gone = abandoned_mask(ws, ids, settings.n_levels)
-    exclude = exclude | gone[:, 0]
+    # Pending picks (--allow-pending) are in the batch already: never picked again, and the
+    # BAMS greedy is conditioned on them. Their results land under the batch that asked.
+    waiting = _pending_mask(ws, ids, settings.n_levels, pend)
+    exclude = exclude | gone[:, 0] | waiting[:, 0]
     model_hash = None
     j_before = j_after = None
     timings: dict[str, float] = {}
@@ -1626,6 +1669,7 @@ def select(
                     levels=[0] if strategy == "bas" else None,
                     reobserve_level0=include_observed,
                     excluded_pairs=gone,
+                    pending_pairs=waiting if waiting.any() else None,
                 )
         n_greedy = 0 if result is None else len(result.index)
         picks = {
@@ -1687,7 +1731,7 @@ def select(
             index, level = baselines.pick_cross_entropy(
                 X, o["_i"].to_numpy(), o["value"].to_numpy(), list(settings.costs), budget, rng=rng
             )
-        keep = ~gone[np.asarray(index, np.int64), np.asarray(level, np.int64)]
+        keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
         index, level = np.asarray(index)[keep], np.asarray(level)[keep]
         picks = {
             "index": np.asarray(index, np.int64),
@@ -1739,6 +1783,9 @@ def select(
         csv, template = _write_handoff(
             tx, table, path.with_suffix(".csv"), BATCH_INTERNAL, handoff_internal
         )
+        if out is not None:
+            frame = contract.handoff_frame(table, BATCH_INTERNAL, with_internal=handoff_internal)
+            tx.write_with(out, lambda p: frame.write_csv(p))
     per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
     per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
     return {
@@ -1757,6 +1804,7 @@ def select(
         "j_before": j_before,
         "j_after": j_after,
         "timings_s": timings,
+        **({"out": str(out)} if out is not None else {}),
     }
 
 

@@ -267,7 +267,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "j_after": nullable(NUM),
                 "timings_s": mapping(NUM, "stage"),
             },
-            {"unchanged": BOOL},
+            {"unchanged": BOOL, "out": PATH},
         ),
     ),
     "estimate-plan": (

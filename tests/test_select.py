@@ -126,3 +126,116 @@ def test_a_cluster_too_large_for_memory_names_the_flag(lead_ws, runner, monkeypa
     monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 1)
     r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "1")
     assert r.exit_code == 1 and "raise --clusters" in r.stderr and "unexpected" not in r.stderr
+
+
+def test_select_out_writes_the_handoff_and_a_no_op_rerun_restores_it(lead_ws, runner, tmp_path):
+    out = tmp_path / "make" / "next.csv"
+    first, _ = _select(runner, lead_ws, "--batch", "2", "--out", out)
+    csv = lead_ws / "batches" / "batch-0002.csv"
+    assert first["out"] == str(out) and out.read_bytes() == csv.read_bytes()
+    assert "segment_id" in out.read_text().splitlines()[0]
+    # An identical PATH is left alone (Make sees the target up to date) ...
+    stamp = out.stat().st_mtime_ns
+    before = tree_hash(lead_ws)
+    again, _ = _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert again["unchanged"] is True and again["out"] == str(out)
+    assert out.stat().st_mtime_ns == stamp and tree_hash(lead_ws) == before
+    # ... a lost or hand-edited one is written again, the workspace untouched.
+    out.unlink()
+    _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert out.read_bytes() == csv.read_bytes()
+    out.write_text("segment_id\nedited\n")
+    _select(runner, lead_ws, "--batch", "2", "--out", out)
+    assert out.read_bytes() == csv.read_bytes() and tree_hash(lead_ws) == before
+    # A folder is not a file name.
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "2", "--out", tmp_path)
+    assert r.exit_code == 1 and f"--out {tmp_path}: is a folder" in r.stderr
+
+
+KILLED_SELECT = """
+import os, sys
+from bams_cli.state import io
+
+crash_after, renamed, real = int(sys.argv[1]), [], os.replace
+
+def replace(src, dst):
+    # Die like kill -9 (no cleanup, no finally) after `crash_after` renames of the commit;
+    # -1: as the journal is renamed into place, before the commit began.
+    journal = ".bams-journal" in str(dst)
+    if (crash_after < 0 and journal) or (len(renamed) == crash_after and not journal):
+        os._exit(9)
+    real(src, dst)
+    if ".bams-journal" not in str(dst):
+        renamed.append(dst)
+
+io.os.replace = replace
+from bams_cli.cli import app
+app(sys.argv[2:])
+"""
+
+
+@pytest.mark.parametrize("crash_after", [-1, 0, 1, 2, 3])
+def test_select_out_killed_mid_commit_ends_as_an_uninterrupted_run(
+    lead_ws, runner, tmp_path, crash_after
+):
+    import subprocess
+    import sys
+
+    out = tmp_path / "next.csv"
+    args = ["select", "-w", str(lead_ws), "--budget", "5", "--clusters", "2", "--workers", "1",
+            "--batch", "2", "--out", str(out)]  # fmt: skip
+    # The commit renames 4 files (batch Parquet, CSV, results template, --out) after its
+    # journal: killed before the journal nothing landed; after it the journal names them all.
+    proc = subprocess.run([sys.executable, "-c", KILLED_SELECT, str(crash_after), *args])
+    assert proc.returncode == 9
+    assert not out.exists()
+    assert (lead_ws / "batches" / "batch-0002.parquet").exists() == (crash_after >= 1)
+    # The same command again, as make would run it, ends with batch 2 and PATH its copy:
+    # the next command rolls an interrupted commit forward, or draws the batch afresh.
+    again = json.loads(ok(runner, *args, "--json").stdout)
+    assert again["batch"] == 2 and again.get("unchanged", False) == (crash_after >= 0)
+    csv = lead_ws / "batches" / "batch-0002.csv"
+    assert out.read_bytes() == csv.read_bytes()
+    assert not list(lead_ws.rglob(".tmp-*")) and not (lead_ws / ".bams-journal.json").exists()
+
+
+def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_batch(
+    lead_ws, runner, tmp_path
+):
+    from bams_cli.state.workspace import Workspace
+
+    first, b2 = _select(runner, lead_ws, "--batch", "2")
+    # Batch 2 awaits results; batch 3 is drawn with it in the batch already.
+    second, b3 = _select(runner, lead_ws, "--allow-pending", "--batch", "3")
+    pairs2 = set(zip(b2["segment_id"], b2["fidelity"], strict=True))
+    pairs3 = set(zip(b3["segment_id"], b3["fidelity"], strict=True))
+    assert second["batch"] == 3 and pairs3 and not pairs2 & pairs3
+    # Its J is the J given batch 2's picks: lower before, and lower after, than batch 2's.
+    assert second["j_before"] < first["j_after"] + 1e-12
+    assert second["j_after"] < second["j_before"]
+    # A baseline strategy leaves pending pairs out as well (an observed cheap pair may be
+    # picked again: it is not pending).
+    _, b4 = _select(runner, lead_ws, "--allow-pending", "--strategy", "random",
+                    "--mixed-fidelity", "--budget", "20")  # fmt: skip
+    pairs4 = set(zip(b4["segment_id"], b4["fidelity"], strict=True))
+    known = {
+        (r["segment_id"], r["fidelity"]): r["value"]
+        for r in Workspace(lead_ws).read_observations().iter_rows(named=True)
+    }
+    assert pairs4 and not pairs4 & (pairs2 | pairs3) - known.keys()
+    ok(runner, "abandon", "-w", lead_ws, "--batch", "4", "--reason", "not run")
+    # Results of both, in either order, land under the batch that asked for each pair. (A
+    # deterministic simulator answers a cheap pair seen before with the value logged.)
+    for n, b in ((3, b3), (2, b2)):
+        keys = list(zip(b["segment_id"], b["fidelity"], strict=True))
+        res = tmp_path / f"r{n}.parquet"
+        values = [known.get(k, 3.0) for k in keys]
+        pq.write_table(pa.table({"segment_id": b["segment_id"], "fidelity": b["fidelity"],
+                                 "value": values}), res)  # fmt: skip
+        ok(runner, "ingest-results", "-w", lead_ws, res)
+    obs = Workspace(lead_ws).read_observations()
+    for n, pairs in ((2, pairs2), (3, pairs3)):
+        got = obs.filter(obs["batch"] == n)
+        new_pairs = {k for k in pairs if k not in known}
+        assert set(zip(got["segment_id"], got["fidelity"], strict=True)) == new_pairs, n
+    assert Workspace(lead_ws).pending().height == 0

@@ -259,6 +259,7 @@ def greedy_cluster(
     budget: float,
     cluster: int = 0,
     row_drop_rtol: float = 1e-4,
+    forced_mask: BoolArray | None = None,
 ) -> ClusterQueue:
     """Greedy selection in one cluster until its budget is spent (Algorithm 1, inner loop).
 
@@ -290,6 +291,12 @@ def greedy_cluster(
     row_drop_rtol : float
         Rows with the smallest h_n, up to this fraction of sum h_n, skip the screening pass
         (exactness is kept, see the module docstring). 0 screens every row.
+    forced_mask : bool ndarray of shape (n_s, n_levels), optional
+        [i, l] True when (X[i], l) is in the batch already (picks of an earlier batch still
+        awaiting results). The greedy starts from S = these pairs: each is one conditioning
+        step like a pick's (J needs only their covariances, not their values), costs
+        nothing, is never picked again and is not part of the returned queue; every
+        Delta J_s is then J_s(forced + S) - J_s(forced + S + c).
 
     Returns
     -------
@@ -312,6 +319,7 @@ def greedy_cluster(
             budget=budget,
             cluster=cluster,
             row_drop_rtol=row_drop_rtol,
+            forced_mask=forced_mask,
         )
 
 
@@ -328,6 +336,7 @@ def _greedy_cluster(
     budget: float,
     cluster: int,
     row_drop_rtol: float,
+    forced_mask: BoolArray | None = None,
 ) -> ClusterQueue:
     timings = {"build": 0.0, "screen": 0.0, "exact": 0.0, "update": 0.0}
     cpu0 = time.process_time()
@@ -348,7 +357,16 @@ def _greedy_cluster(
     D = np.sort(order[:n_drop])
     K = np.sort(order[n_drop:])
 
-    cand_row, cand_level = np.nonzero(candidate_mask)  # row-major: by pool index, then level
+    # Forced pairs are columns like the candidates (conditioning needs their C and G), are
+    # conditioned on first, in pool-index order, and are never eligible afterwards.
+    forced_mask = (
+        np.zeros_like(candidate_mask, dtype=bool)
+        if forced_mask is None
+        else np.asarray(forced_mask, dtype=bool)
+    )
+    columns = np.asarray(candidate_mask, dtype=bool) | forced_mask
+    cand_row, cand_level = np.nonzero(columns)  # row-major: by pool index, then level
+    forced = [int(c) for c in np.flatnonzero(forced_mask[cand_row, cand_level])]
     cand_level = cand_level.astype(np.int64)
     n_c = n_c0 = len(cand_row)
     Xc = np.ascontiguousarray(X[cand_row])
@@ -420,64 +438,76 @@ def _greedy_cluster(
         return dec, CD
 
     while True:
-        eligible = alive & ~picked & _level_fits(used, costs, budget)[cand_level]
-        if not eligible.any():
-            break
-        if eligible.sum() < COMPACT_BELOW * n_c:
-            # Picked, determined and unaffordable candidates are out for good (the remaining
-            # budget only shrinks and V only decreases), but the screen streams every column
-            # of C at every pick: drop them. Column order is kept, so index ties break as
-            # before. The pending rank-1 step (a_vec, g_vec) applies column by column.
-            keep = np.flatnonzero(eligible)
-            t1 = time.perf_counter()
-            C = _compact_columns(C, keep)
-            cand_row, cand_level, Xc, cc = cand_row[keep], cand_level[keep], Xc[keep], cc[keep]
-            V, alive, picked, g_vec = V[keep], alive[keep], picked[keep], g_vec[keep]
-            G_rows = [gk[keep] for gk in G_rows]
-            eligible = eligible[keep]
-            n_c = len(keep)
-            acc = np.zeros(n_c)
-            arange_c = np.arange(n_c)
-            timings["update"] += time.perf_counter() - t1
-        t1 = time.perf_counter()
-        invV = np.zeros(n_c)
-        np.divide(1.0, V, out=invV, where=alive & ~picked)
-        _update_and_screen(C, a_vec, g_vec, inv_sig2_K, tS_K, b_K, M_K, invV, acc)
-        t2 = time.perf_counter()
-        timings["screen"] += t2 - t1
-
-        # Score intervals (the n_s c_l normalisation is common to J_s and the bounds).
-        R = float(b_D.sum()) * (1.0 + 1e-12)
-        norm = n_s * cc
-        lower = np.where(eligible, (acc - E) / norm, -np.inf)
-        upper = np.where(eligible, (acc + E + R) / norm, -np.inf)
-        lb_star = lower.max()
-        cont = np.flatnonzero(upper >= lb_star)
-        cont = cont[np.lexsort((cont, -upper[cont]))]  # best upper first, then lowest index
-        best, best_score, best_dec, best_CD = -1, -np.inf, 0.0, np.zeros(0)
-        pos, nb = 0, 4
-        while pos < len(cont):
-            u = upper[cont[pos]]
-            if u < best_score or (u == best_score and cont[pos] > best):
+        if forced:
+            # A pair already in the batch: bring C up to date (the pending rank-1 step, in
+            # place; the screened sums it also computes are not needed) and condition on it.
+            s = forced.pop(0)
+            if not alive[s]:  # determined already: conditioning on it changes nothing
+                picked[s] = True
+                continue
+            t3 = time.perf_counter()
+            _update_and_screen(C, a_vec, g_vec, inv_sig2_K, tS_K, b_K, M_K, np.zeros(n_c), acc)
+            a_vec = np.zeros(len(K))
+            best_CD = dropped_columns(np.array([s]))[:, 0] if len(D) else np.zeros(0)
+        else:
+            eligible = alive & ~picked & _level_fits(used, costs, budget)[cand_level]
+            if not eligible.any():
                 break
-            B = cont[pos : pos + nb]
-            dec, CD = exact_decrease(B, invV)
-            n_exact += len(B)
-            sc = dec / norm[B]
-            for k, c in enumerate(B):
-                if sc[k] > best_score or (sc[k] == best_score and c < best):
-                    best, best_score, best_dec, best_CD = int(c), sc[k], dec[k], CD[:, k]
-            pos += len(B)
-            nb = min(2 * nb, 64)
-        t3 = time.perf_counter()
-        timings["exact"] += t3 - t2
+            if eligible.sum() < COMPACT_BELOW * n_c:
+                # Picked, determined and unaffordable candidates are out for good (the remaining
+                # budget only shrinks and V only decreases), but the screen streams every column
+                # of C at every pick: drop them. Column order is kept, so index ties break as
+                # before. The pending rank-1 step (a_vec, g_vec) applies column by column.
+                keep = np.flatnonzero(eligible)
+                t1 = time.perf_counter()
+                C = _compact_columns(C, keep)
+                cand_row, cand_level, Xc, cc = cand_row[keep], cand_level[keep], Xc[keep], cc[keep]
+                V, alive, picked, g_vec = V[keep], alive[keep], picked[keep], g_vec[keep]
+                G_rows = [gk[keep] for gk in G_rows]
+                eligible = eligible[keep]
+                n_c = len(keep)
+                acc = np.zeros(n_c)
+                arange_c = np.arange(n_c)
+                timings["update"] += time.perf_counter() - t1
+            t1 = time.perf_counter()
+            invV = np.zeros(n_c)
+            np.divide(1.0, V, out=invV, where=alive & ~picked)
+            _update_and_screen(C, a_vec, g_vec, inv_sig2_K, tS_K, b_K, M_K, invV, acc)
+            t2 = time.perf_counter()
+            timings["screen"] += t2 - t1
 
-        s = best
-        out_idx.append(int(rows[cand_row[s]]))
-        out_lev.append(int(cand_level[s]))
-        out_dj.append(float(best_dec) / n_s)
-        out_cost.append(float(cc[s]))
-        used.append(float(cc[s]))
+            # Score intervals (the n_s c_l normalisation is common to J_s and the bounds).
+            R = float(b_D.sum()) * (1.0 + 1e-12)
+            norm = n_s * cc
+            lower = np.where(eligible, (acc - E) / norm, -np.inf)
+            upper = np.where(eligible, (acc + E + R) / norm, -np.inf)
+            lb_star = lower.max()
+            cont = np.flatnonzero(upper >= lb_star)
+            cont = cont[np.lexsort((cont, -upper[cont]))]  # best upper first, then lowest index
+            best, best_score, best_dec, best_CD = -1, -np.inf, 0.0, np.zeros(0)
+            pos, nb = 0, 4
+            while pos < len(cont):
+                u = upper[cont[pos]]
+                if u < best_score or (u == best_score and cont[pos] > best):
+                    break
+                B = cont[pos : pos + nb]
+                dec, CD = exact_decrease(B, invV)
+                n_exact += len(B)
+                sc = dec / norm[B]
+                for k, c in enumerate(B):
+                    if sc[k] > best_score or (sc[k] == best_score and c < best):
+                        best, best_score, best_dec, best_CD = int(c), sc[k], dec[k], CD[:, k]
+                pos += len(B)
+                nb = min(2 * nb, 64)
+            t3 = time.perf_counter()
+            timings["exact"] += t3 - t2
+
+            s = best
+            out_idx.append(int(rows[cand_row[s]]))
+            out_lev.append(int(cand_level[s]))
+            out_dj.append(float(best_dec) / n_s)
+            out_cost.append(float(cc[s]))
+            used.append(float(cc[s]))
 
         # Conditioning on y_s: one rank-1 step for everything we keep.
         Vs = V[s]
@@ -650,6 +680,22 @@ def batch_variance(
     return np.maximum(out, 0.0)
 
 
+def _j_given(
+    posterior: Posterior,
+    X: FloatArray,
+    s: FloatArray,
+    sigma2: FloatArray,
+    index: IntArray,
+    level: IntArray,
+) -> float:
+    """J(B) = mean_x beta(s(x), t_B(x)), all of B conditioned on jointly."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        sigma2_after = batch_variance(posterior, X, sigma2, index, level)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_after = np.where(sigma2 > 0, sigma2_after / np.where(sigma2 > 0, sigma2, 1.0), 1.0)
+    return float(beta(s, t_after).mean())
+
+
 # --------------------------------------------------------------------------------------
 # Entry point
 # --------------------------------------------------------------------------------------
@@ -674,6 +720,7 @@ def select_batch(
     n_init_clusters: int | None = None,
     row_drop_rtol: float = 1e-4,
     excluded_pairs: BoolArray | None = None,
+    pending_pairs: BoolArray | None = None,
 ) -> SelectionResult:
     """Select the next batch of (segment, level) simulations (paper Algorithm 1).
 
@@ -720,6 +767,12 @@ def select_batch(
         Speed knob of the exact screening (``greedy_cluster``); never changes the result.
     excluded_pairs : bool ndarray of shape (N, n_levels), optional
         True at (x, l) pairs that are never candidates (runs abandoned for good).
+    pending_pairs : bool ndarray of shape (N, n_levels), optional
+        True at (x, l) pairs an earlier batch picked whose results are still out. They
+        are in the batch already: never candidates, and every cluster's greedy starts
+        conditioned on its own (``greedy_cluster``'s ``forced_mask``), as a batch's earlier
+        picks condition its later ones. J needs only their covariances, so this is exact;
+        ``j_before`` is J given them and ``j_after`` J given them and the batch.
 
     Returns
     -------
@@ -763,6 +816,15 @@ def select_batch(
         if gone.shape != (N, n_levels):
             raise ValueError(f"excluded_pairs must have shape ({N}, {n_levels}); got {gone.shape}")
         cand &= ~gone
+    pending = np.zeros((N, n_levels), dtype=bool)
+    if pending_pairs is not None:
+        pending = np.asarray(pending_pairs, dtype=bool)
+        if pending.shape != (N, n_levels):
+            raise ValueError(
+                f"pending_pairs must have shape ({N}, {n_levels}); got {pending.shape}"
+            )
+        cand &= ~pending
+    p_idx, p_lev = (a.astype(np.int64) for a in np.nonzero(pending))
 
     def report(phase: str, done: int, total: int) -> None:
         if progress is not None:
@@ -775,6 +837,8 @@ def select_batch(
         mu, sigma2 = _predict(posterior, X)
     s = margin(mu, sigma2, gamma)
     j_before = float(point_variance(s).mean())
+    if len(p_idx):
+        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev)
     report("predict", 1, 1)
     timings["predict"] = time.perf_counter() - t
 
@@ -789,7 +853,7 @@ def select_batch(
     report("cluster", 1, 1)
     timings["cluster"] = time.perf_counter() - t
 
-    biggest = max((len(r) * int(cand[r].sum()) * 8 for r in members), default=0)
+    biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
     if biggest > MAX_CLUSTER_BYTES:
         raise ValueError(
             f"the largest cluster needs {biggest / 2**30:.1f} GiB for its rows x candidates "
@@ -805,7 +869,12 @@ def select_batch(
         b_k = float(math.ceil(overbudget * budget * len(r) / N - 1e-9))
         args = (posterior, X[r], r, mu[r], sigma2[r], cand[r])
         kwargs: dict[str, Any] = dict(
-            gamma=gamma, costs=costs_arr, budget=b_k, cluster=k, row_drop_rtol=row_drop_rtol
+            gamma=gamma,
+            costs=costs_arr,
+            budget=b_k,
+            cluster=k,
+            row_drop_rtol=row_drop_rtol,
+            forced_mask=pending[r] if len(p_idx) else None,
         )
         jobs.append((args, kwargs))
     report("greedy", 0, n_cl)
@@ -861,11 +930,9 @@ def select_batch(
     # Exact J after the whole batch.
     t = time.perf_counter()
     report("j_after", 0, 1)
-    with threadpool_limits(limits=1, user_api="blas"):
-        sigma2_after = batch_variance(posterior, X, sigma2, index, level)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_after = np.where(sigma2 > 0, sigma2_after / np.where(sigma2 > 0, sigma2, 1.0), 1.0)
-    j_after = float(beta(s, t_after).mean())
+    j_after = _j_given(
+        posterior, X, s, sigma2, np.concatenate([p_idx, index]), np.concatenate([p_lev, level])
+    )
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

@@ -54,10 +54,13 @@ class BruteForce:
         # beta = 2 T(s, sqrt(t / (2 - t))), written out again rather than imported
         return float(np.mean(2 * owens_t(self.s[rows], np.sqrt(t / (2 - t)))))
 
-    def greedy(self, rows, cand_mask, costs, budget):
-        """Brute-force greedy over candidates (rows[i], l) with cand_mask[i, l]."""
-        idx, lev, used, dj = [], [], [], []
-        j_cur = self.J([], [], rows)
+    def greedy(self, rows, cand_mask, costs, budget, start=((), ())):
+        """Brute-force greedy over candidates (rows[i], l) with cand_mask[i, l], starting
+        from the pairs ``start`` = (pool indices, levels) in the batch at no cost; the
+        returned picks leave them out."""
+        idx, lev = [int(i) for i in start[0]], [int(lv) for lv in start[1]]
+        n_start, used, dj = len(idx), [], []
+        j_cur = self.J(idx, lev, rows)
         js = [j_cur]
         while True:
             best = None
@@ -82,7 +85,7 @@ class BruteForce:
             dj.append(j_cur - j_new)
             j_cur = j_new
             js.append(j_cur)
-        return np.array(idx), np.array(lev), np.array(dj), np.array(js)
+        return np.array(idx[n_start:]), np.array(lev[n_start:]), np.array(dj), np.array(js)
 
 
 def _run_greedy(prob, costs, budget, rows=None, exclude_obs0=True, **kw):
@@ -430,3 +433,103 @@ def test_compact_columns_in_place_equals_fancy_indexing(keep):
     got = _compact_columns(C, np.array(keep))
     np.testing.assert_array_equal(got, want)
     assert got.flags.c_contiguous and np.shares_memory(got, C)
+
+
+# ---- pending picks: the greedy starts with them in the batch ------------------------------
+def _pending(prob, cand, n, seed):
+    """n distinct (pool index, level) pairs among the candidates, as an earlier batch's."""
+    rng = np.random.default_rng(seed)
+    rows, levels = np.nonzero(cand)
+    take = rng.choice(len(rows), size=n, replace=False)
+    mask = np.zeros_like(cand)
+    mask[rows[take], levels[take]] = True
+    return mask
+
+
+@pytest.mark.parametrize("rtol", [1e-4, 0.5])
+@pytest.mark.parametrize("n_pool, n_levels, d, seed, costs, budget", CASES)
+def test_greedy_started_from_pending_picks_matches_brute_force(
+    n_pool, n_levels, d, seed, costs, budget, rtol
+):
+    prob = make_problem(n_pool=n_pool, n_obs=8, n_levels=n_levels, d=d, seed=seed)
+    _, cand = _run_greedy(prob, costs, budget)
+    pend = _pending(prob, cand, 3, seed)
+    q, _ = _run_greedy(prob, costs, budget, forced_mask=pend, row_drop_rtol=rtol)
+    # Candidates exclude the pending pairs: a pending pair is never picked again.
+    assert not pend[q.index, q.level].any()
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    p_idx, p_lev = np.nonzero(pend)
+    idx, lev, dj, js = bf.greedy(
+        np.arange(n_pool), cand & ~pend, np.asarray(costs), budget, start=(p_idx, p_lev)
+    )
+    assert len(idx) >= 2
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
+    # Each Delta J is conditional on the pending picks: J(P) - J(P + S) in total, not the
+    # larger J() - J(S) a greedy ignoring them would claim.
+    assert js[0] == pytest.approx(bf.J(p_idx, p_lev), rel=1e-12)
+    assert q.delta_j.sum() == pytest.approx(js[0] - js[-1], rel=1e-9)
+    assert js[0] < bf.J([], [])
+    assert math.fsum(q.cost.tolist()) <= budget  # pending picks cost this batch nothing
+
+
+def test_select_batch_with_pending_picks_is_the_greedy_started_with_them(pool_problem):
+    prob = pool_problem
+    N = len(prob.X)
+    cand = np.ones((N, 2), dtype=bool)
+    cand[prob.observed_level0, 0] = False
+    # The pending batch: the first picks of the batch an unconditioned greedy would make,
+    # so that ignoring them (or only excluding them) would choose differently.
+    plain = _select(prob, n_clusters=1, overbudget=1.0, budget=3.0)
+    pend = np.zeros((N, 2), dtype=bool)
+    pend[plain.index[:3], plain.level[:3]] = True
+    res = _select(prob, n_clusters=1, overbudget=1.0, budget=3.0, pending_pairs=pend)
+    assert not pend[res.index, res.level].any()
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    p_idx, p_lev = np.nonzero(pend)
+    idx, lev, dj, js = bf.greedy(
+        np.arange(N), cand & ~pend, np.array([1.0, 0.25]), 3.0, start=(p_idx, p_lev)
+    )
+    np.testing.assert_array_equal(res.index, idx)
+    np.testing.assert_array_equal(res.level, lev)
+    np.testing.assert_allclose(res.delta_j, dj, rtol=1e-9, atol=1e-15)
+    # J before and after the batch, both given the pending picks: the batch's J decrease is
+    # exactly the brute-force greedy's.
+    assert res.j_before == pytest.approx(js[0], rel=1e-12)
+    assert res.j_after == pytest.approx(js[-1], rel=1e-9)
+    assert res.j_before - res.j_after == pytest.approx(js[0] - js[-1], rel=1e-8)
+    # Excluding the pending pairs without conditioning on them is a different batch.
+    excluded = _select(prob, n_clusters=1, overbudget=1.0, budget=3.0, excluded_pairs=pend)
+    assert (excluded.index.tolist(), excluded.level.tolist()) != (idx.tolist(), lev.tolist())
+
+
+def test_select_batch_with_pending_picks_in_several_clusters(pool_problem):
+    prob = pool_problem
+    N = len(prob.X)
+    pend = np.zeros((N, 2), dtype=bool)
+    pend[np.arange(0, N, 40), 1] = True  # spread over the clusters
+    pend[7, 0] = True
+    res = _select(prob, pending_pairs=pend)
+    assert not pend[res.index, res.level].any()
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    p_idx, p_lev = np.nonzero(pend)
+    assert res.j_before == pytest.approx(bf.J(p_idx, p_lev), rel=1e-12)
+    all_idx = np.concatenate([p_idx, res.index])
+    all_lev = np.concatenate([p_lev, res.level])
+    assert res.j_after == pytest.approx(bf.J(all_idx, all_lev), rel=1e-9)
+    assert res.j_after < res.j_before
+    # Each cluster's queue is its greedy started from the pending picks in its rows.
+    for q in res.queues:
+        rows = np.flatnonzero(res.labels == q.cluster)
+        cand = np.ones((len(rows), 2), dtype=bool)
+        cand[prob.observed_level0[rows], 0] = False
+        here = pend[rows]
+        budget = math.ceil(1.5 * 4.0 * len(rows) / N - 1e-9)
+        r_idx, r_lev = np.nonzero(here)
+        idx, lev, dj, _ = bf.greedy(
+            rows, cand & ~here, np.array([1.0, 0.25]), budget, start=(rows[r_idx], r_lev)
+        )
+        np.testing.assert_array_equal(q.index, idx)
+        np.testing.assert_array_equal(q.level, lev)
+        np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
