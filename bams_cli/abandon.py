@@ -33,6 +33,7 @@ from bams_cli.errors import AbandonedRunsError, InputError, OptionError
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
+from bams_cli.state.inputs import read_results
 from bams_cli.state.io import read_table, transaction
 from bams_cli.state.workspace import Workspace
 
@@ -94,7 +95,7 @@ def abandon(
     new = open_.join(gone.select(RID).unique(), on=RID, how="anti")
     why = reason or "abandoned by hand"
     summary = _commit(ws, new, already.height, why, "bams-cli abandon")
-    summary["pending"] = pipeline._pending_summary(ws)
+    summary["pending"] = pipeline.pending_summary(ws)
     return summary
 
 
@@ -229,7 +230,7 @@ def ingest_results_abandoning_failed(
     ws = Workspace(root)
     settings = ws.require_initialised()
     ws.require_segments()
-    results, not_run = pipeline._read_results(source, settings, ws)
+    results, not_run = read_results(source, settings, ws)
     ingest = inspect.unwrap(pipeline.ingest_results)  # already holding the lock
     with transaction():
         summary = ingest(root, source, replace=replace, allow_unselected=allow_unselected)
@@ -246,7 +247,7 @@ def ingest_results_abandoning_failed(
         summary["message"] = summary["message"].replace(
             "nothing changed", f"{gone['abandoned']} failed requests abandoned"
         )
-    summary["pending"] = pipeline._pending_summary(ws)  # after the commit
+    summary["pending"] = pipeline.pending_summary(ws)  # after the commit
     return summary
 
 

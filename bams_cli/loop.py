@@ -113,7 +113,7 @@ def loop(
     return {
         "workspace": str(ws.root),
         "batches": len(ws.batch_numbers()),
-        "plans": len(pipeline._plan_numbers(ws)),
+        "plans": len(pipeline.plan_numbers(ws)),
         "steps": steps,
         "unchanged": not steps,
         "results_dir": str(opts.results_dir),
@@ -165,7 +165,7 @@ def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | Non
         if not _model_fresh(ws):
             return ("fit", None, None)
         return ("select", "batch", numbers[-1] + 1)
-    plans = pipeline._plan_numbers(ws)
+    plans = pipeline.plan_numbers(ws)
     if opts.then_estimate:
         if not plans:
             if not _model_fresh(ws):

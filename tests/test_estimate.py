@@ -14,7 +14,7 @@ import pytest
 
 from bams_cli import cli, console, defaults, pipeline
 from bams_cli.core import estimate as core_estimate
-from bams_cli.state.io import stamp
+from bams_cli.state.io import read_metadata_json, stamp
 from tests.conftest import invoke, ok, write_toy
 
 
@@ -139,7 +139,7 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     # Same seed, same plan (plans 2 and 3); another seed, another plan; recorded in the file.
     assert _plan_ids(ws, 2) == _plan_ids(ws, 3)
     assert _plan_ids(ws, 4) != _plan_ids(ws, 2)
-    meta = [pipeline.read_metadata_json(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (2, 4)]
+    meta = [read_metadata_json(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (2, 4)]
     assert [(m["seed"], m["seed_source"], m["rng_stream"]) for m in meta] == [
         (7, "--seed", [7, 10_000]),
         (8, "--seed", [8, 10_000]),
@@ -201,8 +201,8 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     assert out["staging"]["note"] is None
     # The combined estimate is the weighted sum of the stages' own (computed one by one).
     w1, w2 = out["staging"]["weights"]
-    one = pipeline._plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
-    two = pipeline._plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
+    one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
+    two = pipeline.plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
     for g, e in enumerate(out["estimates"]):
         assert e["p_hat"] == pytest.approx(w1 * one.p_hat[g] + w2 * two.p_hat[g], rel=1e-12)
         assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
@@ -238,7 +238,7 @@ def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
     ],
 )
 def test_a_design_predicted_no_better_than_uniform_is_said_in_one_line(predicted, weighting, says):
-    note = pipeline._design_note(
+    note = pipeline.design_note(
         {"plan": 3, "predicted_vs_uniform": predicted, "weighting": weighting}
     )
     assert (note is not None) is says

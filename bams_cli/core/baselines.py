@@ -9,6 +9,7 @@ caller's business:
 strategy  picks                                                  downstream
 ========  =====================================================  ========================
 mc        uniform over segments, level 0                         plain Monte Carlo
+random    as mc (``select --strategy random``; mixed on request)  plain Monte Carlo
 mc-gp     uniform over segments, level 0                         GP scores the pool
 mcm-gp    uniform over segments, levels split by cost            GP scores the pool
 ds        without replacement, P ~ difficulty weight, level 0    IS by difficulty
@@ -35,8 +36,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-Strategy = Literal["mc", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce"]
-STRATEGIES: tuple[str, ...] = ("mc", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
+Strategy = Literal["mc", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce"]
+STRATEGIES: tuple[str, ...] = ("mc", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
 
 
 def _n_affordable(cost: float, budget: float) -> int:
@@ -335,22 +336,28 @@ def pick_baseline(
     X: FloatArray | None = None,
     observed_index: IntArray | None = None,
     observed_value: FloatArray | None = None,
+    mixed: bool | None = None,
+    level_shares: Sequence[float] | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Dispatch to the pick function of ``strategy`` (see the module table).
+
+    ``mixed`` spreads the uniform strategies over the levels (by default only ``mcm-gp``
+    does), with ``level_shares`` of the budget per level (``pick_uniform``).
 
     Returns
     -------
     index : int ndarray of shape (r,)
     level : int ndarray of shape (r,)
     """
-    if strategy in ("mc", "mc-gp", "mcm-gp"):
+    if strategy in ("mc", "random", "mc-gp", "mcm-gp"):
         return pick_uniform(
             n_pool,
             costs,
             budget,
             rng=rng,
-            mixed=strategy == "mcm-gp",
+            mixed=strategy == "mcm-gp" if mixed is None else mixed,
             observed_level0_mask=observed_level0_mask,
+            level_shares=level_shares,
         )
     if strategy in ("ds", "ds-gp"):
         if difficulty is None:

@@ -1,0 +1,101 @@
+"""What every command shares: the workspace lock decorator, the progress callback type, and
+small readers of state that several commands use."""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from bams_cli import stages as stages_mod
+from bams_cli.settings import SETTINGS_FILE
+from bams_cli.state import schemas
+from bams_cli.state.io import (
+    journal_in,
+    read_state,
+    recover,
+)
+from bams_cli.state.lock import workspace_lock
+from bams_cli.state.workspace import Workspace
+
+Progress = Callable[[str, int, int], None]
+SID = schemas.SEGMENT_ID
+
+
+def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
+    """Hold the workspace lock for the whole command: from the first read to the commit.
+
+    A command that read the log, then waited for the lock only to write, could overwrite
+    what another command appended in between; holding it throughout makes the second
+    command fail at once (or wait, with ``wait=True``) before it reads anything.
+    """
+
+    @functools.wraps(fn)
+    def run(root: Path, *args: Any, wait: bool = False, **kwargs: Any) -> dict[str, Any]:
+        if not (Path(root) / SETTINGS_FILE).exists():
+            return fn(root, *args, **kwargs)  # raises "no such workspace" without creating it
+        with workspace_lock(Path(root), wait=wait), journal_in(Path(root)):
+            moved = recover(Path(root))
+            if moved:
+                sys.stderr.write(
+                    f"note: {root}: finished an interrupted command's commit ({moved} "
+                    f"file{'s' if moved != 1 else ''} renamed into place)\n"
+                )
+            return fn(root, *args, **kwargs)
+
+    return run
+
+
+def savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)  # type: ignore[arg-type]
+
+
+def not_run_summary(not_run: pl.DataFrame, limit: int = 20) -> dict[str, Any]:
+    """Rows a results file marked as not run (a status other than ok): they stay pending."""
+    return {
+        "count": not_run.height,
+        "first": not_run.head(limit).drop("_row").to_dicts(),
+    }
+
+
+def pending_summary(ws: Workspace, limit: int = 20) -> dict[str, Any]:
+    pend = ws.pending()
+
+    def per(key: str) -> dict[int, int]:  # a plan's picks have no batch, and vice versa
+        rows = pend.filter(pl.col(key).is_not_null()).group_by(key).len().sort(key)
+        return {int(k): int(v) for k, v in rows.iter_rows()}
+
+    return {
+        "count": pend.height,
+        "by_batch": per("batch"),
+        "by_plan": per("plan"),
+        "first": pend.head(limit).select(SID, "fidelity", "batch", "plan").to_dicts(),
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# estimate (plan -> simulate -> compute)
+# ---------------------------------------------------------------------------------------
+plan_numbers = stages_mod.plan_numbers
+
+
+def read_scores(
+    ws: Workspace, n_gammas: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    t = schemas.SCORES.check(read_state(ws.scores_path), ws.scores_path)
+    p = np.column_stack([t.column(f"p_{g}").to_numpy() for g in range(n_gammas)])
+    ids = t.column(SID).to_numpy(zero_copy_only=False)
+    return ids, t.column("mu").to_numpy(), t.column("sd").to_numpy(), p
+
+
+def finite_or_none(x: float) -> float | None:
+    """x as a JSON number, or None (JSON null) when it is NaN or infinite."""
+    x = float(x)
+    return x if math.isfinite(x) else None

@@ -1,0 +1,56 @@
+"""The hand-off lists ``select`` and ``estimate --plan`` write for the simulation team: one
+column layout, internal columns kept in the Parquet state."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli.pipeline._common import SID
+from bams_cli.state import handoff as contract
+from bams_cli.state.io import (
+    read_state_schema,
+)
+from bams_cli.state.workspace import Workspace
+
+
+def observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+    return np.isin(ids, obs[SID].to_numpy())
+
+
+# Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
+BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
+PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "prob", "p_n")
+
+
+def passthrough_columns(ws: Workspace, index: np.ndarray, taken: dict[str, Any]) -> dict[str, Any]:
+    """The pool's pass-through columns (scenario tags ...) for the picked rows. A column
+    named like one of the hand-off's own, or the results' (value, status), is left out:
+    the contract's meaning wins."""
+    reserved = {SID, *taken, *BATCH_INTERNAL, *PLAN_INTERNAL, *contract.TEMPLATE_COLUMNS}
+    coords = set(ws.coordinate_columns())
+    names = [
+        c
+        for c in read_state_schema(ws.segments_path).names
+        if c not in coords and c not in reserved
+    ]
+    if not names:
+        return {}
+    rows = ws.read_segments([SID, *names]).take(pa.array(np.asarray(index, np.int64)))
+    return {name: rows.column(name) for name in names}
+
+
+def write_handoff(
+    tx: Any, table: pa.Table, csv: Path, internal: tuple[str, ...], with_internal: bool
+) -> tuple[Path, Path]:
+    """Stage a hand-off CSV and its results template (``state.handoff``) in ``tx``."""
+    frame = contract.handoff_frame(table, internal, with_internal=with_internal)
+    template = contract.template_path(csv)
+    tx.write_with(csv, lambda p: frame.write_csv(p))
+    tx.write_with(template, lambda p: contract.template_frame(frame).write_csv(p))
+    return csv, template

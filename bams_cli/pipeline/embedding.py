@@ -1,0 +1,229 @@
+"""``bams-cli embed-reduce``: the pool's embeddings, reduced to the model's inputs."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from bams_cli.errors import (
+    DuplicateError,
+    InputError,
+    SchemaError,
+    WorkspaceError,
+    shown,
+)
+from bams_cli.pipeline._common import SID, Progress, locked, savez
+from bams_cli.state import schemas
+from bams_cli.state.inputs import EmbeddingStream, embedding_layout, read_ids, sample_rows
+from bams_cli.state.io import (
+    file_sha256,
+    read_metadata_json,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+
+
+@locked
+def embed_reduce(
+    root: Path,
+    source: Path,
+    *,
+    apply: bool = False,
+    method: str = "pca",
+    dim: int | None = None,
+    standardize: bool = True,
+    columns: str | None = None,
+    embedding_column: str | None = None,
+    id_column: str | None = None,
+    batch_size: int = 8192,
+    sample_size: int = 20_000,
+    force: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Reduce segment embeddings into the workspace pool (or, with ``apply``, add to it)."""
+    from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
+
+    if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):
+        raise WorkspaceError(
+            f"--batch-size {batch_size}, --sample-size {sample_size} and --dim {dim} must be >= 1"
+        )
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    id_column = id_column or settings.id_column
+    if not source.exists():
+        raise InputError(source, "segments file not found")
+    if source.is_dir():
+        raise InputError(source, "is a folder; give the segments file itself")
+    try:
+        schema = pq.read_schema(source)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise InputError(source, f"cannot read as Parquet ({str(exc).splitlines()[0]})") from None
+    request = {
+        "source_sha256": file_sha256(source),
+        "reduce_options": {
+            "method": method,
+            "dim": settings.embedding_dim if dim is None else dim,
+            "standardize": standardize,
+            "columns": columns,
+            "embedding_column": embedding_column,
+            "id_column": id_column,
+        },
+    }
+    if not apply and not force and ws.segments_path.exists():
+        # A re-run of the step that made the pool (a Makefile target, a CI retry) is a
+        # no-op; a different file or other options need --force or --apply.
+        made = read_metadata_json(ws.segments_path)
+        if all(made.get(k) == v for k, v in request.items()):
+            names = pq.read_schema(ws.segments_path).names
+            return {
+                "segments": str(ws.segments_path),
+                "added": 0,
+                "pool_size": int(pq.read_metadata(ws.segments_path).num_rows),
+                "method": made.get("method"),
+                "dim": made.get("dim"),
+                "passthrough_columns": [
+                    c for c in names if c != SID and not (c[:1] == "z" and c[1:].isdigit())
+                ],
+                "unchanged": True,
+                "note": "the pool was already reduced from this file with these options",
+            }
+    layout: dict[str, Any] | None = None
+    if apply:
+        if not ws.reducer_path.exists():
+            raise WorkspaceError(
+                f"{ws.reducer_path}: no fitted reducer; run embed-reduce without --apply first"
+            )
+        try:
+            with np.load(ws.reducer_path) as saved:
+                arrays = dict(saved)
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            raise SchemaError(
+                ws.reducer_path,
+                f"damaged state file ({' '.join(str(exc).split())}); run embed-reduce "
+                "without --apply to fit the reducer again",
+            ) from None
+        layout = {
+            "list": str(arrays.get("layout_list", "")) or None,
+            "columns": [str(c) for c in arrays.get("layout_columns", np.array([], dtype=str))],
+        }
+    list_col, cols = embedding_layout(
+        schema,
+        source,
+        id_column=id_column,
+        columns=columns,
+        embedding_column=embedding_column or (layout["list"] if layout else None),
+        fitted_columns=layout["columns"] if layout and not layout["list"] else None,
+    )
+    ids = read_ids(source, id_column)
+    stream = EmbeddingStream(source, list_col, cols, batch_size)
+    n = len(ids)
+    if n == 0:
+        raise InputError(source, "has no rows")
+    rng = np.random.default_rng(settings.seed)
+
+    existing: pa.Table | None = None
+    if apply:
+        reducer = Reducer.from_arrays(arrays)
+        existing = ws.read_segments()
+        clash = pc.is_in(ids, value_set=existing.column(SID).combine_chunks())
+        if pc.any(clash).as_py():
+            row = int(np.flatnonzero(clash.to_numpy(zero_copy_only=False))[0]) + 1
+            raise DuplicateError(
+                source,
+                f"segment id {shown(ids[row - 1].as_py())} is already in the pool",
+                column=id_column,
+                row=row,
+            )
+    else:
+        if ws.segments_path.exists() and not force:
+            raise WorkspaceError(
+                f"{ws.segments_path}: the pool is already reduced; use --apply to add segments, "
+                f"or --force to refit the reducer (coordinates change; refit the model after)"
+            )
+        dim = settings.embedding_dim if dim is None else dim
+        # A random sample of rows (streamed, never the whole pool) trains the autoencoder
+        # and measures ipca's reconstruction error. Exact PCA takes its error from the
+        # eigenvalues, so it skips this pass: it reads the file twice (fit, transform).
+        sample = None
+        if method in ("autoencoder", "ipca"):
+            take = np.sort(rng.choice(n, size=min(sample_size, n), replace=False))
+            sample = sample_rows(stream, take)
+        try:
+            reducer = fit_reducer(
+                stream,
+                method=method,  # type: ignore[arg-type]  # checked by the CLI
+                dim=dim,
+                standardize=standardize,
+                sample=sample,
+                rng=rng,
+                progress=progress,  # type: ignore[arg-type]
+                n_rows=n,
+            )
+        except ValueError as exc:
+            raise InputError(source, str(exc)) from None
+
+    expected = reducer.mean.shape[0]
+    Z_parts = []
+    done = 0
+    for M in stream():
+        if M.shape[1] != expected:
+            raise InputError(
+                source,
+                f"embedding has {M.shape[1]} values, the reducer expects {expected}",
+                column=list_col or cols[0],
+            )
+        Z_parts.append(reducer.transform(M))
+        done += M.shape[0]
+        if progress:
+            progress("transform", done, n)
+    Z = np.vstack(Z_parts)
+
+    passthrough = [c for c in schema.names if c not in {id_column, list_col, *cols}]
+    rest = pq.read_table(source, columns=passthrough) if passthrough else None
+    out_cols: dict[str, Any] = {SID: ids}
+    for j in range(Z.shape[1]):
+        out_cols[f"z{j}"] = pa.array(Z[:, j])
+    if rest is not None:
+        for name in passthrough:
+            if name in out_cols:
+                raise SchemaError(
+                    source, "column name is reserved for reduced coordinates", column=name
+                )
+            out_cols[name] = rest.column(name)
+    table = pa.table(out_cols)
+    if existing is not None:
+        table = pa.concat_tables(
+            [existing.replace_schema_metadata(None), table], promote_options="permissive"
+        )
+    meta = {
+        "method": reducer.method,
+        "dim": reducer.dim,
+        "source": str(source),
+        "seed": settings.seed,
+        "reconstruction_error": reducer.reconstruction_error,
+        **({} if apply else request),
+    }
+    with transaction() as tx:
+        if not apply:
+            saved_layout = {
+                "layout_list": np.array(list_col or ""),
+                "layout_columns": np.array(cols, dtype=str),
+            }
+            tx.write_with(ws.reducer_path, lambda p: savez(p, reducer.to_arrays() | saved_layout))
+        tx.write_parquet(ws.segments_path, schemas.SEGMENTS.conform(table, meta))
+    return {
+        "segments": str(ws.segments_path),
+        "added": n,
+        "pool_size": table.num_rows,
+        "method": reducer.method,
+        "dim": reducer.dim,
+        "input_dim": int(expected),
+        "reconstruction_error": reducer.reconstruction_error,
+        "passthrough_columns": passthrough,
+    }

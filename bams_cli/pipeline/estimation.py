@@ -1,0 +1,579 @@
+"""``bams-cli estimate``: the plan (``--plan``) and the failure-rate estimate from its results."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli import defaults
+from bams_cli import stages as stages_mod
+from bams_cli.errors import (
+    PendingResultsError,
+    StaleStateError,
+    WorkspaceError,
+)
+from bams_cli.pipeline._common import (
+    SID,
+    Progress,
+    finite_or_none,
+    locked,
+    plan_numbers,
+    read_scores,
+)
+from bams_cli.pipeline._handoff import (
+    PLAN_INTERNAL,
+    observed_level0,
+    passthrough_columns,
+    write_handoff,
+)
+from bams_cli.pipeline.fitting import load_posterior, model_transform
+from bams_cli.settings import Settings
+from bams_cli.state import handoff as contract
+from bams_cli.state import schemas
+from bams_cli.state.io import (
+    read_metadata_json,
+    read_state,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+
+
+@locked
+def estimate_plan(
+    root: Path,
+    *,
+    samples: float | None = None,
+    alpha: float = defaults.ALPHA,
+    defensive: float = defaults.DEFENSIVE,
+    design: str = "poisson",
+    weighting: str = "auto",
+    stages: int = defaults.STAGES,
+    stage1_share: float = defaults.STAGE1_SHARE,
+    new_series: bool = False,
+    seed: int | None = None,
+    handoff_internal: bool = False,
+    allow_pending: bool = False,
+) -> dict[str, Any]:
+    """Plan one stage of the rate-estimation sample: inclusion probabilities and the hand-off.
+
+    The estimate runs in ``stages`` stages (``core.design``, ``stages``): the first plan of
+    a series fixes the total budget K (``samples``) and the stages' weights, and spends
+    ``stage1_share`` of K; each later call, once the previous stage's results are in and
+    the model refitted on them, draws the next stage with the rest. Every stage's design
+    comes from the model checked against the level-0 outcomes of every finished plan
+    (``weighting="auto"``): the candidate with the smallest predicted variance among
+    uniform, the calibrated design and the paper's p^alpha form. ``weighting`` "uniform"
+    or "p-alpha" (with ``alpha``, ``defensive``) forces one; designs "fixed" and
+    "with-replacement" are single-stage p^alpha plans, as the paper's.
+
+    While an earlier plan awaits results this refuses (exit code 3, so a Makefile re-run
+    does not draw a second plan); ``allow_pending`` draws another anyway.
+
+    The draw is seeded by the study seed and the plan's number (so re-running a study
+    reproduces its plans), or by ``seed`` alone when given: the same seed then gives the
+    same plan from the same scores, and another seed a fresh one, without editing the
+    settings. The seed and the random stream are recorded in the plan's metadata.
+    """
+    st = stages_mod  # the series and the evidence of finished plans
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import (
+        DESIGNS,
+        gp_estimate,
+        inclusion_probabilities,
+        max_failure_weight,
+        model_weight,
+        plan_sample,
+    )
+
+    if design not in DESIGNS:
+        raise WorkspaceError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
+    if weighting not in WEIGHTINGS:
+        raise WorkspaceError(f"--weighting {weighting!r}: choose one of {', '.join(WEIGHTINGS)}")
+    if not (0 <= alpha < np.inf) or not 0 <= defensive <= 1:
+        raise WorkspaceError(f"--alpha {alpha} must be >= 0 and --defensive {defensive} in [0, 1]")
+    if samples is not None and not (1 <= samples < np.inf):
+        raise WorkspaceError(f"--samples {samples}: must be a number >= 1 (simulations to plan)")
+    if not 1 <= stages <= 10:
+        raise WorkspaceError(f"--stages {stages}: must be between 1 and 10")
+    if not 0 < stage1_share < 1:
+        raise WorkspaceError(f"--stage1-share {stage1_share}: must lie in (0, 1), e.g. 0.5")
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    pend = ws.pending()
+    waiting = sorted(set(pend["plan"].drop_nulls().to_list())) if pend.height else []
+    if waiting and not allow_pending:
+        # A second plan while the first awaits results would be drawn from the same scores
+        # and double-count the rate's sample; Make re-running a target must not do that.
+        raise PendingResultsError(
+            f"{ws.root}: estimate plan {waiting[-1]} awaits results for "
+            f"{int(pend['plan'].is_in(waiting).sum())} picks; simulate its hand-off list, "
+            "ingest the results and run `bams-cli estimate`, or pass --allow-pending to "
+            "draw another plan beside it"
+        )
+    model = ws.require_fresh_model()
+    ids, _, _, p_all = read_scores(ws, len(settings.gammas))
+    # The largest gamma's p_n bounds every other gamma's (f <= g_small implies f <= g_large),
+    # so one sample planned on it serves every configured gamma.
+    g_plan = int(np.argmax(settings.gammas))
+    p = p_all[:, g_plan]
+    known = observed_level0(ws, ids)
+    n = len(ids)
+    gp_rate, _ = gp_estimate(p)
+    n_unknown = int((~known).sum())
+    number = (plan_numbers(ws) or [0])[-1] + 1
+
+    # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
+    staged = design == "poisson"
+    prev = st.plan_info(ws, number - 1) if number > 1 else None
+    # A stage is drawn from the model checked on the previous stage's outcomes, so a plan
+    # drawn beside a pending one (--allow-pending) starts a new estimate instead.
+    continuing = (
+        staged
+        and not new_series
+        and prev is not None
+        and prev.stage < prev.stages
+        and st.plan_complete(ws, prev.number)
+    )
+    if continuing:
+        assert prev is not None
+        if samples is not None and not math.isclose(samples, prev.series_K, rel_tol=1e-9):
+            raise WorkspaceError(
+                f"--samples: plan {prev.number} is stage {prev.stage} of {prev.stages} of an "
+                f"estimate with K = {prev.series_K:g} fixed at its stage 1; this plan is its "
+                "next stage and spends the rest (drop --samples, or pass the same K); pass "
+                "--new-series to start a new estimate instead"
+            )
+        series, stage, n_stages = prev.series, prev.stage + 1, prev.stages
+        series_K, weights = prev.series_K, prev.weights
+        K_stage = series_K * weights[stage - 1]
+    else:
+        if samples is None:
+            # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
+            # can put p N near 0, so the failures already seen at level 0 set a floor.
+            obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
+            seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
+            samples = float(round(5 * max(gp_rate * n, seen + 1)))
+        if design == "with-replacement":
+            samples = float(round(samples))
+        if design != "with-replacement":
+            samples = min(samples, float(n_unknown))
+        n_stages = stages if staged and samples >= 2 * stages else 1
+        series, stage, series_K = number, 1, float(samples)
+        rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
+        weights = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
+        K_stage = series_K * weights[0]
+    K_stage = min(K_stage, float(n_unknown))
+    stream = [settings.seed, 10_000 + number] if seed is None else [int(seed), 10_000]
+    rng = np.random.default_rng(stream)
+    unknown = np.flatnonzero(~known)
+    pu = p[unknown]
+    # What the finished plans say about trusting p_n (lam: the share of failure mass it
+    # does not explain); the prior alone before any plan has results.
+    evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
+    post = dz.risk_posterior(evidence)
+    choice = None
+    if staged:
+        with np.errstate(divide="ignore"):
+            if unknown.size == 0:  # every level-0 value is known: a census, nothing to draw
+                pi_u = np.zeros(0)
+            elif weighting == "auto":
+                choice = dz.choose_design(
+                    pu, K=K_stage, posterior=post, alpha=alpha, defensive=defensive
+                )
+                pi_u = choice.pi
+            elif weighting == "uniform":
+                pi_u = np.full(unknown.size, K_stage / max(unknown.size, 1))
+            else:
+                pi_u = inclusion_probabilities(pu, alpha=alpha, defensive=defensive, K=K_stage)
+        from bams_cli.core.estimate import SamplePlan, draw_poisson
+
+        sampled = draw_poisson(pi_u, rng)
+        plan = SamplePlan(
+            "poisson", n, unknown.astype(np.int64), pi_u / max(K_stage, 1e-300), pi_u,
+            K_stage, sampled, np.ones(sampled.size, np.int64),
+        )  # fmt: skip
+        # The interval's allowance for a failure no stage has seen, per gamma: where the
+        # least-trusted calibrated model the evidence allows puts failures.
+        w_model = [
+            dz.unseen_failure_weight(post.risk(p_all[unknown, g]), pi_u)
+            for g in range(len(settings.gammas))
+        ]
+    else:
+        with np.errstate(divide="ignore"):
+            plan = plan_sample(
+                p, K=K_stage, rng=rng, known=known, alpha=alpha, defensive=defensive,
+                design=design,  # type: ignore[arg-type]
+            )  # fmt: skip
+        prob_u = plan.q if design == "with-replacement" else plan.pi
+        w_model = [
+            model_weight(p_all[plan.unknown, g], prob_u, design=design, K=plan.budget)  # type: ignore[arg-type]
+            for g in range(len(settings.gammas))
+        ]
+    # What the known stratum saved: the inclusion probability its segments would have had.
+    saved = 0.0
+    if known.any() and design != "with-replacement":
+        full = inclusion_probabilities(p, alpha=alpha, defensive=defensive, K=min(K_stage, n))
+        saved = float(full[known].sum())
+    sampled_idx = plan.sampled_pool_index
+    known_idx = np.flatnonzero(known)
+    prob = plan.sampled_prob
+    # The sampled rows are the plan's requests (level 0, in hand-off order); the known
+    # stratum's rows follow with the contract's columns null: nothing to simulate there.
+    requests = contract.contract_columns(
+        "plan",
+        number,
+        ids[sampled_idx],
+        np.zeros(len(sampled_idx), np.int64),
+        settings,
+        ["estimate"] * len(sampled_idx),
+    )
+    n_known = len(known_idx)
+    cols: dict[str, Any] = {
+        name: pa.concat_arrays([arr, pa.nulls(n_known, arr.type)])
+        for name, arr in requests.items()
+        if name != SID
+    }
+    cols = {
+        SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]).astype(str), pa.string()),
+        "stratum": ["sampled"] * len(sampled_idx) + ["known"] * n_known,
+        "pi": np.concatenate([plan.pi[plan.sampled], np.ones(n_known)]),
+        "draws": np.concatenate([plan.counts, np.zeros(n_known, np.int64)]),
+        "q": np.concatenate([plan.q[plan.sampled], np.zeros(n_known)]),
+        "prob": np.concatenate([prob, np.ones(n_known)]),
+        "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
+        **cols,
+    }
+    cols |= passthrough_columns(ws, np.concatenate([sampled_idx, known_idx]), taken=cols)
+    table = pa.table(cols)
+    predicted = (
+        {k: round(v, 6) for k, v in choice.predicted.items()} if choice is not None else None
+    )
+    weighting_used = (
+        choice.name if choice is not None else ("p^alpha" if weighting != "uniform" else "uniform")
+    )
+    stage_info = {
+        "series": series,
+        "stage": stage,
+        "stages": n_stages,
+        "series_K": series_K,
+        "stage_weights": weights,
+    }
+    check = {**post.summary(), "plans": evidence_plans}
+    meta = {
+        "plan": number,
+        "design": design,
+        "samples": K_stage,
+        "alpha": alpha,
+        "defensive": defensive,
+        "weighting": weighting_used,
+        "weighting_option": weighting,
+        "predicted_vs_uniform": predicted,
+        "model_check": check,
+        **stage_info,
+        "n_pool": n,
+        "n_unknown": n_unknown,
+        "p_mean_unknown": float(pu.mean()) if pu.size else None,
+        "risk_norms": dz.risk_norms(dz.relative_risk(pu)).tolist(),
+        # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
+        # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
+        "w_max": finite_or_none(max_failure_weight(plan)),
+        "w_model": [finite_or_none(w) for w in w_model],
+        "plan_gamma": settings.gammas[g_plan],
+        "model_hash": model["observations_hash"],
+        # The GP's own estimate (mean p_n, variance bound) per gamma, as of this plan:
+        # `estimate` reports it when the plan's results have not been fitted yet.
+        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
+        "seed": stream[0],
+        "seed_source": "study settings" if seed is None else "--seed",
+        "rng_stream": stream,
+    }
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
+    state = schemas.PLAN.conform(table, meta)
+    with transaction() as tx:
+        tx.write_parquet(path, state)
+        _, template = write_handoff(
+            tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
+        )
+    notes = [n for n in [design_note(meta)] if n]
+    return {
+        "plan": number,
+        "plan_file": str(path),
+        "handoff": str(handoff_path),
+        "results_template": str(template),
+        "design": design,
+        "samples_K": K_stage,
+        **stage_info,
+        "weighting": weighting_used,
+        "predicted_vs_uniform": predicted,
+        "model_check": check,
+        "to_simulate": len(sampled_idx),
+        "simulations_certain": int((plan.pi[plan.sampled] >= 1.0).sum()),
+        "known_stratum": int(len(known_idx)),
+        "simulations_saved_by_known_stratum": round(saved, 3),
+        "gp_rate_estimate": gp_rate,
+        "alpha": alpha,
+        "defensive": defensive,
+        "seed": stream[0],
+        "seed_source": meta["seed_source"],
+        "notes": notes,
+    }
+
+
+def design_note(meta: dict[str, Any]) -> str | None:
+    """One line when a plan's design was predicted to do no better than uniform sampling."""
+    predicted = meta.get("predicted_vs_uniform") or {}
+    chosen = predicted.get(meta.get("weighting"))
+    if chosen is None or chosen <= UNIFORM_NOTE_RATIO:
+        return None
+    return (
+        f"plan {meta['plan']}: the checked model predicted no design much better than "
+        f"uniform sampling ({meta['weighting']}, {chosen:.2f}x uniform's variance); the "
+        "estimate rests on the sample, not the model"
+    )
+
+
+#: ``estimate --plan --weighting``: "auto" picks the design with the smallest predicted
+#: variance under the checked model; the others force one.
+WEIGHTINGS = ("auto", "uniform", "p-alpha")
+
+#: A chosen design predicted to reach at most this fraction of uniform's variance saving
+#: gets a note: the model does not help the estimate.
+UNIFORM_NOTE_RATIO = 0.9
+
+
+@dataclasses.dataclass(frozen=True)
+class _PlanSample:
+    """One plan's sample with its level-0 outcomes, ready for the estimator."""
+
+    sampled_ids: np.ndarray
+    fails: np.ndarray
+    lost: list[str]
+    estimate_with: Callable[[np.ndarray], Any]
+
+
+def _plan_sample(
+    ws: Workspace, number: int, gammas: np.ndarray, confidence: float, failed_as: str | None
+) -> _PlanSample:
+    """Plan ``number``'s sample, outcomes and estimator (``estimate_with(fails)``).
+
+    Abandoned planned segments are refused, or kept for the bounds (``bams_cli.abandon``).
+    """
+    from bams_cli import abandon
+    from bams_cli.core.estimate import estimate_from_sample
+
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    meta = read_metadata_json(path)
+    plan = pl.from_arrow(schemas.PLAN.check(read_state(path), path))
+    assert isinstance(plan, pl.DataFrame)
+    obs = ws.read_observations().filter(pl.col("fidelity") == 0).select(SID, "value")
+    joined = plan.join(obs, on=SID, how="left")
+    lost = abandon.planned_abandoned(ws, number, path, joined, failed_as)
+    missing = joined.filter(pl.col("value").is_null() & ~pl.col(SID).is_in(lost))
+    if missing.height:
+        names = ", ".join(missing[SID].head(3).to_list())
+        raise PendingResultsError(
+            f"{path}: {missing.height} planned segments have no level-0 result ({names}"
+            f"{', ...' if missing.height > 3 else ''}); simulate "
+            f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
+        )
+    sampled = joined.filter(pl.col("stratum") == "sampled")
+    known = joined.filter(pl.col("stratum") == "known")
+    fails = sampled["value"].to_numpy()[:, None] <= gammas[None, :]
+    known_fails = (known["value"].to_numpy()[:, None] <= gammas[None, :]).sum(axis=0)
+
+    def estimate_with(fails: np.ndarray) -> Any:
+        return estimate_from_sample(
+            sampled["prob"].to_numpy(),
+            fails,
+            design=meta["design"],
+            n_pool=int(meta["n_pool"]),
+            n_unknown=int(meta["n_unknown"]),
+            budget=float(meta["samples"]),
+            counts=sampled["draws"].to_numpy(),
+            known_failures=known_fails,
+            confidence=confidence,
+            w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
+        )
+
+    return _PlanSample(sampled[SID].to_numpy(), fails, lost, estimate_with)
+
+
+def plan_estimate(ws: Workspace, number: int, gammas: np.ndarray, confidence: float):  # noqa: ANN202
+    """The HT estimate of one plan from its ingested level-0 results, per gamma."""
+    sample = _plan_sample(ws, number, gammas, confidence, None)
+    return sample.estimate_with(sample.fails)
+
+
+@locked
+def estimate_compute(
+    root: Path,
+    *,
+    plan_number: int | None = None,
+    confidence: float = 0.9,
+    exact_variance: bool = False,
+    failed_as: str | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Compute the rate estimate from an ingested plan, for every configured gamma.
+
+    A plan that is a later stage of a staged estimate is combined with its earlier stages
+    (``core.design.combine_stages``); while stages remain, the estimate rests on the
+    stages so far and says so. Planned segments abandoned for good (``bams-cli abandon``)
+    are refused, unless ``failed_as="bounds"`` asks for the worst case over them
+    (``bams_cli.abandon``).
+    """
+    from bams_cli import abandon
+    from bams_cli.core.design import combine_stages
+    from bams_cli.core.estimate import gp_estimate
+
+    if not 0 < confidence < 1:
+        raise WorkspaceError(f"--confidence {confidence}: must lie in (0, 1), e.g. 0.9")
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    plans = plan_numbers(ws)
+    if not plans:
+        raise WorkspaceError(
+            f"{ws.root}: no estimate plan; run `bams-cli estimate --plan -w {ws.root}` first"
+        )
+    number = plans[-1] if plan_number is None else plan_number
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    if not path.exists():
+        raise WorkspaceError(f"{path}: no such plan (plans: {', '.join(map(str, plans))})")
+    gammas = np.asarray(settings.gammas)
+    # A staged estimate combines its series' stages up to this plan, with the weights
+    # fixed at stage 1 (renormalised while later stages are still to come).
+    series = stages_mod.series_plans(ws, number)
+    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as) for k in series]
+    meta = series[-1].meta
+    weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
+    weights /= weights.sum()
+    splits = np.cumsum([len(x.sampled_ids) for x in samples])[:-1]
+    fails = np.concatenate([x.fails for x in samples])
+    lost = [i for x in samples for i in x.lost]
+
+    def estimate_with(fails: np.ndarray) -> Any:
+        parts = np.split(fails, splits)
+        stage_est = [x.estimate_with(f) for x, f in zip(samples, parts, strict=True)]
+        return combine_stages(stage_est, weights, n_pool=int(meta["n_pool"]))
+
+    est = estimate_with(fails)
+    remaining = series[-1].stages - series[-1].stage
+    rows = []
+    gp_rows = []
+    # The IS estimate needs no model. Beside it goes the GP's own estimate: from the
+    # current model when it has been fitted on the plan's results, else the model's as of
+    # the plan (stored with it), so a large K never forces a refit just to get the number.
+    model = ws.require_model(allow_newer_observations=True)
+    at_plan = meta.get("gp_at_plan")
+    if not model["fresh"] and (exact_variance or at_plan is None):
+        why = "--exact-variance" if exact_variance else f"{path} (made by an older version)"
+        raise StaleStateError(
+            f"{ws.model_path}: fitted on an older observation log and {why} needs the current "
+            f"one; run `bams-cli fit -w {ws.root}` (or, faster, `bams-cli fit -w {ws.root} "
+            f"--fixed-hyperparameters {ws.model_path}`: condition only, no training)"
+        )
+    if model["fresh"]:
+        _, mu, sd, p_all = read_scores(ws, len(gammas))
+        gp_values = [gp_estimate(p_all[:, g]) for g in range(len(gammas))]
+    else:
+        gp_values = [(float(m), float(b)) for m, b in at_plan or []]
+    for g, gamma in enumerate(gammas):
+        e = est[g]
+        rows.append(
+            {
+                "gamma": float(gamma),
+                "p_hat": e.p_hat,
+                # Undefined numbers are null beside a note saying why, never NaN (issue 12):
+                # the note says what se rests on when it is not the HT variance estimate.
+                "se": finite_or_none(e.se),
+                "variance_note": e.variance_note,
+                "ci_low": e.ci_low,
+                "ci_high": e.ci_high,
+                "confidence": confidence,
+                "rel_var": finite_or_none(e.rel_var),
+                "rel_var_note": e.rel_var_note,
+                "n_sampled": e.n_sampled,
+                "failures_sampled": e.n_failures_sampled,
+                "failures_known": e.n_known_failures,
+                "distinct_failures_found": e.n_failures_found,
+            }
+        )
+        gp_mean, gp_bound = gp_values[g]
+        gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
+        if exact_variance:
+            g_model = float(model_transform(ws, model).forward(float(gamma)))
+            gp_row["gp_var_exact"] = _gp_exact_variance(ws, settings, mu, sd, g_model, progress)
+        gp_rows.append(gp_row)
+    staging = {
+        "series": series[-1].series,
+        "plans": [k.number for k in series],
+        "stages_done": len(series),
+        "stages": series[-1].stages,
+        "weights": [round(float(w), 12) for w in weights],
+        "series_K": series[-1].series_K,
+        "note": (
+            f"{remaining} more stage{'s' if remaining > 1 else ''} of this estimate "
+            f"{'are' if remaining > 1 else 'is'} planned: refit on these results and run "
+            f"`bams-cli estimate --plan -w {ws.root}`; until then the estimate rests on "
+            f"{len(series)} of {series[-1].stages} stages"
+            if remaining
+            else None
+        ),
+    }
+    summary = {
+        "plan": number,
+        "design": meta["design"] if len(series) == 1 else "staged",
+        "samples_K": sum(float(k.meta["samples"]) for k in series),
+        "staging": staging,
+        "estimates": rows,
+        "gp": gp_rows,
+        "gp_model": "current" if model["fresh"] else "as of the plan",
+        "notes": [n for n in (design_note(k.meta) for k in series) if n],
+    }
+    # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
+    abandon.bound_estimates(
+        summary, lost=lost, sampled_ids=np.concatenate([x.sampled_ids for x in samples]),
+        fails=fails, estimate_with=estimate_with,
+    )  # fmt: skip
+    out = ws.estimates_dir / f"estimate-{number:04d}.json"
+    with transaction() as tx:
+        tx.write_text(out, json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    summary["estimate_file"] = str(out)
+    return summary
+
+
+def _gp_exact_variance(
+    ws: Workspace,
+    settings: Settings,
+    mu: np.ndarray,
+    sd: np.ndarray,
+    gamma: float,
+    progress: Progress | None,
+) -> float:
+    from bams_cli.core.estimate import gp_variance_exact
+
+    ids, X = ws.read_pool()
+    if len(ids) > 50_000:
+        raise WorkspaceError(
+            f"--exact-variance: the pool has {len(ids)} segments; the O(N^2) sum is limited to 50,000"
+        )
+    posterior, _ = load_posterior(ws, settings, ids, X)
+    res = gp_variance_exact(
+        mu,
+        sd**2,
+        lambda r, c: posterior.cov_theta0(X[r], X[c]),
+        gamma,
+        progress=(lambda done, total: progress("exact variance", done, total))
+        if progress
+        else None,
+    )
+    return float(res.var)

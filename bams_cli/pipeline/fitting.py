@@ -1,0 +1,359 @@
+"""``bams-cli fit``: the multifidelity GP's hyperparameters and the pool's scores."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli import defaults
+from bams_cli.errors import (
+    InputError,
+    PendingResultsError,
+    SchemaError,
+    StaleStateError,
+    WorkspaceError,
+)
+from bams_cli.pipeline._common import SID, Progress, locked, read_scores
+from bams_cli.settings import Settings
+from bams_cli.state import schemas
+from bams_cli.state.io import (
+    stamp,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+from bams_cli.status import pending_handoffs
+
+
+# ---------------------------------------------------------------------------------------
+# fit
+# ---------------------------------------------------------------------------------------
+def _training_data(
+    ws: Workspace, ids: np.ndarray, X: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Active observations as (pool index, level, value) arrays."""
+    obs = ws.read_observations()
+    pend = ws.pending() if obs.height == 0 else None
+    if pend is not None and pend.height:
+        raise PendingResultsError(
+            f"{ws.observations_path}: no observations yet, {pend.height} picks await results; "
+            f"simulate {' and '.join(pending_handoffs(ws, pend))} and run "
+            f"`bams-cli ingest-results -w {ws.root} RESULTS.parquet`, then fit"
+        )
+    if obs.height == 0:
+        raise WorkspaceError(
+            f"{ws.observations_path}: no observations yet; select a first batch "
+            f"(`bams-cli select -w {ws.root} --strategy random`), simulate it and ingest the results"
+        )
+    index = pl.DataFrame({SID: ids, "_idx": np.arange(len(ids))})
+    joined = obs.join(index, on=SID, how="left")
+    missing = joined.filter(pl.col("_idx").is_null())
+    if missing.height:
+        raise WorkspaceError(
+            f"{ws.observations_path}: segment {missing[SID][0]!r} is no longer in the pool "
+            f"({missing.height} observations in all); re-add it with `embed-reduce --apply`"
+        )
+    return (
+        joined["_idx"].to_numpy().astype(np.int64),
+        joined["fidelity"].to_numpy().astype(np.int64),
+        joined["value"].to_numpy().astype(np.float64),
+    )
+
+
+def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.ndarray):  # noqa: ANN201
+    """The fitted model, conditioned again on the log it was fitted on (cheap: one Cholesky).
+
+    The posterior is of the transformed metric g(y) (model.json's ``transform``); g maps
+    the first gamma to itself, so ``select`` compares against it unchanged.
+    """
+    from bams_cli.core.gp import Hyperparameters, fit_mfgp
+
+    model = ws.require_fresh_model()
+    idx, lv, y = _training_data(ws, ids, X)
+    try:
+        hp = Hyperparameters.from_dict(model["hyperparameters"])
+        if hp.n_levels != settings.n_levels or hp.d != X.shape[1]:
+            raise ValueError(
+                f"they are for {hp.n_levels} levels and d = {hp.d}, the study has "
+                f"{settings.n_levels} levels and d = {X.shape[1]}"
+            )
+    except (KeyError, ValueError, TypeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise InputError(
+            ws.model_path,
+            f"hyperparameters: {what.removeprefix('Hyperparameters: ')}; rewrite it with "
+            f"`bams-cli fit -w {ws.root} --force`",
+        ) from None
+    g = model_transform(ws, model)
+    return fit_mfgp(
+        X[idx], lv, g.forward(y), settings.n_levels, rng=np.random.default_rng(settings.seed),
+        fixed=hp,
+    ), model  # fmt: skip
+
+
+def model_transform(ws: Workspace, model: dict[str, Any]):  # noqa: ANN202
+    """The output transform a model.json records (the identity for older models)."""
+    from bams_cli.core.gp import OutputTransform
+
+    try:
+        return OutputTransform.from_dict(model.get("transform"))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(
+            ws.model_path, f"transform: {exc}; rewrite it with `bams-cli fit -w {ws.root}`"
+        ) from None
+
+
+@locked
+def fit(
+    root: Path,
+    *,
+    fixed_hyperparameters: Path | None = None,
+    restarts: int = 8,
+    chunk_size: int = 50_000,
+    transform: str = defaults.TRANSFORM,
+    force: bool = False,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Train the multifidelity GP on the observation log and score every pool segment.
+
+    ``transform`` is "auto" (model g(y) = c + s asinh((y - c)/s), c the first gamma, with
+    s chosen by evidence among the identity and a few scales: ``core.gp.transform``) or
+    "none". With ``fixed_hyperparameters`` the file's own transform is used.
+
+    A model already fitted the same way on the same log is kept, and nothing is written
+    (``up_to_date`` in the summary; ``_fit_up_to_date``), unless ``force``.
+    """
+    from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
+    from bams_cli.core.gp.checks import check_model
+
+    if restarts < 1 or chunk_size < 1:
+        raise WorkspaceError(f"--restarts {restarts} and --chunk-size {chunk_size} must be >= 1")
+    if transform not in TRANSFORMS:
+        raise WorkspaceError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
+    chosen = None if transform == "auto" else OutputTransform()
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    if not force and fixed_hyperparameters is None:
+        kept = _fit_up_to_date(ws, settings, restarts=restarts, transform=transform)
+        if kept is not None:
+            return kept
+    ids, X = ws.read_pool()
+    idx, lv, y = _training_data(ws, ids, X)
+    fixed = None
+    if fixed_hyperparameters is not None:
+        try:
+            doc = json.loads(Path(fixed_hyperparameters).read_text())
+            fixed = Hyperparameters.from_dict(doc.get("hyperparameters", doc))
+            chosen = OutputTransform.from_dict(doc.get("transform"))
+        except FileNotFoundError:
+            raise InputError(fixed_hyperparameters, "hyperparameter file not found") from None
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise InputError(fixed_hyperparameters, f"not a hyperparameter file ({exc})") from None
+        if fixed.lengthscales0.shape[0] != X.shape[1] or fixed.noise.shape[0] != settings.n_levels:
+            raise InputError(
+                fixed_hyperparameters,
+                f"hyperparameters are for d = {fixed.lengthscales0.shape[0]}, {fixed.noise.shape[0]} "
+                f"levels; the study has d = {X.shape[1]}, {settings.n_levels} levels",
+            )
+    rng = np.random.default_rng(settings.seed)
+    if progress:
+        progress("fit", 0, 1)
+    try:
+        model, g, evidence = fit_transformed(
+            X[idx], lv, y, settings.n_levels, centre=float(settings.gammas[0]), rng=rng,
+            restarts=restarts, transform=chosen, fixed=fixed,
+        )  # fmt: skip
+    except GPFitError as exc:
+        raise WorkspaceError(f"fit: {exc}") from None
+    model_gammas = g.forward(np.asarray(settings.gammas, dtype=np.float64))
+    if progress:
+        progress("fit", 1, 1)
+
+    n = len(ids)
+    mu = np.empty(n)
+    sd = np.empty(n)
+    p = np.empty((n, len(settings.gammas)))
+    for start in range(0, n, chunk_size):
+        stop = min(start + chunk_size, n)
+        mu[start:stop], sd[start:stop], p[start:stop] = model.score(
+            X[start:stop], model_gammas, chunk_size
+        )
+        if progress:
+            progress("score pool", stop, n)
+
+    checks = check_model(model, idx)
+    warnings = [
+        *model.notes,
+        *checks.warnings,
+        *_contradicted_outcomes(ids, idx, lv, y, p, settings.gammas),
+    ]
+    obs_hash = ws.observations_hash()
+    hp = model.hyperparameters
+    doc = {
+        "hyperparameters": hp.to_dict(),
+        "log_marginal_likelihood": float(model.log_marginal_likelihood),
+        "log_posterior": float(model.log_posterior),
+        "n_observations_per_level": [int(c) for c in model.n_obs_per_level],
+        "observations_hash": obs_hash,
+        "pool": ws.pool_fingerprint(),
+        "units": "outputscale0, outputscales and noise are variances; lengthscales and mean in the metric's units",
+        "trained": fixed is None,
+        "restarts": restarts,
+        "seed": settings.seed,
+        "gammas": list(settings.gammas),
+        "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "jitter": float(model.jitter),
+        "transform": g.to_dict(),
+        "transform_option": transform,
+        "transform_evidence": [
+            {
+                "scale": None if math.isinf(e["scale"]) else e["scale"],
+                "log_evidence": e["log_evidence"],
+            }
+            for e in evidence
+        ],
+        "checks": checks.to_dict(),
+        "warnings": warnings,
+    }
+    cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
+    for j in range(p.shape[1]):
+        cols[f"p_{j}"] = p[:, j]
+    meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
+    # A snapshot of p_n after every batch feeds the report's per-batch retention-recall.
+    # It is taken only when the newest results belong to a batch: a refit after ingesting
+    # an estimate plan's results must not pass for the model "after batch b".
+    log = ws.read_observations(active_only=False)  # append-only: the last rows are the newest
+    newest = log.filter(pl.col("source_sha256") == log["source_sha256"][-1])["batch"]
+    snapshot_batch = None
+    if newest.len() and newest.null_count() == 0:
+        snapshot_batch = int(newest.max())  # type: ignore[arg-type]
+    history = pa.table({f"p_{g}": p[:, g] for g in range(p.shape[1])})
+    with transaction() as tx:
+        tx.write_text(ws.model_path, json.dumps(doc, indent=2) + "\n")
+        tx.write_parquet(ws.scores_path, schemas.SCORES.conform(pa.table(cols), meta))
+        if snapshot_batch is not None:
+            snapshot = ws.history_dir / f"scores-after-batch-{snapshot_batch:04d}.parquet"
+            tx.write_parquet(snapshot, stamp(history, schemas.SCORES.version, meta))
+    return {
+        "model": str(ws.model_path),
+        "scores": str(ws.scores_path),
+        "observations": int(len(y)),
+        "n_observations_per_level": doc["n_observations_per_level"],
+        "log_marginal_likelihood": doc["log_marginal_likelihood"],
+        "log_posterior": doc["log_posterior"],
+        "hyperparameters": doc["hyperparameters"],
+        "checks": doc["checks"],
+        "jitter": doc["jitter"],
+        "transform": doc["transform"],
+        "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        "warnings": warnings,
+    }
+
+
+def _fit_up_to_date(
+    ws: Workspace, settings: Settings, *, restarts: int, transform: str
+) -> dict[str, Any] | None:
+    """The summary of the model in ``model.json`` if fitting now would redo it, else None.
+
+    Redoing it means: trained (not ``--fixed-hyperparameters``) on the current observation
+    log and pool, with scores from that fit (``Workspace.require_model``), for the same
+    gammas, seed and number of levels, with the same ``--restarts`` and ``--transform``.
+    ``--chunk-size`` only bounds memory, so it does not count.
+    """
+    if not ws.model_path.exists() or not ws.segments_path.exists():
+        return None
+    try:
+        model = ws.require_model(allow_newer_observations=True)
+    except (StaleStateError, SchemaError):  # damaged, another pool, scores from another fit
+        return None
+    n_obs = model.get("n_observations_per_level")
+    same = (
+        model["fresh"]
+        and model.get("trained") is True
+        and model.get("restarts") == restarts
+        and model.get("transform_option") == transform
+        and model.get("gammas") == list(settings.gammas)
+        and model.get("seed") == settings.seed
+        and isinstance(n_obs, list)
+        and len(n_obs) == settings.n_levels
+    )
+    if not same:
+        return None
+    _, _, _, p = read_scores(ws, len(settings.gammas))
+    n = int(np.sum(n_obs or []))
+    return {
+        "up_to_date": True,
+        "message": f"model is up to date (fitted on {n} observations); nothing to do "
+        f"(pass --force to fit again)",
+        "model": str(ws.model_path),
+        "scores": str(ws.scores_path),
+        "observations": n,
+        **{
+            k: model.get(k)
+            for k in (
+                "n_observations_per_level",
+                "log_marginal_likelihood",
+                "log_posterior",
+                "hyperparameters",
+                "checks",
+                "jitter",
+                "transform",
+            )
+        },
+        "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        "warnings": model.get("warnings", []),
+    }
+
+
+#: Output transforms ``fit --transform`` accepts.
+TRANSFORMS = ("auto", "none")
+
+
+#: p_n below this at an observed level-0 failure (or 1 - p_n below it at an observed
+#: non-failure) means the model contradicts what was measured.
+CONTRADICTION = 0.01
+
+
+def _contradicted_outcomes(
+    ids: np.ndarray,
+    idx: np.ndarray,
+    lv: np.ndarray,
+    y: np.ndarray,
+    p: np.ndarray,
+    gammas: Sequence[float],
+) -> list[str]:
+    """Observed level-0 outcomes the fitted model is nearly sure did not happen.
+
+    A fit that explains level-0 results as noise (large level-0 noise, or the data handed to
+    the discrepancy) gives p_n ~ 0 at segments seen failing. The rate estimate then samples
+    the failures like them with tiny probability and its variance explodes, so say so.
+    """
+    out = []
+    level0 = lv == 0
+    for g, gamma in enumerate(gammas):
+        pn = p[idx[level0], g]
+        val = y[level0]
+        for failed, doubt, what in (
+            (val <= gamma, pn, "failing"),
+            (val > gamma, 1.0 - pn, "not failing"),
+        ):
+            bad = np.flatnonzero(failed & (doubt < CONTRADICTION))
+            if bad.size == 0:
+                continue
+            worst = bad[np.argmin(doubt[bad])]
+            out.append(
+                f"gamma {gamma:g}: {bad.size} of {int(failed.sum())} segments observed "
+                f"{what} at level 0 get probability < {CONTRADICTION:g} of that outcome "
+                f"(worst {ids[idx[level0][worst]]!r}: value {val[worst]:.4g}, "
+                f"p_n {pn[worst]:.2g}); the model explains them as noise, so the estimate's "
+                "variance may be large. Check the level-0 noise in the hyperparameter table; "
+                "more level-0 runs near them help"
+            )
+    return out

@@ -1,0 +1,163 @@
+"""``bams-cli ingest-results``: the simulation team's results, logged against what was asked."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from bams_cli.errors import (
+    ConflictError,
+    InputError,
+    shown,
+)
+from bams_cli.pipeline._common import SID, locked, not_run_summary, pending_summary
+from bams_cli.state import schemas
+from bams_cli.state.inputs import read_results
+from bams_cli.state.io import (
+    file_sha256,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+
+
+@locked
+def ingest_results(
+    root: Path,
+    source: Path,
+    *,
+    replace: bool = False,
+    allow_unselected: bool = False,
+) -> dict[str, Any]:
+    """Append a simulation team's results to the observation log."""
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ws.require_segments()
+    results, not_run = read_results(source, settings, ws)
+    digest = file_sha256(source)
+    log = ws.read_observations(active_only=False)
+
+    # A file ingested before is a no-op, unless --replace asks for its values back (to
+    # undo a later --replace): then it goes through like any file, superseding what differs.
+    if digest in set(log["source_sha256"].to_list()) and not replace:
+        active = log.filter(pl.col("active")).select(SID, "fidelity", pl.col("value").alias("_k"))
+        changed = results.join(active, on=[SID, "fidelity"], how="left").filter(
+            pl.col("_k").is_null() | (pl.col("_k") != pl.col("value"))
+        )
+        since = (
+            f"; {changed.height} of its values were replaced since: pass --replace to restore them"
+            if changed.height
+            else ""
+        )
+        return {
+            "ingested": 0,
+            "already_ingested": True,
+            "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed"
+            + since,
+            "pending": pending_summary(ws),
+            "not_run": not_run_summary(not_run),
+        }
+
+    if results.height == 0:
+        return {
+            "ingested": 0,
+            "already_ingested": False,
+            "message": f"{source}: every row's status says it was not run; nothing ingested, "
+            f"those requests stay pending",
+            "pending": pending_summary(ws),
+            "not_run": not_run_summary(not_run),
+        }
+    pool_ids = pl.from_arrow(ws.read_segments([SID]).column(SID)).alias(SID)  # type: ignore[union-attr]
+    unknown = results.filter(~pl.col(SID).is_in(pool_ids.implode()))
+    if unknown.height:
+        first = unknown.row(0, named=True)
+        raise InputError(
+            source,
+            f"segment id {shown(first[SID])} is not in the pool ({unknown.height} unknown in all); "
+            f"add segments with `bams-cli embed-reduce --apply`",
+            column=SID,
+            row=int(first["_row"]),
+        )
+
+    # A row keyed by request_id belongs to that request's batch or plan; one keyed by
+    # (segment_id, fidelity) to the latest batch and plan that selected the pair.
+    matched = results.join(ws.selections(), on=[SID, "fidelity"], how="left").with_columns(
+        pl.when(pl.col("_keyed"))
+        .then(pl.col("_req_batch"))
+        .otherwise(pl.col("batch"))
+        .alias("batch"),
+        pl.when(pl.col("_keyed")).then(pl.col("_req_plan")).otherwise(pl.col("plan")).alias("plan"),
+    )
+    unselected = matched.filter(pl.col("batch").is_null() & pl.col("plan").is_null())
+    if unselected.height and not allow_unselected:
+        first3 = unselected[SID].head(3).to_list()
+        names = ", ".join(s if len(s) <= 40 else s[:37] + "..." for s in first3)
+        more = "" if unselected.height <= 3 else ", ..."
+        raise InputError(
+            source,
+            f"{unselected.height} (segment_id, fidelity) pairs were never selected ({names}{more}); "
+            f"pass --allow-unselected to ingest them",
+            column=SID,
+            row=int(unselected["_row"][0]),
+        )
+
+    active = log.filter(pl.col("active")).select(SID, "fidelity", pl.col("value").alias("known"))
+    both = matched.join(active, on=[SID, "fidelity"], how="left")
+    conflicts = both.filter(pl.col("known").is_not_null() & (pl.col("known") != pl.col("value")))
+    if conflicts.height and not replace:
+        c = conflicts.row(0, named=True)
+        raise ConflictError(
+            f"{source}: column 'value', row {c['_row']}: ({shown(c[SID])}, fidelity {c['fidelity']}) "
+            f"is already known as {c['known']!r}, got {c['value']!r} "
+            f"({conflicts.height} conflicts in all); pass --replace to supersede the logged values"
+        )
+    same = both.filter(pl.col("known").is_not_null() & (pl.col("known") == pl.col("value")))
+    new = both.filter(pl.col("known").is_null() | (pl.col("known") != pl.col("value")))
+
+    if new.height == 0:
+        return {
+            "ingested": 0,
+            "already_known": same.height,
+            "already_ingested": False,
+            "message": f"{source}: every value is already in the log; nothing changed",
+            "pending": pending_summary(ws),
+            "not_run": not_run_summary(not_run),
+        }
+    now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    new_rows = new.select(
+        pl.col(SID),
+        pl.col("fidelity"),
+        pl.col("value"),
+        pl.col("batch"),
+        pl.lit(source.name).alias("source_file"),
+        pl.lit(digest).alias("source_sha256"),
+        pl.lit(now).alias("ingested_at"),
+        pl.lit(True).alias("active"),
+        pl.col("extra"),
+    )
+    superseded = conflicts.select(SID, "fidelity").with_columns(pl.lit(True).alias("_sup"))
+    old = (
+        log.join(superseded, on=[SID, "fidelity"], how="left")
+        .with_columns((pl.col("active") & pl.col("_sup").is_null()).alias("active"))
+        .drop("_sup")
+    )
+    combined = pl.concat([old, new_rows], how="vertical_relaxed")
+
+    with transaction() as tx:
+        tx.write_parquet(
+            ws.observations_path,
+            schemas.OBSERVATIONS.conform(combined.to_arrow(), {"last_source": source.name}),
+        )
+    return {
+        "ingested": new.height,
+        "replaced": conflicts.height,
+        "already_known": same.height,
+        "already_ingested": False,
+        "observations": str(ws.observations_path),
+        "log_rows": combined.height,
+        "by_fidelity": {int(k): int(v) for k, v in new.group_by("fidelity").len().iter_rows()},
+        "pending": pending_summary(ws),
+        "not_run": not_run_summary(not_run),
+    }

@@ -1,0 +1,124 @@
+"""``bams-cli init``: create a workspace and its settings, under the lock."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from bams_cli.errors import (
+    InputError,
+    OptionError,
+    SettingsError,
+    WorkspaceError,
+)
+from bams_cli.settings import Settings, levels_from_costs
+from bams_cli.state.io import (
+    transaction,
+)
+from bams_cli.state.lock import workspace_lock
+from bams_cli.state.workspace import Workspace
+
+
+# ---------------------------------------------------------------------------------------
+# init
+# ---------------------------------------------------------------------------------------
+def init(
+    root: Path,
+    *,
+    gammas: list[float] | None = None,
+    costs: list[float] | None = None,
+    level_names: list[str] | None = None,
+    seed: int | None = None,
+    dim: int | None = None,
+    settings_from: Path | None = None,
+    force: bool = False,
+    exist_ok: bool = False,
+    wait: bool = False,
+) -> dict[str, Any]:
+    """Create a workspace and its settings file (flags > --settings-from file > defaults).
+
+    A failure threshold is required: ``gammas`` or a ``settings_from`` file. The settings
+    are built (and checked) first, so bad flags create nothing; whether the workspace
+    exists is checked holding the lock, so of two concurrent inits one creates it and the
+    other finds it there. With ``exist_ok`` an existing settings file holding exactly the
+    requested settings is kept (``unchanged`` in the summary); one holding others is an
+    error naming the differences.
+    """
+    if force and exist_ok:
+        raise OptionError(
+            "init: --force overwrites settings.toml and --exist-ok keeps it; pass one of them"
+        )
+    if not gammas and settings_from is None:
+        raise OptionError(
+            "init: no failure threshold given; pass --gamma (e.g. --gamma 0.5, comma-separated "
+            "for several) or --settings-from FILE"
+        )
+    if Path(root).exists() and not Path(root).is_dir():
+        raise WorkspaceError(f"{root}: is a file; a workspace is a folder, choose another -w")
+    ws = Workspace(root)
+    base = Settings()
+    if settings_from is not None:
+        if not settings_from.exists():
+            raise InputError(settings_from, "settings file not found")
+        base = Settings.from_file(settings_from)
+    levels = levels_from_costs(costs, level_names) if costs else None
+    settings = base.with_overrides(
+        gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
+    )
+    with workspace_lock(root, wait=wait), transaction() as tx:
+        if ws.settings_path.exists() and exist_ok:
+            differences = _settings_differences(Settings.from_file(ws.settings_path), settings)
+            if differences:
+                raise SettingsError(
+                    f"{ws.settings_path}: already exists with other settings "
+                    f"({'; '.join(differences)}); pass the same flags as before, or --force "
+                    "to overwrite it"
+                )
+            return {
+                "workspace": str(root),
+                "settings": str(ws.settings_path),
+                "unchanged": True,
+                **settings_summary(settings),
+            }
+        if ws.settings_path.exists() and not force:
+            raise WorkspaceError(
+                f"{ws.settings_path}: already exists; edit it, pass --force to overwrite it, "
+                "or --exist-ok to keep it when it holds these settings"
+            )
+        tx.write_text(ws.settings_path, settings.to_toml())
+    return {
+        "workspace": str(root),
+        "settings": str(ws.settings_path),
+        **settings_summary(settings),
+    }
+
+
+def _settings_differences(existing: Settings, requested: Settings) -> list[str]:
+    """Each setting that differs, as "name: X in the file, Y requested"."""
+
+    def levels(s: Settings) -> str:
+        return ", ".join(f"{lv.name} {lv.cost:g}" for lv in s.levels)
+
+    shown = {
+        "gammas": lambda s: ", ".join(f"{g:g}" for g in s.gammas),
+        "levels (costs)": levels,
+        "seed": lambda s: str(s.seed),
+        "embedding_dim": lambda s: str(s.embedding_dim),
+        "id_column": lambda s: s.id_column,
+        "extra": lambda s: json.dumps(s.extra, sort_keys=True),
+    }
+    return [
+        f"{name}: {show(existing)} in the file, {show(requested)} requested"
+        for name, show in shown.items()
+        if show(existing) != show(requested)
+    ]
+
+
+def settings_summary(s: Settings) -> dict[str, Any]:
+    return {
+        "gammas": list(s.gammas),
+        "levels": [{"name": lv.name, "cost": lv.cost} for lv in s.levels],
+        "seed": s.seed,
+        "embedding_dim": s.embedding_dim,
+    }

@@ -1,0 +1,389 @@
+"""``bams-cli report``: the summary, tables and plots of a study, assembled from its state."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli import schemas_json
+from bams_cli.errors import (
+    InputError,
+    StaleStateError,
+    WorkspaceError,
+)
+from bams_cli.pipeline._common import SID, locked, plan_numbers, read_scores
+from bams_cli.pipeline.estimation import design_note
+from bams_cli.pipeline.initialise import settings_summary
+from bams_cli.state.io import (
+    read_metadata_json,
+    read_state,
+    read_table,
+    require_columns,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+
+
+# ---------------------------------------------------------------------------------------
+# report
+# ---------------------------------------------------------------------------------------
+@locked
+def report(
+    root: Path,
+    *,
+    truth: Path | None = None,
+    n_diverse: int = 5,
+    max_points: int = 50_000,
+) -> dict[str, Any]:
+    """Write report/report.html, summary.json and summary.md for the study."""
+    from sklearn.decomposition import PCA
+
+    from bams_cli import __version__
+    from bams_cli import report as rep
+    from bams_cli.core.evaluate import batch_mean_f, dpp_diverse, retention_recall
+
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    n = len(ids)
+    gammas = list(settings.gammas)
+    log = ws.read_observations(active_only=False)
+    active = log.filter(pl.col("active"))
+    costs = settings.costs
+
+    truth_f0 = None
+    if truth is not None:
+        tt = read_table(truth, what="truth")
+        require_columns(tt, [SID, "value_0"], truth)
+        tdf = pl.from_arrow(tt.select([SID, "value_0"]))
+        assert isinstance(tdf, pl.DataFrame)
+        tdf = tdf.with_columns(pl.col(SID).cast(pl.String))
+        aligned = pl.DataFrame({SID: ids}).join(tdf, on=SID, how="left", maintain_order="left")
+        if aligned["value_0"].null_count():
+            first = aligned.filter(pl.col("value_0").is_null())[SID][0]
+            raise InputError(truth, f"no ground truth for pool segment {first!r}", column=SID)
+        truth_f0 = aligned["value_0"].to_numpy()
+
+    per_level = {}
+    for lv in range(settings.n_levels):
+        count = int((log["fidelity"] == lv).sum())
+        per_level[str(lv)] = {"count": count, "cost": count * costs[lv]}
+    spent = {
+        "per_level": per_level,
+        "count": int(log.height),
+        "cost": float(sum(v["cost"] for v in per_level.values())),
+    }
+
+    model_doc = None
+    unusable = None
+    if ws.model_path.exists():
+        # A model fitted before the latest results still describes the pool; the report
+        # shows it marked stale rather than refusing (the estimate needs no refit either).
+        # One fitted for other gammas does not: its p columns answer other thresholds.
+        try:
+            model_doc = ws.require_model(allow_newer_observations=True)
+        except StaleStateError as exc:
+            unusable = str(exc)
+    notices = _report_model_notices(ws, model_doc, active)
+    if unusable is not None:
+        notices = [{"kind": "stale_model", "severity": "warning", "text": unusable}]
+
+    pos = {sid: i for i, sid in enumerate(ids)}
+    obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())
+    observed_pairs = active.select(SID, "fidelity").unique()
+    batch_rows, batch_picks, per_batch_f = [], [], []
+    waiting = []
+    for b in ws.batch_numbers():
+        df = ws.read_batch(b)
+        gone = ws.abandoned_open("batch", b)  # requests that will never come back
+        open_ = df.join(observed_pairs, on=[SID, "fidelity"], how="anti")
+        pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
+        if pending:
+            waiting.append(f"batch {b} ({pending} of {df.height} picks, batches/batch-{b:04d}.csv)")
+        idx = np.array([pos[s] for s in df[SID].to_list() if s in pos], dtype=np.int64)
+        if truth_f0 is not None:
+            f0 = truth_f0[idx]
+        else:
+            f0 = np.array([obs0[s] for s in df[SID].to_list() if s in obs0])
+        per_batch_f.append(f0)
+        batch_picks.append((b, idx))
+        batch_rows.append(
+            {
+                "batch": b,
+                "strategy": df["strategy"][0] if df.height else "",
+                "picks": df.height,
+                "picks_per_level": {
+                    str(k): int(v)
+                    for k, v in df.group_by("fidelity").len().sort("fidelity").iter_rows()
+                },
+                "picks_per_cluster": {
+                    str(k): int(v)
+                    for k, v in df.group_by("cluster").len().sort("cluster").iter_rows()
+                },
+                "cost": float(df["cost"].sum()),
+                "n_f0": int(len(f0)),
+                "pending": pending,
+                "abandoned": gone.height,
+            }
+        )
+    if waiting:
+        notices.append(
+            {
+                "kind": "pending_batches",
+                "severity": "info",
+                "text": f"Results pending for {'; '.join(waiting)}: simulate the hand-off "
+                f"list and run `bams-cli ingest-results -w {root}`. A batch's mean level-0 f "
+                "counts only the picks whose level-0 value is known.",
+            }
+        )
+    if per_batch_f:
+        means, ses = batch_mean_f(per_batch_f)
+        for row, m, se in zip(batch_rows, means, ses, strict=True):
+            row["mean_f0"] = None if not np.isfinite(m) else float(m)
+            row["mean_f0_se"] = None if not np.isfinite(se) else float(se)
+
+    scores = None
+    if ws.scores_path.exists() and unusable is None:
+        _, mu, sd, p_all = read_scores(ws, len(gammas))
+        scores = (mu, sd, p_all)
+
+    estimates, gp_rows = [], []
+    plans = plan_numbers(ws)
+    shown_plan = next((k for k in reversed(plans) if ws.estimate_path(k).exists()), None)
+    notices += _report_plan_notices(ws, plans, shown_plan, set(obs0))
+    if shown_plan is not None:
+        doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
+        estimates = [{**e, "plan": shown_plan} for e in doc["estimates"]]
+        gp_rows = doc["gp"]
+    elif scores is not None:
+        from bams_cli.core.estimate import gp_estimate
+
+        for g, gamma in enumerate(gammas):
+            m, bound = gp_estimate(scores[2][:, g])
+            gp_rows.append({"gamma": gamma, "gp_p_hat": m, "gp_var_bound": bound})
+
+    figures: dict[str, str] = {}
+    rng = np.random.default_rng(settings.seed)
+    diverse = []
+    if n_diverse < 0 or max_points < 1:
+        raise WorkspaceError(f"--diverse {n_diverse}: must be >= 0")
+    if scores is not None:
+        p0 = scores[2][:, 0]
+        if X.shape[1] == 2:
+            XY, projected = X, False
+        else:
+            fit_rows = rng.choice(n, size=min(n, max_points), replace=False)
+            XY, projected = PCA(2).fit(X[fit_rows]).transform(X), True
+        show = np.sort(rng.choice(n, size=min(n, max_points), replace=False))
+        shown = np.zeros(n, bool)
+        shown[show] = True
+        for _, idx in batch_picks:
+            shown[idx] = True
+        keep = np.flatnonzero(shown)
+        remap = np.full(n, -1)
+        remap[keep] = np.arange(len(keep))
+        figures["pool_map"] = rep.pool_map(
+            XY[keep],
+            p0[keep],
+            [(b, remap[idx]) for b, idx in batch_picks],
+            projected=projected,
+            gamma=gammas[0],
+        )
+        # A likely failure is a guess about a segment's level-0 value, so a segment whose
+        # level-0 value is known is never one: observed failing it is a confirmed failure
+        # (listed apart), observed above every gamma it passed, whatever a model fitted
+        # before that result still says.
+        known0 = np.zeros(n, bool)
+        known0[[pos[s] for s in obs0 if s in pos]] = True
+        unknown = np.flatnonzero(~known0)
+        top = unknown[np.argsort(-p0[unknown], kind="stable")[:500]]
+        chosen = (
+            top[dpp_diverse(X[top], p0[top], min(n_diverse, len(top)))] if n_diverse else top[:0]
+        )
+        cheap = active.filter(pl.col("fidelity") > 0).sort("fidelity")
+        leads: dict[str, dict[str, float]] = {}
+        for sid, lv, value in cheap.select(SID, "fidelity", "value").iter_rows():
+            leads.setdefault(sid, {})[f"observed_f{lv}"] = float(value)
+        for i, more in zip(chosen, _passthrough_rows(ws, chosen), strict=True):
+            row = {SID: str(ids[i]), "p_n": float(p0[i]), "mu": float(scores[0][i])}
+            row.update(leads.get(str(ids[i]), {}))
+            row.update(more)
+            diverse.append(row)
+        diverse = _uniform_rows(diverse)
+
+    # Failures seen at level 0: findings, not guesses. Those the estimate plan sampled are
+    # here too; the list holds every one (it is bounded by the level-0 runs).
+    confirmed = []
+    fails_at = {sid: [g for g in gammas if value <= g] for sid, value in obs0.items() if sid in pos}
+    failed = sorted((s for s in fails_at if fails_at[s]), key=lambda s: (obs0[s], s))
+    rows_failed = np.array([pos[s] for s in failed], dtype=np.int64)
+    for sid, more in zip(failed, _passthrough_rows(ws, rows_failed), strict=True):
+        row = {SID: sid, "observed_f0": float(obs0[sid]), "fails_at_gamma": fails_at[sid]}
+        if scores is not None:
+            row["p_n"] = float(scores[2][pos[sid], 0])
+        row.update(more)
+        confirmed.append(row)
+    confirmed = _uniform_rows(confirmed)
+
+    truth_doc = None
+    if truth_f0 is not None:
+        fails = truth_f0[:, None] <= np.asarray(gammas)[None, :]
+        counts = fails.sum(axis=0)
+        est_recall: list[float | None] = [None] * len(gammas)
+        for e in estimates:  # by gamma: the estimate may answer gammas edited since
+            if e["gamma"] in gammas and counts[gammas.index(e["gamma"])]:
+                g = gammas.index(e["gamma"])
+                est_recall[g] = e["distinct_failures_found"] / float(counts[g])
+        grid = np.linspace(0, 10, 101)
+        curves = {}
+        if counts[0]:
+            for snap in sorted(ws.history_dir.glob("scores-after-batch-*.parquet")):
+                batch = int(snap.stem.rsplit("-", 1)[1])
+                p_snap = read_state(snap, columns=["p_0"]).column("p_0").to_numpy()
+                if len(p_snap) == n:
+                    curves[batch] = retention_recall(p_snap, fails[:, 0], grid)
+        if curves:
+            figures["recall"] = rep.recall_plot(curves, grid)
+        truth_doc = {
+            "rate": [float(c) / n for c in counts],
+            "failures": [int(c) for c in counts],
+            "estimate_recall": est_recall,
+            "retention_recall": {
+                str(b): {f"{r:g}": float(v) for r, v in zip(grid[::10], c[::10], strict=True)}
+                for b, c in curves.items()
+            },
+        }
+    if estimates:
+        truth_rates = None
+        if truth_doc is not None:  # by gamma, as the recall above
+            rate = dict(zip(gammas, truth_doc["rate"], strict=True))  # type: ignore[call-overload]
+            truth_rates = [rate.get(e["gamma"], float("nan")) for e in estimates]
+        figures["rate"] = rep.rate_plot(estimates, truth_rates)
+
+    summary: dict[str, Any] = {
+        "schema_version": schemas_json.version("summary.json"),
+        "tool_version": __version__,
+        "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "workspace": str(root),
+        "notices": notices,
+        "study": {**settings_summary(settings), "pool_size": n, "dim": int(X.shape[1])},
+        "simulation_spent": spent,
+        "model": model_doc,
+        "batches": batch_rows,
+        "estimates": estimates,
+        "gp_estimate": gp_rows,
+        "confirmed_failures": confirmed,
+        "diverse_failures": diverse,
+        "truth": truth_doc,
+        "figures": sorted(figures),
+    }
+    out = ws.report_dir
+    with transaction() as tx:
+        tx.write_text(out / "report.html", rep.render_html(summary, figures))
+        tx.write_text(
+            out / "summary.json",
+            json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n",
+        )
+        tx.write_text(out / "summary.md", rep.render_markdown(summary))
+    return {
+        "report": str(out / "report.html"),
+        "summary_json": str(out / "summary.json"),
+        "summary_md": str(out / "summary.md"),
+        "figures": sorted(figures),
+        "notices": [n["text"] for n in notices],
+        "estimates": [
+            {k: e[k] for k in ("gamma", "p_hat", "ci_low", "ci_high")} for e in estimates
+        ],
+    }
+
+
+def _report_model_notices(
+    ws: Workspace, model: dict[str, Any] | None, active: pl.DataFrame
+) -> list[dict[str, str]]:
+    """What the report must say first about the model: missing, or older than the log."""
+    fit = f"`bams-cli fit -w {ws.root}`"
+    if model is None:
+        return [
+            {
+                "kind": "no_model",
+                "severity": "info",
+                "text": f"No model yet: once results are ingested, run {fit} for failure "
+                "probabilities, the pool map and the likely failures.",
+            }
+        ]
+    if model["fresh"]:
+        return []
+    fitted = int(sum(model.get("n_observations_per_level", [])))
+    return [
+        {
+            "kind": "stale_model",
+            "severity": "warning",
+            "text": f"Stale model: the observation log changed after the last fit (fitted on "
+            f"{fitted} results, the log now holds {active.height}). Failure probabilities, "
+            "the pool map, the likely failures' ranking and the GP's estimate are that "
+            f"fit's and miss the newer results; run {fit} to bring them up to date.",
+        }
+    ]
+
+
+def _report_plan_notices(
+    ws: Workspace, plans: list[int], shown: int | None, known0: set[str]
+) -> list[dict[str, str]]:
+    """One notice per estimate plan newer than the estimate shown: results or compute due."""
+    out = []
+    picks = ws.read_plan_picks()
+    for k in plans:
+        if shown is not None and k <= shown:
+            continue
+        sampled = picks.filter(pl.col("plan") == k)[SID].to_list()
+        gone = set(ws.abandoned_open("plan", k)[SID].to_list())
+        missing = sum(s not in known0 and s not in gone for s in sampled)
+        shown_text = (
+            "no estimate is shown yet" if shown is None else f"the estimate shown is plan {shown}'s"
+        )
+        if missing:
+            text = (
+                f"Estimate plan {k} awaits level-0 results for {missing} of its {len(sampled)} "
+                f"sampled segments (estimates/plan-{k:04d}-handoff.csv); {shown_text}."
+            )
+        elif gone:
+            text = (
+                f"Estimate plan {k} has its results but {len(gone)} of its sampled segments "
+                f"were abandoned: run `bams-cli estimate -w {ws.root} --failed-as bounds` for "
+                f"the worst-case interval over them; {shown_text}."
+            )
+        else:
+            text = (
+                f"Estimate plan {k} has all its results: run `bams-cli estimate -w {ws.root}` "
+                f"to compute it; {shown_text}."
+            )
+        out.append({"kind": "pending_plan", "severity": "info", "text": text})
+    for k in plans[-1:]:
+        note = design_note(read_metadata_json(ws.estimates_dir / f"plan-{k:04d}.parquet"))
+        if note:
+            out.append({"kind": "design_like_uniform", "severity": "info", "text": note + "."})
+    return out
+
+
+def _passthrough_rows(ws: Workspace, rows: np.ndarray) -> list[dict[str, Any]]:
+    """The pool's pass-through columns (scenario tags, difficulty ...) of some pool rows."""
+    segs = ws.read_segments()
+    cols = [c for c in segs.column_names if c != SID and c not in ws.coordinate_columns(segs)]
+    if not cols:
+        return [{} for _ in rows]
+    return [
+        {k: (round(v, 6) if isinstance(v, float) else v) for k, v in r.items()}
+        for r in segs.select(cols).take(pa.array(rows, type=pa.int64())).to_pylist()
+    ]
+
+
+def _uniform_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows with one key set (segment_id first, then sorted), blanks where a row lacks one."""
+    keys = sorted({k for r in rows for k in r}, key=lambda k: (k != SID, k))
+    return [{k: r.get(k, "") for k in keys} for r in rows]

@@ -1,0 +1,433 @@
+"""``bams-cli select``: the next batch of segments and levels to simulate."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli import defaults
+from bams_cli.errors import (
+    InputError,
+    OptionError,
+    PendingResultsError,
+    WorkspaceError,
+)
+from bams_cli.pipeline._common import SID, Progress, locked, read_scores
+from bams_cli.pipeline._handoff import (
+    BATCH_INTERNAL,
+    observed_level0,
+    passthrough_columns,
+    write_handoff,
+)
+from bams_cli.pipeline.fitting import load_posterior
+from bams_cli.state import handoff as contract
+from bams_cli.state import schemas
+from bams_cli.state.io import (
+    read_metadata_json,
+    transaction,
+)
+from bams_cli.state.workspace import Workspace
+
+# ---------------------------------------------------------------------------------------
+# select
+# ---------------------------------------------------------------------------------------
+MODEL_STRATEGIES = ("bams", "bas")
+STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
+
+
+@contextlib.contextmanager
+def _memory_limit_is_an_option() -> Iterator[None]:
+    """select_batch's refusal of a cluster too large for memory, as a one-line error."""
+    try:
+        yield
+    except ValueError as exc:
+        if "GiB" not in str(exc):
+            raise
+        raise OptionError(f"select: {str(exc).replace('n_clusters', '--clusters')}") from None
+
+
+def _existing_batch(
+    ws: Workspace, batch: int, asked: dict[str, Any], n_levels: int
+) -> dict[str, Any] | None:
+    """``select --batch N``: N's summary if it exists with these options, None if N is next."""
+    from bams_cli.state.handoff import template_path
+
+    numbers = ws.batch_numbers()
+    following = (numbers or [0])[-1] + 1
+    if batch not in numbers:
+        if batch != following:
+            raise OptionError(
+                f"--batch {batch}: the next batch is {following}"
+                + (f" (batches {numbers[0]}..{numbers[-1]} exist)" if numbers else "")
+            )
+        return None
+    path = schemas.batch_path(ws.root, batch)
+    made = read_metadata_json(path).get("options") or {}
+    differ = [
+        f"{k} {made[k]!r} there, {v!r} asked"
+        for k, v in asked.items()
+        if k in made and made[k] != v
+    ]
+    if differ:
+        raise OptionError(
+            f"{path}: batch {batch} exists with other options ({'; '.join(differ)}); "
+            f"pass the same options, or --batch {following} for a new batch"
+        )
+    df = ws.read_batch(batch)
+    level = df["fidelity"].to_numpy()
+    purpose = df["purpose"].to_list() if "purpose" in df.columns else ["discover"] * df.height
+    csv = path.with_suffix(".csv")
+    return {
+        "batch": batch,
+        "handoff": str(path),
+        "handoff_csv": str(csv),
+        "results_template": str(template_path(csv)),
+        "strategy": str(made.get("strategy", asked["strategy"])),
+        "picks": df.height,
+        "total_cost": math.fsum(df["cost"].to_list()),
+        "budget": float(made.get("budget", asked["budget"])),
+        "picks_per_level": {lv: int((level == lv).sum()) for lv in range(n_levels)},
+        "picks_per_cluster": {
+            int(c): int((df["cluster"] == c).sum()) for c in df["cluster"].unique().sort()
+        },
+        "confirm_picks": sum(p != "discover" for p in purpose),
+        "confirm_leads": sum(p == "confirm lead" for p in purpose),
+        "j_before": None,
+        "j_after": None,
+        "timings_s": {},
+        "unchanged": True,
+    }
+
+
+def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
+    """Segments seen at or below gamma at some cheap level (a lead until level 0 confirms)."""
+    obs = ws.read_observations().filter((pl.col("fidelity") > 0) & (pl.col("value") <= gamma))
+    return np.isin(ids, obs[SID].to_numpy())
+
+
+def _check_out(out: Path) -> Path:
+    """``select --out PATH``: a file path outside the workspace's own state files."""
+    out = Path(out)
+    if out.is_dir():
+        raise OptionError(f"--out {out}: is a folder; give a file name such as {out / 'batch.csv'}")
+    return out
+
+
+def _pending_mask(ws: Workspace, ids: np.ndarray, n_levels: int, pend: pl.DataFrame) -> np.ndarray:
+    """bool (N, n_levels): True at the pool's (segment, level) pairs awaiting results."""
+    out = np.zeros((len(ids), n_levels), bool)
+    if pend.height:
+        pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+        rows = pend.join(pos, on=SID).filter(pl.col("fidelity") < n_levels)
+        out[rows["_i"].to_numpy(), rows["fidelity"].to_numpy()] = True
+    return out
+
+
+def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
+    """``select --batch N --out PATH`` re-run: (re)write PATH as a copy of batch N's hand-off
+    when it is missing or differs; an identical PATH is left alone (Make sees it up to
+    date). Returns whether PATH was written."""
+    data = csv.read_bytes()
+    if out.exists() and out.read_bytes() == data:
+        return False
+    with transaction() as tx:
+        tx.write_bytes(out, data)
+    return True
+
+
+@locked
+def select(
+    root: Path,
+    *,
+    strategy: str = "bams",
+    budget: float = 5.0,
+    clusters: int = 6,
+    overbudget: float = 2.0,
+    pooling: str = "global",
+    mixed_fidelity: bool = False,
+    level0_share: float = 0.5,
+    confirm_share: float = defaults.CONFIRM_SHARE,
+    difficulty_column: str = "difficulty",
+    allow_pending: bool = False,
+    include_observed: bool = False,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    handoff_internal: bool = False,
+    batch: int | None = None,
+    retry_abandoned: bool = False,
+    out: Path | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Pick the next batch of (segment, fidelity) simulations and write the hand-off list.
+
+    ``batch`` names the batch this call makes, a stable target for Make: when it exists
+    already with the same options the call is a no-op (``unchanged``); when it exists with
+    other options, or is not the next number, it is an error naming the next one.
+
+    ``out`` is a second, stable path for the batch's CSV hand-off (byte for byte the one in
+    ``batches/``), written in the same transaction; a no-op ``batch`` re-run rewrites it
+    when it is missing or differs.
+
+    The Parquet state file holds every column; the CSV hand-off and its results template
+    follow the contract in ``state.handoff`` (internal columns only with
+    ``handoff_internal``).
+
+    For ``strategy="bams"`` in a study with cheap levels, ``confirm_share`` of the budget
+    first buys level-0 runs of unconfirmed cheap-level failures (leads), then of the
+    likeliest failures whose level 0 is unknown (``core.confirm``); the greedy spends the
+    rest.
+    """
+    from bams_cli.core import baselines
+    from bams_cli.core.confirm import confirmation_picks, n_confirmations
+    from bams_cli.core.select import select_batch
+    from bams_cli.parallel import executor
+
+    if strategy not in STRATEGIES:
+        raise WorkspaceError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
+    if pooling not in ("global", "raw"):
+        raise WorkspaceError(f"--pooling {pooling!r}: choose global or raw")
+    if clusters < 1 or not overbudget >= 1:
+        raise WorkspaceError(
+            f"--clusters {clusters} must be >= 1 and --overbudget {overbudget} >= 1"
+        )
+    if not 0 <= level0_share <= 1:
+        raise WorkspaceError(f"--level0-share {level0_share}: must lie in [0, 1]")
+    if not 0 <= confirm_share <= 1:
+        raise WorkspaceError(f"--confirm-share {confirm_share}: must lie in [0, 1]")
+    if not (budget > 0 and np.isfinite(budget)):
+        raise WorkspaceError(
+            f"--budget {budget}: must be > 0 (cost units; one level-0 run costs 1)"
+        )
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    if budget / min(settings.costs) > len(ids) * settings.n_levels:
+        raise WorkspaceError(
+            f"--budget {budget}: buys more simulations than the pool has "
+            f"({len(ids)} segments x {settings.n_levels} levels)"
+        )
+    # The options that decide the picks: recorded in the batch, compared by --batch.
+    asked = {
+        "strategy": strategy,
+        "budget": budget,
+        "clusters": clusters,
+        "overbudget": overbudget,
+        "pooling": pooling,
+        "mixed_fidelity": mixed_fidelity,
+        "level0_share": level0_share,
+        "confirm_share": confirm_share,
+    }
+    if out is not None:
+        out = _check_out(out)
+    if batch is not None:
+        done = _existing_batch(ws, batch, asked, settings.n_levels)
+        if done is not None:
+            if out is not None:
+                _copy_handoff_if_needed(Path(done["handoff_csv"]), out)
+                done["out"] = str(out)
+            return done
+    pend = ws.pending()
+    if pend.height and not allow_pending:
+        where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
+        where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
+        raise PendingResultsError(
+            f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
+            f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
+        )
+    number = (ws.batch_numbers() or [0])[-1] + 1
+    rng = np.random.default_rng([settings.seed, number])
+    costs = np.asarray(settings.costs)
+    observed0 = observed_level0(ws, ids)
+    exclude = np.zeros(len(ids), bool) if include_observed else observed0
+    # Abandoned runs (bams_cli.abandon) are done: never offered again unless asked.
+    gone = np.zeros((len(ids), settings.n_levels), bool)
+    if not retry_abandoned:
+        from bams_cli.abandon import abandoned_mask
+
+        gone = abandoned_mask(ws, ids, settings.n_levels)
+    # Pending picks (--allow-pending) are in the batch already: never picked again, and the
+    # BAMS greedy is conditioned on them. Their results land under the batch that asked.
+    waiting = _pending_mask(ws, ids, settings.n_levels, pend)
+    exclude = exclude | gone[:, 0] | waiting[:, 0]
+    model_hash = None
+    j_before = j_after = None
+    timings: dict[str, float] = {}
+
+    purpose: np.ndarray | None = None
+    if strategy in MODEL_STRATEGIES:
+        posterior, model = load_posterior(ws, settings, ids, X)
+        model_hash = model["observations_hash"]
+        confirm, is_lead = np.zeros(0, np.int64), np.zeros(0, bool)
+        if strategy == "bams" and settings.n_levels > 1:
+            k = n_confirmations(budget, float(costs[0]), confirm_share)
+            if k:
+                _, _, _, p_all = read_scores(ws, len(settings.gammas))
+                confirm, is_lead = confirmation_picks(
+                    p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
+                )
+        rest = budget - float(costs[0]) * len(confirm)
+        taken0 = observed0.copy()
+        taken0[confirm] = True
+        result = None
+        if rest >= costs.min() - 1e-12:
+            with executor(workers, scheduler) as pool, _memory_limit_is_an_option():
+                result = select_batch(
+                    posterior,
+                    X,
+                    gamma=settings.gammas[0],
+                    costs=list(settings.costs),
+                    budget=rest,
+                    n_clusters=clusters,
+                    overbudget=overbudget,
+                    observed_level0_mask=taken0,
+                    pooling=pooling,  # type: ignore[arg-type]
+                    executor=pool,
+                    rng=rng,
+                    progress=progress,
+                    levels=[0] if strategy == "bas" else None,
+                    reobserve_level0=include_observed,
+                    excluded_pairs=gone,
+                    pending_pairs=waiting if waiting.any() else None,
+                )
+        n_greedy = 0 if result is None else len(result.index)
+        picks = {
+            "index": np.concatenate([confirm, result.index if result else []]).astype(np.int64),
+            "level": np.concatenate(
+                [np.zeros(len(confirm)), result.level if result else []]
+            ).astype(np.int64),
+            "delta_j": np.concatenate(
+                [np.full(len(confirm), np.nan), result.delta_j if result else []]
+            ),
+            "cluster": np.concatenate(
+                [np.full(len(confirm), -1), result.cluster if result else []]
+            ).astype(np.int64),
+        }
+        purpose = np.array(
+            [("confirm lead" if lead else "confirm likely") for lead in is_lead]
+            + ["discover"] * n_greedy,
+            dtype=object,
+        )
+        if result is not None:
+            j_before, j_after = float(result.j_before), float(result.j_after)
+            timings = {k: round(float(v), 3) for k, v in result.timings.items()}
+    else:
+        multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
+        n_rest = settings.n_levels - 1
+        shares = [level0_share] + [(1 - level0_share) / n_rest] * n_rest if n_rest else None
+        difficulty = observed_index = observed_value = None
+        if strategy in ("ds", "ds-gp"):
+            table = ws.read_segments()
+            if difficulty_column not in table.column_names:
+                raise WorkspaceError(
+                    f"{ws.segments_path}: --strategy {strategy} needs a difficulty column "
+                    f"{difficulty_column!r} (pass it through embed-reduce, or name it with --difficulty-column)"
+                )
+            difficulty = (
+                table.column(difficulty_column).to_numpy(zero_copy_only=False).astype(np.float64)
+            )
+            if not np.isfinite(difficulty).all():
+                row = int(np.flatnonzero(~np.isfinite(difficulty))[0]) + 1
+                raise InputError(
+                    ws.segments_path, "difficulty must be finite", column=difficulty_column, row=row
+                )
+        elif strategy == "ce":
+            obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+            pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+            o = obs.join(pos, on=SID).select("_i", "value")
+            observed_index, observed_value = o["_i"].to_numpy(), o["value"].to_numpy()
+        index, level = baselines.pick_baseline(
+            strategy,  # type: ignore[arg-type]  # checked against STRATEGIES above
+            n_pool=len(ids),
+            costs=list(settings.costs),
+            budget=budget,
+            rng=rng,
+            observed_level0_mask=exclude,
+            difficulty=difficulty,
+            X=X,
+            observed_index=observed_index,
+            observed_value=observed_value,
+            mixed=multi and n_rest > 0,
+            level_shares=shares,
+        )
+        keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
+        index, level = np.asarray(index)[keep], np.asarray(level)[keep]
+        picks = {
+            "index": np.asarray(index, np.int64),
+            "level": np.asarray(level, np.int64),
+            "delta_j": np.full(len(index), np.nan),
+            "cluster": np.zeros(len(index), np.int64),
+        }
+
+    k = len(picks["index"])
+    if k == 0:
+        raise WorkspaceError(
+            f"select: nothing fits budget {budget} (cheapest level costs {costs.min():g}); raise --budget"
+        )
+    cols: dict[str, Any] = contract.contract_columns(
+        "batch",
+        number,
+        ids[picks["index"]],
+        picks["level"],
+        settings,
+        list(purpose) if purpose is not None else ["discover"] * k,
+    )
+    cols |= {
+        "delta_j": picks["delta_j"],
+        "cluster": picks["cluster"],
+        "rank": np.arange(k, dtype=np.int64),
+        "strategy": [strategy] * k,
+    }
+    cols |= passthrough_columns(ws, picks["index"], taken=cols)
+    options = {
+        **asked,
+        "include_observed": include_observed,
+        "allow_pending": allow_pending,
+        "retry_abandoned": retry_abandoned,
+        "difficulty_column": difficulty_column,
+        "workers": workers,
+        "scheduler": scheduler,
+        "gamma": settings.gammas[0],
+    }
+    meta = {
+        "batch": number,
+        "seed": settings.seed,
+        "model_hash": model_hash or "",
+        "options": options,
+    }
+    table = schemas.BATCH.conform(pa.table(cols), meta)
+    path = schemas.batch_path(ws.root, number)
+    with transaction() as tx:
+        tx.write_parquet(path, table)
+        csv, template = write_handoff(
+            tx, table, path.with_suffix(".csv"), BATCH_INTERNAL, handoff_internal
+        )
+        if out is not None:
+            frame = contract.handoff_frame(table, BATCH_INTERNAL, with_internal=handoff_internal)
+            tx.write_with(out, lambda p: frame.write_csv(p))
+    per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
+    per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
+    return {
+        "batch": number,
+        "handoff": str(path),
+        "handoff_csv": str(csv),
+        "results_template": str(template),
+        "strategy": strategy,
+        "picks": k,
+        "total_cost": math.fsum(costs[picks["level"]].tolist()),
+        "budget": budget,
+        "picks_per_level": per_level,
+        "picks_per_cluster": per_cluster,
+        "confirm_picks": int(np.sum(purpose != "discover")) if purpose is not None else 0,
+        "confirm_leads": int(np.sum(purpose == "confirm lead")) if purpose is not None else 0,
+        "j_before": j_before,
+        "j_after": j_after,
+        "timings_s": timings,
+        **({"out": str(out)} if out is not None else {}),
+    }
