@@ -14,7 +14,10 @@ killed at any point picks up where it stopped and a finished loop does nothing:
 
 Each step is the command a user would run (the same pipeline function, holding the
 workspace lock and writing atomically); the loop itself writes nothing else but the
-simulator's results files.
+simulator's results files. One loop drives a workspace at a time: it holds a second lock
+(``LOOP_LOCK_FILE``) for its whole run, so a second loop started beside it is refused
+naming the first (or waits for it with ``--wait``) instead of simulating the same list
+twice; a loop that was killed leaves no lock behind.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Any
 
 from bams_cli import abandon, defaults, pipeline
 from bams_cli.errors import BamsError, OptionError, WorkspaceError
+from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
 from bams_cli.state.workspace import Workspace
 from bams_cli.status import batch_handoff, plan_handoff
 
@@ -99,14 +103,17 @@ def loop(
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
-    while True:
-        step = _next_step(ws, opts)
-        if step is None:
-            break
-        name, kind, number = step
-        if on_step is not None:
-            on_step(_describe(name, kind, number), _progress(ws, opts), total)
-        steps.append(_run(ws, opts, name, kind, number, ingested))
+    with workspace_lock(
+        ws.root, wait=wait, lock_file=LOOP_LOCK_FILE, refusal="another `bams-cli loop` runs here:"
+    ):
+        while True:
+            step = _next_step(ws, opts)
+            if step is None:
+                break
+            name, kind, number = step
+            if on_step is not None:
+                on_step(_describe(name, kind, number), _progress(ws, opts), total)
+            steps.append(_run(ws, opts, name, kind, number, ingested))
     if on_step is not None:
         on_step("done", total, total)
     latest = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))

@@ -138,3 +138,42 @@ def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 1 and "must name {handoff}" in r.stderr
+
+
+def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_path):
+    """One loop drives a workspace at a time: while the first waits on its simulator (no
+    command lock held then), a second is refused naming it; with --wait it runs once the
+    first has finished and finds nothing left to do."""
+    tmp, seg, truth, ws, _ = data
+    study = _study(tmp_path, "ws", seg)
+    gate = tmp_path / "gate"
+    args = _loop_args(study, truth)
+    sim = args[args.index("--simulator") + 1]
+    gated = f"while [ ! -e {shlex.quote(str(gate))} ]; do sleep 0.05; done; {sim}"
+    args[args.index("--simulator") + 1] = gated
+    first = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    handoff = study / "batches" / "batch-0001.csv"
+    deadline = time.monotonic() + 120
+    while not handoff.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert handoff.exists(), first.stderr.read() if first.poll() is not None else "no batch 1"
+    try:  # without the loop lock it would simulate batch 1 too, and wait at the gate
+        second = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        gate.touch()
+        first.wait(timeout=600)
+        raise
+    assert second.returncode == 1
+    assert f"another `bams-cli loop` runs here: pid {first.pid}" in second.stderr
+    assert len(second.stderr.strip().splitlines()) == 1
+    waiting = subprocess.Popen(
+        [*args, "--wait", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    time.sleep(1.0)
+    assert waiting.poll() is None  # still waiting for the first loop
+    gate.touch()
+    assert first.wait(timeout=600) == 0, first.stderr.read()
+    out, err = waiting.communicate(timeout=600)
+    assert waiting.returncode == 0, err
+    assert json.loads(out)["unchanged"] is True
+    assert _final(study) == _final(ws)

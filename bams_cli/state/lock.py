@@ -42,6 +42,9 @@ from bams_cli.errors import WorkspaceLockedError
 from bams_cli.state.io import command_line
 
 LOCK_FILE = ".bams.lock"
+#: Held by ``bams-cli loop`` for its whole run, beside the per-command lock: one loop drives a
+#: workspace at a time (its simulator runs outside any command, where the command lock is free).
+LOOP_LOCK_FILE = ".bams.lock-loop"
 GUARD_FILE = ".bams.lock-guard"
 #: The record is one write of this many bytes at offset 0 (padded with spaces): it never
 #: shrinks or grows, so there is no truncated moment for a reader to see.
@@ -229,11 +232,11 @@ def _note(message: str) -> None:
 RETRY = Holder({"retry": True})
 
 
-def _try_take(workspace: Path, fd: int) -> Holder | None:
+def _try_take(workspace: Path, fd: int, lock_file: str = LOCK_FILE) -> Holder | None:
     """One attempt, under the guard: None once ``fd`` holds the lock, ``RETRY`` to open the
     file again at once (it was replaced, or a dead holder's lock was broken), else the
     record of the holder."""
-    path = workspace / LOCK_FILE
+    path = workspace / lock_file
     with _guard(workspace):
         if not _same_file(fd, path):
             return RETRY  # replaced after we opened it: open the new one
@@ -248,7 +251,7 @@ def _try_take(workspace: Path, fd: int) -> Holder | None:
             os.unlink(path)
             _note(
                 f"{workspace}: {found.describe()} died holding the lock (a process it "
-                f"started still has {LOCK_FILE} open); proceeding"
+                f"started still has {lock_file} open); proceeding"
             )
             return RETRY
         if found.held:
@@ -266,7 +269,12 @@ def _try_take(workspace: Path, fd: int) -> Holder | None:
 
 @contextmanager
 def workspace_lock(
-    workspace: Path, *, wait: bool = False, timeout: float | None = None
+    workspace: Path,
+    *,
+    wait: bool = False,
+    timeout: float | None = None,
+    lock_file: str = LOCK_FILE,
+    refusal: str = "locked by",
 ) -> Iterator[None]:
     """Hold the workspace's write lock for the duration of the block.
 
@@ -276,14 +284,19 @@ def workspace_lock(
         Block until the lock is free instead of failing at once.
     timeout : float, optional
         With ``wait``, give up after this many seconds.
+    lock_file : str
+        The lock's file in the workspace: ``LOCK_FILE`` (every writing command) or
+        ``LOOP_LOCK_FILE`` (``bams-cli loop``); the same rules hold for both.
+    refusal : str
+        What the refusal says before naming the holder.
     """
     workspace.mkdir(parents=True, exist_ok=True)
-    path = workspace / LOCK_FILE
+    path = workspace / lock_file
     start = time.monotonic()
     while True:
         fd = _open_held(path)
         try:
-            holder = _try_take(workspace, fd)
+            holder = _try_take(workspace, fd, lock_file)
         except BaseException:
             _close_held(fd)
             raise
@@ -295,7 +308,7 @@ def workspace_lock(
         if not wait or (timeout is not None and time.monotonic() - start > timeout):
             who = holder.describe() if holder.held else "a process that left no record"
             raise WorkspaceLockedError(
-                f"{workspace}: locked by {who}; wait for it to finish or pass --wait"
+                f"{workspace}: {refusal} {who}; wait for it to finish or pass --wait"
             )
         time.sleep(POLL)
     owner = os.getpid()
