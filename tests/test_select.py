@@ -189,6 +189,9 @@ def test_select_out_killed_mid_commit_ends_as_an_uninterrupted_run(
     proc = subprocess.run([sys.executable, "-c", KILLED_SELECT, str(crash_after), *args])
     assert proc.returncode == 9
     assert not out.exists()
+    # It left its staged copy beside PATH, outside the workspace: named by the journal (the
+    # next command completes the commit) or, killed before the journal, by nothing.
+    assert list(tmp_path.glob(".tmp-next.csv-*"))
     assert (lead_ws / "batches" / "batch-0002.parquet").exists() == (crash_after >= 1)
     # The same command again, as make would run it, ends with batch 2 and PATH its copy:
     # the next command rolls an interrupted commit forward, or draws the batch afresh.
@@ -197,6 +200,7 @@ def test_select_out_killed_mid_commit_ends_as_an_uninterrupted_run(
     csv = lead_ws / "batches" / "batch-0002.csv"
     assert out.read_bytes() == csv.read_bytes()
     assert not list(lead_ws.rglob(".tmp-*")) and not (lead_ws / ".bams-journal.json").exists()
+    assert not list(tmp_path.glob(".tmp-*"))  # the killed run's staged copy went too
 
 
 def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_batch(

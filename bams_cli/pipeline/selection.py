@@ -31,6 +31,7 @@ from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     read_metadata_json,
+    remove_strays,
     transaction,
 )
 from bams_cli.state.workspace import Workspace
@@ -113,10 +114,12 @@ def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
 
 
 def _check_out(out: Path) -> Path:
-    """``select --out PATH``: a file path outside the workspace's own state files."""
+    """``select --out PATH``: a file path outside the workspace's own state files. What an
+    earlier, killed ``select --out PATH`` staged beside it goes."""
     out = Path(out)
     if out.is_dir():
         raise OptionError(f"--out {out}: is a folder; give a file name such as {out / 'batch.csv'}")
+    remove_strays(out)
     return out
 
 

@@ -158,6 +158,30 @@ def recover(workspace: Path) -> int:
     return moved
 
 
+def remove_strays(target: Path) -> int:
+    """Remove what a killed process staged for ``target`` outside a workspace (where
+    ``recover`` does not look): ``.tmp-<name>-<pid>-*`` files of processes no longer
+    alive. Call it after ``recover``, holding the workspace lock. Returns how many went."""
+    removed = 0
+    for stray in Path(target).parent.glob(f".tmp-{Path(target).name}-*"):
+        pid = stray.name[len(f".tmp-{Path(target).name}-") :].split("-")[0]
+        if not pid.isdigit() or _alive(int(pid)) or not stray.is_file():
+            continue
+        stray.unlink(missing_ok=True)
+        removed += 1
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 class Transaction:
     """Stage files next to their targets; rename them all on commit, remove them on failure.
 

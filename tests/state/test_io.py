@@ -263,3 +263,22 @@ def test_recover_fsyncs_the_folders_it_renames_into(tmp_path, monkeypatch):
     (tmp_path / io.JOURNAL_NAME).write_text(json.dumps({"renames": pairs}))  # then: killed
     assert io.recover(tmp_path) == 2
     _assert_fsync_rename_fsync(events, renamed=2)
+
+
+def test_remove_strays_takes_only_dead_processes_files_for_that_target(tmp_path):
+    import subprocess
+    import sys
+
+    from bams_cli.state.io import remove_strays
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    pid = int(dead.stdout)
+    target = tmp_path / "next.csv"
+    gone = tmp_path / f".tmp-next.csv-{pid}-0"
+    mine = tmp_path / f".tmp-next.csv-{os.getpid()}-0"  # a live writer's: kept
+    other = tmp_path / f".tmp-other.csv-{pid}-0"  # another target's: kept
+    for p in (gone, mine, other):
+        p.write_text("x")
+    assert remove_strays(target) == 1
+    assert not gone.exists() and mine.exists() and other.exists()
