@@ -504,6 +504,21 @@ def test_values_near_the_float_limit_are_standardised_without_overflow():
         )
 
 
+def test_a_spread_too_small_for_float64_variances_is_an_error_not_a_zero_outputscale():
+    # Found by the fuzzing of ingest-results: level-0 values 0 and 7e-227 have sd 3.5e-227,
+    # whose square underflows, so the fitted outputscale came out 0 (a catch-all error).
+    with pytest.raises(GPFitError, match="too small for a GP"):
+        standardise(np.array([0.0, 7.052485094062495e-227]))
+    with pytest.raises(GPFitError, match="too small for a GP"):
+        fit_mfgp(np.eye(2), np.zeros(2, int), [0.0, 7e-227], 1, rng=np.random.default_rng(0))
+    # A small spread whose variances are still float64 numbers is fitted as any other.
+    assert standardise(np.array([0.0, 2e-100])) == pytest.approx((1e-100, 1e-100))
+    model = fit_mfgp(
+        np.eye(3), np.zeros(3, int), [0.0, 2e-100, 1e-100], 1, rng=np.random.default_rng(0)
+    )
+    assert np.isfinite(model.hyperparameters.outputscale0) and model.hyperparameters.outputscale0 > 0
+
+
 def test_indefinite_matrix_raises_with_remedy():
     with pytest.raises(GPFitError, match="jitter.*noise variance"):
         cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))

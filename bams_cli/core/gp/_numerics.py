@@ -25,6 +25,9 @@ class GPFitError(ValueError):
 #: Largest sd of the observed values the model accepts: natural-unit variances are
 #: sd^2 times standardised ones, and beyond this they overflow a float64.
 MAX_SCALE = 1e150
+#: Smallest non-zero sd accepted: below it the natural-unit variances (sd^2 times the
+#: standardised ones) underflow to 0 and the model has no scale at all.
+MIN_SCALE = 1e-150
 
 
 def standardise(y: FloatArray) -> tuple[float, float]:
@@ -32,12 +35,14 @@ def standardise(y: FloatArray) -> tuple[float, float]:
 
     Computed on y / max|y|, so values near the float limits do not overflow the sum.
     Constant y is legitimate (the caller records it: the model is then flat); a spread
-    beyond ``MAX_SCALE`` is an error, since no variance in natural units could hold it.
+    beyond ``MAX_SCALE``, or above 0 but below ``MIN_SCALE``, is an error, since no
+    variance in natural units could hold it.
 
     Raises
     ------
     GPFitError
-        y has non-finite values, or its sd exceeds ``MAX_SCALE``.
+        y has non-finite values, or its sd exceeds ``MAX_SCALE`` or is below ``MIN_SCALE``
+        (and not 0).
     """
     top = float(np.max(np.abs(y))) if y.size else 0.0
     if not math.isfinite(top):
@@ -52,6 +57,12 @@ def standardise(y: FloatArray) -> tuple[float, float]:
             f"the observed values spread over {ystd:.3g} (sd): too large for a GP in "
             f"float64 (limit {MAX_SCALE:g}); rescale the metric, e.g. report it in "
             "thousands, or check the results for a wrong value"
+        )
+    if 0.0 < ystd < MIN_SCALE:
+        raise GPFitError(
+            f"the observed values spread over {ystd:.3g} (sd): too small for a GP in "
+            f"float64 (limit {MIN_SCALE:g}); rescale the metric, e.g. report it in "
+            "millionths, or check the results for a wrong value"
         )
     if not ystd > 0.0:
         ystd = 1.0
