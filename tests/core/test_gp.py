@@ -516,7 +516,9 @@ def test_a_spread_too_small_for_float64_variances_is_an_error_not_a_zero_outputs
     model = fit_mfgp(
         np.eye(3), np.zeros(3, int), [0.0, 2e-100, 1e-100], 1, rng=np.random.default_rng(0)
     )
-    assert np.isfinite(model.hyperparameters.outputscale0) and model.hyperparameters.outputscale0 > 0
+    assert (
+        np.isfinite(model.hyperparameters.outputscale0) and model.hyperparameters.outputscale0 > 0
+    )
 
 
 def test_indefinite_matrix_raises_with_remedy():
