@@ -17,7 +17,7 @@ exactly from the inclusion probabilities:
 * recall = expected fraction of all true failures that end up in hand: the known stratum
   (level-0 observations from discovery, counted exactly) plus sum over the failures of U of
   their inclusion probability (``evaluate.expected_is_recall``);
-* RV = Var(p_hat) / p^2, Var the design's exact variance (``estimate.exact_variance``),
+* RV = Var(p_hat) / p^2, Var the design's exact variance (``evaluate.exact_variance``),
   never the spread of a few hundred trials (DESIGN.md).
 
 Both are reported for the default estimator design (the ``estimate_plan`` defaults:
@@ -79,8 +79,8 @@ import pyarrow.parquet as pq
 
 from bams_cli import pipeline
 from bams_cli.core import suite, synthetic
-from bams_cli.core.estimate import exact_variance, plan_sample
-from bams_cli.core.evaluate import expected_is_recall, retention_recall
+from bams_cli.core.estimate import plan_sample
+from bams_cli.core.evaluate import exact_variance, expected_is_recall, retention_recall
 from bams_cli.errors import OptionError
 from bams_cli.settings import Settings, levels_from_costs
 
@@ -535,7 +535,7 @@ def design_stats(
     recall : float
         E[fraction of the failures known or sampled] (``evaluate.expected_is_recall``).
     rel_var : float
-        Var(p_hat) / p^2, p the pool's true rate (``estimate.exact_variance``: exact for
+        Var(p_hat) / p^2, p the pool's true rate (``evaluate.exact_variance``: exact for
         poisson and with-replacement, Hajek's approximation for fixed; +inf if a failure
         can never be sampled).
     """
@@ -558,7 +558,7 @@ def design_stats(
         )
     recall = float(expected_is_recall(plan, is_failure)[0])
     # Poisson and with-replacement variances are sums over the failures of U only
-    # (``estimate.exact_variance``), so pass just those rows: a non-failure whose q
+    # (``evaluate.exact_variance``), so pass just those rows: a non-failure whose q
     # underflows to ~1e-320 would otherwise turn 0 x (1/q = inf) into NaN.
     fail_u = np.asarray(is_failure, bool)[plan.unknown]
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):

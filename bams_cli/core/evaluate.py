@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from bams_cli.core.estimate import SamplePlan
+from bams_cli.core.estimate import DESIGNS, Design, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -402,3 +402,96 @@ def staged_trials(
         stage2_design=names, var=var, var_uniform=var_u, stage1_design=c1.name,
         rate=float(fail.mean()),
     )  # fmt: skip
+
+
+def exact_variance(
+    plan_or_prob: SamplePlan | ArrayLike,
+    is_failure: ArrayLike,
+    *,
+    design: Design | None = None,
+    n_pool: int | None = None,
+    budget: float | None = None,
+) -> FloatArray:
+    """True Var(p_hat) of the design when the failures of U are known (evaluation only).
+
+    * poisson: (1/N^2) sum_{failures in U} (1 - pi)/pi (exact).
+    * with-replacement: (1/(N^2 K)) (sum_{failures} 1/q - T_U^2) (exact).
+    * fixed: Hajek's approximation (1/N^2) sum_U pi (1 - pi)(y/pi - A)^2 with
+      A = sum_U (1 - pi) y / sum_U pi (1 - pi), over units with pi < 1 (approximate, like the
+      estimator; exact systematic variances depend on the order).
+
+    A failure with pi = 0 makes the variance finite but the estimator biased; one with q = 0
+    with replacement, likewise. Both are reported as +inf here so that nobody mistakes the
+    design for a good one.
+
+    Parameters
+    ----------
+    plan_or_prob : SamplePlan or array_like of shape (n_unknown,)
+        A plan, or pi (q for with-replacement) over U together with the keywords.
+    is_failure : array_like of bool, shape (n_unknown,) or (n_unknown, m)
+        Failure indicator over U (in ``plan.unknown`` order).
+    design, n_pool, budget
+        Needed when ``plan_or_prob`` is an array.
+
+    Returns
+    -------
+    var : ndarray of shape (m,)
+    """
+    if isinstance(plan_or_prob, SamplePlan):
+        plan = plan_or_prob
+        design = plan.design
+        n_pool = plan.n_pool
+        budget = plan.budget
+        prob = plan.q if design == "with-replacement" else plan.pi
+    else:
+        prob = np.asarray(plan_or_prob, dtype=np.float64)
+        if design is None or n_pool is None:
+            raise ValueError("design and n_pool are required when passing probabilities")
+    y = _as_columns(is_failure, prob.size, "is_failure").astype(np.float64)
+    N2 = float(n_pool) ** 2
+    zero = prob <= 0
+    bad = (zero[:, None] * y).sum(axis=0) > 0
+    safe = np.where(zero, 1.0, prob)
+    if design == "poisson":
+        var = (((1.0 - prob) / safe) * ~zero) @ y / N2
+    elif design == "with-replacement":
+        if budget is None:
+            raise ValueError("budget (K draws) is required for with-replacement")
+        T = y.sum(axis=0)
+        var = ((~zero / safe) @ y - T**2) / (float(budget) * N2)
+    elif design == "fixed":
+        r = (prob < 1.0) & ~zero
+        d = prob * (1.0 - prob) * r
+        A = ((1.0 - prob) * r) @ y / d.sum() if d.sum() > 0 else np.zeros(y.shape[1])
+        e = y / safe[:, None] - A[None, :]
+        var = (d[:, None] * e**2 * r[:, None]).sum(axis=0) / N2
+    else:
+        raise ValueError(f"design must be one of {DESIGNS}; got {design!r}")
+    return np.where(bad, np.inf, var)
+
+
+def exact_relative_variance(
+    plan: SamplePlan, is_failure: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """True Var(p_hat) and relative variance Var / p^2 of a plan's design (evaluation only).
+
+    The paper's RV (section 4.1) as the design's exact variance, not the spread of a few
+    hundred trials (DESIGN.md). p is the true rate over the pool, known stratum included.
+
+    Parameters
+    ----------
+    plan : SamplePlan
+    is_failure : array_like of bool, shape (n_pool,) or (n_pool, m)
+        True failure indicator over the whole pool, one column per gamma.
+
+    Returns
+    -------
+    var : ndarray of shape (m,)
+    rel_var : ndarray of shape (m,)
+        NaN where the true rate is 0.
+    """
+    fail = _as_columns(is_failure, plan.n_pool, "is_failure").astype(bool)
+    var = exact_variance(plan, fail[plan.unknown])
+    p = fail.mean(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return var, np.where(p > 0, var / p**2, np.nan)

@@ -25,8 +25,6 @@ from bams_cli.core.estimate import (
     draw_with_replacement,
     estimate_from_sample,
     estimate_rate,
-    exact_relative_variance,
-    exact_variance,
     gp_estimate,
     gp_variance_exact,
     inclusion_probabilities,
@@ -35,6 +33,7 @@ from bams_cli.core.estimate import (
     plan_sample,
     selection_distribution,
 )
+from bams_cli.core.evaluate import exact_relative_variance, exact_variance
 
 DESIGNS = ["poisson", "fixed", "with-replacement"]
 
