@@ -206,6 +206,9 @@ def fit(
         "units": "outputscale0, outputscales and noise are variances; lengthscales and mean in the metric's units",
         "trained": fixed is None,
         "restarts": restarts,
+        # The MAP search runs on at most defaults.FIT_SUBSET observations (core.gp.fit_subset);
+        # the model conditions on all of them.
+        "hyperparameters_fitted_on": int(model.fitted_on),
         "seed": settings.seed,
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -251,6 +254,7 @@ def fit(
         "hyperparameters": doc["hyperparameters"],
         "checks": doc["checks"],
         "jitter": doc["jitter"],
+        "hyperparameters_fitted_on": doc["hyperparameters_fitted_on"],
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,

@@ -654,3 +654,46 @@ def dense_cov_obs_obs(X, levels, hp, Xa, la, Xb, lb):
     return (
         ref_kaug(Xa, la, Xb, lb, hp) + same * hp.noise[la][:, None] - ka.T @ np.linalg.solve(K, kb)
     )
+
+
+def test_fit_subset_is_a_level_stratified_sample_drawn_only_when_needed():
+    from bams_cli.core.gp.fit import fit_subset
+
+    levels = np.r_[np.zeros(700, np.int64), np.ones(290, np.int64), np.full(10, 2)]
+    rng = np.random.default_rng(0)
+    assert fit_subset(levels, 3, 1000, rng) is None and fit_subset(levels, 3, None, rng) is None
+    assert rng.random() == np.random.default_rng(0).random()  # nothing drawn
+    sub = fit_subset(levels, 3, 300, np.random.default_rng(1))
+    counts = np.bincount(levels[sub], minlength=3)
+    # 300 split 700:290:10 -> 210, 87, 3, and the 10-per-level floor lifts the last to 10.
+    assert counts.tolist() == [210, 87, 10]
+    assert np.all(np.diff(sub) > 0)  # sorted, no repeats
+    again = fit_subset(levels, 3, 300, np.random.default_rng(1))
+    assert np.array_equal(sub, again)
+
+
+def test_hyperparameters_from_a_subset_and_the_model_conditions_on_every_observation():
+    rng = np.random.default_rng(3)
+    n = 240
+    X = rng.uniform(size=(n, 2))
+    levels = (rng.random(n) < 0.5).astype(np.int64)
+    f = np.sin(6 * X[:, 0]) + X[:, 1]
+    y = f + levels * 0.1 + 0.01 * rng.normal(size=n)
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=2, max_fit=80)
+    assert model.fitted_on == 80 and model.n_obs_per_level.sum() == n
+    # Conditioned on all 240: it reproduces the observations the search never saw, to
+    # within the noise, exactly as a model given the same hyperparameters and all the data.
+    full = MFGP(X, levels, y, 2, model.hyperparameters)
+    mu, var = model.predict_theta0(X)
+    mu_ref, var_ref = full.predict_theta0(X)
+    assert np.allclose(mu, mu_ref) and np.allclose(var, var_ref)
+    at0 = levels == 0
+    assert np.sqrt(np.mean((mu[at0] - y[at0]) ** 2)) < 0.05
+    # A subset model and the all-data MAP model agree on the function to a small share of
+    # its spread.
+    exact = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=2, max_fit=None)
+    assert exact.fitted_on == n
+    grid = rng.uniform(size=(500, 2))
+    m_sub, _ = model.predict_theta0(grid)
+    m_all, _ = exact.predict_theta0(grid)
+    assert np.sqrt(np.mean((m_sub - m_all) ** 2)) < 0.05 * np.std(m_all)

@@ -8,6 +8,7 @@ import numpy as np
 from scipy.optimize import OptimizeResult, minimize
 from threadpoolctl import threadpool_limits
 
+from bams_cli import defaults
 from bams_cli.core.gp._numerics import (
     FloatArray,
     GPFitError,
@@ -45,8 +46,14 @@ def fit_mfgp(
     restarts: int = 8,
     fixed: Hyperparameters | None = None,
     priors: PriorSpec | None = None,
+    max_fit: int | None = defaults.FIT_SUBSET,
 ) -> MFGP:
     """Fit the multifidelity GP by MAP and condition it on the data.
+
+    With more than ``max_fit`` observations the hyperparameters come from a random subset
+    of ``max_fit`` of them (``fit_subset``: stratified by level), and the returned model
+    conditions on every observation with them; ``model.fitted_on`` says how many the
+    search saw.
 
     Parameters
     ----------
@@ -68,6 +75,8 @@ def fit_mfgp(
         If given, no training: the returned GP conditions on the data with these.
     priors : PriorSpec, optional
         Hyperparameter priors; ``priors.DEFAULT_PRIORS`` when omitted.
+    max_fit : int, optional
+        Most observations the hyperparameter search runs on (None: all).
 
     Returns
     -------
@@ -88,7 +97,9 @@ def fit_mfgp(
 
     ybar, ystd = standardise(y)
     prior = _Priors.for_data(X, n_levels, priors)
-    objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, prior)
+    sub = fit_subset(levels, n_levels, max_fit, rng)
+    Xf, lf, yf = (X, levels, y) if sub is None else (X[sub], levels[sub], y[sub])
+    objective = _MAPObjective(Xf, lf, (yf - ybar) / ystd, n_levels, prior)
     bounds = list(zip(prior.lower, prior.upper, strict=True))
     starts = [prior.mode] + [prior.sample_start(rng) for _ in range(restarts - 1)]
 
@@ -119,12 +130,40 @@ def fit_mfgp(
     beta, _ = objective.gls_mean(L)
     hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
     model = MFGP(X, levels, y, n_levels, hp, priors=priors)
+    model.fitted_on = y.size if sub is None else sub.size
     if np.ptp(y) == 0.0:
         model.notes.append(
             f"all {y.size} observed values equal {y[0]:.6g}: the model is flat, and its "
             "failure probabilities rest on the priors alone"
         )
     return model
+
+
+def fit_subset(
+    levels: IntArray, n_levels: int, max_fit: int | None, rng: np.random.Generator
+) -> IntArray | None:
+    """Indices of the observations the hyperparameter search runs on; None for all.
+
+    A uniform random subset of ``max_fit`` (subset of data), stratified by level: each
+    level keeps its share of the observations, rounded by largest remainder, and at least
+    ``min(n_l, 10)`` of its n_l. Drawn from ``rng`` only when a subset is needed, so small
+    studies fit exactly as before. Sorted, so the subset's order is the log's.
+    """
+    n = levels.size
+    if max_fit is None or n <= max_fit:
+        return None
+    counts = np.bincount(levels, minlength=n_levels)
+    share = max_fit * counts / n
+    take = np.floor(share).astype(np.int64)
+    for lv in np.argsort(-(share - take), kind="stable")[: max_fit - int(take.sum())]:
+        take[lv] += 1
+    take = np.minimum(counts, np.maximum(take, np.minimum(counts, 10)))
+    picked = [
+        rng.choice(np.flatnonzero(levels == lv), size=int(take[lv]), replace=False)
+        for lv in range(n_levels)
+        if take[lv] > 0
+    ]
+    return np.sort(np.concatenate(picked)).astype(np.int64)
 
 
 def fit_transformed(

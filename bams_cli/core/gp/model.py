@@ -103,6 +103,9 @@ class MFGP:
             self._L, self.jitter = cholesky(K)
         #: Facts about this fit a user should hear: jitter needed, a flat model.
         self.notes: list[str] = []
+        #: How many observations the hyperparameter search saw (``fit.fit_subset``); all
+        #: of them unless set by ``fit_mfgp``.
+        self.fitted_on: int = int(np.asarray(y).size)
         if self.jitter > 0.0:
             rel = self.jitter / float(np.mean(np.diag(K)))
             self.notes.append(
