@@ -2144,7 +2144,12 @@ class _PlanSample:
 
 
 def _plan_sample(
-    ws: Workspace, number: int, gammas: np.ndarray, confidence: float, failed_as: str | None
+    ws: Workspace,
+    number: int,
+    gammas: np.ndarray,
+    confidence: float,
+    failed_as: str | None,
+    interval: str = "gamma",
 ) -> _PlanSample:
     """Plan ``number``'s sample, outcomes and estimator (``estimate_with(fails)``).
 
@@ -2185,6 +2190,8 @@ def _plan_sample(
             known_failures=known_fails,
             confidence=confidence,
             w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
+            interval=interval,  # type: ignore[arg-type]
+            w_max=math.inf if meta.get("w_max") is None else float(meta["w_max"]),  # null: inf
         )
 
     return _PlanSample(sampled[SID].to_numpy(), fails, lost, estimate_with)
@@ -2204,6 +2211,7 @@ def estimate_compute(
     confidence: float = 0.9,
     exact_variance: bool = False,
     failed_as: str | None = None,
+    interval: str = "gamma",
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Compute the rate estimate from an ingested plan, for every configured gamma.
@@ -2235,7 +2243,12 @@ def estimate_compute(
     # A staged estimate combines its series' stages up to this plan, with the weights
     # fixed at stage 1 (renormalised while later stages are still to come).
     series = stages_mod.series_plans(ws, number)
-    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as) for k in series]
+    if interval != "gamma" and len(series) > 1:  # combine_stages allows for the gamma's w only
+        raise OptionError(
+            f"--interval {interval}: plan {number} is stage {len(series)} of a staged "
+            "estimate; it is for one-stage plans (estimate --plan --stages 1)"
+        )
+    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as, interval) for k in series]
     meta = series[-1].meta
     weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
     weights /= weights.sum()
@@ -2315,6 +2328,7 @@ def estimate_compute(
     summary = {
         "plan": number,
         "design": meta["design"] if len(series) == 1 else "staged",
+        "interval": interval,
         "samples_K": sum(float(k.meta["samples"]) for k in series),
         "staging": staging,
         "estimates": rows,
