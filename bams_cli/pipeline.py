@@ -1456,7 +1456,7 @@ def _observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
 
 # Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
 BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
-PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "prob", "p_n")
+PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "p_n")
 
 
 def _passthrough_columns(ws: Workspace, index: np.ndarray, taken: dict[str, Any]) -> dict[str, Any]:
@@ -2001,7 +2001,6 @@ def estimate_plan(
         saved = float(full[known].sum())
     sampled_idx = plan.sampled_pool_index
     known_idx = np.flatnonzero(known)
-    prob = plan.sampled_prob
     # The sampled rows are the plan's requests (level 0, in hand-off order); the known
     # stratum's rows follow with the contract's columns null: nothing to simulate there.
     requests = contract.contract_columns(
@@ -2024,7 +2023,6 @@ def estimate_plan(
         "pi": np.concatenate([plan.pi[plan.sampled], np.ones(n_known)]),
         "draws": np.concatenate([plan.counts, np.zeros(n_known, np.int64)]),
         "q": np.concatenate([plan.q[plan.sampled], np.zeros(n_known)]),
-        "prob": np.concatenate([prob, np.ones(n_known)]),
         "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
         **cols,
     }
@@ -2180,7 +2178,7 @@ def _plan_sample(
 
     def estimate_with(fails: np.ndarray) -> Any:
         return estimate_from_sample(
-            sampled["prob"].to_numpy(),
+            sampled["q" if meta["design"] == "with-replacement" else "pi"].to_numpy(),
             fails,
             design=meta["design"],
             n_pool=int(meta["n_pool"]),

@@ -307,3 +307,34 @@ def test_fay_feuer_refuses_a_combined_staged_estimate(fitted_ws, tmp_path):
     r = invoke(runner, "estimate", "-w", ws, "--interval", "fay-feuer")
     assert r.exit_code == 1 and "--interval fay-feuer: plan 2 is stage 2" in r.stderr
     assert "--stages 1" in r.stderr and r.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("design", ["poisson", "with-replacement"])
+def test_a_plan_stores_pi_and_q_and_no_separate_prob(fitted_ws, tmp_path, design):
+    # The estimator divides by pi (q with replacement), read from those columns; a third
+    # copy of one of them ("prob") was dead weight.
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    args = ("estimate", "-w", ws, "--plan", "--samples", "30", "--design", design)
+    ok(runner, *args, "--stages", "1")
+    plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
+    assert {"pi", "q", "draws"} <= set(plan[0]) and "prob" not in plan[0]
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert out["design"] == design
+    if design != "poisson":
+        return
+    # Horvitz-Thompson by hand at gamma 0.56: known failures + sum over sampled failures
+    # of 1/pi, over N = 400.
+    obs = pq.read_table(ws / "observations.parquet").to_pylist()
+    level0 = {r["segment_id"]: r["value"] for r in obs if r["fidelity"] == 0}
+    total = sum(
+        (1.0 if r["stratum"] == "known" else 1.0 / r["pi"])
+        for r in plan
+        if level0[r["segment_id"]] <= 0.56
+    )
+    assert out["estimates"][1]["p_hat"] == pytest.approx(total / 400, rel=1e-12)
