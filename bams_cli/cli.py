@@ -272,15 +272,25 @@ def init(
     ] = None,
     costs: Annotated[
         str | None,
-        typer.Option("--costs", help="Cost per fidelity level, level 0 first (must be 1)."),
+        typer.Option(
+            "--costs",
+            help="Cost per fidelity level, level 0 first (must be 1) \\[default: 1, one level].",
+        ),
     ] = None,
     level_names: Annotated[
-        str | None, typer.Option("--level-names", help="Names for the levels, comma-separated.")
+        str | None,
+        typer.Option(
+            "--level-names",
+            help="Names for the levels, comma-separated \\[default: high, low1, low2, ...].",
+        ),
     ] = None,
     seed: Annotated[
-        int | None, typer.Option("--seed", help="Seed recorded and used by every step.")
+        int | None,
+        typer.Option("--seed", help="Seed recorded and used by every step \\[default: 0]."),
     ] = None,
-    dim: Annotated[int | None, typer.Option("--dim", help="Reduced embedding dimension.")] = None,
+    dim: Annotated[
+        int | None, typer.Option("--dim", help="Reduced embedding dimension \\[default: 12].")
+    ] = None,
     settings_from: Annotated[
         Path | None,
         typer.Option("--settings-from", help="Start from this settings.toml (flags override it)."),
@@ -352,13 +362,22 @@ def embed_reduce(
     ] = True,
     columns: Annotated[
         str | None,
-        typer.Option("--columns", help="Glob of numeric embedding columns, e.g. 'emb_*'."),
+        typer.Option(
+            "--columns",
+            help="Glob of numeric embedding columns, e.g. 'emb_*' \\[default: none, a list column holds it].",
+        ),
     ] = None,
     embedding_column: Annotated[
         str | None,
-        typer.Option("--embedding-column", help="The list column holding the embedding."),
+        typer.Option(
+            "--embedding-column",
+            help="The list column holding the embedding \\[default: the file's only list column].",
+        ),
     ] = None,
-    id_column: Annotated[str | None, typer.Option("--id-column", help="Segment id column.")] = None,
+    id_column: Annotated[
+        str | None,
+        typer.Option("--id-column", help="Segment id column \\[default: settings, segment_id]."),
+    ] = None,
     apply: Annotated[
         bool,
         typer.Option(
@@ -1008,7 +1027,11 @@ def loop(
     ] = False,
     samples: Annotated[
         float | None,
-        typer.Option("--samples", "-K", help="With --then-estimate: the estimate's budget K."),
+        typer.Option(
+            "--samples",
+            "-K",
+            help="With --then-estimate: the estimate's budget K \\[default: 5 x the GP's p x N].",
+        ),
     ] = None,
     results_dir: Annotated[
         Path | None,

@@ -116,20 +116,23 @@ def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None 
         out.print(
             f"model: g(y) = {transform['centre']:.4g} + s asinh((y - {transform['centre']:.4g})"
             f" / s), s = {transform['scale']:.4g} (the metric compressed far from gamma; "
-            "scales above are in g's units)"
+            "scales above are in g's units)",
+            highlight=False,
         )
     loo = checks["loo_level0"]
     if loo["n"]:
         out.print(
             f"check: leave-one-out at {loo['n']} level-0 runs, mean z^2 {loo['mean_z2']:.2f} "
-            "(1 if calibrated)"
+            "(1 if calibrated)",
+            highlight=False,
         )
     for pair in checks["pairs"]:
         if pair["n_pairs"] >= 2:
             out.print(
                 f"check: {pair['n_pairs']} segments run at levels 0 and {pair['level']}: "
                 f"sd(y{pair['level']} - y0) {pair['sd_observed']:.3g}, model "
-                f"{pair['sd_fitted']:.3g}"
+                f"{pair['sd_fitted']:.3g}",
+                highlight=False,
             )
 
 

@@ -22,6 +22,24 @@ from tests.conftest import invoke, ok, write_batch
 COMMANDS = sorted(get_command(app).commands)  # type: ignore[attr-defined]
 
 
+#: Options whose absence means "none" (nothing to abandon by, no truth, no scheduler ...):
+#: every other option shows its default in --help.
+OFF_UNLESS_GIVEN = {
+    ("abandon", "--batch"),
+    ("abandon", "--plan"),
+    ("abandon", "--segments"),
+    ("abandon", "--fidelity"),
+    ("abandon", "--reason"),
+    ("fit", "--fixed-hyperparameters"),
+    ("init", "--gamma"),
+    ("init", "--settings-from"),
+    ("report", "--truth"),
+    ("select", "--scheduler"),
+    ("select", "--batch"),
+    ("select", "--out"),
+}
+
+
 def help_text(runner, *args: str, monkeypatch) -> str:
     monkeypatch.setenv("COLUMNS", "400")  # one line per option
     return ok(runner, *args, "--help").stdout
@@ -34,7 +52,9 @@ def test_help_has_no_bool_metavar_and_shows_every_default(runner, name, monkeypa
     command = get_command(app).commands[name]  # type: ignore[attr-defined]
     rows = [line for line in text.splitlines() if re.match(r"│\s+(\*\s+)?-", line)]
     for param in command.params:
-        if param.param_type_name != "option" or param.is_flag or param.default is None:
+        if param.param_type_name != "option" or param.is_flag or param.required:
+            continue
+        if param.default is None and (name, param.opts[0]) in OFF_UNLESS_GIVEN:
             continue
         row = next(r for r in rows if param.opts[0] in r.split()[1:4])
         assert "[default: " in row, f"{name} {param.opts[0]}: default not shown"
