@@ -30,6 +30,7 @@ from typing import Annotated, Any
 
 import typer
 import typer.core
+import typer.rich_utils
 
 try:  # typer >= 0.2x ships its own copy of click
     from typer._click import Context
@@ -66,6 +67,21 @@ def _no_bool_metavar(self: typer.core.TyperOption, ctx: Context) -> str | None:
 
 if _display_type_rich is not None:
     typer.core.TyperOption.display_type_rich = _no_bool_metavar  # type: ignore[method-assign]
+
+_rich_format_error = getattr(typer.rich_utils, "rich_format_error", None)
+
+
+def _usage_error(exc: ClickException) -> None:
+    # A usage error in a log (not a terminal) is click's plain lines, "Usage: ...",
+    # "Try ...", "Error: ...": typer's box would wrap the message at 80 columns.
+    if console.err.is_terminal and _rich_format_error is not None:
+        _rich_format_error(exc)
+    elif type(exc).__name__ != "NoArgsIsHelpError":
+        exc.show()
+
+
+if _rich_format_error is not None:
+    typer.rich_utils.rich_format_error = _usage_error  # type: ignore[assignment]
 
 app = typer.Typer(
     name="bams-cli",
