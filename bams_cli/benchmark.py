@@ -58,7 +58,6 @@ state files; it selects, fits and estimates nothing by itself.
 from __future__ import annotations
 
 import importlib.metadata
-import inspect
 import json
 import math
 import os
@@ -77,7 +76,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bams_cli import pipeline
+from bams_cli import defaults, pipeline
 from bams_cli.core import suite, synthetic
 from bams_cli.core.estimate import plan_sample
 from bams_cli.core.evaluate import exact_variance, expected_is_recall, retention_recall
@@ -331,6 +330,33 @@ class RunResult:
     workspace: str | None = None
 
 
+# The options a user leaves at their defaults, passed from ``bams_cli.defaults`` (not
+# left to the pipeline functions' signatures), so the benchmark measures what a user runs.
+SELECT_DEFAULTS: dict[str, Any] = {
+    "overbudget": defaults.OVERBUDGET,
+    "pooling": defaults.POOLING.value,
+    "confirm_share": defaults.CONFIRM_SHARE,
+    "difficulty_column": defaults.DIFFICULTY_COLUMN,
+}
+FIT_DEFAULTS: dict[str, Any] = {
+    "restarts": defaults.RESTARTS,
+    "chunk_size": defaults.CHUNK_SIZE,
+    "transform": defaults.TRANSFORM.value,
+}
+PLAN_DEFAULTS: dict[str, Any] = {
+    "alpha": defaults.ALPHA,
+    "defensive": defaults.DEFENSIVE,
+    "design": defaults.DESIGN.value,
+    "weighting": defaults.WEIGHTING.value,
+    "stages": defaults.STAGES,
+    "stage1_share": defaults.STAGE1_SHARE,
+}
+ESTIMATE_DEFAULTS: dict[str, Any] = {
+    "confidence": defaults.CONFIDENCE,
+    "interval": defaults.INTERVAL.value,
+}
+
+
 def _select_kwargs(strategy: str, batch: int) -> dict[str, Any]:
     if batch == 1:  # random; mixed fidelity for the multifidelity strategies
         return {"strategy": "random", "mixed_fidelity": strategy in MULTIFIDELITY}
@@ -345,10 +371,9 @@ def _ce_scores(X: np.ndarray, obs_idx: np.ndarray, obs_f: np.ndarray) -> np.ndar
     values, as ``baselines.pick_cross_entropy`` fits it), scores every segment for the rate
     estimate.
     """
-    from bams_cli.core.baselines import pick_cross_entropy
+    from bams_cli.core.baselines import CE_N_ELITE as n_elite
+    from bams_cli.core.baselines import CE_VAR_FLOOR as var_floor
 
-    sig = inspect.signature(pick_cross_entropy).parameters
-    n_elite, var_floor = sig["n_elite"].default, sig["var_floor"].default
     elite = obs_idx[np.argsort(obs_f, kind="stable")[: max(n_elite, 2)]]
     mean = X[elite].mean(axis=0)
     var = X[elite].var(axis=0) + var_floor * X.var(axis=0)
@@ -388,6 +413,7 @@ def run_one(spec: RunSpec) -> RunResult:
                 clusters=spec.clusters,
                 level0_share=spec.level0_share,
                 workers=1,
+                **SELECT_DEFAULTS,
                 **_select_kwargs(spec.strategy, b),
             )
             clock("select", t0)
@@ -400,7 +426,7 @@ def run_one(spec: RunSpec) -> RunResult:
             picks.append((_column(handoff, "segment_id").astype(str), _column(handoff, "fidelity")))
             if gp:
                 t0 = time.perf_counter()
-                summary = pipeline.fit(root)
+                summary = pipeline.fit(root, **FIT_DEFAULTS)
                 clock("fit", t0)
                 p_after.append(_column(root / "scores.parquet", "p_0").astype(np.float64))
                 hps.append({**summary["hyperparameters"], "transform": summary["transform"]})
@@ -448,7 +474,7 @@ def run_one(spec: RunSpec) -> RunResult:
             # (plan -> simulate -> ingest -> compute). The tables use the design's exact
             # recall and variance instead (module docstring).
             t0 = time.perf_counter()
-            plan = pipeline.estimate_plan(root, samples=spec.K)
+            plan = pipeline.estimate_plan(root, samples=spec.K, **PLAN_DEFAULTS)
             while True:
                 est_results = root / f"estimate-results-{plan['plan']}.parquet"
                 pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
@@ -457,11 +483,11 @@ def run_one(spec: RunSpec) -> RunResult:
                 # fitted on the log that now holds the stage's results: condition on them
                 # with the batch-3 hyperparameters (fit --fixed-hyperparameters) rather than
                 # retrain on ~K more points, which would cost more than the whole protocol.
-                pipeline.fit(root, fixed_hyperparameters=root / "model.json")
+                pipeline.fit(root, fixed_hyperparameters=root / "model.json", **FIT_DEFAULTS)
                 if plan["stage"] >= plan["stages"]:
                     break
-                plan = pipeline.estimate_plan(root)
-            e = pipeline.estimate_compute(root)["estimates"][0]
+                plan = pipeline.estimate_plan(root, **PLAN_DEFAULTS)
+            e = pipeline.estimate_compute(root, **ESTIMATE_DEFAULTS)["estimates"][0]
             realised = {
                 k: e[k]
                 for k in (
@@ -496,9 +522,8 @@ def run_one(spec: RunSpec) -> RunResult:
 # exact design quantities
 # ---------------------------------------------------------------------------------------
 def estimate_defaults() -> dict[str, Any]:
-    """alpha, defensive and design as ``pipeline.estimate_plan`` defaults them."""
-    sig = inspect.signature(pipeline.estimate_plan).parameters
-    return {k: sig[k].default for k in ("alpha", "defensive", "design")}
+    """alpha, defensive and design as a user's ``estimate --plan`` gets them (``defaults``)."""
+    return {k: PLAN_DEFAULTS[k] for k in ("alpha", "defensive", "design")}
 
 
 def design_stats(
@@ -865,7 +890,7 @@ def run_benchmark(
     workers: int,
     progress: Progress | None,
     n: int | None = None,
-    clusters: int = 6,
+    clusters: int = defaults.CLUSTERS,
     first_seed: int = 0,
     command: str | None = None,
     save_arrays: bool = False,
@@ -1059,7 +1084,7 @@ def run_suite(
     workers: int,
     progress: Progress | None,
     n: int | None = None,
-    clusters: int = 6,
+    clusters: int = defaults.CLUSTERS,
     first_seed: int = 0,
     problems: Sequence[str] = SUITE,
     command: str | None = None,

@@ -4,30 +4,84 @@ The only module that imports typer. Every command runs inside one boundary (``co
 errors the user can fix (``BamsError``) print as one line with exit code 1 (3 when the
 command refuses because picks await results: ``PendingResultsError``); anything else
 (a damaged state file, a full disk, a bug) prints as one line too, with exit code 1, unless
-BAMS_DEBUG is set; warnings print as one line each. Transactions roll back on the way out,
-so a failed command leaves the workspace as it was.
+BAMS_DEBUG is set; warnings print as one line each. Under --json both are one JSON object
+per stderr line instead (``{"error": ..., "exit_code": ...}``). Transactions roll back on
+the way out, so a failed command leaves the workspace as it was.
+
+Choices are ``defaults`` enums (an unknown value is a usage error, exit code 2, naming the
+valid ones) and every default comes from ``defaults``. Precedence: a flag, then its
+BAMS_* environment variable (shown in --help), then settings.toml where the option says
+so, then ``defaults``.
 """
 
 from __future__ import annotations
 
+import enum
 import functools
 import inspect
 import os
 import shlex
 import sys
+import typing
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
-import click
 import typer
+import typer.core
+import typer.rich_utils
+
+try:  # typer >= 0.2x ships its own copy of click
+    from typer._click import Context
+    from typer._click.exceptions import ClickException, UsageError
+except ImportError:  # pragma: no cover - older typer on the real click
+    from click import Context  # type: ignore[assignment]
+    from click.exceptions import ClickException, UsageError  # type: ignore[assignment]
 
 from bams_cli import __version__, console, defaults, pipeline, schemas_json
 from bams_cli import abandon as abandon_runs
 from bams_cli import loop as study_loop
-from bams_cli.errors import BamsError, OptionError
+from bams_cli.defaults import (
+    Design,
+    FailedAs,
+    Interval,
+    Method,
+    Pooling,
+    Protocol,
+    Strategy,
+    Transform,
+    Weighting,
+)
+from bams_cli.errors import EXIT_USAGE, BamsError, OptionError
 from bams_cli.status import status as study_status
+
+_display_type_rich = getattr(typer.core.TyperOption, "display_type_rich", None)
+
+
+def _no_bool_metavar(self: typer.core.TyperOption, ctx: Context) -> str | None:
+    # typer 0.29 prints "<bool>" beside every flag (--json, --help, --no-standardize);
+    # a flag takes no value, so its type column stays empty.
+    return None if self.is_flag else _display_type_rich(self, ctx)  # type: ignore[misc]
+
+
+if _display_type_rich is not None:
+    typer.core.TyperOption.display_type_rich = _no_bool_metavar  # type: ignore[method-assign]
+
+_rich_format_error = getattr(typer.rich_utils, "rich_format_error", None)
+
+
+def _usage_error(exc: ClickException) -> None:
+    # A usage error in a log (not a terminal) is click's plain lines, "Usage: ...",
+    # "Try ...", "Error: ...": typer's box would wrap the message at 80 columns.
+    if console.err.is_terminal and _rich_format_error is not None:
+        _rich_format_error(exc)
+    elif type(exc).__name__ != "NoArgsIsHelpError":
+        exc.show()
+
+
+if _rich_format_error is not None:
+    typer.rich_utils.rich_format_error = _usage_error  # type: ignore[assignment]
 
 app = typer.Typer(
     name="bams-cli",
@@ -42,11 +96,9 @@ app = typer.Typer(
     rich_markup_mode="rich",
     context_settings={"help_option_names": ["-h", "--help"]},
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
 )
-
-DEFAULT_WORKSPACE = "./bams-workspace"
 
 Workspace = Annotated[
     Path,
@@ -59,11 +111,37 @@ Workspace = Annotated[
     ),
 ]
 Json = Annotated[
-    bool, typer.Option("--json", help="Print a JSON summary (for CI logs) instead of tables.")
+    bool,
+    typer.Option(
+        "--json",
+        help="Print the full summary as JSON (bams-cli schema) instead of the short human one; "
+        "errors and warnings become one JSON object per stderr line.",
+    ),
+]
+Quiet = Annotated[
+    bool,
+    typer.Option(
+        "--quiet",
+        "-q",
+        envvar="BAMS_QUIET",
+        help="Print nothing but errors (and the --json output, when asked for).",
+    ),
 ]
 Wait = Annotated[
     bool,
-    typer.Option("--wait", help="Wait for another command's workspace lock instead of failing."),
+    typer.Option(
+        "--wait",
+        envvar="BAMS_WAIT",
+        help="Wait for another command's workspace lock instead of failing.",
+    ),
+]
+Workers = Annotated[
+    int | None,
+    typer.Option(
+        "--workers",
+        envvar="BAMS_WORKERS",
+        help="Local worker processes for clusters \\[default: all cores].",
+    ),
 ]
 HandoffInternal = Annotated[
     bool,
@@ -75,7 +153,7 @@ HandoffInternal = Annotated[
 
 
 def _one_line_warning(message: Warning | str, category: type[Warning], *_: Any, **__: Any) -> None:
-    console.note(f"warning: {' '.join(str(message).split())}")
+    console.warning(" ".join(str(message).split()))
 
 
 def _unexpected(exc: Exception) -> str:
@@ -103,25 +181,42 @@ def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable
 
     def register(fn: Callable[..., None]) -> Callable[..., None]:
         @functools.wraps(fn)
-        def boundary(*args: Any, **kwargs: Any) -> None:
+        def boundary(*args: Any, quiet: bool = False, **kwargs: Any) -> None:
+            console.set_mode(quiet=quiet or _QUIET, json_out=bool(kwargs.get("json_out")))
             try:
                 with warnings.catch_warnings():
                     warnings.showwarning = _one_line_warning
                     fn(*args, **kwargs)
             except BamsError as exc:
-                console.error(str(exc))
+                console.error(str(exc), exc.exit_code)
                 raise typer.Exit(exc.exit_code) from None
-            except (typer.Exit, typer.Abort, click.exceptions.ClickException):
+            except UsageError as exc:
+                if console.mode.json:
+                    console.error(exc.format_message(), EXIT_USAGE)
+                    raise typer.Exit(EXIT_USAGE) from None
+                raise
+            except (typer.Exit, typer.Abort, ClickException):
                 raise
             except KeyboardInterrupt:
-                console.error("interrupted; files being written were discarded")
+                console.error("interrupted; files being written were discarded", 130)
                 raise typer.Exit(130) from None
             except Exception as exc:  # a damaged state file, a full disk, or a bug
                 if os.environ.get("BAMS_DEBUG"):
                     raise
                 console.error(_unexpected(exc))
                 raise typer.Exit(1) from None
+            finally:
+                console.set_mode(quiet=False, json_out=False)
 
+        # Every command takes --quiet: typer reads the parameters from this signature.
+        sig = inspect.signature(fn, eval_str=True)
+        quiet = inspect.Parameter("quiet", inspect.Parameter.KEYWORD_ONLY, default=False)
+        params = [*sig.parameters.values(), quiet.replace(annotation=Quiet)]
+        boundary.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
+        boundary.__annotations__ = {
+            **typing.get_type_hints(fn, include_extras=True),
+            "quiet": Quiet,
+        }
         boundary.__doc__ = _reflow(fn.__doc__ or "")
         app.command(name)(boundary)
         return fn
@@ -146,17 +241,27 @@ def _json(name: str, summary: dict[str, Any]) -> None:
     console.print_json({"schema_version": schemas_json.version(name), **summary})
 
 
-def _show(summary: dict[str, Any], json_out: bool, title: str, name: str) -> None:
+def _show(
+    summary: dict[str, Any], json_out: bool, human: Callable[[dict[str, Any]], None], name: str
+) -> None:
+    """The full summary as JSON under --json, else ``human``'s few lines of key facts."""
     if json_out:
         _json(name, summary)
     else:
-        console.kv_table(title, summary)
+        human(summary)
 
 
 def _version(value: bool) -> None:
     if value:
         console.out.print(f"bams-cli {__version__}")
         raise typer.Exit()
+
+
+#: ``bams-cli schema NAME``: the outputs that have a JSON Schema.
+SchemaName = enum.StrEnum("SchemaName", [(name, name) for name in schemas_json.NAMES])  # type: ignore[misc]
+
+#: ``bams-cli --quiet COMMAND``: the global form of every command's --quiet.
+_QUIET = False
 
 
 @app.callback()
@@ -167,28 +272,41 @@ def _root(
             "--version", "-V", callback=_version, is_eager=True, help="Show the version and exit."
         ),
     ] = False,
+    quiet: Quiet = False,
 ) -> None:
     """bams-cli: rate-informed discovery of rare failures."""
+    global _QUIET
+    _QUIET = quiet
 
 
 @command()
 def init(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     gamma: Annotated[
         str | None,
         typer.Option("--gamma", help="Failure threshold(s) on the metric f, comma-separated."),
     ] = None,
     costs: Annotated[
         str | None,
-        typer.Option("--costs", help="Cost per fidelity level, level 0 first (must be 1)."),
+        typer.Option(
+            "--costs",
+            help="Cost per fidelity level, level 0 first (must be 1) \\[default: 1, one level].",
+        ),
     ] = None,
     level_names: Annotated[
-        str | None, typer.Option("--level-names", help="Names for the levels, comma-separated.")
+        str | None,
+        typer.Option(
+            "--level-names",
+            help="Names for the levels, comma-separated \\[default: high, low1, low2, ...].",
+        ),
     ] = None,
     seed: Annotated[
-        int | None, typer.Option("--seed", help="Seed recorded and used by every step.")
+        int | None,
+        typer.Option("--seed", help="Seed recorded and used by every step \\[default: 0]."),
     ] = None,
-    dim: Annotated[int | None, typer.Option("--dim", help="Reduced embedding dimension.")] = None,
+    dim: Annotated[
+        int | None, typer.Option("--dim", help="Reduced embedding dimension \\[default: 12].")
+    ] = None,
     settings_from: Annotated[
         Path | None,
         typer.Option("--settings-from", help="Start from this settings.toml (flags override it)."),
@@ -232,7 +350,7 @@ def init(
             highlight=False,
         )
         return
-    _show(summary, json_out, "workspace created", "init")
+    _show(summary, json_out, console.init_summary, "init")
 
 
 @command("embed-reduce")
@@ -240,15 +358,15 @@ def embed_reduce(
     segments: Annotated[
         Path, typer.Argument(help="Parquet file of segments: segment_id + embedding.")
     ],
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     method: Annotated[
-        str,
+        Method,
         typer.Option(
             "--method",
             help="pca (exact, streaming), autoencoder, identity, or ipca (the older "
             "IncrementalPCA, for comparison).",
         ),
-    ] = "pca",
+    ] = defaults.METHOD,
     dim: Annotated[
         int | None, typer.Option("--dim", help="Reduced dimension \\[default: settings, 12].")
     ] = None,
@@ -260,26 +378,37 @@ def embed_reduce(
     ] = True,
     columns: Annotated[
         str | None,
-        typer.Option("--columns", help="Glob of numeric embedding columns, e.g. 'emb_*'."),
+        typer.Option(
+            "--columns",
+            help="Glob of numeric embedding columns, e.g. 'emb_*' \\[default: none, a list column holds it].",
+        ),
     ] = None,
     embedding_column: Annotated[
         str | None,
-        typer.Option("--embedding-column", help="The list column holding the embedding."),
+        typer.Option(
+            "--embedding-column",
+            help="The list column holding the embedding \\[default: the file's only list column].",
+        ),
     ] = None,
-    id_column: Annotated[str | None, typer.Option("--id-column", help="Segment id column.")] = None,
+    id_column: Annotated[
+        str | None,
+        typer.Option("--id-column", help="Segment id column \\[default: settings, segment_id]."),
+    ] = None,
     apply: Annotated[
         bool,
         typer.Option(
             "--apply", help="Map new segments with the saved reducer and add them to the pool."
         ),
     ] = False,
-    batch_size: Annotated[int, typer.Option("--batch-size", help="Rows read per batch.")] = 8192,
+    batch_size: Annotated[
+        int, typer.Option("--batch-size", help="Rows read per batch.")
+    ] = defaults.BATCH_SIZE,
     sample_size: Annotated[
         int,
         typer.Option(
             "--sample-size", help="Rows sampled to train the autoencoder and measure error."
         ),
-    ] = 20_000,
+    ] = defaults.SAMPLE_SIZE,
     force: Annotated[
         bool, typer.Option("--force", help="Refit the reducer over an existing pool.")
     ] = False,
@@ -290,14 +419,12 @@ def embed_reduce(
 
     [bold]Example[/]: bams-cli embed-reduce -w study sample_data/av_like/segments.parquet --dim 12
     """
-    if method not in {"pca", "ipca", "autoencoder", "identity"}:
-        raise BamsError(f"--method {method!r}: choose pca, autoencoder, identity or ipca")
-    with console.progress(not json_out) as bar:
+    with console.progress(not json_out, "embed-reduce") as bar:
         summary = pipeline.embed_reduce(
             workspace,
             segments,
             apply=apply,
-            method=method,
+            method=method.value,
             dim=dim,
             standardize=standardize,
             columns=columns,
@@ -309,7 +436,7 @@ def embed_reduce(
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, "embed-reduce", "embed-reduce")
+    _show(summary, json_out, console.embed_reduce_summary, "embed-reduce")
 
 
 @command("ingest-results")
@@ -321,7 +448,7 @@ def ingest_results(
             "value, optional status (+ extra columns)."
         ),
     ],
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     replace: Annotated[
         bool,
         typer.Option("--replace", help="Supersede logged values that disagree with this file."),
@@ -364,8 +491,7 @@ def ingest_results(
     if "message" in summary:
         console.note(summary["message"])
     else:
-        shown = {k: v for k, v in summary.items() if k not in ("pending", "not_run", "abandoned")}
-        console.kv_table("ingest-results", shown)
+        console.ingest_summary(summary)
     not_run = summary["not_run"]
     gone = summary.get("abandoned")
     if gone is not None:
@@ -413,12 +539,12 @@ def simulate(
     --truth sample_data/toy2d/truth.parquet -o results-0001.parquet
     """
     summary = pipeline.simulate(handoff, truth, output)
-    _show(summary, json_out, "simulate (sample data only)", "simulate")
+    _show(summary, json_out, console.simulate_summary, "simulate")
 
 
 @command()
 def fit(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     fixed_hyperparameters: Annotated[
         Path | None,
         typer.Option(
@@ -428,12 +554,12 @@ def fit(
     ] = None,
     restarts: Annotated[
         int, typer.Option("--restarts", help="Seeded L-BFGS-B restarts of the MAP fit.")
-    ] = 8,
+    ] = defaults.RESTARTS,
     chunk_size: Annotated[
         int, typer.Option("--chunk-size", help="Pool rows scored per chunk.")
-    ] = 50_000,
+    ] = defaults.CHUNK_SIZE,
     transform: Annotated[
-        str,
+        Transform,
         typer.Option(
             "--transform",
             help="auto: model the metric or an asinh compression of it far from gamma, "
@@ -454,13 +580,13 @@ def fit(
 
     [bold]Example[/]: bams-cli fit -w study
     """
-    with console.progress(not json_out) as bar:
+    with console.progress(not json_out, "fit") as bar:
         summary = pipeline.fit(
             workspace,
             fixed_hyperparameters=fixed_hyperparameters,
             restarts=restarts,
             chunk_size=chunk_size,
-            transform=transform,
+            transform=transform.value,
             force=force,
             wait=wait,
             progress=bar,
@@ -471,51 +597,52 @@ def fit(
     if summary.get("up_to_date"):
         console.out.print(summary["message"], markup=False, highlight=False)
         return
-    console.hyperparameter_table(summary["hyperparameters"], summary["n_observations_per_level"])
-    skip = ("hyperparameters", "warnings", "checks", "transform")
-    rest = {k: v for k, v in summary.items() if k not in skip}
-    console.kv_table("fit", rest)
-    console.model_checks(summary["checks"], summary["transform"])
-    for warning in summary["warnings"]:
-        console.note(f"warning: {warning}")
+    console.fit_summary(summary)
 
 
 @command()
 def select(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     strategy: Annotated[
-        str,
+        Strategy,
         typer.Option(
             "--strategy",
-            help="bams (default), bas (level 0 only), random, mc-gp, mcm-gp, ds, ds-gp, or ce.",
+            help="bams; bas (level 0 only); random (the first batch); the paper's baselines "
+            "mc-gp, mcm-gp, ds, ds-gp, ce.",
         ),
-    ] = "bams",
+    ] = defaults.STRATEGY,
     budget: Annotated[
         float,
         typer.Option(
-            "--budget", "-m", help="Batch budget m in cost units (a level-0 run costs 1)."
+            "--budget",
+            "-m",
+            envvar="BAMS_BUDGET",
+            help="Batch budget m in cost units (a level-0 run costs 1).",
         ),
     ] = defaults.BUDGET,
     clusters: Annotated[
-        int, typer.Option("--clusters", "-S", help="Clusters S (1: no clustering).")
-    ] = 6,
+        int,
+        typer.Option(
+            "--clusters", "-S", envvar="BAMS_CLUSTERS", help="Clusters S (1: no clustering)."
+        ),
+    ] = defaults.CLUSTERS,
     overbudget: Annotated[
         float,
         typer.Option("--overbudget", help="eta >= 1: each cluster plans ceil(eta m N_s / N)."),
-    ] = 2.0,
+    ] = defaults.OVERBUDGET,
     pooling: Annotated[
-        str,
+        Pooling,
         typer.Option(
             "--pooling", help="global: compare (N_s/N) dJ/c across clusters; raw: the paper's dJ."
         ),
-    ] = "global",
+    ] = defaults.POOLING,
     mixed_fidelity: Annotated[
         bool, typer.Option("--mixed-fidelity", help="random: spread the picks over every level.")
     ] = False,
     level0_share: Annotated[
         float,
         typer.Option("--level0-share", help="random/mcm-gp: share of the budget spent at level 0."),
-    ] = 0.5,
+    ] = defaults.LEVEL0_SHARE,
     confirm_share: Annotated[
         float,
         typer.Option(
@@ -530,7 +657,7 @@ def select(
             "--difficulty-column",
             help="ds/ds-gp: per-segment difficulty (higher = likelier to fail).",
         ),
-    ] = "difficulty",
+    ] = defaults.DIFFICULTY_COLUMN,
     allow_pending: Annotated[
         bool,
         typer.Option("--allow-pending", help="Select although an earlier batch awaits results."),
@@ -541,15 +668,14 @@ def select(
             "--include-observed", help="Let segments already observed at level 0 be picked again."
         ),
     ] = False,
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers", help="Local worker processes for clusters \\[default: all cores]."
-        ),
-    ] = None,
+    workers: Workers = None,
     scheduler: Annotated[
         str | None,
-        typer.Option("--scheduler", help="dask.distributed scheduler address to run clusters on."),
+        typer.Option(
+            "--scheduler",
+            envvar="BAMS_SCHEDULER",
+            help="dask.distributed scheduler address to run clusters on.",
+        ),
     ] = None,
     retry_abandoned: Annotated[
         bool,
@@ -586,14 +712,14 @@ def select(
     """
     if workers is not None and workers < 1:
         raise OptionError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
-    with console.progress(not json_out) as bar:
+    with console.progress(not json_out, "select") as bar:
         summary = pipeline.select(
             workspace,
-            strategy=strategy,
+            strategy=strategy.value,
             budget=budget,
             clusters=clusters,
             overbudget=overbudget,
-            pooling=pooling,
+            pooling=pooling.value,
             mixed_fidelity=mixed_fidelity,
             level0_share=level0_share,
             confirm_share=confirm_share,
@@ -609,12 +735,12 @@ def select(
             wait=wait,
             progress=bar,
         )
-    _show(summary, json_out, f"select: batch {summary['batch']}", "select")
+    _show(summary, json_out, console.select_summary, "select")
 
 
 @command()
 def estimate(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     plan: Annotated[
         bool,
         typer.Option(
@@ -628,13 +754,13 @@ def estimate(
         ),
     ] = None,
     weighting: Annotated[
-        str,
+        Weighting,
         typer.Option(
             "--weighting",
             help="With --plan: auto (the design with the smallest variance the checked model "
             "predicts: uniform, calibrated or p^alpha), uniform, or p-alpha (--alpha, --defensive).",
         ),
-    ] = "auto",
+    ] = defaults.WEIGHTING,
     stages: Annotated[
         int,
         typer.Option(
@@ -662,12 +788,13 @@ def estimate(
         typer.Option("--defensive", help="Uniform share eps mixed into the sampling distribution."),
     ] = defaults.DEFENSIVE,
     design: Annotated[
-        str,
+        Design,
         typer.Option(
             "--design",
-            help="poisson (Horvitz-Thompson), fixed (systematic), or with-replacement (the paper's).",
+            help="With --plan: poisson (Horvitz-Thompson), fixed (systematic), or "
+            "with-replacement (the paper's).",
         ),
-    ] = "poisson",
+    ] = defaults.DESIGN,
     seed: Annotated[
         int | None,
         typer.Option(
@@ -683,8 +810,22 @@ def estimate(
         ),
     ] = None,
     confidence: Annotated[
-        float, typer.Option("--confidence", help="Two-sided confidence level of the interval.")
-    ] = 0.9,
+        float,
+        typer.Option(
+            "--confidence",
+            envvar="BAMS_CONFIDENCE",
+            help="Two-sided confidence level of the interval.",
+        ),
+    ] = defaults.CONFIDENCE,
+    interval: Annotated[
+        Interval,
+        typer.Option(
+            "--interval",
+            help="gamma: allows for one unseen failure of the weight the checked model "
+            "predicts; fay-feuer: of the largest weight any segment could carry, Fay and "
+            "Feuer's interval, which keeps its coverage however wrong the model (wider).",
+        ),
+    ] = defaults.INTERVAL,
     exact_variance: Annotated[
         bool,
         typer.Option(
@@ -701,7 +842,7 @@ def estimate(
         ),
     ] = False,
     failed_as: Annotated[
-        str | None,
+        FailedAs | None,
         typer.Option(
             "--failed-as",
             help="bounds: when planned segments were abandoned (bams-cli abandon), report the "
@@ -738,8 +879,8 @@ def estimate(
             samples=samples,
             alpha=alpha,
             defensive=defensive,
-            design=design,
-            weighting=weighting,
+            design=design.value,
+            weighting=weighting.value,
             stages=stages,
             stage1_share=stage1_share,
             new_series=new_series,
@@ -748,23 +889,16 @@ def estimate(
             allow_pending=allow_pending,
             wait=wait,
         )
-        _show(
-            summary,
-            json_out,
-            f"estimate plan {summary['plan']} (stage {summary['stage']} of {summary['stages']})",
-            "estimate-plan",
-        )
-        if not json_out:
-            for note in summary["notes"]:
-                console.note(note)
+        _show(summary, json_out, console.plan_summary, "estimate-plan")
         return
-    with console.progress(not json_out) as bar:
+    with console.progress(not json_out, "estimate") as bar:
         summary = pipeline.estimate_compute(
             workspace,
             plan_number=plan_number,
             confidence=confidence,
+            interval=interval.value,
             exact_variance=exact_variance,
-            failed_as=failed_as,
+            failed_as=None if failed_as is None else failed_as.value,
             wait=wait,
             progress=bar,
         )
@@ -785,7 +919,8 @@ def estimate(
         for e in summary["estimates"]
     ]
     console.rows_table(
-        f"failure rate (plan {summary['plan']}, {summary['design']}, {int(confidence * 100)}% interval)",
+        f"failure rate (plan {summary['plan']}, {summary['design']}, "
+        f"{round(confidence * 100)}% {interval.value} interval)",
         ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
         rows,
     )
@@ -800,15 +935,16 @@ def estimate(
         [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
         for g in summary["gp"]
     ]
-    title = "the GP's own estimate"
+    console.rows_table("the GP's own estimate", ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
     if summary["gp_model"] != "current":
-        title += " (model as of the plan; `bams-cli fit` adds the plan's results)"
-    console.rows_table(title, ["gamma", "mean p_n", "Var bound", "Var exact"], gp)
+        console.note(
+            "the GP's estimate is the model's as of the plan; `bams-cli fit` adds its results"
+        )
 
 
 @command()
 def abandon(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     batch: Annotated[
         int | None, typer.Option("--batch", help="Abandon batch N's pending requests.")
     ] = None,
@@ -886,9 +1022,12 @@ def loop(
     batches: Annotated[
         int, typer.Option("--batches", help="Batches the study should have (the first random).")
     ],
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     budget: Annotated[
-        float, typer.Option("--budget", "-m", help="Budget of each BAMS batch (cost units).")
+        float,
+        typer.Option(
+            "--budget", "-m", envvar="BAMS_BUDGET", help="Budget of each BAMS batch (cost units)."
+        ),
     ] = defaults.BUDGET,
     first_budget: Annotated[
         float | None,
@@ -904,7 +1043,11 @@ def loop(
     ] = False,
     samples: Annotated[
         float | None,
-        typer.Option("--samples", "-K", help="With --then-estimate: the estimate's budget K."),
+        typer.Option(
+            "--samples",
+            "-K",
+            help="With --then-estimate: the estimate's budget K \\[default: 5 x the GP's p x N].",
+        ),
     ] = None,
     results_dir: Annotated[
         Path | None,
@@ -921,10 +1064,10 @@ def loop(
             "estimate with --failed-as bounds).",
         ),
     ] = False,
-    clusters: Annotated[int, typer.Option("--clusters", "-S", help="select: clusters S.")] = 6,
-    workers: Annotated[
-        int | None, typer.Option("--workers", help="select: local worker processes.")
-    ] = None,
+    clusters: Annotated[
+        int, typer.Option("--clusters", "-S", envvar="BAMS_CLUSTERS", help="select: clusters S.")
+    ] = defaults.CLUSTERS,
+    workers: Workers = None,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -960,14 +1103,12 @@ def loop(
     if summary["unchanged"]:
         console.note(f"loop: nothing to do; {summary['batches']} batches are in")
         return
-    shown = {k: v for k, v in summary.items() if k != "steps"}
-    shown["steps"] = len(summary["steps"])
-    console.kv_table("loop", shown)
+    console.loop_summary(summary)
 
 
 @command()
 def report(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     truth: Annotated[
         Path | None,
         typer.Option(
@@ -976,7 +1117,7 @@ def report(
     ] = None,
     diverse: Annotated[
         int, typer.Option("--diverse", help="How many diverse likely failures to list.")
-    ] = 5,
+    ] = defaults.DIVERSE,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -988,12 +1129,12 @@ def report(
     [bold]Example[/]: bams-cli report -w study   (sample data: add --truth sample_data/toy2d/truth.parquet)
     """
     summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
-    _show(summary, json_out, "report", "report")
+    _show(summary, json_out, console.report_summary, "report")
 
 
 @command()
 def status(
-    workspace: Workspace = Path(DEFAULT_WORKSPACE),
+    workspace: Workspace = Path(defaults.WORKSPACE),
     json_out: Json = False,
 ) -> None:
     """Show where the study stands and the exact command to run next.
@@ -1017,10 +1158,8 @@ def status(
 @command()
 def schema(
     name: Annotated[
-        str | None,
-        typer.Argument(
-            help=f"Which output: {', '.join(schemas_json.NAMES)} \\[default: all, by name]."
-        ),
+        SchemaName | None,
+        typer.Argument(help="Which output \\[default: all, by name]."),
     ] = None,
 ) -> None:
     """Print the JSON Schema of a command's --json output, or of report/summary.json.
@@ -1033,31 +1172,29 @@ def schema(
     if name is None:
         console.print_json(schemas_json.all_schemas())
         return
-    if name not in schemas_json.NAMES:
-        raise OptionError(f"schema {name!r}: choose one of {', '.join(schemas_json.NAMES)}")
-    console.print_json(schemas_json.schema(name))
+    console.print_json(schemas_json.schema(name.value))
 
 
 @command()
 def benchmark(
     protocol: Annotated[
-        str,
+        Protocol,
         typer.Option(
             "--protocol",
             help="toy2d: the paper's synthetic protocol; av_like: its AV protocol; weak_cheap, "
             "digits, rare_regions, gap_sim: the suite's problems; suite: all six, with a "
             "suite.md table over them.",
         ),
-    ] = "toy2d",
+    ] = defaults.PROTOCOL,
     seeds: Annotated[
         int, typer.Option("--seeds", help="Independent repetitions (the paper: 10).")
-    ] = 10,
+    ] = defaults.SEEDS,
     quick: Annotated[
         bool, typer.Option("--quick", help="At most 3 seeds: the CI smoke run.")
     ] = False,
     out: Annotated[
         Path, typer.Option("--out", "-o", help="Folder for results.json, tables and plots.")
-    ] = Path("docs/reproduction"),
+    ] = Path(defaults.BENCHMARK_OUT),
     strategies: Annotated[
         str | None,
         typer.Option(
@@ -1071,12 +1208,16 @@ def benchmark(
             "--level0-share",
             help="Share of a mixed-fidelity random batch's budget spent at level 0.",
         ),
-    ] = 0.5,
+    ] = defaults.LEVEL0_SHARE,
     n: Annotated[
         int | None, typer.Option("--n", help="Pool size \\[default: the committed sample data].")
     ] = None,
-    clusters: Annotated[int, typer.Option("--clusters", help="BAMS/BAS clusters S.")] = 6,
-    workers: Annotated[int, typer.Option("--workers", help="Runs in parallel processes.")] = 2,
+    clusters: Annotated[
+        int, typer.Option("--clusters", envvar="BAMS_CLUSTERS", help="BAMS/BAS clusters S.")
+    ] = defaults.CLUSTERS,
+    workers: Annotated[
+        int, typer.Option("--workers", envvar="BAMS_WORKERS", help="Runs in parallel processes.")
+    ] = defaults.BENCHMARK_WORKERS,
     save_arrays: Annotated[
         bool,
         typer.Option(
@@ -1106,8 +1247,8 @@ def benchmark(
 
     if workers < 1:
         raise OptionError(f"--workers {workers}: must be >= 1")
-    if protocol not in (*PROTOCOLS, "suite"):
-        raise BamsError(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}, or suite")
+    if protocol != Protocol.SUITE and protocol.value not in PROTOCOLS:  # kept in step by a test
+        raise OptionError(f"--protocol {protocol.value}: not a protocol of this version")
     options: dict[str, Any] = {
         "seeds": seeds,
         "quick": quick,
@@ -1121,7 +1262,7 @@ def benchmark(
         "save_arrays": save_arrays,
     }
     if protocol == "suite":
-        with console.progress(not json_out) as bar:
+        with console.progress(not json_out, "benchmark") as bar:
             results = run_suite(progress=bar, **options)
         if json_out:
             console.print_json({p: suite_rows(r) for p, r in results.items()})
@@ -1129,8 +1270,8 @@ def benchmark(
         console.out.print((out / "suite.md").read_text())
         console.note(f"results: {out / 'suite.json'} and one folder per problem")
         return
-    with console.progress(not json_out) as bar:
-        result = run_benchmark(protocol, progress=bar, **options)
+    with console.progress(not json_out, "benchmark") as bar:
+        result = run_benchmark(protocol.value, progress=bar, **options)
     if json_out:
         console.print_json(result)
         return
@@ -1141,5 +1282,22 @@ def benchmark(
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point.
+
+    Under --json a usage error (an unknown option, an invalid choice: exit code 2) is a
+    JSON line on stderr like every other error; click reports it before any command runs.
+    """
+    if "--json" not in sys.argv[1:]:
+        app()
+        return
+    try:
+        code = app(standalone_mode=False)
+    except UsageError as exc:
+        console.set_mode(quiet=False, json_out=True)
+        console.error(exc.format_message(), exc.exit_code)
+        code = exc.exit_code
+    except typer.Abort:
+        console.set_mode(quiet=False, json_out=True)
+        console.error("aborted", 1)
+        code = 1
+    sys.exit(code if isinstance(code, int) else 0)

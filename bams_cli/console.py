@@ -4,46 +4,99 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.console import Console, ConsoleDimensions
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 from rich.text import Text
 
-out = Console()
-err = Console(stderr=True, highlight=False, soft_wrap=True)
+#: Width of a console that is not a terminal (a CI log, a pipe, a file): wide enough that
+#: no line of ours wraps, since a log viewer wraps (or scrolls) on its own.
+PIPE_WIDTH = 10_000
 
 
-def error(message: str) -> None:
-    """One line on stderr: what failed, expected vs got, and the fix."""
+class _Console(Console):
+    """A rich Console that does not wrap when it is not writing to a terminal.
+
+    Rich falls back to 80 columns when stdout is a pipe, so a long path in a table or a
+    sentence broke into pieces in CI logs. Tables do not expand, so a wide console only
+    stops the wrapping; on a terminal the terminal's width still rules.
+    """
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        real = super().size
+        return real if self.is_terminal else ConsoleDimensions(PIPE_WIDTH, real.height)
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        Console.size.fset(self, new_size)  # type: ignore[attr-defined]
+
+
+out = _Console()
+err = _Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+class _Mode:
+    """How this command prints: ``quiet`` (errors only) and ``json`` (errors as JSON)."""
+
+    quiet = False
+    json = False
+
+
+mode = _Mode()
+
+
+def set_mode(*, quiet: bool, json_out: bool) -> None:
+    """``--quiet``: nothing on stdout or stderr but errors (and ``--json`` output, which
+    was asked for); ``--json``: errors and warnings as one JSON object per stderr line."""
+    mode.quiet, mode.json = quiet, json_out
+    out.quiet = quiet
+
+
+def error(message: str, exit_code: int = 1) -> None:
+    """One line on stderr: what failed, expected vs got, and the fix.
+
+    Under ``--json`` the line is a JSON object, ``{"error": ..., "exit_code": ...}``, so a
+    script reads the failure as it reads the output.
+    """
+    if mode.json:
+        sys.stderr.write(json.dumps({"error": message, "exit_code": exit_code}) + "\n")
+        return
     # The message is data (it quotes file contents), never markup: "[[levels]]" or a
     # segment id like "[/a]" must print as written.
     err.print(Text.assemble(("error:", "bold red"), " ", message))
 
 
+def warning(message: str) -> None:
+    """One line on stderr (a JSON object under ``--json``); nothing under ``--quiet``."""
+    if mode.quiet:
+        return
+    if mode.json:
+        sys.stderr.write(json.dumps({"warning": message}) + "\n")
+        return
+    err.print(f"warning: {message}", markup=False)
+
+
 def note(message: str) -> None:
-    err.print(message, markup=False)
+    if not mode.quiet:
+        err.print(message, markup=False)
 
 
 def print_json(summary: Mapping[str, Any]) -> None:
     # allow_nan=False: a bare NaN/Infinity is not JSON; an undefined number must be null.
     sys.stdout.write(json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n")
-
-
-def kv_table(title: str, rows: Mapping[str, Any]) -> None:
-    table = Table(title=title, show_header=False, title_justify="left")
-    table.add_column("key", style="bold")
-    table.add_column("value")
-    for key, value in rows.items():
-        if isinstance(value, float):
-            value = f"{value:.6g}"
-        elif isinstance(value, list | dict):
-            value = json.dumps(value, default=str)
-        table.add_row(Text(key), Text(str(value)))
-    out.print(table)
 
 
 def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
@@ -57,53 +110,29 @@ def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
     out.print(table)
 
 
-def hyperparameter_table(hp: Mapping[str, Any], n_obs: list[int]) -> None:
-    """Hyperparameters per level in natural units: what the model believes about f."""
-    table = Table(title="model hyperparameters", title_justify="left")
-    for col in ("level", "observations", "output scale", "lengthscales", "noise sd"):
-        table.add_column(col, justify="left" if col in {"level", "lengthscales"} else "right")
-    fmt = lambda xs: ", ".join(f"{x:.3g}" for x in xs)  # noqa: E731
-    noise = hp["noise"]
-    table.add_row(
-        "0 (theta0)",
-        str(n_obs[0]),
-        f"{hp['outputscale0'] ** 0.5:.4g}",
-        fmt(hp["lengthscales0"]),
-        f"{noise[0] ** 0.5:.3g}",
-    )
-    offsets = hp.get("offsets") or [0.0] * len(hp["outputscales"])
-    for lv, (scale, ells) in enumerate(zip(hp["outputscales"], hp["lengthscales"], strict=True), 1):
-        table.add_row(
-            f"{lv} (discrepancy, offset {offsets[lv - 1]:+.3g})",
-            str(n_obs[lv]),
-            f"{scale**0.5:.4g}",
-            fmt(ells),
-            f"{noise[lv] ** 0.5:.3g}",
-        )
-    table.caption = f"constant mean {hp['mean']:.4g}; scales and noise as standard deviations"
-    out.print(table)
-
-
 def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None = None) -> None:
     """One line per self-check of a fitted model (``core.gp.checks``), and its transform."""
     if transform and transform.get("kind") == "asinh":
         out.print(
             f"model: g(y) = {transform['centre']:.4g} + s asinh((y - {transform['centre']:.4g})"
             f" / s), s = {transform['scale']:.4g} (the metric compressed far from gamma; "
-            "scales above are in g's units)"
+            "scales above are in g's units)",
+            highlight=False,
         )
     loo = checks["loo_level0"]
     if loo["n"]:
         out.print(
             f"check: leave-one-out at {loo['n']} level-0 runs, mean z^2 {loo['mean_z2']:.2f} "
-            "(1 if calibrated)"
+            "(1 if calibrated)",
+            highlight=False,
         )
     for pair in checks["pairs"]:
         if pair["n_pairs"] >= 2:
             out.print(
                 f"check: {pair['n_pairs']} segments run at levels 0 and {pair['level']}: "
                 f"sd(y{pair['level']} - y0) {pair['sd_observed']:.3g}, model "
-                f"{pair['sd_fitted']:.3g}"
+                f"{pair['sd_fitted']:.3g}",
+                highlight=False,
             )
 
 
@@ -176,17 +205,70 @@ def study_status(s: Mapping[str, Any]) -> None:
     out.print(Text.assemble(("next: ", "bold"), s["next"]["text"]), soft_wrap=True)
 
 
+#: A command quicker than this prints no progress lines in a log (seconds).
+PLAIN_AFTER_S = 3.0
+#: At most one progress line per phase this often in a log (seconds).
+PLAIN_EVERY_S = 30.0
+
+
+def plain_progress(
+    label: str,
+    *,
+    after_s: float = PLAIN_AFTER_S,
+    every_s: float = PLAIN_EVERY_S,
+    clock: Callable[[], float] = time.monotonic,
+) -> Callable[[str, int, int], None]:
+    """A ``progress(phase, done, total)`` callback for logs: a few plain lines, no bar.
+
+    Nothing for a command that ends within ``after_s``; after that, one line when a phase
+    is first seen (a one-step phase: when it ends), at most one per ``every_s`` while it runs (with a linear ETA), and one
+    when it ends, e.g. ``select: greedy 4/6, 12 s elapsed, about 6 s left``.
+    """
+    start = clock()
+    began: dict[str, float] = {}
+    printed: dict[str, tuple[float, bool]] = {}  # phase -> (when, whether it was the end)
+
+    def update(phase: str, done: int, total: int) -> None:
+        now = clock()
+        began.setdefault(phase, now)
+        if mode.quiet or now - start < after_s:
+            return
+        finished = total > 0 and done >= total
+        if total <= 1 and not finished:  # a one-step phase says only when it is done
+            return
+        last = printed.get(phase)
+        if last is not None and (last[1] or (not finished and now - last[0] < every_s)):
+            return
+        printed[phase] = (now, finished)
+        line = f"{label}{phase}: {done}/{total}, {now - start:.0f} s elapsed"
+        ran = now - began[phase]
+        if not finished and done > 0 and ran > 0:
+            line += f", about {ran * (total - done) / done:.0f} s left"
+        err.print(line, markup=False, highlight=False)
+
+    return update
+
+
 @contextmanager
-def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] | None]:
-    """A ``progress(phase, done, total)`` callback drawing one rich bar per phase."""
-    if not enabled or not err.is_terminal:
+def progress(
+    enabled: bool = True, label: str = ""
+) -> Iterator[Callable[[str, int, int], None] | None]:
+    """A ``progress(phase, done, total)`` callback: one rich bar per phase, with its ETA, on
+    a terminal; a few plain lines in a log (``plain_progress``); nothing when disabled
+    (``--json``) or under ``--quiet``."""
+    if not enabled or mode.quiet:
         yield None
+        return
+    if not err.is_terminal:
+        yield plain_progress(f"{label}: " if label else "")
         return
     bars = Progress(
         TextColumn("{task.description:<14}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
         console=err,
         transient=True,
     )
@@ -204,7 +286,7 @@ def progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None] |
 @contextmanager
 def loop_progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], None]]:
     """``bams-cli loop``: one line per step on stderr, and a bar of lists done on a terminal."""
-    if not enabled:
+    if not enabled or mode.quiet:
         yield lambda *_: None
         return
     bars = None
@@ -230,3 +312,180 @@ def loop_progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], No
         return
     with bars:
         yield update
+
+
+# --- short human summaries: the key facts of each command; --json has every detail ---
+
+
+def _num(x: Any, digits: int = 3) -> str:
+    """A number for a summary line: ``0.00413`` -> ``0.00413``, ``None`` -> ``n/a``."""
+    if x is None:
+        return "n/a"
+    if isinstance(x, int):
+        return str(x)
+    return f"{float(x):.{digits}g}"
+
+
+def _plural(n: int, word: str, plural: str | None = None) -> str:
+    return f"{n} {word if n == 1 else plural or word + 's'}"
+
+
+def facts(headline: str, rows: Mapping[str, Any] | None = None) -> None:
+    """A headline, then ``key  value`` lines aligned on the values; empty values are left
+    out. Printed as data (no markup), and never wrapped in a log."""
+    out.print(headline, markup=False, highlight=False, soft_wrap=True)
+    shown = {k: str(v) for k, v in (rows or {}).items() if v not in (None, "", [], {})}
+    width = max((len(k) for k in shown), default=0)
+    for key, value in shown.items():
+        out.print(f"  {key:<{width}}  {value}", markup=False, highlight=False, soft_wrap=True)
+
+
+def init_summary(s: Mapping[str, Any]) -> None:
+    levels = ", ".join(f"{lv['name']} (cost {lv['cost']:g})" for lv in s["levels"])
+    facts(
+        f"workspace {s['workspace']} created",
+        {
+            "settings": s["settings"],
+            "gammas": ", ".join(f"{g:g}" for g in s["gammas"]),
+            "levels": levels,
+            "seed": s.get("seed"),
+            "dimension": s.get("embedding_dim"),
+        },
+    )
+
+
+def embed_reduce_summary(s: Mapping[str, Any]) -> None:
+    if s.get("unchanged"):
+        facts(f"{s['segments']}: {s['pool_size']} segments; {s.get('note', 'nothing changed')}")
+        return
+    errors = s.get("reconstruction_error") or {}
+    facts(
+        f"pool {s['segments']}: {s['pool_size']} segments ({s['added']} added), "
+        f"{s['method']} {s['input_dim']} -> {s['dim']} dimensions",
+        {
+            "reconstruction error": ", ".join(f"{k} {_num(v)}" for k, v in errors.items()),
+            "pass-through": ", ".join(s.get("passthrough_columns") or []),
+        },
+    )
+
+
+def ingest_summary(s: Mapping[str, Any]) -> None:
+    by_level = ", ".join(f"level {lv}: {n}" for lv, n in (s.get("by_fidelity") or {}).items())
+    facts(
+        f"ingested {_plural(s['ingested'], 'result')} into {s['observations']} "
+        f"({s['log_rows']} rows now)",
+        {
+            "by level": by_level,
+            "replaced": s["replaced"] or None,
+            "already known": s["already_known"] or None,
+        },
+    )
+
+
+def simulate_summary(s: Mapping[str, Any]) -> None:
+    facts(f"wrote {s['results']}: {_plural(s['rows'], 'result')}; {s['note']}")
+
+
+def fit_summary(s: Mapping[str, Any]) -> None:
+    """Fitted-on counts, the GP's own rate, one line per level (lengthscales as a range),
+    the model's self-checks and warnings."""
+    per_level = s["n_observations_per_level"]
+    counts = ", ".join(f"level {lv}: {n}" for lv, n in enumerate(per_level))
+    rate = ", ".join(f"gamma {g}: {_num(p)}" for g, p in (s.get("gp_rate_estimate") or {}).items())
+    hp = s["hyperparameters"]
+
+    def ells(xs: list[float]) -> str:
+        if len(xs) == 1:
+            return _num(xs[0])
+        return f"{_num(min(xs))} .. {_num(max(xs))} over {len(xs)} dimensions"
+
+    rows: dict[str, Any] = {
+        "GP rate estimate": rate,
+        "level 0": f"output sd {_num(hp['outputscale0'] ** 0.5)}, noise sd "
+        f"{_num(hp['noise'][0] ** 0.5)}, lengthscales {ells(hp['lengthscales0'])}",
+    }
+    for lv, (scale, ell) in enumerate(zip(hp["outputscales"], hp["lengthscales"], strict=True), 1):
+        rows[f"level {lv}"] = (
+            f"discrepancy sd {_num(scale**0.5)}, noise sd {_num(hp['noise'][lv] ** 0.5)}, "
+            f"lengthscales {ells(ell)}"
+        )
+    rows["files"] = f"{s['model']}, {s['scores']}"
+    facts(f"model fitted on {_plural(s['observations'], 'result')} ({counts})", rows)
+    model_checks(s["checks"], s.get("transform"))
+    for warning_text in s.get("warnings") or []:
+        warning(warning_text)
+
+
+def select_summary(s: Mapping[str, Any]) -> None:
+    per_level = {int(k): v for k, v in (s.get("picks_per_level") or {}).items()}
+    level0 = per_level.get(0, 0)
+    cheap = sum(v for k, v in per_level.items() if k > 0)
+    split = f"{level0} level-0, {cheap} cheap" if cheap else f"{level0} level-0"
+    head = f"batch {s['batch']}: {_plural(s['picks'], 'pick')} ({split}), strategy {s['strategy']}"
+    if s.get("unchanged"):
+        head += " (already made with these options; nothing changed)"
+    j = None
+    if s.get("j_before") is not None and s.get("j_after") is not None:
+        j = f"{_num(s['j_before'])} -> {_num(s['j_after'])}"
+    confirm = None
+    if s.get("confirm_picks"):
+        confirm = (
+            f"{s['confirm_picks']} level-0 runs ({s.get('confirm_leads', 0)} of cheap-level leads)"
+        )
+    total = (s.get("timings_s") or {}).get("total")
+    facts(
+        head,
+        {
+            "cost": f"{_num(s['total_cost'])} of budget {_num(s['budget'])}",
+            "J": j,
+            "confirming": confirm,
+            "hand-off": s.get("handoff_csv") or s.get("handoff"),
+            "results template": s.get("results_template"),
+            "time": None if total is None else f"{total:.1f} s",
+        },
+    )
+
+
+def plan_summary(s: Mapping[str, Any]) -> None:
+    head = (
+        f"estimate plan {s['plan']} (stage {s['stage']} of {s['stages']}): "
+        f"{_plural(s['to_simulate'], 'segment')} to simulate at level 0"
+    )
+    facts(
+        head,
+        {
+            "budget": f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate",
+            "design": f"{s['design']}, weighting {s['weighting']}",
+            "known stratum": f"{_plural(s['known_stratum'], 'segment')} with a level-0 result",
+            "GP rate estimate": _num(s.get("gp_rate_estimate")),
+            "hand-off": s["handoff"],
+            "results template": s.get("results_template"),
+        },
+    )
+    for text in s.get("notes") or []:
+        note(text)
+
+
+def report_summary(s: Mapping[str, Any]) -> None:
+    rates = "; ".join(
+        f"gamma {e['gamma']:g}: {_num(e['p_hat'])} [{_num(e['ci_low'])}, {_num(e['ci_high'])}]"
+        for e in s.get("estimates") or []
+    )
+    facts(
+        f"report {s['report']}",
+        {
+            "summary": f"{s['summary_md']}, {s['summary_json']}",
+            "failure rate": rates or "no estimate yet",
+            "figures": len(s.get("figures") or []),
+        },
+    )
+    for text in s.get("notices") or []:
+        note(f"notice: {text}")
+
+
+def loop_summary(s: Mapping[str, Any]) -> None:
+    facts(
+        f"loop: {_plural(len(s['steps']), 'step')}; the study has "
+        f"{_plural(s['batches'], 'batch', 'batches')} and {_plural(s['plans'], 'estimate plan')}",
+        {"results": s["results_dir"], "estimate": s.get("estimate_file")},
+    )

@@ -6,13 +6,146 @@ evidence and says when another value is the better bet.
 
 from __future__ import annotations
 
+from enum import StrEnum
+
+# --- choices: each a StrEnum, so a member is its value ("bams") wherever a string goes ---
+
+
+class Strategy(StrEnum):
+    """``select --strategy``: BAMS, its level-0-only variant, and the paper's baselines."""
+
+    BAMS = "bams"
+    BAS = "bas"
+    RANDOM = "random"
+    MC_GP = "mc-gp"
+    MCM_GP = "mcm-gp"
+    DS = "ds"
+    DS_GP = "ds-gp"
+    CE = "ce"
+
+
+class Pooling(StrEnum):
+    """``select --pooling``: how the clusters' candidate picks are compared."""
+
+    GLOBAL = "global"
+    RAW = "raw"
+
+
+class Method(StrEnum):
+    """``embed-reduce --method``."""
+
+    PCA = "pca"
+    AUTOENCODER = "autoencoder"
+    IDENTITY = "identity"
+    IPCA = "ipca"
+
+
+class Transform(StrEnum):
+    """``fit --transform``."""
+
+    AUTO = "auto"
+    NONE = "none"
+
+
+class Design(StrEnum):
+    """``estimate --design``: the sampling design of the rate estimate (``core.estimate``)."""
+
+    POISSON = "poisson"
+    FIXED = "fixed"
+    WITH_REPLACEMENT = "with-replacement"
+
+
+class Weighting(StrEnum):
+    """``estimate --weighting``: how a stage's inclusion probabilities are chosen."""
+
+    AUTO = "auto"
+    UNIFORM = "uniform"
+    P_ALPHA = "p-alpha"
+
+
+class Interval(StrEnum):
+    """``estimate --interval``: "gamma" allows for one failure of the model's weight that no
+    stage has seen; "fay-feuer" for one of the largest weight any segment could carry, which
+    Fay and Feuer (1997) prove covers at the nominal level (wider). ``core.estimate``."""
+
+    GAMMA = "gamma"
+    FAY_FEUER = "fay-feuer"
+
+
+class FailedAs(StrEnum):
+    """``estimate --failed-as``: how abandoned planned segments are counted."""
+
+    BOUNDS = "bounds"
+
+
+class Protocol(StrEnum):
+    """``benchmark --protocol``: the paper's two protocols, the suite's problems, or all."""
+
+    TOY2D = "toy2d"
+    AV_LIKE = "av_like"
+    WEAK_CHEAP = "weak_cheap"
+    DIGITS = "digits"
+    RARE_REGIONS = "rare_regions"
+    GAP_SIM = "gap_sim"
+    SUITE = "suite"
+
+
+# --- where a study lives ---
+
+#: ``-w/--workspace`` when neither the flag nor BAMS_WORKSPACE is given.
+WORKSPACE = "./bams-workspace"
+
+# --- embed-reduce ---
+
+METHOD = Method.PCA
+#: Rows read per Parquet batch, and rows sampled to train the autoencoder and measure error.
+BATCH_SIZE = 8192
+SAMPLE_SIZE = 20_000
+
+# --- fit ---
+
+#: Seeded L-BFGS-B restarts of the MAP fit, and pool rows scored per chunk.
+RESTARTS = 8
+CHUNK_SIZE = 50_000
+
+# --- select ---
+
+STRATEGY = Strategy.BAMS
+#: Clusters S (1: no clustering), and the overbudget eta of each cluster's plan.
+CLUSTERS = 6
+OVERBUDGET = 2.0
+POOLING = Pooling.GLOBAL
+#: random (mixed fidelity), mcm-gp and the benchmark's random batches: level-0 share.
+LEVEL0_SHARE = 0.5
+DIFFICULTY_COLUMN = "difficulty"
+
+# --- estimate ---
+
+DESIGN = Design.POISSON
+WEIGHTING = Weighting.AUTO
+INTERVAL = Interval.GAMMA
+#: Two-sided confidence level of the rate interval.
+CONFIDENCE = 0.9
+
+# --- report ---
+
+#: Diverse likely failures listed in the report.
+DIVERSE = 5
+
+# --- benchmark ---
+
+PROTOCOL = Protocol.TOY2D
+SEEDS = 10
+BENCHMARK_WORKERS = 2
+BENCHMARK_OUT = "docs/reproduction"
+
 #: Share of a BAMS batch's budget spent on level-0 runs that confirm cheap-level leads
 #: (or, without leads, the likeliest unconfirmed failures); ``core.confirm``.
 CONFIRM_SHARE = 0.2
 
 #: Output transform of ``fit``: "auto" chooses by evidence between the metric itself and
 #: asinh compressions of it far from gamma (``core.gp.transform``); "none" keeps the metric.
-TRANSFORM = "auto"
+TRANSFORM = Transform.AUTO
 
 #: Budget of ``select`` in cost units (a level-0 run costs 1), and of the first batch that
 #: ``status`` suggests.
@@ -54,4 +187,3 @@ RISK_ANCHOR_SD = 1.0
 #: level-0 runs) would otherwise spend minutes in the search (measured: 1,000 observations,
 #: d = 12, 203 s under load). The suite's fits stay below it (bench/bench_fit.py).
 FIT_SUBSET = 300
-

@@ -173,7 +173,6 @@ def test_underflowing_scores_of_non_failures_leave_the_variance_finite():
         (["--seeds", "0"], "--seeds 0: need at least 1"),
         (["--strategies", "bams,foo"], "--strategies foo: not part of the toy2d protocol"),
         (["--level0-share", "2"], "--level0-share 2.0: must lie in (0, 1)"),
-        (["--protocol", "nope"], "--protocol 'nope': choose one of toy2d, av_like, weak_cheap"),
     ],
 )
 def test_bad_benchmark_options_are_one_line_errors(runner, tmp_path, args, message):

@@ -268,3 +268,73 @@ def test_a_pool_known_at_level_0_everywhere_plans_nothing_and_is_exact(tmp_path)
     e = out["estimates"][0]
     assert e["ci_low"] == e["p_hat"] == e["ci_high"] and e["se"] == 0
     assert e["p_hat"] == pytest.approx((pq.read_table(truth)["value_0"].to_numpy() <= 0.56).mean())
+
+
+def test_the_fay_feuer_interval_is_a_choice_and_never_narrower(fitted_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    gamma = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    ff = strict_json(ok(runner, "estimate", "-w", ws, "--interval", "fay-feuer", "--json").stdout)
+    assert (gamma["interval"], ff["interval"]) == ("gamma", "fay-feuer")
+    pairs = list(zip(gamma["estimates"], ff["estimates"], strict=True))
+    assert all(f["p_hat"] == g["p_hat"] and f["se"] == g["se"] for g, f in pairs)
+    # w_max, the largest weight in U, is at least the model's allowance: never narrower,
+    # and wider here (p_hat = 0 at gamma 0.05: the upper limit is all allowance).
+    assert all(f["ci_high"] >= g["ci_high"] for g, f in pairs)
+    assert pairs[0][1]["ci_high"] > pairs[0][0]["ci_high"]
+    assert "90% fay-feuer interval" in ok(runner, "estimate", "-w", ws, "--interval",
+                                          "fay-feuer").stdout  # fmt: skip
+
+
+def test_fay_feuer_refuses_a_combined_staged_estimate(fitted_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40")
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ok(runner, "estimate", "-w", ws, "--plan")
+    _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    r = invoke(runner, "estimate", "-w", ws, "--interval", "fay-feuer")
+    assert r.exit_code == 1 and "--interval fay-feuer: plan 2 is stage 2" in r.stderr
+    assert "--stages 1" in r.stderr and r.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("design", ["poisson", "with-replacement"])
+def test_a_plan_stores_pi_and_q_and_no_separate_prob(fitted_ws, tmp_path, design):
+    # The estimator divides by pi (q with replacement), read from those columns; a third
+    # copy of one of them ("prob") was dead weight.
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    args = ("estimate", "-w", ws, "--plan", "--samples", "30", "--design", design)
+    ok(runner, *args, "--stages", "1")
+    plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
+    assert {"pi", "q", "draws"} <= set(plan[0]) and "prob" not in plan[0]
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert out["design"] == design
+    if design != "poisson":
+        return
+    # Horvitz-Thompson by hand at gamma 0.56: known failures + sum over sampled failures
+    # of 1/pi, over N = 400.
+    obs = pq.read_table(ws / "observations.parquet").to_pylist()
+    level0 = {r["segment_id"]: r["value"] for r in obs if r["fidelity"] == 0}
+    total = sum(
+        (1.0 if r["stratum"] == "known" else 1.0 / r["pi"])
+        for r in plan
+        if level0[r["segment_id"]] <= 0.56
+    )
+    assert out["estimates"][1]["p_hat"] == pytest.approx(total / 400, rel=1e-12)

@@ -145,7 +145,6 @@ def dpp_diverse(
     features: ArrayLike,
     quality: ArrayLike,
     k: int,
-    rng: np.random.Generator | None = None,
     *,
     lengthscale: float | None = None,
 ) -> IntArray:
@@ -172,9 +171,6 @@ def dpp_diverse(
         Non-negative quality per item.
     k : int
         Number of items to pick, 1 <= k <= n.
-    rng : numpy.random.Generator, optional
-        Unused: the greedy MAP is deterministic. Accepted so that callers can pass their
-        generator uniformly with the other evaluation helpers.
     lengthscale : float, optional
         RBF lengthscale l; default the median pairwise distance.
 
@@ -183,7 +179,6 @@ def dpp_diverse(
     picked : int ndarray of shape (k,)
         Indices in pick order.
     """
-    del rng
     X = np.asarray(features, dtype=np.float64)
     q = np.asarray(quality, dtype=np.float64)
     if X.ndim != 2 or q.shape != (X.shape[0],):

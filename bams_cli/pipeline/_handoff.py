@@ -25,7 +25,7 @@ def observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
 
 # Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
 BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
-PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "prob", "p_n")
+PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "p_n")
 
 
 def passthrough_columns(ws: Workspace, index: np.ndarray, taken: dict[str, Any]) -> dict[str, Any]:

@@ -16,6 +16,7 @@ import pyarrow as pa
 from bams_cli import defaults
 from bams_cli import stages as stages_mod
 from bams_cli.errors import (
+    OptionError,
     PendingResultsError,
     StaleStateError,
     WorkspaceError,
@@ -224,7 +225,6 @@ def estimate_plan(
         saved = float(full[known].sum())
     sampled_idx = plan.sampled_pool_index
     known_idx = np.flatnonzero(known)
-    prob = plan.sampled_prob
     # The sampled rows are the plan's requests (level 0, in hand-off order); the known
     # stratum's rows follow with the contract's columns null: nothing to simulate there.
     requests = contract.contract_columns(
@@ -247,7 +247,6 @@ def estimate_plan(
         "pi": np.concatenate([plan.pi[plan.sampled], np.ones(n_known)]),
         "draws": np.concatenate([plan.counts, np.zeros(n_known, np.int64)]),
         "q": np.concatenate([plan.q[plan.sampled], np.zeros(n_known)]),
-        "prob": np.concatenate([prob, np.ones(n_known)]),
         "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
         **cols,
     }
@@ -361,7 +360,12 @@ class _PlanSample:
 
 
 def _plan_sample(
-    ws: Workspace, number: int, gammas: np.ndarray, confidence: float, failed_as: str | None
+    ws: Workspace,
+    number: int,
+    gammas: np.ndarray,
+    confidence: float,
+    failed_as: str | None,
+    interval: str = "gamma",
 ) -> _PlanSample:
     """Plan ``number``'s sample, outcomes and estimator (``estimate_with(fails)``).
 
@@ -392,7 +396,7 @@ def _plan_sample(
 
     def estimate_with(fails: np.ndarray) -> Any:
         return estimate_from_sample(
-            sampled["prob"].to_numpy(),
+            sampled["q" if meta["design"] == "with-replacement" else "pi"].to_numpy(),
             fails,
             design=meta["design"],
             n_pool=int(meta["n_pool"]),
@@ -402,6 +406,8 @@ def _plan_sample(
             known_failures=known_fails,
             confidence=confidence,
             w_model=np.asarray(meta["w_model"], dtype=np.float64),  # null -> NaN: design weights
+            interval=interval,  # type: ignore[arg-type]
+            w_max=math.inf if meta.get("w_max") is None else float(meta["w_max"]),  # null: inf
         )
 
     return _PlanSample(sampled[SID].to_numpy(), fails, lost, estimate_with)
@@ -421,6 +427,7 @@ def estimate_compute(
     confidence: float = 0.9,
     exact_variance: bool = False,
     failed_as: str | None = None,
+    interval: str = "gamma",
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Compute the rate estimate from an ingested plan, for every configured gamma.
@@ -452,7 +459,12 @@ def estimate_compute(
     # A staged estimate combines its series' stages up to this plan, with the weights
     # fixed at stage 1 (renormalised while later stages are still to come).
     series = stages_mod.series_plans(ws, number)
-    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as) for k in series]
+    if interval != "gamma" and len(series) > 1:  # combine_stages allows for the gamma's w only
+        raise OptionError(
+            f"--interval {interval}: plan {number} is stage {len(series)} of a staged "
+            "estimate; it is for one-stage plans (estimate --plan --stages 1)"
+        )
+    samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as, interval) for k in series]
     meta = series[-1].meta
     weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
     weights /= weights.sum()
@@ -532,6 +544,7 @@ def estimate_compute(
     summary = {
         "plan": number,
         "design": meta["design"] if len(series) == 1 else "staged",
+        "interval": interval,
         "samples_K": sum(float(k.meta["samples"]) for k in series),
         "staging": staging,
         "estimates": rows,

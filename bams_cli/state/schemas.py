@@ -121,13 +121,6 @@ BATCH = StateFile(
     optional=pa.schema(_REQUEST_COLUMNS),
 )
 
-# Results a simulation team hands back (input, not state; declared here with the rest).
-RESULTS = StateFile(
-    "results",
-    "",
-    pa.schema([(SEGMENT_ID, pa.string()), ("fidelity", pa.int64()), ("value", pa.float64())]),
-)
-
 # Estimate plan: every planned segment with its inclusion probability (or draw count).
 PLAN = StateFile(
     "plan",
@@ -170,7 +163,3 @@ ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN, ABANDONED)
 
 def batch_path(workspace: Path, n: int) -> Path:
     return workspace / BATCH.relpath.format(n=n)
-
-
-def plan_path(workspace: Path, n: int) -> Path:
-    return workspace / PLAN.relpath.format(n=n)
