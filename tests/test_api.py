@@ -354,13 +354,25 @@ def test_missing_workspace_is_the_cli_error(tmp_path: Path, runner: CliRunner) -
     assert not ws.exists()
 
 
+def _example() -> str:
+    return inspect.cleandoc((api.__doc__ or "").split("::\n", 1)[1])
+
+
+def test_readme_python_api_example_is_the_docstrings() -> None:
+    """The README shows the example that ``test_module_docstring_example_runs`` runs."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("\n## Python API\n", 1)[1].split("\n## ", 1)[0]
+    block = re.search(r"```python\n(.*?)```", section, re.S)
+    assert block is not None
+    assert block.group(1).strip() == _example()
+
+
 @pytest.mark.slow
 def test_module_docstring_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The example a notebook user copies from ``help(bams_cli.api)`` runs as written."""
     root = Path(__file__).resolve().parents[1]
     (tmp_path / "sample_data").symlink_to(root / "sample_data")
     monkeypatch.chdir(tmp_path)
-    code = inspect.cleandoc((api.__doc__ or "").split("::\n", 1)[1])
-    exec(compile(code, "bams_cli.api example", "exec"), {})
+    exec(compile(_example(), "bams_cli.api example", "exec"), {})
     assert (tmp_path / "study" / "report" / "report.html").is_file()
     assert len(list((tmp_path / "study" / "batches").glob("batch-*.parquet"))) == 3
