@@ -46,8 +46,8 @@ Example: a study on the toy2d sample data, its first batch random at both fideli
     ws, data = Path("study"), Path("sample_data/toy2d")
     truth = data / "truth.parquet"  # sample data only: stands in for a simulator
     api.init(ws, gammas=[0.56], costs=[1, 0.1], seed=0)
-    api.embed_reduce(ws, data / "segments.parquet", columns="x*", method="identity",
-                     standardize=False)
+    segments = data / "segments.parquet"  # segment_id, x0, x1: a 2-d embedding
+    api.embed_reduce(ws, segments, columns="x*", method="identity", standardize=False)
     batch = api.select(ws, strategy="random", mixed_fidelity=True, budget=8)
     for b in (1, 2, 3):
         if b > 1:
