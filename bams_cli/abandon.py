@@ -66,6 +66,44 @@ def abandon(
     results file filtered to the lost runs) takes those, within ``batch`` / ``plan`` when
     given; ``fidelity`` (numbers or level names) narrows to those levels. Requests already
     abandoned are left as they are, so a repeat changes nothing (``unchanged``).
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    batch : int, optional
+        Abandon batch N's pending requests.
+    plan : int, optional
+        Abandon estimate plan N's pending requests.
+    segments : Path, optional
+        CSV or Parquet naming the requests: ``request_id``, or ``segment_id`` (and
+        ``fidelity``).
+    fidelity : sequence of str, optional
+        Only these levels (numbers or names; an item may be comma-separated).
+    reason : str, optional
+        Why they will never come back (kept in the log).
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``abandoned``, ``already_abandoned``,
+        ``unchanged``, ``by_source``, ``first``, ``log``, ``log_rows``, ``pending``;
+        ``message`` when nothing changed.
+
+    Raises
+    ------
+    OptionError
+        None of ``batch``, ``plan``, ``segments``; both ``batch`` and ``plan``; no such
+        batch or plan; an unknown level in ``fidelity``.
+    InputError
+        ``segments`` lacks the key columns, has no rows or names unknown requests.
+    WorkspaceError
+        No workspace at ``root``.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     if batch is None and plan is None and segments is None:
         raise OptionError("abandon: say which requests: --batch N, --plan N or --segments FILE")
@@ -226,7 +264,37 @@ def ingest_results_abandoning_failed(
 ) -> dict[str, Any]:
     """``ingest-results``, and the rows whose status says the run failed (any status but
     empty or ok) abandoned, in one commit: the observation log and the abandoned log land
-    together or not at all. The abandonment's reason is the row's status."""
+    together or not at all. The abandonment's reason is the row's status.
+
+    This is ``bams-cli ingest-results --abandon-failed``.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    source : Path
+        Parquet or CSV results, as for ``ingest_results``.
+    replace : bool, default False
+        Supersede logged values that disagree with this file.
+    allow_unselected : bool, default False
+        Accept results for (segment, fidelity) pairs nothing selected.
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        ``ingest_results``' summary with ``abandoned`` (``abandoned``,
+        ``already_abandoned``, ...).
+
+    Raises
+    ------
+    InputError, ConflictError, WorkspaceError
+        As ``ingest_results``.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
+    """
     ws = Workspace(root)
     settings = ws.require_initialised()
     ws.require_segments()

@@ -75,8 +75,63 @@ def loop(
     wait: bool = False,
     on_step: OnStep | None = None,
 ) -> dict[str, Any]:
-    """Run the loop until the study has ``batches`` batches with results (and, with
-    ``then_estimate``, an estimate), taking each step the workspace says is next."""
+    """Run the discovery loop against a simulator: fit, select, simulate, ingest.
+
+    Runs until the study has ``batches`` batches with results (and, with
+    ``then_estimate``, an estimate), taking each step the workspace says is next: a loop
+    that was killed resumes where it stopped, and a finished one does nothing
+    (``unchanged``). Each step is the command one would run by hand; the simulator's
+    results land in ``results_dir`` only when it exits 0. One loop drives a workspace at a
+    time.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    simulator : str
+        Shell command answering a hand-off list: ``{handoff}`` is the list (CSV) to read,
+        ``{results}`` the results file (CSV) to write.
+    batches : int
+        Batches the study should have (the first random).
+    budget : float, default ``defaults.BUDGET``
+        Budget of each BAMS batch (cost units).
+    first_budget : float, optional
+        Budget of the random first batch (default: ``budget``).
+    then_estimate : bool, default False
+        Then plan the rate estimate, simulate it and compute it.
+    samples : float, optional
+        With ``then_estimate``: the estimate's budget K.
+    results_dir : Path, optional
+        Where the simulator's results files go (default: ``root / "loop-results"``).
+    abandon_failed : bool, default False
+        Record results rows with a failed status as abandoned and go on (and estimate
+        with ``failed_as="bounds"``).
+    clusters : int, default 6
+        select's clusters S.
+    workers : int, optional
+        select's local worker processes.
+    wait : bool, default False
+        Wait for another loop, or another command's workspace lock, instead of failing.
+    on_step : callable ``(description, done, total) -> None``, optional
+        Called before each step with what the loop is doing (the CLI draws its progress
+        with it).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``workspace``, ``batches``, ``plans``, ``steps``
+        (each step taken), ``unchanged``, ``results_dir``; ``estimate_file`` with
+        ``then_estimate``.
+
+    Raises
+    ------
+    LoopError
+        The simulator failed or wrote no results, or results are still missing after it.
+    OptionError
+        ``simulator`` does not name ``{handoff}`` and ``{results}``, or ``batches`` below 1.
+    BamsError
+        Any step's own error, as that command raises it.
+    """
     if "{handoff}" not in simulator or "{results}" not in simulator:
         raise OptionError(
             f"--simulator {simulator!r}: must name {{handoff}} (the hand-off list to read) "

@@ -56,7 +56,25 @@ def status(root: Path) -> dict[str, Any]:
     """Where the study in ``root`` stands, and the next command (``next``) to run.
 
     ``exit_code`` is 3 (waiting on results) when a batch or plan has picks without
-    results, else 0.
+    results, else 0. Reads only: it takes no lock (so it has no ``wait``).
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``workspace``, ``gammas``, ``levels``,
+        ``pool_size``, ``observations``, ``observations_per_level``, ``batches``,
+        ``plans``, ``pending``, ``model``, ``estimates``, ``next`` (``step``, ``command``,
+        ``text``) and ``exit_code``.
+
+    Raises
+    ------
+    WorkspaceError
+        No workspace at ``root``.
     """
     ws = Workspace(Path(root))
     settings = ws.require_initialised()

@@ -4,6 +4,7 @@ small readers of state that several commands use."""
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 import sys
 from collections.abc import Callable
@@ -34,6 +35,20 @@ def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
     A command that read the log, then waited for the lock only to write, could overwrite
     what another command appended in between; holding it throughout makes the second
     command fail at once (or wait, with ``wait=True``) before it reads anything.
+
+    The wrapper adds the keyword-only ``wait: bool = False`` to ``fn``'s parameters and to
+    its ``__signature__``, so ``inspect.signature`` and ``help()`` show it (the decorated
+    function's docstring documents it).
+
+    Parameters
+    ----------
+    fn : callable
+        A command taking the workspace root first and returning its summary.
+
+    Returns
+    -------
+    callable
+        ``fn`` run holding the workspace lock, after recovering an interrupted commit.
     """
 
     @functools.wraps(fn)
@@ -49,6 +64,14 @@ def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
                 )
             return fn(root, *args, **kwargs)
 
+    sig = inspect.signature(fn)
+    params = list(sig.parameters.values())
+    wait = inspect.Parameter(
+        "wait", inspect.Parameter.KEYWORD_ONLY, default=False, annotation="bool"
+    )
+    # before a **kwargs catch-all, if any: a parameter may not follow it
+    at = next((i for i, p in enumerate(params) if p.kind is p.VAR_KEYWORD), len(params))
+    run.__signature__ = sig.replace(parameters=[*params[:at], wait, *params[at:]])  # type: ignore[attr-defined]
     return run
 
 

@@ -46,7 +46,63 @@ def embed_reduce(
     force: bool = False,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Reduce segment embeddings into the workspace pool (or, with ``apply``, add to it)."""
+    """Reduce segment embeddings into the workspace pool (or, with ``apply``, add to it).
+
+    Without ``apply`` this fits the reducer and stores the pool; with ``apply`` it maps new
+    segments with the saved reducer and adds them.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    source : Path
+        Parquet file of segments: ``segment_id`` and the embedding (a list column or
+        numeric columns); other columns pass through to the pool.
+    apply : bool, default False
+        Map new segments with the saved reducer and add them to the pool.
+    method : {"pca", "autoencoder", "identity", "ipca"}, default "pca"
+        The reducer: exact streaming PCA, an autoencoder, none, or the older
+        IncrementalPCA (for comparison).
+    dim : int, optional
+        Reduced dimension (default: the settings', 12).
+    standardize : bool, default True
+        Scale each input column to unit variance.
+    columns : str, optional
+        Glob of numeric embedding columns, e.g. ``"emb_*"``.
+    embedding_column : str, optional
+        The list column holding the embedding.
+    id_column : str, optional
+        The segment id column (default ``segment_id``).
+    batch_size : int, default 8192
+        Rows read per batch.
+    sample_size : int, default 20000
+        Rows sampled to train the autoencoder and measure the reconstruction error.
+    force : bool, default False
+        Refit the reducer over an existing pool.
+    progress : callable ``(phase, done, total) -> None``, optional
+        Called as the work advances (the CLI draws its progress bar with it).
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``segments`` (rows read), ``added``, ``pool_size``,
+        ``method``, ``dim``, ``input_dim``, ``reconstruction_error``,
+        ``passthrough_columns``.
+
+    Raises
+    ------
+    InputError
+        The segments file has a bad value (``SchemaError``: a missing or mistyped column;
+        ``DuplicateError``: a repeated segment id); the message names file, column and row.
+    WorkspaceError
+        No workspace at ``root``, a size below 1, a pool exists already (without
+        ``force``), or there is no saved reducer to ``apply``.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
+    """
     from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
 
     if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):

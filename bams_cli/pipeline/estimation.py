@@ -82,6 +82,58 @@ def estimate_plan(
     reproduces its plans), or by ``seed`` alone when given: the same seed then gives the
     same plan from the same scores, and another seed a fresh one, without editing the
     settings. The seed and the random stream are recorded in the plan's metadata.
+
+    This is ``bams-cli estimate --plan``; ``estimate_compute`` is ``bams-cli estimate``.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    samples : float, optional
+        The simulation budget K of a new estimate (default: 5 x the GP's p x N).
+    alpha : float, default ``defaults.ALPHA``
+        The p^alpha design's exponent.
+    defensive : float, default ``defaults.DEFENSIVE``
+        Uniform share eps mixed into the sampling distribution.
+    design : {"poisson", "fixed", "with-replacement"}, default "poisson"
+        Horvitz-Thompson with Poisson sampling, systematic fixed-size, or the paper's
+        sampling with replacement.
+    weighting : {"auto", "uniform", "p-alpha"}, default "auto"
+        How the inclusion probabilities are chosen (above).
+    stages : int, default ``defaults.STAGES``
+        For a new estimate: how many stages K is spent in (1 to 10).
+    stage1_share : float, default ``defaults.STAGE1_SHARE``
+        Share of K that stage 1 spends, in (0, 1).
+    new_series : bool, default False
+        Start a new estimate although the last one has stages to go.
+    seed : int, optional
+        Draw a fresh plan from this seed (above).
+    handoff_internal : bool, default False
+        Also put the internal columns in the CSV hand-off.
+    allow_pending : bool, default False
+        Draw another plan although an earlier one awaits results.
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``plan`` (its number), ``plan_file``, ``handoff``
+        (the CSV to simulate), ``results_template``, ``design``, ``samples_K``, ``stage``
+        and ``stages``, ``weighting``, ``to_simulate``, ``known_stratum``,
+        ``gp_rate_estimate``, ``seed``, ``notes``.
+
+    Raises
+    ------
+    PendingResultsError
+        An earlier plan awaits results (exit code 3; ``allow_pending`` draws anyway).
+    WorkspaceError
+        No workspace or no fitted model, or an option out of range or unknown.
+    StaleStateError
+        The model is older than the observation log.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     st = stages_mod  # the series and the evidence of finished plans
     from bams_cli.core import design as dz
@@ -437,6 +489,50 @@ def estimate_compute(
     stages so far and says so. Planned segments abandoned for good (``bams-cli abandon``)
     are refused, unless ``failed_as="bounds"`` asks for the worst case over them
     (``bams_cli.abandon``).
+
+    This is ``bams-cli estimate`` (without ``--plan``); it writes
+    ``estimates/estimate-NNNN.json``.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    plan_number : int, optional
+        Which plan to compute (default: the latest).
+    confidence : float, default 0.9
+        Two-sided confidence level of the interval, in (0, 1).
+    exact_variance : bool, default False
+        Also compute the GP estimate's exact variance (pools of at most 50,000).
+    failed_as : {"bounds"}, optional
+        How to count planned segments that were abandoned (default: refuse).
+    progress : callable ``(phase, done, total) -> None``, optional
+        Called as the work advances (the CLI draws its progress bar with it).
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``plan``, ``design``, ``samples_K``, ``staging``,
+        ``estimates`` (per gamma: ``gamma``, ``p_hat``, ``se``, ``ci_low``, ``ci_high``,
+        ``rel_var``, ``distinct_failures_found``, ...), ``gp`` (the GP's own estimate per
+        gamma), ``gp_model``, ``notes``, ``estimate_file``.
+
+    Raises
+    ------
+    PendingResultsError
+        Planned segments have no level-0 result yet (exit code 3).
+    AbandonedRunsError
+        Planned segments were abandoned and ``failed_as`` is not given.
+    WorkspaceError
+        No workspace, no such plan, or an option out of range.
+    StaleStateError
+        ``exact_variance`` needs a model fitted on the current log.
+    OptionError
+        An unknown ``failed_as``.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     from bams_cli import abandon
     from bams_cli.core.design import combine_stages

@@ -129,6 +129,46 @@ def fit(
 
     A model already fitted the same way on the same log is kept, and nothing is written
     (``up_to_date`` in the summary; ``_fit_up_to_date``), unless ``force``.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    fixed_hyperparameters : Path, optional
+        JSON of hyperparameters (e.g. a saved model.json): skip training, only condition.
+    restarts : int, default 8
+        Seeded L-BFGS-B restarts of the MAP fit.
+    chunk_size : int, default 50000
+        Pool rows scored per chunk.
+    transform : {"auto", "none"}, default ``defaults.TRANSFORM``
+        The output transform (above).
+    force : bool, default False
+        Fit again although the model is up to date.
+    progress : callable ``(phase, done, total) -> None``, optional
+        Called as the work advances (the CLI draws its progress bar with it).
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``model`` and ``scores`` (the files written),
+        ``observations``, ``n_observations_per_level``, ``log_marginal_likelihood``,
+        ``hyperparameters``, ``checks``, ``transform``, ``gp_rate_estimate``,
+        ``warnings``; or ``up_to_date`` and ``message`` when nothing was written.
+
+    Raises
+    ------
+    PendingResultsError
+        No observations yet while picks await results (exit code 3).
+    WorkspaceError
+        No workspace or no observations, an observed segment missing from the pool, or
+        an option out of range (``restarts``, ``chunk_size``, ``transform``).
+    InputError
+        ``fixed_hyperparameters`` (or the saved model) is missing or does not fit the study.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
     from bams_cli.core.gp.checks import check_model

@@ -31,7 +31,49 @@ def ingest_results(
     replace: bool = False,
     allow_unselected: bool = False,
 ) -> dict[str, Any]:
-    """Append a simulation team's results to the observation log."""
+    """Append a simulation team's results to the observation log.
+
+    Each row is keyed by ``request_id`` (from the hand-off list), or by ``segment_id`` and
+    ``fidelity`` (the level's number or its name in settings). A row whose status is
+    neither empty nor ok (e.g. crashed) is not ingested: its request stays pending
+    (``bams_cli.abandon.ingest_results_abandoning_failed`` records it as abandoned
+    instead). Re-ingesting the same file changes nothing.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    source : Path
+        Parquet or CSV results: ``request_id`` or ``segment_id`` + ``fidelity``, ``value``,
+        optional ``status`` (extra columns are kept).
+    replace : bool, default False
+        Supersede logged values that disagree with this file.
+    allow_unselected : bool, default False
+        Accept results for (segment, fidelity) pairs no batch or plan selected.
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``ingested``, ``replaced``, ``already_known``,
+        ``already_ingested``, ``observations``, ``log_rows``, ``by_fidelity``; ``pending``
+        (``count``, ``by_batch``, ``by_plan``, ``first``) and ``not_run`` (``count``,
+        ``first``); ``message`` when nothing was new.
+
+    Raises
+    ------
+    InputError
+        The results file has a bad value, or names pairs never selected (without
+        ``allow_unselected``); the message names file, column and row.
+    ConflictError
+        A value disagrees with one already logged (without ``replace``).
+    WorkspaceError
+        No workspace at ``root``, or no pool.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
+    """
     ws = Workspace(root)
     settings = ws.require_initialised()
     ws.require_segments()

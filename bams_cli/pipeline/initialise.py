@@ -44,6 +44,48 @@ def init(
     other finds it there. With ``exist_ok`` an existing settings file holding exactly the
     requested settings is kept (``unchanged`` in the summary); one holding others is an
     error naming the differences.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder to create (``--workspace``/``-w``).
+    gammas : list of float, optional
+        Failure thresholds on the metric f (``--gamma``); required unless
+        ``settings_from`` gives them.
+    costs : list of float, optional
+        Cost per fidelity level, level 0 first (must be 1) (``--costs``).
+    level_names : list of str, optional
+        Names for the levels, one per level (``--level-names``).
+    seed : int, optional
+        Seed recorded and used by every step (``--seed``).
+    dim : int, optional
+        Reduced embedding dimension (``--dim``).
+    settings_from : Path, optional
+        Start from this settings.toml; the other arguments override it.
+    force : bool, default False
+        Overwrite an existing settings.toml.
+    exist_ok : bool, default False
+        Succeed without writing when settings.toml already holds these settings.
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``workspace``, ``settings`` (the file), ``gammas``,
+        ``levels`` (``name``, ``cost`` each), ``seed``, ``embedding_dim``; ``unchanged``
+        when ``exist_ok`` kept the file.
+
+    Raises
+    ------
+    SettingsError
+        A setting (here or in ``settings_from``) is invalid, or no threshold is given.
+    WorkspaceError
+        The workspace exists already (without ``force``), or holds other settings
+        (with ``exist_ok``).
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     if force and exist_ok:
         raise OptionError(

@@ -41,7 +41,40 @@ def report(
     n_diverse: int = 5,
     max_points: int = 50_000,
 ) -> dict[str, Any]:
-    """Write report/report.html, summary.json and summary.md for the study."""
+    """Write report/report.html, summary.json and summary.md for the study.
+
+    Runs at any point of a study. A model older than the observation log, batches or
+    estimate plans awaiting results open the report as banners.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    truth : Path, optional
+        Ground truth (``segment_id``, ``value_0``), e.g. for sample data: adds recall.
+    n_diverse : int, default 5
+        How many diverse likely failures to list (``--diverse``).
+    max_points : int, default 50000
+        At most this many pool points drawn in the report's scatter plots.
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``report``, ``summary_json``, ``summary_md``,
+        ``figures`` (the files written), ``notices`` (the banners), ``estimates``.
+
+    Raises
+    ------
+    InputError
+        ``truth`` lacks a pool segment or has a bad value.
+    WorkspaceError
+        No workspace, ``n_diverse`` below 0 or ``max_points`` below 1.
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
+    """
     from sklearn.decomposition import PCA
 
     from bams_cli import __version__

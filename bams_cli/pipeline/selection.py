@@ -186,6 +186,77 @@ def select(
     first buys level-0 runs of unconfirmed cheap-level failures (leads), then of the
     likeliest failures whose level 0 is unknown (``core.confirm``); the greedy spends the
     rest.
+
+    The first batch of a study needs no model: ``strategy="random"``.
+
+    Parameters
+    ----------
+    root : Path
+        The workspace folder (``--workspace``/``-w``).
+    strategy : str, default "bams"
+        "bams", "bas" (level 0 only), "random", "mc-gp", "mcm-gp", "ds", "ds-gp" or "ce".
+    budget : float, default 5.0
+        Batch budget m in cost units (a level-0 run costs 1).
+    clusters : int, default 6
+        Clusters S (1: no clustering).
+    overbudget : float, default 2.0
+        eta >= 1: each cluster plans ceil(eta m N_s / N).
+    pooling : {"global", "raw"}, default "global"
+        global: compare (N_s/N) dJ/c across clusters; raw: the paper's dJ.
+    mixed_fidelity : bool, default False
+        ``strategy="random"``: spread the picks over every level.
+    level0_share : float, default 0.5
+        random / mcm-gp: share of the budget spent at level 0.
+    confirm_share : float, default ``defaults.CONFIRM_SHARE``
+        bams: share of the budget for confirming level-0 runs (above); 0 turns it off.
+    difficulty_column : str, default "difficulty"
+        ds / ds-gp: the pool column of per-segment difficulty (higher = likelier to fail).
+    allow_pending : bool, default False
+        Select although an earlier batch awaits results.
+    include_observed : bool, default False
+        Let segments already observed at level 0 be picked again.
+    workers : int, optional
+        Local worker processes for clusters (default: all cores).
+    scheduler : str, optional
+        A dask.distributed scheduler address to run clusters on.
+    handoff_internal : bool, default False
+        Also put the internal columns in the CSV hand-off.
+    batch : int, optional
+        The batch number this call makes (above).
+    retry_abandoned : bool, default False
+        Let pairs recorded as abandoned (``abandon``) be picked again.
+    out : Path, optional
+        Also write the batch's CSV hand-off here (above).
+    progress : callable ``(phase, done, total) -> None``, optional
+        Called as the work advances (the CLI draws its progress bar with it).
+    wait : bool, default False
+        Wait for another command's workspace lock instead of failing at once
+        (``WorkspaceLockedError``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``batch``, ``handoff`` (the Parquet state file),
+        ``handoff_csv``, ``results_template``, ``strategy``, ``picks`` (how many),
+        ``total_cost``, ``budget``, ``picks_per_level``,
+        ``picks_per_cluster``; for bams ``confirm_picks`` and ``confirm_leads``;
+        ``unchanged`` for a no-op ``batch`` re-run.
+
+    Raises
+    ------
+    PendingResultsError
+        An earlier batch awaits results (exit code 3; ``allow_pending`` selects anyway).
+    WorkspaceError
+        No workspace or pool, no model (or one older than the log) for a model-based
+        strategy, nothing that fits the budget, or an option out of range or unknown
+        (strategy, pooling, budget, shares).
+    OptionError
+        A ``batch`` that is not the next one or exists with other options, an ``out``
+        that is a folder, or bad clusters.
+    InputError
+        The pool's difficulty column holds a value that is not finite (ds, ds-gp).
+    WorkspaceLockedError
+        Another command holds the lock and ``wait`` is False.
     """
     from bams_cli.core import baselines
     from bams_cli.core.confirm import confirmation_picks, n_confirmations

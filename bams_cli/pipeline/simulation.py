@@ -28,7 +28,28 @@ from bams_cli.state.workspace import Workspace
 def simulate(handoff: Path, truth: Path, output: Path) -> dict[str, Any]:
     """Answer a hand-off list from a ground-truth table, as a simulation team would.
 
-    For sample data and demos only: real results come from real simulators.
+    For sample data and demos only: real results come from real simulators. Takes no
+    workspace and no lock.
+
+    Parameters
+    ----------
+    handoff : Path
+        A hand-off list (Parquet or CSV): ``segment_id``, ``fidelity`` (and ``request_id``).
+    truth : Path
+        Ground truth: ``segment_id``, ``value_0``, ``value_1``, ... (``--truth``).
+    output : Path
+        The results file to write, ``.parquet`` or ``.csv`` (``--output``/``-o``).
+
+    Returns
+    -------
+    dict
+        The summary ``--json`` prints: ``results`` (the file written), ``rows``, ``note``.
+
+    Raises
+    ------
+    InputError
+        The hand-off list or truth is missing, malformed or names a segment the truth
+        lacks, or ``output`` would overwrite an input or a workspace's state.
     """
     dest = Path(output).resolve()
     in_state = any(Workspace(d).holds_state(dest) for d in (dest.parent, dest.parent.parent))
