@@ -617,11 +617,12 @@ def _greedy_cluster(
 def _own_point_cov(posterior: Posterior, Xc: FloatArray, levels: IntArray) -> FloatArray:
     """cov_n(theta0(x_c), y_c) for every candidate c at its own point; shape (m,).
 
-    The Posterior interface has no diagonal; blocks of 32 cost 32 kernel values per
-    candidate instead of one, still small beside one greedy step on the cluster.
+    The Posterior interface has no diagonal; blocks of 128 cost 128 kernel values per
+    candidate instead of one, still small beside one greedy step on the cluster. Blocks of
+    32 cost three times the CPU (per-call overhead; 3.3 s vs 1.2 s for 10,000 candidates).
     """
     out = np.empty(len(Xc))
-    blk = 32
+    blk = 128
     for i0 in range(0, len(Xc), blk):
         Cb = posterior.cov_theta0_obs(Xc[i0 : i0 + blk], Xc[i0 : i0 + blk], levels[i0 : i0 + blk])
         out[i0 : i0 + blk] = np.diagonal(np.asarray(Cb, dtype=np.float64))
@@ -689,7 +690,7 @@ def screen_candidates(
     bound = h_c / costs[cand_level]
     by_bound = np.lexsort((np.arange(n_c), -bound))
     score = np.full(n_c, -np.inf)
-    blk = max(2 * n_pre, 1024)
+    blk = max(n_pre, 1024)
     for i0 in range(0, n_c, blk):
         B = by_bound[i0 : i0 + blk]
         if i0 >= n_pre:
