@@ -187,3 +187,23 @@ RISK_ANCHOR_SD = 1.0
 #: level-0 runs) would otherwise spend minutes in the search (measured: 1,000 observations,
 #: d = 12, 203 s under load). The suite's fits stay below it (bench/bench_fit.py).
 FIT_SUBSET = 300
+
+#: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
+#: brute-force greedy) on pools up to this many segments. Larger pools get an approximate
+#: plan (``core.select.plan_selection``) whose batch keeps >= 99% of the exact greedy's J
+#: decrease where both can be run (``bench/bench_select.py``, tests/core/test_select.py).
+SELECT_EXACT_MAX_POOL = 45_000
+
+#: Approximate plan of ``select``: the pool is cut into clusters of about this many
+#: segments (never fewer clusters than asked) ...
+SELECT_CLUSTER_ROWS = 25_000
+#: ... each cluster's J is summed over at most this many of its rows (those where the
+#: model is least sure, largest p_n (1 - p_n)) ...
+SELECT_MAX_ROWS = 4_096
+#: ... and the greedy chooses among at most this many candidates: the best first picks
+#: (``core.select.screen_candidates``), plus a uniform random share of the rest. On av_like
+#: pools the candidate limit costs more of the J decrease than the row limit does.
+SELECT_MAX_CANDIDATES = 4_096
+SELECT_RANDOM_SHARE = 0.1
+#: ... and K-means with the merge loop runs on a sample of this many segments.
+SELECT_CLUSTER_FIT_MAX = 50_000

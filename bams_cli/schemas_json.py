@@ -267,7 +267,25 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "j_after": nullable(NUM),
                 "timings_s": mapping(NUM, "stage"),
             },
-            {"unchanged": BOOL, "out": PATH},
+            {
+                "unchanged": BOOL,
+                "out": PATH,
+                "selection_plan": obj(
+                    {
+                        "exact": BOOL,
+                        "reason": STR,
+                        "clusters": COUNT,
+                        "candidates_kept": COUNT,
+                        "candidates_offered": COUNT,
+                    },
+                    {
+                        "max_rows_per_cluster": nullable(COUNT),
+                        "max_candidates_per_cluster": nullable(COUNT),
+                        "rows_sampled": nullable(COUNT),
+                        "h_left_out": nullable(NUM),
+                    },
+                ),
+            },
         ),
     ),
     "estimate-plan": (

@@ -1,30 +1,40 @@
-"""Benchmark ``select_batch`` at the paper's AV scale (DESIGN.md "Where the time goes").
+"""Benchmark ``select_batch`` at the paper's AV scale and at fleet scale.
 
-Setting: the av_like sample data (``bams_cli.core.synthetic.av_like``) at N in {45k, 200k},
-its 512-d embeddings reduced to d = 12 by PCA; two levels with costs [1, 5/32]; budget
-m = 15; S = 6 clusters (more with --clusters; 200k needs ~27 to stay under the 4 GiB
-per-cluster limit, see ``select.MAX_CLUSTER_BYTES``); 30 observations (20 at level 0, 10 at
-level 1) at random pool points, with the data set's true values; gamma is its 1% quantile.
-The GP is ``bams_cli.core.gp.MFGP`` with hyperparameters fitted once by MAP on the 30
-observations at N = 2000 and then held fixed for every N. Per-cluster greedies run in a
-2-process pool, as ``bams-cli select`` runs them.
+DESIGN.md, "Where the time goes"; issue 16.
 
-    .venv/bin/python bench/bench_select.py                       # 45k, 3 runs + reference
-    .venv/bin/python bench/bench_select.py --sizes 200000 --clusters 27 --runs 1 --no-reference
-    .venv/bin/python bench/bench_select.py --hyper flat   # worst case: few rows can be dropped
+Setting: the av_like sample data (``bams_cli.core.synthetic.av_like``) at N in {45k, 200k}
+(and 1M with --million), its 512-d embeddings reduced to d = 12 by PCA; two levels with
+costs [1, 5/32]; budget m = 15; S = 6 clusters asked and eta = 2, as ``bams-cli select``
+runs by default; 30 observations (20 at level 0, 10 at level 1) at random pool points, with
+the data set's true values; gamma is its 1% quantile. The GP is ``bams_cli.core.gp.MFGP``
+with hyperparameters fitted once by MAP on the 30 observations at N = 2000 and then held
+fixed for every N. Per-cluster greedies run in a 2-process pool, as ``bams-cli select``
+runs them. ``select_batch`` chooses its plan itself (``core.select.plan_selection``): exact
+up to 45k segments, approximate above.
 
-For every N it prints the median wall time over --runs runs, the peak resident memory of
-the process tree (this process plus the pool's workers, sampled every 20 ms from /proc),
-each phase's share of one run, and the load average (the machine is shared: CPU seconds
-are the steadier number). "greedy.*" lines are seconds summed over clusters (they overlap
-in time across the two processes).
+    .venv/bin/python bench/bench_select.py                       # 45k and 200k, 3 runs each
+    nice .venv/bin/python bench/bench_select.py --million --pool-cache /tmp/bams-pools
+    .venv/bin/python bench/bench_select.py --sizes 45000 --hyper flat   # worst case
+
+For every N it prints the plan taken, the median wall time over --runs runs, the peak
+resident memory of the process tree (this process plus the pool's workers, sampled every
+20 ms from /proc), each phase's share of one run, and the load average (the machine is
+shared: CPU seconds are the steadier number). "greedy.*" lines are seconds summed over
+clusters (they overlap in time across the two processes).
+
+J ratio (--j-ratio, on by default): where the exact greedy is feasible (N <= 45k under the
+default plan), the same pool and clusters are selected again with the approximate plan
+forced (``approximate="always"``, default limits), and the ratio of the two batches' exact J
+decreases (J before minus J after, all picks conditioned on jointly) is printed. The
+approximation's promise is a ratio >= 0.99.
 
 Reference (--reference, on by default): the exact greedy written densely in numpy with
 ``scipy.special.owens_t`` (``reference_greedy``: beta for every row and candidate at every
 pick, no screening, no compiled code) on one cluster of the first N, timed against
 ``greedy_cluster`` on the same cluster in the same process. It reports the time ratio,
 whether the picks are identical, and the ratio of the two greedies' J decreases (1 for
-an exact method).
+an exact method). A cluster of the approximate plans (25k rows x 50k candidates) would
+need a 10 GB dense covariance, so the reference runs on the first N only.
 """
 
 from __future__ import annotations
@@ -53,6 +63,19 @@ from bams_cli.core.select import (  # noqa: E402
 D = 12
 COSTS = [1.0, 5 / 32]
 BUDGET = 15.0
+
+
+def cached_pool(n: int, cache: str | None, seed: int = 0):
+    """``make_pool(n)``, kept as .npz in ``cache`` when given (1M takes ~2 min to make)."""
+    if cache is None:
+        return make_pool(n, seed)
+    path = os.path.join(cache, f"av_like-{n}-{seed}.npz")
+    if not os.path.exists(path):
+        os.makedirs(cache, exist_ok=True)
+        X, obs, lev, y, gamma = make_pool(n, seed)
+        np.savez(path, X=X, obs=obs, lev=lev, y=y, gamma=gamma)
+    f = np.load(path)
+    return f["X"], f["obs"], f["lev"], f["y"], float(f["gamma"])
 
 
 def make_pool(n: int, seed: int = 0):
@@ -260,12 +283,73 @@ def run_reference(post, X, obs0, gamma, labels, which: str) -> None:
     )
 
 
+def select(post, X, obs0, gamma, args, ex, seed, approximate="auto"):
+    return select_batch(
+        post,
+        X,
+        gamma=gamma,
+        costs=COSTS,
+        budget=BUDGET,
+        n_clusters=args.clusters,
+        overbudget=args.overbudget,
+        observed_level0_mask=obs0,
+        row_drop_rtol=args.row_drop_rtol,
+        executor=ex,
+        rng=np.random.default_rng(seed),
+        approximate=approximate,
+    )
+
+
+def report_run(n, args, totals, cpus, peaks, loads, results) -> None:
+    med = statistics.median(totals)
+    k_med = int(np.argsort(totals)[len(totals) // 2])
+    res = results[k_med]
+    plan = res.plan
+    print(
+        f"\nN = {n}: median {med:.1f} s over {len(totals)} run(s) "
+        f"(all: {', '.join(f'{t:.1f}' for t in totals)}); CPU s (parent + workers' "
+        f"greedy): {', '.join(f'{c:.1f}' for c in cpus)}; peak RSS of the process "
+        f"tree {max(peaks):.0f} MB; load average at each start: "
+        f"{', '.join(f'{v:.2f}' for v in loads)}"
+    )
+    print(f"  plan: {'exact' if plan['exact'] else 'approximate'} ({plan['reason']}), {plan}")
+    same = all(
+        np.array_equal(r.index, results[0].index) and np.array_equal(r.level, results[0].level)
+        for r in results
+    )
+    print(
+        "  every run gave the same batch"
+        if same
+        else "  runs differ in their batch (K-means seeds differ per run)"
+    )
+    print(f"  phases of run {k_med + 1} ({totals[k_med]:.1f} s):")
+    for phase in ("predict", "cluster", "greedy", "pool", "j_after"):
+        v = res.timings[phase]
+        print(f"  {phase:<14} {v:7.2f} s  {100 * v / res.timings['total']:5.1f} %")
+    g = sum(res.timings[f"greedy.{p}"] for p in ("build", "screen", "exact", "update", "plan"))
+    print(
+        f"  greedy CPU     {res.timings['greedy.cpu']:7.2f} s  summed over clusters "
+        f"(wall summed {g:.2f} s: the rest is waiting for a shared core)"
+    )
+    for p in ("plan", "build", "screen", "exact", "update"):
+        v = res.timings[f"greedy.{p}"]
+        print(f"  greedy.{p:<7} {v:7.2f} s  {100 * v / g:5.1f} % of summed greedy")
+    n_lev = np.bincount(res.level, minlength=2)
+    print(
+        f"  picks: {len(res.index)} ({n_lev[0]} at level 0, {n_lev[1]} at level 1), "
+        f"cost {res.total_cost:g}; planned {res.stats['picks_planned']}; "
+        f"J {res.j_before:.4e} -> {res.j_after:.4e}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[45000])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[45000, 200000])
+    ap.add_argument("--million", action="store_true", help="also N = 1,000,000")
     ap.add_argument("--runs", type=int, default=3, help="runs per size (median reported)")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--clusters", type=int, default=6)
+    ap.add_argument("--clusters", type=int, default=6, help="S asked (the plan may use more)")
+    ap.add_argument("--overbudget", type=float, default=2.0, help="eta (bams-cli select: 2)")
     ap.add_argument(
         "--hyper",
         choices=["map", "flat"],
@@ -273,9 +357,12 @@ def main() -> None:
         help="map: fitted once on the 30 observations; flat: the worst case (see FLAT)",
     )
     ap.add_argument("--row-drop-rtol", type=float, default=1e-4)
+    ap.add_argument("--pool-cache", default=None, help="folder to keep the made pools in")
     ap.add_argument("--no-reference", dest="reference", action="store_false")
+    ap.add_argument("--no-j-ratio", dest="j_ratio", action="store_false")
     ap.add_argument("--reference-cluster", choices=["smallest", "largest"], default="smallest")
     args = ap.parse_args()
+    sizes = [*args.sizes, *([1_000_000] if args.million else [])]
 
     X, obs, lev, y, gamma = make_pool(2000)
     _, hp = make_posterior(X, obs, lev, y, hyper=args.hyper)
@@ -296,8 +383,8 @@ def main() -> None:
             executor=ex,
             rng=np.random.default_rng(0),
         )
-        for n in args.sizes:
-            X, obs, lev, y, gamma = make_pool(n)
+        for n in sizes:
+            X, obs, lev, y, gamma = cached_pool(n, args.pool_cache)
             post, _ = make_posterior(X, obs, lev, y, hp)
             obs0 = np.zeros(n, dtype=bool)
             obs0[obs[lev == 0]] = True
@@ -307,67 +394,29 @@ def main() -> None:
                 c0 = time.process_time()
                 with PeakRSS() as mem:
                     t0 = time.perf_counter()
-                    res = select_batch(
-                        post,
-                        X,
-                        gamma=gamma,
-                        costs=COSTS,
-                        budget=BUDGET,
-                        n_clusters=args.clusters,
-                        observed_level0_mask=obs0,
-                        row_drop_rtol=args.row_drop_rtol,
-                        executor=ex,
-                        rng=np.random.default_rng(k),
-                    )
+                    res = select(post, X, obs0, gamma, args, ex, k)
                     totals.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0 + res.timings["greedy.cpu"])
                 peaks.append(mem.peak)
                 results.append(res)
             if first is None:
                 first = (post, X, obs0, gamma, results[0].labels)
-            med = statistics.median(totals)
-            k_med = int(np.argsort(totals)[len(totals) // 2])
-            res = results[k_med]
-            print(
-                f"\nN = {n}, {args.clusters} clusters: median {med:.1f} s over {args.runs} run(s) "
-                f"(all: {', '.join(f'{t:.1f}' for t in totals)}); CPU s (parent + workers' "
-                f"greedy): {', '.join(f'{c:.1f}' for c in cpus)}; peak RSS of the process "
-                f"tree {max(peaks):.0f} MB; load average at each start: "
-                f"{', '.join(f'{v:.2f}' for v in loads)}"
-            )
-            same = all(
-                np.array_equal(r.index, results[0].index)
-                and np.array_equal(r.level, results[0].level)
-                for r in results
-            )
-            print(
-                f"  runs agree on the batch: {same} (K-means seeds differ per run)"
-                if not same
-                else "  every run gave the same batch"
-            )
-            print(f"  phases of run {k_med + 1} ({totals[k_med]:.1f} s):")
-            for phase in ("predict", "cluster", "greedy", "pool", "j_after"):
-                v = res.timings[phase]
-                print(f"  {phase:<14} {v:7.2f} s  {100 * v / res.timings['total']:5.1f} %")
-            g = sum(res.timings[f"greedy.{p}"] for p in ("build", "screen", "exact", "update"))
-            print(
-                f"  greedy CPU     {res.timings['greedy.cpu']:7.2f} s  summed over clusters "
-                f"(wall summed {g:.2f} s: the rest is waiting for a shared core)"
-            )
-            for p in ("build", "screen", "exact", "update"):
-                v = res.timings[f"greedy.{p}"]
-                print(f"  greedy.{p:<7} {v:7.2f} s  {100 * v / g:5.1f} % of summed greedy")
-            n_lev = np.bincount(res.level, minlength=2)
-            print(
-                f"  picks: {len(res.index)} ({n_lev[0]} at level 0, {n_lev[1]} at level 1), "
-                f"cost {res.total_cost:g}; planned {res.stats['picks_planned']}; "
-                f"J {res.j_before:.3e} -> {res.j_after:.3e}"
-            )
-            print(
-                f"  rows screened {res.stats['rows_screened']}, dropped "
-                f"{res.stats['rows_dropped']}; candidates {res.stats['candidates']}; "
-                f"exact evaluations {res.stats['exact_evaluations']}"
-            )
+            report_run(n, args, totals, cpus, peaks, loads, results)
+            if args.j_ratio and results[0].plan["exact"]:
+                load = os.getloadavg()[0]
+                with PeakRSS() as mem:
+                    t0 = time.perf_counter()
+                    approx = select(post, X, obs0, gamma, args, ex, 0, approximate="always")
+                    t_approx = time.perf_counter() - t0
+                exact = results[0]
+                ratio = (approx.j_before - approx.j_after) / (exact.j_before - exact.j_after)
+                print(
+                    f"  J ratio: the approximate plan forced on this pool (run 1's clusters: "
+                    f"{np.array_equal(approx.labels, exact.labels)}; {approx.plan}) took "
+                    f"{t_approx:.1f} s, peak RSS {mem.peak:.0f} MB, load {load:.2f}; exact J "
+                    f"decrease {approx.j_before - approx.j_after:.4e} vs the exact greedy's "
+                    f"{exact.j_before - exact.j_after:.4e}: ratio {ratio:.4f}"
+                )
     if args.reference and first is not None:
         run_reference(*first, args.reference_cluster)
 

@@ -120,12 +120,34 @@ def test_a_hand_edited_model_is_named_with_the_command_that_rewrites_it(
     assert "unexpected" not in r.stderr and tree_hash(lead_ws) == before
 
 
-def test_a_cluster_too_large_for_memory_names_the_flag(lead_ws, runner, monkeypatch):
+def test_a_cluster_too_large_for_exact_selection_is_selected_approximately(
+    lead_ws, runner, monkeypatch
+):
+    import bams_cli.core.select as core_select
+
+    # 256 KiB: one exact cluster of the whole pool does not fit, the approximate plan does
+    # (64 rows x 512 candidates).
+    monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 2**18)
+    summary, batch = _select(runner, lead_ws, "--clusters", "1")
+    plan = summary["selection_plan"]
+    assert plan["exact"] is False and "GiB" in plan["reason"] and plan["clusters"] == 1
+    assert plan["max_rows_per_cluster"] * plan["max_candidates_per_cluster"] * 8 <= 2**18
+    assert summary["picks"] == len(batch["segment_id"]) > 0
+
+
+def test_select_json_says_the_small_pool_ran_exactly(lead_ws, runner):
+    summary, _ = _select(runner, lead_ws)
+    assert summary["selection_plan"]["exact"] is True
+    assert summary["selection_plan"]["clusters"] == 2
+
+
+def test_no_plan_fitting_memory_is_a_one_line_error(lead_ws, runner, monkeypatch):
     import bams_cli.core.select as core_select
 
     monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 1)
     r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "1")
-    assert r.exit_code == 1 and "raise --clusters" in r.stderr and "unexpected" not in r.stderr
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "approximate plan needs" in r.stderr and "unexpected" not in r.stderr
 
 
 def test_select_out_writes_the_handoff_and_a_no_op_rerun_restores_it(lead_ws, runner, tmp_path):

@@ -333,6 +333,7 @@ def select(
     model_hash = None
     j_before = j_after = None
     timings: dict[str, float] = {}
+    selection_plan: dict[str, Any] | None = None  # core.select.plan_selection, as taken
 
     purpose: np.ndarray | None = None
     if strategy in MODEL_STRATEGIES:
@@ -391,6 +392,7 @@ def select(
         if result is not None:
             j_before, j_after = float(result.j_before), float(result.j_after)
             timings = {k: round(float(v), 3) for k, v in result.timings.items()}
+            selection_plan = result.plan
     else:
         multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
         n_rest = settings.n_levels - 1
@@ -503,5 +505,6 @@ def select(
         "j_before": j_before,
         "j_after": j_after,
         "timings_s": timings,
+        **({"selection_plan": selection_plan} if selection_plan is not None else {}),
         **({"out": str(out)} if out is not None else {}),
     }

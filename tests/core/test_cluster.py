@@ -113,3 +113,19 @@ def test_tie_for_nearest_goes_to_the_lowest_label():
     assert hausdorff(Z[2:3], Z[3:]) == hausdorff(Z[2:3], Z[:2]) == 3.0
     got = merge_smallest(Z, labels, 2)
     np.testing.assert_array_equal(got, [0, 0, 1, 1, 1])  # {-2, -3} {0, 2, 3}
+
+
+def test_cluster_pool_on_a_sample_labels_every_point_like_its_nearest_centre():
+    rng = np.random.default_rng(3)
+    centres = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    X = np.vstack([c + rng.standard_normal((500, 2)) for c in centres])
+    ell = np.ones(2)
+    full = cluster_pool(X, ell, 4, rng=np.random.default_rng(0))
+    same = cluster_pool(X, ell, 4, rng=np.random.default_rng(0), fit_max=len(X))
+    np.testing.assert_array_equal(full, same)  # fit_max >= n: the whole pool, as before
+    sampled = cluster_pool(X, ell, 4, rng=np.random.default_rng(0), fit_max=300)
+    assert sorted(np.unique(sampled)) == [0, 1, 2, 3]
+    _, first = np.unique(sampled, return_index=True)
+    assert np.all(np.diff(first) > 0)  # numbered by each cluster's lowest point index
+    for k in range(4):  # well-separated blobs: each blob is one cluster either way
+        assert len(np.unique(sampled[500 * k : 500 * (k + 1)])) == 1
