@@ -40,7 +40,7 @@ NO_WORKSPACE = {"schema", "benchmark"}
 
 #: CLI parameters that are no API parameter: how the CLI prints, or which function it calls.
 CLI_ONLY: dict[str, set[str]] = {
-    "*": {"json_out"},
+    "*": {"json_out", "quiet"},
     "estimate": {"plan"},  # --plan: estimate_plan, else estimate_compute
     "ingest-results": {"abandon_failed"},  # ingest_results_abandoning_failed
 }
@@ -268,9 +268,9 @@ BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsErr
     ("fit", ["fit", "--restarts", "0"], api.fit, {"restarts": 0}, WorkspaceError),
     (
         "select",
-        ["select", "--pooling", "bogus"],
+        ["select", "--confirm-share", "1.5"],
         api.select,
-        {"pooling": "bogus"},
+        {"confirm_share": 1.5},
         WorkspaceError,
     ),
     (

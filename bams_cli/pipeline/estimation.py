@@ -505,6 +505,10 @@ def estimate_compute(
         Also compute the GP estimate's exact variance (pools of at most 50,000).
     failed_as : {"bounds"}, optional
         How to count planned segments that were abandoned (default: refuse).
+    interval : {"gamma", "fay-feuer"}, default "gamma"
+        The confidence interval: the gamma interval whose upper limit allows for one more
+        failure of the model's weight, or Fay and Feuer's, which allows for the heaviest
+        weight in U and so guarantees coverage (wider). "fay-feuer" is for one-stage plans.
     progress : callable ``(phase, done, total) -> None``, optional
         Called as the work advances (the CLI draws its progress bar with it).
     wait : bool, default False
