@@ -628,3 +628,34 @@ def test_select_batch_with_pending_picks_in_several_clusters(pool_problem):
         np.testing.assert_array_equal(q.index, idx)
         np.testing.assert_array_equal(q.level, lev)
         np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
+
+
+def test_approximate_plan_on_a_dask_cluster_gives_the_local_batch():
+    # The plan a large pool gets, with its clusters' greedies run on a two-process dask
+    # LocalCluster (as `select --scheduler tcp://...`): the same batch as local processes.
+    distributed = pytest.importorskip("distributed")
+    from bams_cli.parallel import executor
+
+    post, X, observed0, gamma = _av_like_problem(3000, 0)
+    kw = dict(
+        gamma=gamma,
+        costs=[1.0, 5 / 32],
+        budget=15.0,
+        n_clusters=6,
+        overbudget=2.0,
+        observed_level0_mask=observed0,
+        approximate="always",
+        plan_options=dict(max_rows=200, max_candidates=200, cluster_rows=10**9),
+    )
+    with executor(2) as pool:
+        local = select_batch(post, X, rng=np.random.default_rng(0), executor=pool, **kw)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        executor(scheduler=cluster.scheduler_address) as pool,
+    ):
+        remote = select_batch(post, X, rng=np.random.default_rng(0), executor=pool, **kw)
+    assert not remote.plan["exact"]
+    np.testing.assert_array_equal(local.index, remote.index)
+    np.testing.assert_array_equal(local.level, remote.level)
