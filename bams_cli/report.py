@@ -25,6 +25,7 @@ SUMMARY_KEYS = (
     "tool_version",
     "generated_at",
     "workspace",
+    "headline",
     "notices",
     "study",
     "simulation_spent",
@@ -33,18 +34,23 @@ SUMMARY_KEYS = (
     "estimates",
     "gp_estimate",
     "confirmed_failures",
+    "failures_found",
     "diverse_failures",
     "truth",
     "figures",
 )
 
 # An image that fails to decode leaves naturalWidth at 0; the page records the count in
-# its title so a headless browser (and the test that drives it) can read it back.
+# its title so a headless browser (and the test that drives it) can read it back, and
+# whether the headline ends within the first screen.
 IMAGE_CHECK = """<script>
 window.addEventListener('load', function () {
   var imgs = Array.prototype.slice.call(document.images);
   var bad = imgs.filter(function (i) { return !(i.complete && i.naturalWidth > 0); });
-  document.title = 'images-ok ' + (imgs.length - bad.length) + '/' + imgs.length;
+  var head = document.getElementById('headline');
+  var seen = head && head.getBoundingClientRect().bottom <= window.innerHeight;
+  document.title = 'images-ok ' + (imgs.length - bad.length) + '/' + imgs.length +
+    (seen ? ' headline-in-first-screen' : ' headline-below-first-screen');
 });
 </script>"""
 
@@ -157,13 +163,74 @@ def _img(b64: str, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
 
 
+def _sig(x: float) -> str:
+    return f"{x:.2g}" if x >= 1e-3 else f"{x:.1e}"
+
+
+def headline(
+    estimates: list[dict[str, Any]],
+    gp_rows: list[dict[str, Any]],
+    failures: list[dict[str, Any]],
+    spent: dict[str, Any],
+    gamma: float,
+) -> dict[str, str]:
+    """The report's first lines, for the first gamma: the rate with its interval, the
+    failures confirmed, the runs spent (``text``), and what sets the interval's width
+    (``width``). Without an estimate, the model's own rate, marked as such."""
+    per_level = spent["per_level"]
+    n0 = per_level.get("0", {}).get("count", 0)
+    cheap = sum(v["count"] for k, v in per_level.items() if k != "0")
+    confirmed = sum(1 for f in failures if f["status"] == "confirmed" and gamma in f["fails_at"])
+    leads = sum(1 for f in failures if f["status"] == "lead")
+    runs = f"{n0} level-0" + (f" and {cheap} cheap" if cheap or len(per_level) > 1 else "")
+    found = f"{confirmed} failure{'s' if confirmed != 1 else ''} confirmed at level 0" + (
+        f" ({leads} more seen only at a cheap level)" if leads else ""
+    )
+    e = next((r for r in estimates if r["gamma"] == gamma), None)
+    if e is not None:
+        rate = e["p_hat"]
+        one_in = f" (about 1 in {round(1 / rate):,})" if rate > 0 else ""
+        text = (
+            f"failure rate {_sig(rate)} per segment{one_in}; "
+            f"{100 * e['confidence']:g}% interval {_sig(e['ci_low'])} to {_sig(e['ci_high'])}; "
+            f"{found}; {runs} runs spent"
+        )
+        width = (
+            f"The interval rests on {e['failures_sampled']} failure"
+            f"{'s' if e['failures_sampled'] != 1 else ''} among {e['n_sampled']} segments "
+            f"sampled by plan {e.get('plan', '?')}"
+            + (f", beside {e['failures_known']} known before it" if e.get("failures_known") else "")
+            + "; its upper end also allows for one failure the sample may have missed, so "
+            "more samples (a larger `estimate --plan --samples K`) narrow it."
+        )
+        if e.get("variance_note"):
+            width += f" {e['variance_note']}"
+        return {"text": text, "width": width}
+    g = next((r for r in gp_rows if r["gamma"] == gamma), None)
+    model = (
+        f"the model's own estimate is {_sig(g['gp_p_hat'])} per segment (mean p_n: it leans on "
+        "the model, so no interval is claimed)"
+        if g is not None
+        else "no model fitted yet"
+    )
+    return {
+        "text": f"no failure-rate estimate yet; {found}; {runs} runs spent",
+        "width": f"An estimate needs `bams-cli estimate --plan`, its runs and `bams-cli "
+        f"estimate`; until then {model}.",
+    }
+
+
 def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
     s = summary
     study = s["study"]
+    head = s["headline"]
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>bams-cli report</title>",
         f"<style>{CSS}</style>{IMAGE_CHECK}</head><body>",
         "<h1>bams-cli study report</h1>",
+        f"<p id='headline' class='headline'><b>{html.escape(head['text'][:1].upper() + head['text'][1:])}.</b></p>",
+        f"<p class='note'>{html.escape(head['width'])} Failures found: "
+        "<a href='failures.csv'>failures.csv</a>.</p>",
         *_banners(s["notices"]),
         f"<p class='note'>workspace {html.escape(s['workspace'])}, generated {s['generated_at']} "
         f"by bams-cli {s['tool_version']}</p>",
@@ -414,7 +481,13 @@ def _fmt_counts(d: dict[str, int]) -> str:
 
 def render_markdown(summary: dict[str, Any]) -> str:
     s = summary
-    lines = [f"## bams-cli report ({s['workspace']})", ""]
+    head = s["headline"]
+    lines = [
+        f"## bams-cli report ({s['workspace']})",
+        "",
+        f"**{head['text'][:1].upper() + head['text'][1:]}.** {head['width']}",
+        "",
+    ]
     for n in s["notices"]:
         # GitHub renders these as alert boxes; elsewhere they read as quoted lines.
         lines += [

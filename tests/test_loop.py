@@ -209,6 +209,7 @@ def test_report_renders_in_headless_chromium_with_every_image(chromium, loop_ws)
                 *flags,
                 f"--user-data-dir={profile}",
                 "--virtual-time-budget=5000",
+                "--window-size=1280,720",  # a laptop's first screen
                 "--dump-dom",
                 html.as_uri(),
             ],
@@ -218,7 +219,7 @@ def test_report_renders_in_headless_chromium_with_every_image(chromium, loop_ws)
         ).stdout
     n_img = dom.count("<img ")
     assert n_img == 3
-    assert f"<title>images-ok {n_img}/{n_img}</title>" in dom
+    assert f"<title>images-ok {n_img}/{n_img} headline-in-first-screen</title>" in dom
     with tempfile.TemporaryDirectory() as profile:
         shot = ws / "report" / "screenshot.png"
         subprocess.run(

@@ -47,12 +47,18 @@ class Study:
     def report(self, stage: str) -> dict:
         self.run("report", "-w", self.ws)  # no --truth: what a real study has
         out = self.ws / "report"
-        level0 = Workspace(self.ws).read_observations().filter(pl.col("fidelity") == 0)
+        w = Workspace(self.ws)
+        active = w.read_observations()
+        level0 = active.filter(pl.col("fidelity") == 0)
         self.reports[stage] = {
             "summary": json.loads((out / "summary.json").read_text()),
             "md": (out / "summary.md").read_text(),
             "html": (out / "report.html").read_text(),
             "level0": dict(level0.select("segment_id", "value").iter_rows()),
+            "level0_batch": dict(level0.select("segment_id", "batch").iter_rows()),
+            "cheap": active.filter(pl.col("fidelity") > 0),
+            "runs0": w.read_observations(active_only=False).filter(pl.col("fidelity") == 0).height,
+            "failures": pl.read_csv(out / "failures.csv", infer_schema_length=None),
         }
         return self.reports[stage]
 
@@ -256,7 +262,10 @@ def test_a_stale_model_is_a_banner_and_results_since_overrule_its_likely_failure
     # The banner opens the HTML and summary.md, not a caption further down.
     html = stale["html"]
     assert html.index("class='banner warning'") < html.index("<h2>")
-    assert stale["md"].splitlines()[2:4] == ["> [!WARNING]", f"> {summary['notices'][0]['text']}"]
+    # summary.md: the title, the headline, then the banner, before any table.
+    md = stale["md"].splitlines()
+    assert md[2].startswith("**No failure-rate estimate yet; ")
+    assert md[4:6] == ["> [!WARNING]", f"> {summary['notices'][0]['text']}"]
     likely = {row["segment_id"] for row in summary["diverse_failures"]}
     assert passed not in likely and failed not in likely and len(likely) == 5
     (confirmed,) = summary["confirmed_failures"]
@@ -270,3 +279,42 @@ def test_a_stale_model_is_a_banner_and_results_since_overrule_its_likely_failure
     assert refit["notices"] == []
     assert passed not in {row["segment_id"] for row in refit["diverse_failures"]}
     assert [row["segment_id"] for row in refit["confirmed_failures"]] == [failed]
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_the_headline_and_failures_csv_say_what_the_log_says(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    gammas = s["study"]["gammas"]
+    # Brute force from the observation log: confirmed = a level-0 value at or below a
+    # gamma; a lead = no level-0 value and a cheaper level at or below the first gamma.
+    confirmed = {sid for sid, v in r["level0"].items() if v <= max(gammas)}
+    cheap = r["cheap"].filter(pl.col("value") <= gammas[0])
+    leads = set(cheap["segment_id"].to_list()) - set(r["level0"])
+    csv = r["failures"]
+    assert csv.height == s["failures_found"]["count"] == len(confirmed) + len(leads)
+    if csv.height:
+        by_status = dict(csv.group_by("status").agg(pl.col("segment_id")).iter_rows())
+        assert set(by_status.get("confirmed", [])) == confirmed
+        assert set(by_status.get("lead", [])) == leads
+        for sid, status, found_by in csv.select("segment_id", "status", "found_by").iter_rows():
+            if status == "confirmed":
+                batch = r["level0_batch"][sid]
+                assert found_by == (f"batch {batch}" if batch is not None else found_by)
+                assert batch is not None or found_by.startswith("plan ")
+                assert csv.filter(pl.col("segment_id") == sid)["value_0"][0] == r["level0"][sid]
+    head = s["headline"]["text"]
+    n_conf = sum(v <= gammas[0] for v in r["level0"].values())
+    assert f"; {n_conf} failure{'s' if n_conf != 1 else ''} confirmed at level 0" in head
+    assert f"; {r['runs0']} level-0" in head
+    if s["estimates"]:
+        e = next(e for e in s["estimates"] if e["gamma"] == gammas[0])
+        assert head.startswith("failure rate ") and f"{100 * e['confidence']:g}% interval" in head
+        assert (
+            f"among {e['n_sampled']} segments sampled by plan {e['plan']}" in s["headline"]["width"]
+        )
+    else:
+        assert head.startswith("no failure-rate estimate yet")
+    # It leads summary.md and the HTML, above every table.
+    assert r["md"].splitlines()[2].startswith(f"**{head[:1].upper()}{head[1:]}.**")
+    assert r["html"].index("id='headline'") < r["html"].index("<h2>")

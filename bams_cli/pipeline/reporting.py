@@ -263,6 +263,8 @@ def report(
         row.update(more)
         confirmed.append(row)
     confirmed = _uniform_rows(confirmed)
+    failures = _failures_found(ws, active, gammas, pos)
+    head = rep.headline(estimates, gp_rows, failures, spent, gammas[0])
 
     truth_doc = None
     if truth_f0 is not None:
@@ -299,11 +301,13 @@ def report(
             truth_rates = [rate.get(e["gamma"], float("nan")) for e in estimates]
         figures["rate"] = rep.rate_plot(estimates, truth_rates)
 
+    out = ws.report_dir
     summary: dict[str, Any] = {
         "schema_version": schemas_json.version("summary.json"),
         "tool_version": __version__,
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "workspace": str(root),
+        "headline": head,
         "notices": notices,
         "study": {**settings_summary(settings), "pool_size": n, "dim": int(X.shape[1])},
         "simulation_spent": spent,
@@ -312,13 +316,24 @@ def report(
         "estimates": estimates,
         "gp_estimate": gp_rows,
         "confirmed_failures": confirmed,
+        "failures_found": {"csv": str(out / "failures.csv"), "count": len(failures)},
         "diverse_failures": diverse,
         "truth": truth_doc,
         "figures": sorted(figures),
     }
-    out = ws.report_dir
+    table = pl.DataFrame(
+        [{k: (";".join(f"{g:g}" for g in v) if k == "fails_at" else v) for k, v in r.items()}
+         for r in failures] if failures else None,
+        schema=None if failures else {SID: pl.String, "status": pl.String, "found_by": pl.String},
+        infer_schema_length=None,
+    )  # fmt: skip
+    first = [SID, "status", "found_by", "fails_at"]
+    values = sorted((c for c in table.columns if c.startswith("value_")), key=lambda c: int(c[6:]))
+    order = [c for c in first if c in table.columns] + values
+    table = table.select(order + [c for c in table.columns if c not in order])
     with transaction() as tx:
         tx.write_text(out / "report.html", rep.render_html(summary, figures))
+        tx.write_with(out / "failures.csv", lambda p: table.write_csv(p))
         tx.write_text(
             out / "summary.json",
             json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n",
@@ -328,6 +343,8 @@ def report(
         "report": str(out / "report.html"),
         "summary_json": str(out / "summary.json"),
         "summary_md": str(out / "summary.md"),
+        "failures_csv": str(out / "failures.csv"),
+        "headline": head["text"],
         "figures": sorted(figures),
         "notices": [n["text"] for n in notices],
         "estimates": [
@@ -420,3 +437,62 @@ def _uniform_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Rows with one key set (segment_id first, then sorted), blanks where a row lacks one."""
     keys = sorted({k for r in rows for k in r}, key=lambda k: (k != SID, k))
     return [{k: r.get(k, "") for k in keys} for r in rows]
+
+
+def _failures_found(
+    ws: Workspace, active: pl.DataFrame, gammas: list[float], pos: dict[str, int]
+) -> list[dict[str, Any]]:
+    """Every failure the study has seen, one row per segment: ``confirmed`` (its level-0
+    value is at or below a gamma) or ``lead`` (a cheaper level failed at the first gamma and
+    level 0 has not run). With its value at each level run, the batch or plan whose
+    request found it, and the segment's pass-through columns (``report/failures.csv``)."""
+    if not active.height:
+        return []
+    plan_of: dict[str, int] = {}
+    picks = ws.read_plan_picks()
+    if picks.height:
+        for sid, k in picks.select(SID, "plan").iter_rows():
+            plan_of.setdefault(sid, int(k))
+    values: dict[str, dict[int, tuple[float, int | None]]] = {}
+    for sid, lv, value, batch in active.select(SID, "fidelity", "value", "batch").iter_rows():
+        values.setdefault(sid, {})[int(lv)] = (float(value), batch)
+    top = max(gammas)
+    rows = []
+    for sid, by_level in values.items():
+        if sid not in pos:
+            continue
+        if 0 in by_level:
+            if by_level[0][0] > top:
+                continue
+            status, level = "confirmed", 0
+        else:
+            cheap = [lv for lv, (v, _) in by_level.items() if v <= gammas[0]]
+            if not cheap:
+                continue
+            status, level = "lead", min(cheap)
+        batch = by_level[level][1]
+        found_by = (
+            f"batch {batch}"
+            if batch is not None
+            else (f"plan {plan_of[sid]}" if sid in plan_of else "results not asked for")
+        )
+        row: dict[str, Any] = {
+            SID: sid,
+            "status": status,
+            "found_by": found_by,
+            "fails_at": [g for g in gammas if by_level[level][0] <= g],
+        }
+        for lv in sorted(by_level):
+            row[f"value_{lv}"] = by_level[lv][0]
+        rows.append(row)
+    rows.sort(
+        key=lambda r: (
+            r["status"] != "confirmed",
+            min(r[k] for k in r if k.startswith("value_")),
+            r[SID],
+        )
+    )
+    index = np.array([pos[r[SID]] for r in rows], dtype=np.int64)
+    for row, more in zip(rows, _passthrough_rows(ws, index), strict=True):
+        row.update(more)
+    return _uniform_rows(rows)
