@@ -32,6 +32,9 @@ SUMMARY_KEYS = (
     "model",
     "batches",
     "estimates",
+    "estimate_history",
+    "trends",
+    "stopping",
     "gp_estimate",
     "confirmed_failures",
     "failures_found",
@@ -339,6 +342,63 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
             "cheap-level picks, or results pending); pending: picks without a result; "
             "abandoned: picks recorded as never coming back (bams-cli abandon).</p>"
         )
+    parts.append("<h2>Trends, and when to stop</h2>")
+    if s["trends"]:
+        parts.append(
+            _table(
+                [
+                    "batch",
+                    "cost per level",
+                    "confirmed",
+                    "confirmed so far",
+                    "model's rate",
+                    "sd bound",
+                    "J before",
+                    "J after",
+                    "J decrease per cost",
+                ],
+                [
+                    [
+                        t["batch"],
+                        ", ".join(f"{k}: {v:g}" for k, v in t["cost_per_level"].items()),
+                        t["confirmed"],
+                        t["confirmed_so_far"],
+                        _na(t["gp_rate"], ".3g"),
+                        _na(t["gp_sd_bound"], ".2g"),
+                        _na(t["j_before"], ".3g"),
+                        _na(t["j_after"], ".3g"),
+                        _na(t["j_decrease_per_cost"], ".3g"),
+                    ]
+                    for t in s["trends"]
+                ],
+            )  # fmt: skip
+        )
+        parts.append(
+            "<p class='note'>Confirmed: level-0 failures at the first gamma that the batch's "
+            "requests found. Model's rate: mean p_n of the model fitted on the results up to "
+            "that batch, with the Proposition-1 bound on its sd (a model's estimate, not "
+            "design-unbiased). J: the pool's mean expected point variance before and after the "
+            "batch, as select computed it (blank for batches written before it was stored).</p>"
+        )
+    if len(s["estimate_history"]) > 1:
+        parts.append("<h3>Every estimate made</h3>")
+        parts.append(
+            _table(
+                ["plan", "design", "K", "p_hat", "interval low", "interval high"],
+                [
+                    [
+                        h["plan"],
+                        h["design"],
+                        h["samples_K"],
+                        _na(h["p_hat"], ".3g"),
+                        _na(h["ci_low"], ".3g"),
+                        _na(h["ci_high"], ".3g"),
+                    ]
+                    for h in s["estimate_history"]
+                ],
+            )  # fmt: skip
+        )
+    parts += [f"<p>{html.escape(line)}</p>" for line in stopping_lines(s["stopping"])]
     if "pool_map" in figures:
         parts += ["<h2>Pool map</h2>", _img(figures["pool_map"], "pool coloured by p_n with picks")]
     parts.append("<h2>Failure-rate estimate</h2>")
@@ -529,6 +589,7 @@ def render_markdown(summary: dict[str, Any]) -> str:
                 f"| {b['pending']} | {b.get('abandoned', 0)} |"
             )
         lines.append("")
+    lines += trend_lines(s)
     confirmed = s["confirmed_failures"]
     lines.append(
         f"Confirmed failures (level 0, f <= a gamma): {len(confirmed)}"
@@ -553,3 +614,58 @@ def render_markdown(summary: dict[str, Any]) -> str:
             + "."
         )
     return "\n".join(lines) + "\n"
+
+
+def trend_lines(summary: dict[str, Any]) -> list[str]:
+    """The trend across batches and the stopping signal, as Markdown (summary.md)."""
+    lines: list[str] = []
+    trends = summary["trends"]
+    if trends:
+        lines += [
+            "| batch | cost per level | confirmed (so far) | model's rate (sd bound) | J before -> after | J decrease per cost |",
+            "|---|---|---|---|---|---|",
+        ]
+        for t in trends:
+            rate = "" if t["gp_rate"] is None else f"{t['gp_rate']:.3g} ({t['gp_sd_bound']:.2g})"
+            j = "" if t["j_before"] is None else f"{t['j_before']:.3g} -> {t['j_after']:.3g}"
+            dj = "" if t["j_decrease_per_cost"] is None else f"{t['j_decrease_per_cost']:.3g}"
+            cost = ", ".join(f"{k}: {v:g}" for k, v in t["cost_per_level"].items())
+            lines.append(
+                f"| {t['batch']} | {cost} | {t['confirmed']} ({t['confirmed_so_far']}) | {rate} | {j} | {dj} |"
+            )
+        lines.append("")
+    history = summary["estimate_history"]
+    if len(history) > 1:
+        lines += ["| plan | design | K | p_hat | interval |", "|---|---|---|---|---|"]
+        for h in history:
+            lines.append(
+                f"| {h['plan']} | {h['design']} | {h['samples_K']:g} | {h['p_hat']:.3g} "
+                f"| [{h['ci_low']:.3g}, {h['ci_high']:.3g}] |"
+            )
+        lines.append("")
+    lines += [f"{line}\n" for line in stopping_lines(summary["stopping"])]
+    return lines
+
+
+def stopping_lines(stop: dict[str, Any]) -> list[str]:
+    """When to stop, in sentences (summary.md and the page)."""
+    out = []
+    if stop["j_decrease_per_cost_last_batches"]:
+        out.append(
+            "J decrease per unit cost, last batches: "
+            + ", ".join(f"{v:.3g}" for v in stop["j_decrease_per_cost_last_batches"])
+            + " (as it nears 0, discovery has little uncertainty left to remove)."
+        )
+    if stop["expected_failures_next_batch"] is not None:
+        out.append(
+            f"Expected level-0 failures if the next batch ran {stop['next_batch_level0_runs']} "
+            "level-0 runs at the likeliest unconfirmed segments: "
+            f"{stop['expected_failures_next_batch']:.2g} (by the model's p_n)."
+        )
+    if stop["samples_for_width_equal_to_rate"] is not None:
+        out.append(
+            "An interval as wide as the rate itself would need about "
+            f"{stop['samples_for_width_equal_to_rate']:,.0f} samples (`estimate --plan --samples K`;"
+            " the width shrinks as 1/sqrt(K))."
+        )
+    return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -59,6 +60,8 @@ class Study:
             "cheap": active.filter(pl.col("fidelity") > 0),
             "runs0": w.read_observations(active_only=False).filter(pl.col("fidelity") == 0).height,
             "failures": pl.read_csv(out / "failures.csv", infer_schema_length=None),
+            "log": w.read_observations(active_only=False),
+            "scores": pl.read_parquet(w.scores_path) if w.scores_path.exists() else None,
         }
         return self.reports[stage]
 
@@ -318,3 +321,49 @@ def test_the_headline_and_failures_csv_say_what_the_log_says(study, stage):
     # It leads summary.md and the HTML, above every table.
     assert r["md"].splitlines()[2].startswith(f"**{head[:1].upper()}{head[1:]}.**")
     assert r["html"].index("id='headline'") < r["html"].index("<h2>")
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_trends_every_estimate_and_the_stopping_signal(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    gamma = s["study"]["gammas"][0]
+    log = r["log"].filter(pl.col("active"))
+    trends = s["trends"]
+    assert [t["batch"] for t in trends] == [b["batch"] for b in s["batches"]]
+    so_far = set()
+    for t, b in zip(trends, s["batches"], strict=True):
+        found = log.filter(
+            (pl.col("fidelity") == 0) & (pl.col("batch") == t["batch"]) & (pl.col("value") <= gamma)
+        )["segment_id"].unique()
+        so_far |= set(found.to_list())
+        assert (t["confirmed"], t["confirmed_so_far"]) == (found.len(), len(so_far))
+        assert t["cost"] == pytest.approx(b["cost"])
+        assert sum(t["cost_per_level"].values()) == pytest.approx(b["cost"])
+        if b["strategy"] == "bams":  # a model-driven batch stores J before and after
+            assert t["j_after"] < t["j_before"]
+            assert t["j_decrease_per_cost"] == pytest.approx(
+                (t["j_before"] - t["j_after"]) / t["cost"]
+            )
+        else:
+            assert t["j_before"] is None and t["j_decrease_per_cost"] is None
+    history = s["estimate_history"]
+    made = sorted(int(p.stem[9:]) for p in (study.ws / "estimates").glob("estimate-*.json"))
+    done = {"plan 1 computed": [1], "plan 2 pending": [1], "plan 2 computed": [1, 2]}
+    assert [h["plan"] for h in history] == done.get(stage, [])
+    assert made[: len(history)] == [h["plan"] for h in history] or stage != "plan 2 computed"
+    stop = s["stopping"]
+    last = [t["j_decrease_per_cost"] for t in trends[-3:] if t["j_decrease_per_cost"] is not None]
+    assert stop["j_decrease_per_cost_last_batches"] == pytest.approx(last)
+    if r["scores"] is not None and s["model"] is not None:
+        known = set(r["level0"])
+        p0 = r["scores"].filter(~pl.col("segment_id").is_in(list(known)))["p_0"].to_numpy()
+        top = np.sort(p0)[::-1][: stop["next_batch_level0_runs"]].sum()
+        assert stop["expected_failures_next_batch"] == pytest.approx(top)
+    if history:
+        h = history[-1]
+        want = np.ceil(h["samples_K"] * ((h["ci_high"] - h["ci_low"]) / h["p_hat"]) ** 2)
+        assert stop["samples_for_width_equal_to_rate"] == want
+        assert "An interval as wide as the rate itself would need about" in r["md"]
+    else:
+        assert stop["samples_for_width_equal_to_rate"] is None

@@ -20,6 +20,7 @@ from bams_cli.errors import (
 from bams_cli.pipeline._common import SID, locked, plan_numbers, read_scores
 from bams_cli.pipeline.estimation import design_note
 from bams_cli.pipeline.initialise import settings_summary
+from bams_cli.state import schemas
 from bams_cli.state.io import (
     read_metadata_json,
     read_state,
@@ -265,6 +266,9 @@ def report(
     confirmed = _uniform_rows(confirmed)
     failures = _failures_found(ws, active, gammas, pos)
     head = rep.headline(estimates, gp_rows, failures, spent, gammas[0])
+    trends = _trends(ws, log, gammas[0], settings.costs)
+    history = _estimate_history(ws, plans, gammas[0])
+    stopping = _stopping(trends, history, scores, known0_mask(ids, obs0))
 
     truth_doc = None
     if truth_f0 is not None:
@@ -314,6 +318,9 @@ def report(
         "model": model_doc,
         "batches": batch_rows,
         "estimates": estimates,
+        "estimate_history": history,
+        "trends": trends,
+        "stopping": stopping,
         "gp_estimate": gp_rows,
         "confirmed_failures": confirmed,
         "failures_found": {"csv": str(out / "failures.csv"), "count": len(failures)},
@@ -496,3 +503,115 @@ def _failures_found(
     for row, more in zip(rows, _passthrough_rows(ws, index), strict=True):
         row.update(more)
     return _uniform_rows(rows)
+
+
+def known0_mask(ids: np.ndarray, obs0: dict[str, float]) -> np.ndarray:
+    """bool (N,): the pool's segments whose level-0 value is known."""
+    return np.isin(ids, np.asarray(list(obs0), dtype=object))
+
+
+def _trends(ws: Workspace, log: pl.DataFrame, gamma: float, costs: Any) -> list[dict[str, Any]]:
+    """One row per batch: its cost per level, the level-0 failures it confirmed (and all so
+    far), the model's rate after it (mean p_n of the snapshot fitted on its results, with
+    the Proposition-1 bound on its sd), and the pool's J before and after it (batches
+    written before bams-cli stored J leave those null)."""
+    from bams_cli.core.gp_rate import gp_estimate
+
+    active0 = log.filter(pl.col("active") & (pl.col("fidelity") == 0) & (pl.col("value") <= gamma))
+    rows, seen = [], set()
+    for b in ws.batch_numbers():
+        df = ws.read_batch(b)
+        meta = read_metadata_json(schemas.batch_path(ws.root, b))
+        per_level = {
+            str(int(k)): float(v)
+            for k, v in df.group_by("fidelity")
+            .agg(pl.col("cost").sum())
+            .sort("fidelity")
+            .iter_rows()
+        }
+        new = set(active0.filter(pl.col("batch") == b)[SID].to_list())
+        seen |= new
+        jb, ja = meta.get("j_before"), meta.get("j_after")
+        cost = float(df["cost"].sum())
+        row: dict[str, Any] = {
+            "batch": b,
+            "cost": cost,
+            "cost_per_level": per_level,
+            "confirmed": len(new),
+            "confirmed_so_far": len(seen),
+            "j_before": jb,
+            "j_after": ja,
+            "j_decrease_per_cost": (jb - ja) / cost
+            if jb is not None and ja is not None and cost > 0
+            else None,
+            "gp_rate": None,
+            "gp_sd_bound": None,
+        }
+        snap = ws.history_dir / f"scores-after-batch-{b:04d}.parquet"
+        if snap.exists():
+            m, bound = gp_estimate(read_state(snap, columns=["p_0"]).column("p_0").to_numpy())
+            row["gp_rate"], row["gp_sd_bound"] = m, float(np.sqrt(bound))
+        rows.append(row)
+    return rows
+
+
+def _estimate_history(ws: Workspace, plans: list[int], gamma: float) -> list[dict[str, Any]]:
+    """Every estimate computed, oldest first, at the first gamma."""
+    out = []
+    for k in plans:
+        if not ws.estimate_path(k).exists():
+            continue
+        doc = ws.read_estimate(k)
+        e = next((r for r in doc["estimates"] if r["gamma"] == gamma), None)
+        if e is None:
+            continue
+        out.append(
+            {
+                "plan": k,
+                "design": doc.get("design"),
+                "samples_K": doc.get("samples_K"),
+                **{
+                    key: e.get(key)
+                    for key in (
+                        "p_hat",
+                        "ci_low",
+                        "ci_high",
+                        "confidence",
+                        "n_sampled",
+                        "failures_sampled",
+                    )
+                },
+            }
+        )
+    return out
+
+
+def _stopping(
+    trends: list[dict[str, Any]],
+    history: list[dict[str, Any]],
+    scores: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    known0: np.ndarray,
+) -> dict[str, Any]:
+    """When to stop: what the last batches bought, what the next could find, and what a
+    tighter estimate would cost."""
+    from bams_cli import defaults
+
+    last = [r["j_decrease_per_cost"] for r in trends[-3:] if r["j_decrease_per_cost"] is not None]
+    expected = None
+    if scores is not None:
+        p0 = scores[2][:, 0][~known0]
+        top = np.sort(p0)[::-1][: int(defaults.BUDGET)]
+        expected = float(top.sum())
+    k_needed = None
+    if history:
+        h = history[-1]
+        width, rate, K = h["ci_high"] - h["ci_low"], h["p_hat"], h.get("samples_K")
+        if K and rate and rate > 0 and width > 0:
+            # The interval narrows as 1/sqrt(K): the K for a width equal to the rate itself.
+            k_needed = float(np.ceil(K * (width / rate) ** 2))
+    return {
+        "j_decrease_per_cost_last_batches": last,
+        "expected_failures_next_batch": expected,
+        "next_batch_level0_runs": int(defaults.BUDGET),
+        "samples_for_width_equal_to_rate": k_needed,
+    }

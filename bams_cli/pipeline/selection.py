@@ -476,6 +476,9 @@ def select(
         "seed": settings.seed,
         "model_hash": model_hash or "",
         "options": options,
+        # The pool's J before and after the batch (the report's trend and stopping signal).
+        "j_before": j_before,
+        "j_after": j_after,
     }
     table = schemas.BATCH.conform(pa.table(cols), meta)
     path = schemas.batch_path(ws.root, number)
