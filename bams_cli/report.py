@@ -198,10 +198,16 @@ def headline(
             f"{100 * e['confidence']:g}% interval {_sig(e['ci_low'])} to {_sig(e['ci_high'])}; "
             f"{found}; {runs} runs spent"
         )
+        plans = e.get("plans") or [e.get("plan", "?")]
+        by = (
+            f"plan {plans[0]}"
+            if len(plans) == 1
+            else f"plans {', '.join(map(str, plans[:-1]))} and {plans[-1]} (the estimate's stages)"
+        )
         width = (
             f"The interval rests on {e['failures_sampled']} failure"
             f"{'s' if e['failures_sampled'] != 1 else ''} among {e['n_sampled']} segments "
-            f"sampled by plan {e.get('plan', '?')}"
+            f"sampled by {by}"
             + (f", beside {e['failures_known']} known before it" if e.get("failures_known") else "")
             + "; its upper end also allows for one failure the sample may have missed, so "
             "more samples (a larger `estimate --plan --samples K`) narrow it."

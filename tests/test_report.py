@@ -313,9 +313,12 @@ def test_the_headline_and_failures_csv_say_what_the_log_says(study, stage):
     if s["estimates"]:
         e = next(e for e in s["estimates"] if e["gamma"] == gammas[0])
         assert head.startswith("failure rate ") and f"{100 * e['confidence']:g}% interval" in head
-        assert (
-            f"among {e['n_sampled']} segments sampled by plan {e['plan']}" in s["headline"]["width"]
-        )
+        doc = json.loads((study.ws / "estimates" / f"estimate-{e['plan']:04d}.json").read_text())
+        made_of = doc["staging"]["plans"] if doc.get("staging") else [e["plan"]]
+        by = f"plan {made_of[0]}" if len(made_of) == 1 else f"plans {made_of[0]}"
+        assert f"among {e['n_sampled']} segments sampled by {by}" in s["headline"]["width"]
+        if stage == "plan 2 computed":  # the second stage of a two-stage estimate
+            assert made_of == [1, 2] and "sampled by plans 1 and 2" in s["headline"]["width"]
     else:
         assert head.startswith("no failure-rate estimate yet")
     # It leads summary.md and the HTML, above every table.

@@ -193,7 +193,9 @@ def report(
     notices += _report_plan_notices(ws, plans, shown_plan, set(obs0))
     if shown_plan is not None:
         doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
-        estimates = [{**e, "plan": shown_plan} for e in doc["estimates"]]
+        # A staged estimate rests on every stage's sample so far, not the last plan alone.
+        made_of = (doc.get("staging") or {}).get("plans") or [shown_plan]
+        estimates = [{**e, "plan": shown_plan, "plans": made_of} for e in doc["estimates"]]
         gp_rows = doc["gp"]
     elif scores is not None:
         from bams_cli.core.estimate import gp_estimate
