@@ -130,11 +130,14 @@ def report(
 
     pos = {sid: i for i, sid in enumerate(ids)}
     obs0 = dict(active.filter(pl.col("fidelity") == 0).select(SID, "value").iter_rows())
+    known0 = np.zeros(n, bool)  # the pool's segments whose level-0 value is known
+    known0[[pos[s] for s in obs0 if s in pos]] = True
     observed_pairs = active.select(SID, "fidelity").unique()
     batch_rows, batch_picks, per_batch_f = [], [], []
     waiting = []
+    frames: dict[int, pl.DataFrame] = {}
     for b in ws.batch_numbers():
-        df = ws.read_batch(b)
+        df = frames[b] = ws.read_batch(b)
         gone = ws.abandoned_open("batch", b)  # requests that will never come back
         open_ = df.join(observed_pairs, on=[SID, "fidelity"], how="anti")
         pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
@@ -235,8 +238,6 @@ def report(
         # level-0 value is known is never one: observed failing it is a confirmed failure
         # (listed apart), observed above every gamma it passed, whatever a model fitted
         # before that result still says.
-        known0 = np.zeros(n, bool)
-        known0[[pos[s] for s in obs0 if s in pos]] = True
         unknown = np.flatnonzero(~known0)
         top = unknown[np.argsort(-p0[unknown], kind="stable")[:500]]
         chosen = (
@@ -268,9 +269,9 @@ def report(
     confirmed = _uniform_rows(confirmed)
     failures = _failures_found(ws, active, gammas, pos)
     head = rep.headline(estimates, gp_rows, failures, spent, gammas[0])
-    trends = _trends(ws, log, gammas[0], settings.costs)
+    trends = _trends(ws, frames, log, gammas[0])
     history = _estimate_history(ws, plans, gammas[0])
-    stopping = _stopping(trends, history, scores, known0_mask(ids, obs0))
+    stopping = _stopping(trends, history, scores, known0)
 
     truth_doc = None
     if truth_f0 is not None:
@@ -507,12 +508,9 @@ def _failures_found(
     return _uniform_rows(rows)
 
 
-def known0_mask(ids: np.ndarray, obs0: dict[str, float]) -> np.ndarray:
-    """bool (N,): the pool's segments whose level-0 value is known."""
-    return np.isin(ids, np.asarray(list(obs0), dtype=object))
-
-
-def _trends(ws: Workspace, log: pl.DataFrame, gamma: float, costs: Any) -> list[dict[str, Any]]:
+def _trends(
+    ws: Workspace, frames: dict[int, pl.DataFrame], log: pl.DataFrame, gamma: float
+) -> list[dict[str, Any]]:
     """One row per batch: its cost per level, the level-0 failures it confirmed (and all so
     far), the model's rate after it (mean p_n of the snapshot fitted on its results, with
     the Proposition-1 bound on its sd), and the pool's J before and after it (batches
@@ -521,8 +519,7 @@ def _trends(ws: Workspace, log: pl.DataFrame, gamma: float, costs: Any) -> list[
 
     active0 = log.filter(pl.col("active") & (pl.col("fidelity") == 0) & (pl.col("value") <= gamma))
     rows, seen = [], set()
-    for b in ws.batch_numbers():
-        df = ws.read_batch(b)
+    for b, df in frames.items():
         meta = read_metadata_json(schemas.batch_path(ws.root, b))
         per_level = {
             str(int(k)): float(v)
