@@ -325,45 +325,30 @@ def greedy_cluster(
     -------
     ClusterQueue
     """
-    if max_rows is not None or max_candidates is not None:
-        with threadpool_limits(limits=1, user_api="blas"):
-            return _approximate_cluster(
-                posterior,
-                X,
-                rows,
-                mu,
-                sigma2,
-                candidate_mask,
-                gamma=gamma,
-                costs=costs,
-                budget=budget,
-                cluster=cluster,
-                row_drop_rtol=row_drop_rtol,
-                forced_mask=forced_mask,
-                max_rows=max_rows,
-                max_candidates=max_candidates,
-                random_share=random_share,
-                seed=seed,
-            )
+    args = (posterior, X, rows, mu, sigma2, candidate_mask)
+    kwargs: dict[str, Any] = dict(
+        gamma=gamma,
+        costs=costs,
+        budget=budget,
+        cluster=cluster,
+        row_drop_rtol=row_drop_rtol,
+        forced_mask=forced_mask,
+    )
     # One BLAS thread: the posterior's matrices here are (rows or candidates) x n_obs with
     # n_obs ~ 30, where OpenBLAS threads only add synchronisation; and clusters already run
     # in parallel processes. Measured on the busy 2-core box: update and exact phases 10x
     # faster, the covariance build 4x.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _greedy_cluster(
-            posterior,
-            X,
-            rows,
-            mu,
-            sigma2,
-            candidate_mask,
-            gamma=gamma,
-            costs=costs,
-            budget=budget,
-            cluster=cluster,
-            row_drop_rtol=row_drop_rtol,
-            forced_mask=forced_mask,
-        )
+        if max_rows is not None or max_candidates is not None:
+            return _approximate_cluster(
+                *args,
+                **kwargs,
+                max_rows=max_rows,
+                max_candidates=max_candidates,
+                random_share=random_share,
+                seed=seed,
+            )
+        return _greedy_cluster(*args, **kwargs)
 
 
 def _greedy_cluster(
