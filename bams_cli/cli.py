@@ -738,6 +738,22 @@ def select(
     _show(summary, json_out, console.select_summary, "select")
 
 
+#: ``estimate``'s human summary names the interval's kind as ``--interval`` does, and what
+#: it allows for.
+INTERVAL_NAMES = {
+    "gamma": (
+        "gamma interval",
+        "allowing for one failure the sample may have missed, of the weight the checked "
+        "model predicts",
+    ),
+    "fay-feuer": (
+        "fay-feuer interval",
+        "Fay and Feuer's, allowing for one missed failure of the largest weight any segment "
+        "could carry: it keeps its coverage however wrong the model (wider)",
+    ),
+}
+
+
 @command()
 def estimate(
     workspace: Workspace = Path(defaults.WORKSPACE),
@@ -918,11 +934,17 @@ def estimate(
         ]
         for e in summary["estimates"]
     ]
+    # The interval's kind by name: "gamma" beside a gamma column would read as the threshold.
+    kind = summary.get("interval", interval.value)
+    level = f"{100 * summary['estimates'][0]['confidence']:g}%" if summary["estimates"] else ""
+    named = INTERVAL_NAMES.get(kind, (f"{kind} interval", ""))
     console.rows_table(
-        f"failure rate (plan {summary['plan']}, {summary['design']}, "
-        f"{round(confidence * 100)}% {interval.value} interval)",
+        f"failure rate (plan {summary['plan']}, {summary['design']} design; {level} {named[0]})",
         ["gamma", "p_hat", "se", "interval", "rel. variance", "failures found"],
         rows,
+    )
+    console.out.print(
+        f"interval: {level} {named[0]}, {named[1]}", markup=False, highlight=False, soft_wrap=True
     )
     for note in [summary["staging"]["note"], *summary["notes"]]:
         if note:
@@ -1118,6 +1140,15 @@ def report(
     diverse: Annotated[
         int, typer.Option("--diverse", help="How many diverse likely failures to list.")
     ] = defaults.DIVERSE,
+    by: Annotated[
+        str | None,
+        typer.Option(
+            "--by",
+            metavar="COLUMN",
+            help="Break the failures and runs down by this pass-through column of the pool "
+            "(a scenario tag ...) \\[default: the pool's clusters, as select forms them].",
+        ),
+    ] = None,
     wait: Wait = False,
     json_out: Json = False,
 ) -> None:
@@ -1128,7 +1159,7 @@ def report(
 
     [bold]Example[/]: bams-cli report -w study   (sample data: add --truth sample_data/toy2d/truth.parquet)
     """
-    summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, wait=wait)
+    summary = pipeline.report(workspace, truth=truth, n_diverse=diverse, by=by, wait=wait)
     _show(summary, json_out, console.report_summary, "report")
 
 

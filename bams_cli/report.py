@@ -38,37 +38,56 @@ SUMMARY_KEYS = (
     "gp_estimate",
     "confirmed_failures",
     "failures_found",
+    "spend",
+    "predicted_vs_found",
+    "p_distribution",
+    "groups",
     "diverse_failures",
     "truth",
     "figures",
 )
 
+#: The page lists the first this many failures found; failures.csv holds them all.
+FAILURES_SHOWN = 50
+
 # An image that fails to decode leaves naturalWidth at 0; the page records the count in
-# its title so a headless browser (and the test that drives it) can read it back, and
-# whether the headline ends within the first screen.
+# its title so a headless browser (and the test that drives it) can read it back, whether
+# the headline ends within the first screen, and whether the page is wider than the
+# window (a table or plot that pushes it sideways).
 IMAGE_CHECK = """<script>
 window.addEventListener('load', function () {
   var imgs = Array.prototype.slice.call(document.images);
   var bad = imgs.filter(function (i) { return !(i.complete && i.naturalWidth > 0); });
   var head = document.getElementById('headline');
   var seen = head && head.getBoundingClientRect().bottom <= window.innerHeight;
+  var wide = document.documentElement.scrollWidth > window.innerWidth ||
+    document.body.scrollWidth > window.innerWidth;
   document.title = 'images-ok ' + (imgs.length - bad.length) + '/' + imgs.length +
-    (seen ? ' headline-in-first-screen' : ' headline-below-first-screen');
+    (seen ? ' headline-in-first-screen' : ' headline-below-first-screen') +
+    (wide ? ' overflows-sideways' : ' fits-width') +
+    ' viewport-' + window.innerWidth + 'x' + window.innerHeight;
 });
 </script>"""
 
 CSS = """
-body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
-h1 { margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #ddd; padding-bottom: 0.2em; }
-table { border-collapse: collapse; margin: 0.8em 0; }
+*, *::before, *::after { box-sizing: border-box; }
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 1.2em auto;
+  padding: 0 1em; color: #222; line-height: 1.4; overflow-wrap: anywhere; }
+h1 { margin: 0 0 0.3em; font-size: 1.5em; }
+h2 { border-bottom: 1px solid #ddd; padding-bottom: 0.2em; margin-top: 1.6em; }
+.headline { font-size: 1.15em; margin: 0.3em 0; }
+.scroll { overflow-x: auto; max-width: 100%; }
+table { border-collapse: collapse; margin: 0.8em 0; overflow-wrap: normal; }
 td, th { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td.l, th.l { text-align: left; }
-img { max-width: 100%; border: 1px solid #eee; }
-.note { color: #666; font-size: 0.9em; }
+img { max-width: 100%; height: auto; border: 1px solid #eee; display: block; margin: 0.6em 0; }
+.note { color: #555; font-size: 0.9em; }
 .warn { color: #a40; }
 .banner { padding: 0.7em 1em; margin: 0.8em 0; border-radius: 4px; border: 1px solid; }
 .banner.warning { background: #fff3e0; border-color: #e65100; color: #6d2a00; font-weight: 600; }
 .banner.info { background: #e8f1fb; border-color: #1e63b8; color: #123d70; }
+section.truth { border: 2px dashed #7b1fa2; padding: 0 1em 1em; margin-top: 2em; background: #faf5fc; }
+section.truth h2 { color: #6a1b9a; }
 """
 
 
@@ -108,7 +127,12 @@ def pool_map(
         )
     ax.set_xlabel("projection 1 (PCA of the reduced pool)" if projected else "z0")
     ax.set_ylabel("projection 2" if projected else "z1")
-    ax.set_title("pool coloured by failure probability, picks marked")
+    ax.set_title(
+        "2-D projection of the pool: p_n and picks (failures may hide under other points)"
+        if projected
+        else "the pool coloured by failure probability, picks marked",
+        fontsize=10,
+    )
     if picks:
         ax.legend(loc="best", fontsize=8)
     return _png(fig)
@@ -129,7 +153,8 @@ def rate_plot(estimates: list[dict[str, Any]], truth_rates: list[float] | None) 
             x, truth_rates, marker="x", color="C3", s=60, zorder=3, label="true rate (ground truth)"
         )
     ax.set_xticks(x, [f"gamma = {e['gamma']:g}" for e in estimates])
-    ax.set_ylabel("failure rate")
+    ax.set_ylabel("failure rate per segment")
+    ax.set_ylim(bottom=0)
     ax.set_xlabel("failure threshold")
     ax.set_title(f"failure-rate estimate, {int(round(estimates[0]['confidence'] * 100))}% interval")
     ax.legend(fontsize=8)
@@ -146,6 +171,142 @@ def recall_plot(curves: dict[int, NDArray[np.float64]], grid: NDArray[np.float64
     ax.set_ylim(0, 1.02)
     ax.set_title("retention-recall: segments sorted by p_n")
     ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def rate_band_plot(trends: list[dict[str, Any]], history: list[dict[str, Any]]) -> str:
+    """The model's rate after each batch with its band, and every estimate made with its
+    interval, on one axis from 0 (the report's trend)."""
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    rows = [t for t in trends if t["gp_rate"] is not None]
+    top = 0.0
+    if rows:
+        x = np.array([t["batch"] for t in rows], float)
+        m = np.array([t["gp_rate"] for t in rows])
+        sd = np.array([t["gp_sd_bound"] for t in rows])
+        lo, hi = np.maximum(m - 2 * sd, 0.0), m + 2 * sd
+        if len(rows) > 1:
+            ax.fill_between(x, lo, hi, color="C0", alpha=0.18, linewidth=0)
+        ax.errorbar(
+            x, m, yerr=[m - lo, hi - m], fmt="o-", color="C0", capsize=4, alpha=0.9,
+            label="model's rate after the batch (mean p_n), ± 2 sd bound",
+        )  # fmt: skip
+        top = max(top, 3 * float(m.max()))
+    seen: dict[int, int] = {}
+    for j, h in enumerate(history):
+        if h["p_hat"] is None:
+            continue
+        k = seen[h["after_batch"]] = seen.get(h["after_batch"], -1) + 1
+        x0 = h["after_batch"] + 0.2 + 0.12 * k
+        p, lo, hi = h["p_hat"], h["ci_low"], h["ci_high"]
+        conf = f"{100 * (h.get('confidence') or 0):g}%"
+        ax.errorbar(
+            [x0], [p], yerr=[[max(p - lo, 0.0)], [max(hi - p, 0.0)]], fmt="s", color="C3",
+            capsize=6, label=f"estimate with its {conf} interval" if j == 0 else None,
+        )  # fmt: skip
+        ax.annotate(f"plan {h['plan']}", (x0, hi), textcoords="offset points", xytext=(4, 2),
+                    fontsize=8, color="C3")  # fmt: skip
+        top = max(top, 1.15 * hi)
+    ax.set_ylim(0, top if top > 0 else None)
+    batches = [t["batch"] for t in trends]
+    if batches:
+        ax.set_xticks(batches)
+    ax.set_xlabel("batch (an estimate sits right of the last batch before its plan)")
+    ax.set_ylabel("failure rate per segment")
+    ax.set_title("the failure rate across the study", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    return _png(fig)
+
+
+def predicted_plot(trends: list[dict[str, Any]]) -> str:
+    """Failures found against the count the model predicted before the results: over the
+    batches with a model before them, cumulative level-0 failures confirmed and the
+    cumulative sum of p_n at their level-0 results, ± 2 sd."""
+    rows = [t for t in trends if t["predicted_failures"] is not None]
+    fig, ax = plt.subplots(figsize=(7, 3.4))
+    x = np.array([t["batch"] for t in rows])
+    pred = np.cumsum([t["predicted_failures"] for t in rows])
+    sd = np.sqrt(np.cumsum([t["predicted_sd"] ** 2 for t in rows]))
+    found = np.cumsum([t["confirmed"] for t in rows])
+    lo = np.maximum(pred - 2 * sd, 0)
+    if len(rows) > 1:
+        ax.fill_between(x, lo, pred + 2 * sd, color="C0", alpha=0.18, linewidth=0)
+    ax.errorbar(x, pred, yerr=[pred - lo, 2 * sd], fmt="o--", color="C0", capsize=4,
+                label="expected by the model before the results (± 2 sd)")  # fmt: skip
+    ax.plot(x, found, "s-", color="C3", label="confirmed at level 0")
+    ax.set_xticks(x)
+    ax.set_ylim(bottom=0, top=max(1.0, float((pred + 2 * sd).max()), float(found.max())) * 1.15)
+    ax.set_xlabel("batch")
+    ax.set_ylabel("level-0 failures, cumulative")
+    ax.set_title("failures found against the model's prediction", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    return _png(fig)
+
+
+def p_distribution_plot(d: dict[str, Any]) -> str:
+    """The model's p_n over the pool on a log scale, the failures it expects in each bin,
+    and where the level-0 runs went (at the p_n a model gave before their results)."""
+    edges = np.array(d["edges"], float)
+    edges[0] = edges[1] / 10**0.5  # the [0, 1e-6) bin drawn half a decade wide
+    fig, (top, low) = plt.subplots(
+        2, 1, figsize=(7, 4.8), sharex=True, gridspec_kw={"height_ratios": [3, 2]}
+    )
+    top.stairs(d["unknown"], edges, fill=True, color="C0", alpha=0.35,
+               label="segments not yet run at level 0")  # fmt: skip
+    top.stairs(d["expected_failures"], edges, color="C3", linewidth=1.8,
+               label="failures the model expects there (sum of p_n)")  # fmt: skip
+    top.set_yscale("log", nonpositive="clip")
+    top.set_ylim(bottom=1e-2)
+    top.set_ylabel("segments / failures")
+    top.legend(fontsize=8, loc="upper left")
+    top.set_title(f"the model's failure probability p_n = P(f <= {d['gamma']:g}) over the pool",
+                  fontsize=10)  # fmt: skip
+    low.stairs(d["runs"], edges, fill=True, color="C2", alpha=0.45,
+               label="level-0 runs, at the p_n before their result")  # fmt: skip
+    low.stairs(d["runs_failed"], edges, fill=True, color="C3", alpha=0.9,
+               label="failures among them")  # fmt: skip
+    low.set_ylabel("level-0 runs")
+    low.set_xscale("log")
+    low.set_xlabel("p_n (log scale; the leftmost bin holds every p_n below 1e-6)")
+    low.legend(fontsize=8, loc="upper left")
+    return _png(fig)
+
+
+def groups_plot(g: dict[str, Any]) -> str:
+    """Per cluster or tag: the failures the model expects, those confirmed and the leads;
+    beside it the runs spent per level."""
+    rows = g["rows"]
+    names = [r["group"] for r in rows]
+    x = np.arange(len(rows))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.6))
+    width = 0.27
+    if rows[0]["expected_failures"] is not None:
+        left.bar(x - width, [r["expected_failures"] for r in rows], width, color="C0",
+                 label="expected (sum of p_n)")  # fmt: skip
+    left.bar(x, [r["confirmed"] for r in rows], width, color="C3", label="confirmed")
+    left.bar(x + width, [r["leads"] for r in rows], width, color="C1", label="leads")
+    left.set_ylabel("failures")
+    left.set_title("failures per group", fontsize=10)
+    left.legend(fontsize=8)
+    bottom = np.zeros(len(rows))
+    levels = sorted(rows[0]["runs_per_level"], key=int)
+    for lv in levels:
+        runs = np.array([r["runs_per_level"][lv] for r in rows], float)
+        right.bar(x, runs, 0.6, bottom=bottom, color=f"C{int(lv) + 2}", label=f"level {lv}")
+        bottom += runs
+    right.set_ylabel("runs")
+    right.set_title("runs spent per group", fontsize=10)
+    right.legend(fontsize=8)
+    for ax in (left, right):
+        ax.set_xticks(
+            x,
+            names,
+            rotation=30 if len(rows) > 4 else 0,
+            ha="right" if len(rows) > 4 else "center",
+            fontsize=8,
+        )
+        ax.set_xlabel(g["by"])
+    fig.tight_layout()
     return _png(fig)
 
 
@@ -168,6 +329,16 @@ def _img(b64: str, alt: str) -> str:
 
 def _sig(x: float) -> str:
     return f"{x:.2g}" if x >= 1e-3 else f"{x:.1e}"
+
+
+#: What each interval kind (``estimate --interval``) allows for, as the headline says it.
+INTERVAL_KINDS = {
+    "gamma": "it is a gamma interval: its upper end also allows for one failure, of the weight "
+    "the checked model predicts, that the sample may have missed. ",
+    "fay-feuer": "it is Fay and Feuer's interval: its upper end allows for one missed failure "
+    "of the largest weight any segment could carry, so it keeps its coverage however wrong "
+    "the model (wider than the gamma interval). ",
+}
 
 
 def headline(
@@ -209,8 +380,9 @@ def headline(
             f"{'s' if e['failures_sampled'] != 1 else ''} among {e['n_sampled']} segments "
             f"sampled by {by}"
             + (f", beside {e['failures_known']} known before it" if e.get("failures_known") else "")
-            + "; its upper end also allows for one failure the sample may have missed, so "
-            "more samples (a larger `estimate --plan --samples K`) narrow it."
+            + "; "
+            + INTERVAL_KINDS.get(e.get("interval", "gamma"), "")
+            + "More samples (a larger `estimate --plan --samples K`) narrow it."
         )
         if e.get("variance_note"):
             width += f" {e['variance_note']}"
@@ -230,41 +402,357 @@ def headline(
 
 
 def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
+    """The page, top to bottom: the headline, the failures found, the trend across the
+    study and when to stop, where the failures are (plots that read in any dimension), the
+    estimate's details, the likely failures, the study's settings and model, the 2-D pool
+    map, and, only with --truth, the comparison with ground truth, marked as such."""
     s = summary
-    study = s["study"]
     head = s["headline"]
     parts = [
-        "<!doctype html><html><head><meta charset='utf-8'><title>bams-cli report</title>",
-        f"<style>{CSS}</style>{IMAGE_CHECK}</head><body>",
+        "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>",
+        f"<title>bams-cli report</title><style>{CSS}</style>{IMAGE_CHECK}</head><body>",
         "<h1>bams-cli study report</h1>",
-        f"<p id='headline' class='headline'><b>{html.escape(head['text'][:1].upper() + head['text'][1:])}.</b></p>",
-        f"<p class='note'>{html.escape(head['width'])} Failures found: "
+        f"<p id='headline' class='headline'><b>{html.escape(_cap(head['text']))}.</b></p>",
+        f"<p class='note'>{_code(head['width'])} Every failure found: "
         "<a href='failures.csv'>failures.csv</a>.</p>",
         *_banners(s["notices"]),
         f"<p class='note'>workspace {html.escape(s['workspace'])}, generated {s['generated_at']} "
         f"by bams-cli {s['tool_version']}</p>",
+    ]
+    parts += _failures_section(s)
+    parts += _trends_section(s, figures)
+    parts += _where_section(s, figures)
+    parts += _estimate_section(s, figures)
+    parts += _likely_section(s)
+    parts += _study_section(s)
+    if "pool_map" in figures:
+        parts += [
+            "<h2>Pool map (a 2-D projection)</h2>",
+            "<p class='note'>The pool projected to two dimensions"
+            + (f" (PCA of its {s['study']['dim']} reduced coordinates)" if s["study"]["dim"] > 2
+               else "")
+            + ", coloured by p_n, with each batch's picks marked. Segments far apart in the "
+            "pool can land on top of each other here: read the plots above for where the "
+            "failures are.</p>",
+            _img(figures["pool_map"], "pool coloured by p_n with picks (2-D projection)"),
+        ]  # fmt: skip
+    parts += _truth_section(s, figures)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _cap(text: str) -> str:
+    return text[:1].upper() + text[1:]
+
+
+def _code(text: str) -> str:
+    """Escaped text with `commands` set as code."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(text))
+
+
+def _scroll(table: str) -> str:
+    """A table that scrolls on its own when wider than the page, never the page."""
+    return f"<div class='scroll'>{table}</div>"
+
+
+def _failures_section(s: dict[str, Any]) -> list[str]:
+    found = s["failures_found"]
+    parts = ["<h2>Failures found</h2>"]
+    if not found["count"]:
+        return parts + [
+            "<p>None yet: no level-0 result is at or below a gamma, and no cheap-level result "
+            "is at or below the first.</p>"
+        ]
+    cols = found["columns"]
+    rows = [[_cell(r[c]) for c in cols] for r in found["shown"]]
+    parts.append(
+        f"<p>{found['count']} failure{'s' if found['count'] != 1 else ''} found: "
+        f"{found['confirmed']} confirmed at level 0, {found['leads']} lead"
+        f"{'s' if found['leads'] != 1 else ''} (failed at a cheap level, level 0 not yet run).</p>"
+    )
+    parts.append(_scroll(_table(cols, rows, left={"segment_id", "status", "found_by", "fails_at"})))
+    more = found["count"] - len(found["shown"])
+    if more > 0:
+        parts.append(
+            f"<p><b>{more} more</b> in <a href='failures.csv'>failures.csv</a> (the first "
+            f"{len(found['shown'])} are shown: confirmed first, then by value).</p>"
+        )
+    parts.append(
+        "<p class='note'>status: confirmed (its level-0 value is at or below a gamma) or lead "
+        "(a cheap level failed at the first gamma; level 0 has not run). found_by: the batch "
+        "or estimate plan whose request returned the failing result. fails_at: the gammas "
+        "it fails at. value_L: the metric at level L. Then the pool's pass-through "
+        "columns.</p>"
+    )
+    return parts
+
+
+def _trends_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
+    parts = ["<h2>Trends, and when to stop</h2>"]
+    if "rate_band" in figures:
+        parts.append(_img(figures["rate_band"], "failure rate across batches, with estimates"))
+        parts.append(
+            "<p class='note'>Blue: the model's rate (mean p_n) after each batch, its band 2 "
+            "Proposition-1 sd bounds either side (a loose bound: the band may run off the "
+            "top). Red: every estimate made, with its interval; unlike the model's rate it is "
+            "unbiased whatever the model.</p>"
+        )
+    if "predicted" in figures:
+        parts.append(_img(figures["predicted"], "failures found against the predicted count"))
+    pv = s["predicted_vs_found"]
+    if pv is not None:
+        parts.append(f"<p>{html.escape(predicted_line(pv))}</p>")
+    if s["trends"] or s["spend"]["plans"]:
+        parts.append(_scroll(_trends_table(s)))
+        parts.append(
+            "<p class='note'>Runs per level: results in, counted from the observation log. "
+            "Failures: level-0 failures at the first gamma among the step's results (so far: "
+            "those of every batch up to it). Expected: the failures the model fitted before "
+            "the batch's results predicted among its level-0 results (sum of p_n, ± 1 sd). "
+            "Model's rate: mean p_n of the model fitted on the results up to that batch, "
+            "with the Proposition-1 bound on its sd. J: the pool's mean expected point "
+            "variance before and after the batch, as select computed it (blank for batches "
+            "written before it was stored).</p>"
+        )
+        parts.append(_scroll(_spend_table(s)))
+    if len(s["estimate_history"]) > 1:
+        parts.append("<h3>Every estimate made</h3>")
+        parts.append(
+            _scroll(
+                _table(
+                    ["plan", "sample of plans", "after batch", "design", "interval", "K",
+                     "p_hat", "interval low", "interval high"],
+                    [
+                        [h["plan"], ", ".join(map(str, h.get("plans") or [h["plan"]])),
+                         h.get("after_batch", ""), h["design"], h.get("interval", "gamma"),
+                         h["samples_K"], _na(h["p_hat"], ".3g"), _na(h["ci_low"], ".3g"),
+                         _na(h["ci_high"], ".3g")]
+                        for h in s["estimate_history"]
+                    ],
+                )
+            )
+        )  # fmt: skip
+    parts += [f"<p>{_code(line)}</p>" for line in stopping_lines(s["stopping"])]
+    return parts
+
+
+def _trends_table(s: dict[str, Any]) -> str:
+    """Batches and estimate plans in the order they were made, each with its spend."""
+    levels = sorted(s["simulation_spent"]["per_level"], key=int)
+    history = {h["plan"]: h for h in s["estimate_history"]}
+    plans = s["spend"]["plans"]
+    rows: list[list[Any]] = []
+
+    def blank(v: float | None, spec: str) -> str:
+        return "" if v is None else format(v, spec)
+
+    def plan_rows(after: int) -> None:
+        for p in plans:
+            if p["after_batch"] != after:
+                continue
+            h = history.get(p["plan"])
+            rate = (
+                ""
+                if h is None or h["p_hat"] is None
+                else f"estimate {h['p_hat']:.3g} [{h['ci_low']:.3g}, {h['ci_high']:.3g}]"
+            )
+            counts = [p["per_level"][lv]["count"] for lv in levels]
+            rows.append([f"estimate plan {p['plan']}", *counts, p["cost"], p["confirmed"], "",
+                         rate, "", ""])  # fmt: skip
+
+    plan_rows(0)
+    for t in s["trends"]:
+        expected = (
+            ""
+            if t["predicted_failures"] is None
+            else f"{t['predicted_failures']:.2g} ± {t['predicted_sd']:.2g}"
+        )
+        rate = "" if t["gp_rate"] is None else f"model {t['gp_rate']:.3g} ({t['gp_sd_bound']:.2g})"
+        j = "" if t["j_before"] is None else f"{t['j_before']:.3g} → {t['j_after']:.3g}"
+        runs = t.get("runs_per_level", {})
+        rows.append([f"batch {t['batch']}", *[runs.get(lv, 0) for lv in levels],
+                     _batch_spent(t, s), f"{t['confirmed']} ({t['confirmed_so_far']})",
+                     expected, rate, j, blank(t["j_decrease_per_cost"], ".3g")])  # fmt: skip
+        plan_rows(t["batch"])
+    cols = ["step", *[f"level {lv} runs" for lv in levels], "cost",
+            "level-0 failures (so far)", "expected before results",
+            "rate: model's (sd bound), or estimate [interval]", "J before → after",
+            "J decrease per cost"]  # fmt: skip
+    return _table(cols, rows, left={"step"})
+
+
+def _batch_spent(t: dict[str, Any], s: dict[str, Any]) -> float:
+    costs = {str(i): lv["cost"] for i, lv in enumerate(s["study"]["levels"])}
+    return float(sum(costs[lv] * c for lv, c in t.get("runs_per_level", {}).items()))
+
+
+def _spend_table(s: dict[str, Any]) -> str:
+    sp = s["spend"]
+    levels = sorted(s["simulation_spent"]["per_level"], key=int)
+    rows = []
+    for key, name in (("discovery", "discovery (batches)"), ("estimate", "estimate plans"),
+                      ("other", "results not asked for")):  # fmt: skip
+        part = sp[key]
+        if key == "other" and not part["count"]:
+            continue
+        rows.append([name, *[part["per_level"][lv]["count"] for lv in levels], part["count"],
+                     part["cost"]])  # fmt: skip
+    total = s["simulation_spent"]
+    rows.append(["total", *[total["per_level"][lv]["count"] for lv in levels], total["count"],
+                 total["cost"]])  # fmt: skip
+    return _table(
+        ["spend, by purpose", *[f"level {lv} runs" for lv in levels], "runs", "cost"],
+        rows,
+        left={"spend, by purpose"},
+    )
+
+
+def _where_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
+    parts = ["<h2>Where the failures are</h2>"]
+    if "p_distribution" in figures:
+        d = s["p_distribution"]
+        parts.append(_img(figures["p_distribution"], "distribution of p_n over the pool"))
+        unknown = sum(d["expected_failures"])
+        parts.append(
+            f"<p class='note'>Top: how many segments not yet run at level 0 the model gives each "
+            f"p_n, and the failures it expects among them ({unknown:.3g} in all). Bottom: "
+            f"the level-0 runs of batches and plans at the p_n the model gave them before "
+            f"their result ({sum(d['runs'])} runs; {d['runs_without_prior']} more had no "
+            "model before them), and the failures among them. Failures found at low p_n are "
+            "failures the model did not see coming.</p>"
+        )
+    g = s["groups"]
+    if g is not None and g["rows"]:
+        levels = sorted(g["rows"][0]["runs_per_level"], key=int)
+        parts.append(f"<h3>By {html.escape(g['by'])}</h3>")
+        parts.append(
+            _scroll(
+                _table(
+                    [g["by"], "segments", "expected failures (sum p_n)",
+                     "expected among not run at level 0", *[f"level {lv} runs" for lv in levels],
+                     "confirmed", "leads"],
+                    [[r["group"], r["size"], _na(r["expected_failures"], ".3g"),
+                      _na(r["expected_unconfirmed"], ".3g"),
+                      *[r["runs_per_level"][lv] for lv in levels], r["confirmed"], r["leads"]]
+                     for r in g["rows"]],
+                    left={g["by"]},
+                )
+            )
+        )  # fmt: skip
+        if "groups" in figures:
+            parts.append(_img(figures["groups"], f"failures and runs per {g['by']}"))
+        parts.append(
+            "<p class='note'>"
+            + _code(
+                f"Groups: {g['how']}. Confirmed: level-0 failures at the first gamma; leads: "
+                "cheap-level failures not yet run at level 0. A group whose expected failures "
+                "far exceed those confirmed, with few runs, is where the next runs could look "
+                "(`bams-cli report --by COLUMN` groups by a pass-through column instead)."
+            )
+            + "</p>"
+        )
+    if len(parts) == 1:
+        parts.append("<p>No model yet: run <code>bams-cli fit</code>.</p>")
+    return parts
+
+
+def _estimate_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
+    parts = ["<h2>Failure-rate estimate</h2>"]
+    if s["estimates"]:
+        e0 = s["estimates"][0]
+        kind = e0.get("interval", "gamma")
+        parts.append(
+            f"<p class='note'>From estimate plan {e0['plan']}; "
+            f"{100 * e0['confidence']:g}% {'Fay-Feuer' if kind == 'fay-feuer' else 'gamma'} "
+            "intervals.</p>"
+        )
+        parts.append(
+            _scroll(
+                _table(
+                    ["gamma", "p_hat", "se", "interval", "relative variance", "sampled",
+                     "failures found"],
+                    [[e["gamma"], e["p_hat"], _na(e["se"]),
+                      f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]", _na(e["rel_var"]),
+                      e["n_sampled"], e["distinct_failures_found"]]
+                     for e in s["estimates"]],
+                )
+            )
+        )  # fmt: skip
+        parts += [f"<p class='note'>{html.escape(n)}</p>" for n in estimate_notes(s["estimates"])]
+        if "rate" in figures:
+            parts.append(_img(figures["rate"], "rate estimate with interval"))
+    else:
+        parts.append(
+            "<p>No estimate yet: run <code>bams-cli estimate --plan</code>, simulate, ingest, "
+            "then <code>bams-cli estimate</code>.</p>"
+        )
+    if s["gp_estimate"]:
+        parts.append(
+            _scroll(
+                _table(
+                    ["gamma", "GP mean p_n", "Var bound mean p(1-p)"],
+                    [[g["gamma"], g["gp_p_hat"], g["gp_var_bound"]] for g in s["gp_estimate"]],
+                )
+            )
+        )
+    return parts
+
+
+def _likely_section(s: dict[str, Any]) -> list[str]:
+    parts = ["<h2>Diverse likely failures</h2>"]
+    if s["diverse_failures"]:
+        cols = list(s["diverse_failures"][0].keys())
+        parts.append(
+            _scroll(
+                _table(
+                    cols, [[r[c] for c in cols] for r in s["diverse_failures"]], left={"segment_id"}
+                )
+            )
+        )
+        parts.append(
+            "<p class='note'>Predictions, not findings: chosen by a determinantal point "
+            "process (greedy MAP) over the highest-p_n segments whose level-0 value is "
+            "unknown, likely and unlike each other. observed_f1 and up: cheap-level results, "
+            "leads until level 0 confirms them.</p>"
+        )
+    elif s["model"] is None:
+        parts.append("<p>No model yet: run <code>bams-cli fit</code>.</p>")
+    return parts
+
+
+def _study_section(s: dict[str, Any]) -> list[str]:
+    study = s["study"]
+    parts = [
         "<h2>Study</h2>",
-        _table(
-            ["setting", "value"],
-            [
-                ["pool size", study["pool_size"]],
-                ["reduced dimension", study["dim"]],
-                ["gammas", ", ".join(f"{g:g}" for g in study["gammas"])],
+        _scroll(
+            _table(
+                ["setting", "value"],
                 [
-                    "levels (cost)",
-                    ", ".join(f"{lv['name']} ({lv['cost']:g})" for lv in study["levels"]),
+                    ["pool size", study["pool_size"]],
+                    ["reduced dimension", study["dim"]],
+                    ["gammas", ", ".join(f"{g:g}" for g in study["gammas"])],
+                    [
+                        "levels (cost)",
+                        ", ".join(f"{lv['name']} ({lv['cost']:g})" for lv in study["levels"]),
+                    ],
+                    ["seed", study["seed"]],
+                    ["batches", len(s["batches"])],
                 ],
-                ["seed", study["seed"]],
-                ["batches", len(s["batches"])],
-            ],
-            left={"setting", "value"},
+                left={"setting", "value"},
+            )
         ),
         "<h3>Simulation spent</h3>",
-        _table(
-            ["level", "simulations", "cost"],
-            [[lv, v["count"], v["cost"]] for lv, v in s["simulation_spent"]["per_level"].items()]
-            + [["total", s["simulation_spent"]["count"], s["simulation_spent"]["cost"]]],
-            left={"level"},
+        _scroll(
+            _table(
+                ["level", "simulations", "cost"],
+                [
+                    [lv, v["count"], v["cost"]]
+                    for lv, v in s["simulation_spent"]["per_level"].items()
+                ]
+                + [["total", s["simulation_spent"]["count"], s["simulation_spent"]["cost"]]],
+                left={"level"},
+            )
         ),
     ]
     model = s.get("model")
@@ -293,10 +781,12 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
             )
         parts += [
             "<h3>Model</h3>",
-            _table(
-                ["level", "observations", "output sd", "lengthscales", "noise sd"],
-                rows,
-                left={"level", "lengthscales"},
+            _scroll(
+                _table(
+                    ["level", "observations", "output sd", "lengthscales", "noise sd"],
+                    rows,
+                    left={"level", "lengthscales"},
+                )
             ),
             f"<p class='note'>constant mean {hp['mean']:.4g}; log marginal likelihood "
             f"{model['log_marginal_likelihood']:.4g}; "
@@ -305,191 +795,54 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
         parts += [
             f"<p class='warn'>fit warning: {html.escape(w)}</p>" for w in model.get("warnings", [])
         ]
-    parts.append("<h2>Batches</h2>")
+    parts.append("<h3>Batches</h3>")
     if s["batches"]:
+        truth = bool(s["truth"])
         parts.append(
-            _table(
-                [
-                    "batch",
-                    "strategy",
-                    "picks",
-                    "per level",
-                    "per cluster",
-                    "cost",
-                    "mean level-0 f of picks",
-                    "SE",
-                    "n",
-                    "pending",
-                    "abandoned",
-                ],
-                [
-                    [
-                        b["batch"],
-                        b["strategy"],
-                        b["picks"],
-                        _fmt_counts(b["picks_per_level"]),
-                        _fmt_counts(b["picks_per_cluster"]),
-                        b["cost"],
-                        _maybe(b["mean_f0"]),
-                        _maybe(b["mean_f0_se"]),
-                        b["n_f0"],
-                        b["pending"],
-                        b.get("abandoned", 0),
-                    ]
-                    for b in s["batches"]
-                ],
-                left={"strategy", "per level", "per cluster"},
+            _scroll(
+                _table(
+                    ["batch", "strategy", "picks", "per level", "per cluster", "cost",
+                     "mean level-0 f of picks" + (" (ground truth)" if truth else ""), "SE", "n",
+                     "pending", "abandoned"],
+                    [[b["batch"], b["strategy"], b["picks"], _fmt_counts(b["picks_per_level"]),
+                      _fmt_counts(b["picks_per_cluster"]), b["cost"], _maybe(b["mean_f0"]),
+                      _maybe(b["mean_f0_se"]), b["n_f0"], b["pending"], b.get("abandoned", 0)]
+                     for b in s["batches"]],
+                    left={"strategy", "per level", "per cluster"},
+                )
             )
-        )
+        )  # fmt: skip
         parts.append(
             "<p class='note'>Mean level-0 f over the picks whose level-0 value is known "
-            f"({'from the ground truth table' if s['truth'] else 'from the observation log'}); "
+            f"({'from the ground truth table (--truth)' if truth else 'from the observation log'}); "
             "the paper's Table 1. Blank where no pick's level-0 value is known yet (only "
             "cheap-level picks, or results pending); pending: picks without a result; "
             "abandoned: picks recorded as never coming back (bams-cli abandon).</p>"
         )
-    parts.append("<h2>Trends, and when to stop</h2>")
-    if s["trends"]:
-        parts.append(
-            _table(
-                [
-                    "batch",
-                    "cost per level",
-                    "confirmed",
-                    "confirmed so far",
-                    "model's rate",
-                    "sd bound",
-                    "J before",
-                    "J after",
-                    "J decrease per cost",
-                ],
-                [
-                    [
-                        t["batch"],
-                        ", ".join(f"{k}: {v:g}" for k, v in t["cost_per_level"].items()),
-                        t["confirmed"],
-                        t["confirmed_so_far"],
-                        _na(t["gp_rate"], ".3g"),
-                        _na(t["gp_sd_bound"], ".2g"),
-                        _na(t["j_before"], ".3g"),
-                        _na(t["j_after"], ".3g"),
-                        _na(t["j_decrease_per_cost"], ".3g"),
-                    ]
-                    for t in s["trends"]
-                ],
-            )  # fmt: skip
-        )
-        parts.append(
-            "<p class='note'>Confirmed: level-0 failures at the first gamma that the batch's "
-            "requests found. Model's rate: mean p_n of the model fitted on the results up to "
-            "that batch, with the Proposition-1 bound on its sd (a model's estimate, not "
-            "design-unbiased). J: the pool's mean expected point variance before and after the "
-            "batch, as select computed it (blank for batches written before it was stored).</p>"
-        )
-    if len(s["estimate_history"]) > 1:
-        parts.append("<h3>Every estimate made</h3>")
-        parts.append(
-            _table(
-                ["plan", "design", "K", "p_hat", "interval low", "interval high"],
-                [
-                    [
-                        h["plan"],
-                        h["design"],
-                        h["samples_K"],
-                        _na(h["p_hat"], ".3g"),
-                        _na(h["ci_low"], ".3g"),
-                        _na(h["ci_high"], ".3g"),
-                    ]
-                    for h in s["estimate_history"]
-                ],
-            )  # fmt: skip
-        )
-    parts += [f"<p>{html.escape(line)}</p>" for line in stopping_lines(s["stopping"])]
-    if "pool_map" in figures:
-        parts += ["<h2>Pool map</h2>", _img(figures["pool_map"], "pool coloured by p_n with picks")]
-    parts.append("<h2>Failure-rate estimate</h2>")
-    if s["estimates"]:
-        parts.append(f"<p class='note'>From estimate plan {s['estimates'][0]['plan']}.</p>")
-        parts.append(
-            _table(
-                [
-                    "gamma",
-                    "p_hat",
-                    "se",
-                    "interval",
-                    "relative variance",
-                    "sampled",
-                    "failures found",
-                ],
-                [
-                    [
-                        e["gamma"],
-                        e["p_hat"],
-                        _na(e["se"]),
-                        f"[{e['ci_low']:.4g}, {e['ci_high']:.4g}]",
-                        _na(e["rel_var"]),
-                        e["n_sampled"],
-                        e["distinct_failures_found"],
-                    ]
-                    for e in s["estimates"]
-                ],
-            )
-        )
-        parts += [f"<p class='note'>{html.escape(n)}</p>" for n in estimate_notes(s["estimates"])]
-        if "rate" in figures:
-            parts.append(_img(figures["rate"], "rate estimate with interval"))
     else:
         parts.append(
-            "<p>No estimate yet: run <code>bams-cli estimate --plan</code>, simulate, ingest, "
-            "then <code>bams-cli estimate</code>.</p>"
+            "<p>None yet: <code>bams-cli select --strategy random</code> makes the first.</p>"
         )
-    if s["gp_estimate"]:
-        parts.append(
-            _table(
-                ["gamma", "GP mean p_n", "Var bound mean p(1-p)"],
-                [[g["gamma"], g["gp_p_hat"], g["gp_var_bound"]] for g in s["gp_estimate"]],
-            )
-        )
-    parts.append("<h2>Confirmed failures</h2>")
-    if s["confirmed_failures"]:
-        cols = list(s["confirmed_failures"][0].keys())
-        parts.append(
-            _table(
-                cols,
-                [[_cell(r[c]) for c in cols] for r in s["confirmed_failures"]],
-                left={"segment_id", "fails_at_gamma"},
-            )
-        )
-        parts.append(
-            "<p class='note'>Segments simulated at level 0 with f &lt;= gamma for at least "
-            "one gamma (batches and estimate plans alike).</p>"
-        )
-    else:
-        parts.append("<p>None yet: no level-0 result is at or below a gamma.</p>")
-    parts.append("<h2>Diverse likely failures</h2>")
-    if s["diverse_failures"]:
-        cols = list(s["diverse_failures"][0].keys())
-        parts.append(
-            _table(cols, [[r[c] for c in cols] for r in s["diverse_failures"]], left={"segment_id"})
-        )
-        parts.append(
-            "<p class='note'>Chosen by a determinantal point process (greedy MAP) over the "
-            "highest-p_n segments whose level-0 value is unknown: likely and unlike each "
-            "other. observed_f1 and up: cheap-level results, leads until level 0 confirms "
-            "them.</p>"
-        )
-    elif s["model"] is None:
-        parts.append("<p>No model yet: run <code>bams-cli fit</code>.</p>")
+    return parts
+
+
+def _truth_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
     truth = s.get("truth")
-    if truth:
-        parts.append("<h2>Against ground truth</h2>")
-        parts.append(
+    if not truth:
+        return []
+    parts = [
+        "<section class='truth' id='ground-truth' data-truth='1'>",
+        "<h2>Against ground truth (--truth)</h2>",
+        "<p><b>Only because --truth was given</b> (sample data, or a study re-run on a "
+        "simulated pool): a real study has no ground truth, and nothing above uses it, "
+        "except the batches' mean level-0 f, marked there.</p>",
+        _scroll(
             _table(
                 ["gamma", "true rate", "true failures", "estimate recall"],
                 [
                     [g, r, f, _maybe(er)]
                     for g, r, f, er in zip(
-                        study["gammas"],
+                        s["study"]["gammas"],
                         truth["rate"],
                         truth["failures"],
                         truth["estimate_recall"],
@@ -497,11 +850,14 @@ def render_html(summary: dict[str, Any], figures: dict[str, str]) -> str:
                     )
                 ],
             )
-        )
-        if "recall" in figures:
-            parts.append(_img(figures["recall"], "retention-recall per batch"))
-    parts.append("</body></html>")
-    return "\n".join(parts)
+        ),
+    ]
+    if "rate_truth" in figures:
+        parts.append(_img(figures["rate_truth"], "estimate against the true rate"))
+    if "recall" in figures:
+        parts.append(_img(figures["recall"], "retention-recall per batch (ground truth)"))
+    parts.append("</section>")
+    return parts
 
 
 def _banners(notices: list[dict[str, str]]) -> list[str]:
@@ -517,6 +873,8 @@ def _banners(notices: list[dict[str, str]]) -> list[str]:
 
 
 def _cell(v: Any) -> Any:
+    if v is None:
+        return ""
     return ", ".join(f"{x:g}" for x in v) if isinstance(v, list) else v
 
 
@@ -567,6 +925,14 @@ def render_markdown(summary: dict[str, Any]) -> str:
         f"{spent['count']} simulations costing {spent['cost']:g} level-0 runs."
     )
     lines.append("")
+    lines += [spend_line(s), ""]
+    found = s["failures_found"]
+    lines += [
+        f"Failures found: {found['count']} ({found['confirmed']} confirmed at level 0, "
+        f"{found['leads']} lead{'s' if found['leads'] != 1 else ''} seen only at a cheap level), "
+        "every one in report/failures.csv.",
+        "",
+    ]
     if s["estimates"]:
         lines += [
             "| gamma | p_hat | se | interval | rel. variance | failures found |",
@@ -610,10 +976,11 @@ def render_markdown(summary: dict[str, Any]) -> str:
             + "."
         )
     lines.append("")
+    lines += group_lines(s["groups"])
     if s.get("truth"):
         t = s["truth"]
         lines.append(
-            "True rate "
+            "**Against ground truth (--truth; a real study has none):** true rate "
             + ", ".join(f"{r:.4g}" for r in t["rate"])
             + "; estimate recall "
             + ", ".join("" if r is None else f"{r:.3f}" for r in t["estimate_recall"])
@@ -628,25 +995,37 @@ def trend_lines(summary: dict[str, Any]) -> list[str]:
     trends = summary["trends"]
     if trends:
         lines += [
-            "| batch | cost per level | confirmed (so far) | model's rate (sd bound) | J before -> after | J decrease per cost |",
-            "|---|---|---|---|---|---|",
+            "| batch | cost per level | confirmed (so far) | expected before results | model's rate (sd bound) | J before -> after | J decrease per cost |",
+            "|---|---|---|---|---|---|---|",
         ]
         for t in trends:
             rate = "" if t["gp_rate"] is None else f"{t['gp_rate']:.3g} ({t['gp_sd_bound']:.2g})"
             j = "" if t["j_before"] is None else f"{t['j_before']:.3g} -> {t['j_after']:.3g}"
             dj = "" if t["j_decrease_per_cost"] is None else f"{t['j_decrease_per_cost']:.3g}"
             cost = ", ".join(f"{k}: {v:g}" for k, v in t["cost_per_level"].items())
+            exp = (
+                ""
+                if t["predicted_failures"] is None
+                else f"{t['predicted_failures']:.2g} ± {t['predicted_sd']:.2g}"
+            )
             lines.append(
-                f"| {t['batch']} | {cost} | {t['confirmed']} ({t['confirmed_so_far']}) | {rate} | {j} | {dj} |"
+                f"| {t['batch']} | {cost} | {t['confirmed']} ({t['confirmed_so_far']}) | {exp} | {rate} | {j} | {dj} |"
             )
         lines.append("")
+    if summary["predicted_vs_found"] is not None:
+        lines += [predicted_line(summary["predicted_vs_found"]), ""]
     history = summary["estimate_history"]
     if len(history) > 1:
-        lines += ["| plan | design | K | p_hat | interval |", "|---|---|---|---|---|"]
+        lines += [
+            "| plan | after batch | design | K | p_hat | interval |",
+            "|---|---|---|---|---|---|",
+        ]
         for h in history:
+            kind = h.get("interval", "gamma")
             lines.append(
-                f"| {h['plan']} | {h['design']} | {h['samples_K']:g} | {h['p_hat']:.3g} "
-                f"| [{h['ci_low']:.3g}, {h['ci_high']:.3g}] |"
+                f"| {h['plan']} | {h.get('after_batch', '')} | {h['design']} | {h['samples_K']:g} "
+                f"| {h['p_hat']:.3g} | {100 * h['confidence']:g}% {kind}: "
+                f"[{h['ci_low']:.3g}, {h['ci_high']:.3g}] |"
             )
         lines.append("")
     lines += [f"{line}\n" for line in stopping_lines(summary["stopping"])]
@@ -675,3 +1054,60 @@ def stopping_lines(stop: dict[str, Any]) -> list[str]:
             " the width shrinks as 1/sqrt(K))."
         )
     return out
+
+
+def spend_line(summary: dict[str, Any]) -> str:
+    """Discovery spend apart from estimate-plan spend, in one sentence (summary.md)."""
+    sp = summary["spend"]
+
+    def part(d: dict[str, Any]) -> str:
+        levels = ", ".join(
+            f"level {lv}: {v['count']}" for lv, v in d["per_level"].items() if v["count"]
+        )
+        return f"{d['count']} runs costing {d['cost']:.3g}" + (f" ({levels})" if levels else "")
+
+    text = f"Spend (results in): discovery batches {part(sp['discovery'])}; estimate plans "
+    text += part(sp["estimate"])
+    if sp["plans"]:
+        text += ", by plan " + ", ".join(f"{p['plan']}: {p['count']}" for p in sp["plans"])
+    if sp["other"]["count"]:
+        text += f"; results not asked for {part(sp['other'])}"
+    return text + "."
+
+
+def predicted_line(pv: dict[str, Any]) -> str:
+    """The failures found against what the model predicted before the results."""
+    b = pv["batches"]
+    which = f"batch {b[0]}" if len(b) == 1 else f"batches {', '.join(map(str, b[:-1]))} and {b[-1]}"
+    return (
+        f"Before their results, the model expected {pv['predicted']:.2g} ± "
+        f"{pv['predicted_sd']:.2g} level-0 failures among the {pv['level0_results']} level-0 "
+        f"results of {which}; {pv['found']} {'was' if pv['found'] == 1 else 'were'} found"
+        + (
+            " (more than 2 sd above: the model misses failures)."
+            if pv["found"] > pv["predicted"] + 2 * pv["predicted_sd"]
+            else "."
+        )
+    )
+
+
+def group_lines(groups: dict[str, Any] | None) -> list[str]:
+    """The per-cluster or per-tag breakdown as a Markdown table (summary.md)."""
+    if groups is None or not groups["rows"]:
+        return []
+    levels = sorted(groups["rows"][0]["runs_per_level"], key=int)
+    lines = [
+        f"By {groups['by']}: {groups['how']}.",
+        "",
+        f"| {groups['by']} | segments | expected failures | "
+        + " | ".join(f"level {lv} runs" for lv in levels)
+        + " | confirmed | leads |",
+        "|---" * (5 + len(levels)) + "|",
+    ]
+    for r in groups["rows"]:
+        lines.append(
+            f"| {r['group']} | {r['size']} | {_na(r['expected_failures'], '.3g')} | "
+            + " | ".join(str(r["runs_per_level"][lv]) for lv in levels)
+            + f" | {r['confirmed']} | {r['leads']} |"
+        )
+    return [*lines, ""]

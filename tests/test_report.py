@@ -20,9 +20,16 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
+from bams_cli import report as rep
 from bams_cli.report import SUMMARY_KEYS
+from bams_cli.state import schemas
+from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import ok, simulate_and_ingest
+from tests import test_loop
+from tests.conftest import invoke, ok, simulate_and_ingest
+
+#: Headless Chromium, or a skip (in CI a failure): test_loop's fixture.
+chromium = test_loop.chromium
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
 AV = SAMPLE / "av_like"
@@ -62,8 +69,37 @@ class Study:
             "failures": pl.read_csv(out / "failures.csv", infer_schema_length=None),
             "log": w.read_observations(active_only=False),
             "scores": pl.read_parquet(w.scores_path) if w.scores_path.exists() else None,
+            **self.stored_models(w),
         }
         return self.reports[stage]
+
+    def stored_models(self, w: Workspace) -> dict:
+        """What the workspace holds right now of the models, batches and plans (later steps
+        replace scores.parquet and add snapshots): each model's p_0 by the hash of the log it
+        was fitted on, the batch each snapshot follows, the batches' and plans' metadata."""
+        models, after = {}, {}
+        for path in [*sorted((self.ws / "history").glob("*.parquet")), w.scores_path]:
+            if path.exists():
+                h = read_metadata(path)["observations_hash"]
+                models.setdefault(h, pq.read_table(path, columns=["p_0"])["p_0"].to_numpy())
+                if path.parent.name == "history":
+                    after[int(path.stem[-4:])] = h
+        plans = {
+            int(path.stem[5:]): {
+                "meta": read_metadata(path),
+                "sampled": pl.read_parquet(path).filter(pl.col("stratum") == "sampled"),
+            }
+            for path in sorted((self.ws / "estimates").glob("plan-*.parquet"))
+        }
+        return {
+            "models": models,
+            "snapshot_after": after,
+            "batch_meta": {
+                b: read_metadata(schemas.batch_path(self.ws, b)) for b in w.batch_numbers()
+            },
+            "plans": plans,
+            "ids": w.read_pool()[0],
+        }
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +138,13 @@ def study(tmp_path_factory) -> Study:
     s.simulate_and_ingest(ws / "estimates" / "plan-0002-handoff.csv")
     s.run("estimate", "-w", ws)
     s.report("plan 2 computed")
+    # Discovery again after the estimate: a BAMS batch with level-0 picks, chosen by a
+    # model fitted on the plans' results (no snapshot of it: its newest results were a
+    # plan's), so the report's prediction for it comes from the current scores.
+    s.run("fit", "-w", ws, "--restarts", "2")
+    s.run("select", "-w", ws, "--strategy", "bams", "--budget", "4", *bams)
+    s.simulate_and_ingest(ws / "batches" / "batch-0004.parquet")
+    s.report("discovery after the estimate")
     return s
 
 
@@ -120,6 +163,7 @@ EXPECTED_NOTICES = {
     "plan 1 computed": ["stale_model"],
     "plan 2 pending": ["pending_plan"],
     "plan 2 computed": ["stale_model"],
+    "discovery after the estimate": ["stale_model"],
 }
 
 
@@ -189,14 +233,22 @@ def test_the_estimate_shown_is_the_latest_computed_plan(study):
     assert "estimates/plan-0001-handoff.csv" in pending and "no estimate is shown yet" in pending
     due = study.reports["plan 1 in, not computed"]["summary"]["notices"][1]["text"]
     assert "Estimate plan 1 has all its results" in due and "bams-cli estimate -w" in due
-    for stage, shown in (("plan 1 computed", 1), ("plan 2 pending", 1), ("plan 2 computed", 2)):
+    shown_by_stage = (
+        ("plan 1 computed", 1),
+        ("plan 2 pending", 1),
+        ("plan 2 computed", 2),
+        ("discovery after the estimate", 2),
+    )
+    for stage, shown in shown_by_stage:
         r = study.reports[stage]
         doc = json.loads((study.ws / "estimates" / f"estimate-{shown:04d}.json").read_text())
         assert [e["plan"] for e in r["summary"]["estimates"]] == [shown]
         assert [e["p_hat"] for e in r["summary"]["estimates"]] == [
             e["p_hat"] for e in doc["estimates"]
         ]
-        assert f"From estimate plan {shown}." in r["html"] and "rate" in r["summary"]["figures"]
+        assert f"From estimate plan {shown}; 90% gamma intervals." in r["html"]
+        # One gamma: its estimate is in the trend's plot, beside the model's rate.
+        assert "rate_band" in r["summary"]["figures"] and "rate" not in r["summary"]["figures"]
         assert "| gamma | p_hat |" in r["md"]
     text = study.reports["plan 2 pending"]["summary"]["notices"][0]["text"]
     assert "Estimate plan 2 awaits" in text and "the estimate shown is plan 1's" in text
@@ -352,7 +404,12 @@ def test_trends_every_estimate_and_the_stopping_signal(study, stage):
             assert t["j_before"] is None and t["j_decrease_per_cost"] is None
     history = s["estimate_history"]
     made = sorted(int(p.stem[9:]) for p in (study.ws / "estimates").glob("estimate-*.json"))
-    done = {"plan 1 computed": [1], "plan 2 pending": [1], "plan 2 computed": [1, 2]}
+    done = {
+        "plan 1 computed": [1],
+        "plan 2 pending": [1],
+        "plan 2 computed": [1, 2],
+        "discovery after the estimate": [1, 2],
+    }
     assert [h["plan"] for h in history] == done.get(stage, [])
     assert made[: len(history)] == [h["plan"] for h in history] or stage != "plan 2 computed"
     stop = s["stopping"]
@@ -370,3 +427,402 @@ def test_trends_every_estimate_and_the_stopping_signal(study, stage):
         assert "An interval as wide as the rate itself would need about" in r["md"]
     else:
         assert stop["samples_for_width_equal_to_rate"] is None
+
+
+# ---------------------------------------------------------------------------------------
+# Issue 14: the failures found, the plots that read in 12 dimensions, the trend's spend
+# and prediction, each number brute-forced from the study's files as they were when the
+# report was written
+# ---------------------------------------------------------------------------------------
+FINAL = "discovery after the estimate"
+
+
+def _planned(r: dict) -> dict[str, int]:
+    """segment -> the first estimate plan that sampled it."""
+    out: dict[str, int] = {}
+    for k, plan in sorted(r["plans"].items()):
+        for sid in plan["sampled"]["segment_id"].to_list():
+            out.setdefault(sid, k)
+    return out
+
+
+def _prior(r: dict, kind: str, number: int):
+    """The p_0 a model fitted before the results of a batch or plan gave the pool: the
+    model that chose it, else (a batch) the snapshot after the latest earlier batch, else
+    (a plan drawn at the first gamma) the p_n the plan stored at its own rows."""
+    meta = r["batch_meta"][number] if kind == "batch" else r["plans"][number]["meta"]
+    if meta.get("model_hash") in r["models"]:
+        return r["models"][meta["model_hash"]]
+    if kind == "batch":
+        earlier = [b for b in r["snapshot_after"] if b < number]
+        return r["models"][r["snapshot_after"][max(earlier)]] if earlier else None
+    if float(meta["plan_gamma"]) != r["summary"]["study"]["gammas"][0]:
+        return None
+    pos = {sid: i for i, sid in enumerate(r["ids"])}
+    p = np.full(len(pos), np.nan)
+    for sid, value in r["plans"][number]["sampled"].select("segment_id", "p_n").iter_rows():
+        p[pos[sid]] = value
+    return p
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_the_failures_found_table_is_the_head_of_failures_csv(study, stage):
+    r = study.reports[stage]
+    found = r["summary"]["failures_found"]
+    csv = r["failures"]
+    assert found["columns"] == csv.columns
+    assert (found["confirmed"], found["leads"]) == (
+        csv.filter(pl.col("status") == "confirmed").height if csv.height else 0,
+        csv.filter(pl.col("status") == "lead").height if csv.height else 0,
+    )
+    head = csv.head(rep.FAILURES_SHOWN)
+    assert len(found["shown"]) == head.height
+    for row, want in zip(found["shown"], head.iter_rows(named=True), strict=True):
+        assert set(row) == set(want)
+        for k, v in want.items():  # the CSV reads "0.2825" back as a number
+            if v is None:
+                assert row[k] is None
+            elif isinstance(v, float):
+                assert float(row[k]) == pytest.approx(v)
+            else:
+                assert str(row[k]) == str(v)
+    html = r["html"]
+    section = html[html.index("<h2>Failures found</h2>") : html.index("<h2>Trends")]
+    if csv.height:
+        assert section.count("<tr>") == head.height + 1  # and the header
+        for sid in head["segment_id"]:
+            assert f">{sid}<" in section
+        assert "more</b> in <a href='failures.csv'>" not in section  # all shown
+    else:
+        assert "None yet" in section
+    assert f"Failures found: {csv.height} ({found['confirmed']} confirmed" in r["md"]
+
+
+def test_a_long_list_shows_its_head_and_counts_the_rest(study, tmp_path, monkeypatch):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(study.ws, ws)
+    csv = study.reports[FINAL]["failures"]
+    assert csv.height >= 2  # the study finds more than one
+    monkeypatch.setattr(rep, "FAILURES_SHOWN", 1)
+    ok(study.runner, "report", "-w", ws)
+    html = (ws / "report" / "report.html").read_text()
+    section = html[html.index("<h2>Failures found</h2>") : html.index("<h2>Trends")]
+    assert section.count("<tr>") == 2
+    assert f"<b>{csv.height - 1} more</b> in <a href='failures.csv'>failures.csv</a>" in section
+    assert pl.read_csv(ws / "report" / "failures.csv").height == csv.height  # all of them
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_each_batch_s_failures_against_what_the_model_predicted_before_them(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    gamma = s["study"]["gammas"][0]
+    pos = {sid: i for i, sid in enumerate(r["ids"])}
+    log = r["log"]
+    level0 = log.filter(pl.col("active") & (pl.col("fidelity") == 0))
+    rows = []
+    for t in s["trends"]:
+        b = t["batch"]
+        mine = level0.filter(pl.col("batch") == b)
+        runs = dict(log.filter(pl.col("batch") == b).group_by("fidelity").len().iter_rows())
+        assert t["runs_per_level"] == {str(k): v for k, v in sorted(runs.items())}
+        assert t["level0_results"] == mine.height
+        p = _prior(r, "batch", b)
+        if p is None or not mine.height:
+            assert t["predicted_failures"] is None and t["predicted_by"] is None
+            continue
+        q = np.array([p[pos[sid]] for sid in mine["segment_id"]])
+        assert t["predicted_failures"] == pytest.approx(q.sum())
+        assert t["predicted_sd"] == pytest.approx(np.sqrt((q * (1 - q)).sum()))
+        assert t["confirmed"] == int((mine["value"] <= gamma).sum())
+        rows.append((b, q.sum(), (q * (1 - q)).sum(), t["confirmed"], mine.height))
+    pv = s["predicted_vs_found"]
+    if not rows:
+        assert pv is None and "predicted" not in s["figures"]
+        return
+    assert pv["batches"] == [row[0] for row in rows]
+    assert pv["predicted"] == pytest.approx(sum(row[1] for row in rows))
+    assert pv["predicted_sd"] == pytest.approx(np.sqrt(sum(row[2] for row in rows)))
+    assert pv["found"] == sum(row[3] for row in rows)
+    assert pv["level0_results"] == sum(row[4] for row in rows)
+    assert "predicted" in s["figures"] and "Before their results, the model expected" in r["md"]
+
+
+def test_the_batch_after_the_estimate_is_predicted_by_the_model_that_chose_it(study):
+    # Without this, the prediction checks above could pass on no prediction at all.
+    t = study.reports[FINAL]["summary"]["trends"][-1]
+    assert t["batch"] == 4 and t["level0_results"] > 0
+    assert t["predicted_by"] == "the model that chose it" and t["predicted_failures"] > 0
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_discovery_spend_apart_from_estimate_spend(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    costs = [lv["cost"] for lv in s["study"]["levels"]]
+    planned = _planned(r)
+    parts = {"discovery": [], "estimate": [], "other": []}
+    by_plan: dict[int, list] = {}
+    for sid, lv, b in r["log"].select("segment_id", "fidelity", "batch").iter_rows():
+        if b is not None:
+            parts["discovery"].append(lv)
+        elif lv == 0 and sid in planned:
+            parts["estimate"].append(lv)
+            by_plan.setdefault(planned[sid], []).append(sid)
+        else:
+            parts["other"].append(lv)
+    for name, levels in parts.items():
+        got = s["spend"][name]
+        assert got["count"] == len(levels)
+        assert got["cost"] == pytest.approx(sum(costs[lv] for lv in levels))
+        for lv in range(len(costs)):
+            assert got["per_level"][str(lv)]["count"] == levels.count(lv)
+    assert sum(s["spend"][k]["cost"] for k in parts) == pytest.approx(s["simulation_spent"]["cost"])
+    written = {b: m["written_at"] for b, m in r["batch_meta"].items()}
+    gamma = s["study"]["gammas"][0]
+    level0 = dict(
+        r["log"]
+        .filter(pl.col("active") & (pl.col("fidelity") == 0))
+        .select("segment_id", "value")
+        .iter_rows()
+    )
+    assert [p["plan"] for p in s["spend"]["plans"]] == sorted(r["plans"])
+    for p in s["spend"]["plans"]:
+        at = r["plans"][p["plan"]]["meta"]["written_at"]
+        assert p["after_batch"] == max((b for b, w in written.items() if w <= at), default=0)
+        sids = by_plan.get(p["plan"], [])
+        assert p["count"] == len(sids)
+        assert p["confirmed"] == len({sid for sid in sids if level0.get(sid, np.inf) <= gamma})
+    for h in s["estimate_history"]:
+        assert h["after_batch"] == next(
+            p["after_batch"] for p in s["spend"]["plans"] if p["plan"] == h["plan"]
+        )
+        assert h["interval"] == "gamma"
+    assert r["md"].count("Spend (results in): discovery batches ") == 1
+    if s["trends"] or s["spend"]["plans"]:
+        assert "spend, by purpose" in r["html"]
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_the_p_n_distribution_counts_the_pool_and_where_the_runs_went(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    d = s["p_distribution"]
+    if r["scores"] is None or s["model"] is None:
+        assert d is None and "p_distribution" not in s["figures"]
+        return
+    gamma = s["study"]["gammas"][0]
+    edges = np.array(d["edges"])
+    assert edges[0] == 0 and edges[-1] == 1 and np.all(np.diff(edges) > 0)
+
+    def bin_of(p: float) -> int:  # [edges[i], edges[i+1]), the last bin closed
+        return min(int(np.flatnonzero(edges <= p)[-1]), len(edges) - 2)
+
+    p0 = dict(r["scores"].select("segment_id", "p_0").iter_rows())
+    known = set(r["level0"])
+    pool, unknown = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
+    expected = np.zeros(len(edges) - 1)
+    for sid, p in p0.items():
+        pool[bin_of(p)] += 1
+        if sid not in known:
+            unknown[bin_of(p)] += 1
+            expected[bin_of(p)] += p
+    assert d["pool"] == pool.tolist() and d["unknown"] == unknown.tolist()
+    assert d["expected_failures"] == pytest.approx(expected.tolist())
+    pos = {sid: i for i, sid in enumerate(r["ids"])}
+    planned = _planned(r)
+    runs, failed, without = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1), 0
+    level0 = r["log"].filter(pl.col("active") & (pl.col("fidelity") == 0))
+    for sid, value, b in level0.select("segment_id", "value", "batch").iter_rows():
+        kind, number = ("batch", b) if b is not None else ("plan", planned.get(sid))
+        prior = None if number is None else _prior(r, kind, number)
+        if prior is None:
+            without += 1
+            continue
+        runs[bin_of(prior[pos[sid]])] += 1
+        failed[bin_of(prior[pos[sid]])] += value <= gamma
+    assert d["runs"] == runs.tolist() and d["runs_failed"] == failed.tolist()
+    assert d["runs_without_prior"] == without
+    assert "p_distribution" in s["figures"]
+    if stage == FINAL:  # only batch 1, chosen at random before any model, has none
+        assert without == level0.filter(pl.col("batch") == 1).height > 0
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_the_breakdown_by_cluster_adds_up_to_the_study(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    g = s["groups"]
+    if s["model"] is None:
+        assert g is None and "groups" not in s["figures"]
+        return
+    gamma = s["study"]["gammas"][0]
+    rows = g["rows"]
+    assert g["by"] == "cluster" and g["kind"] == "clusters" and len(rows) >= 1
+    # The latest BAMS batch's --clusters, else the default.
+    bams = [
+        m
+        for b, m in sorted(r["batch_meta"].items())
+        if json.loads(m["options"])["strategy"] == "bams"
+    ]
+    want = json.loads(bams[-1]["options"])["clusters"] if bams else 6
+    assert len(rows) == want
+    assert sum(row["size"] for row in rows) == s["study"]["pool_size"]
+    if r["scores"] is not None:
+        p = r["scores"]["p_0"].to_numpy()
+        assert sum(row["expected_failures"] for row in rows) == pytest.approx(p.sum())
+    log = r["log"]
+    for lv in range(len(s["study"]["levels"])):
+        assert (
+            sum(row["runs_per_level"][str(lv)] for row in rows)
+            == log.filter(pl.col("fidelity") == lv).height
+        )
+    assert sum(row["confirmed"] for row in rows) == sum(v <= gamma for v in r["level0"].values())
+    csv = r["failures"]
+    leads = csv.filter(pl.col("status") == "lead").height if csv.height else 0
+    assert sum(row["leads"] for row in rows) == leads
+    assert "<h3>By cluster</h3>" in r["html"] and "By cluster: " in r["md"]
+
+
+def test_report_by_a_pass_through_column(study, tmp_path):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(study.ws, ws)
+    r = study.reports[FINAL]
+    ok(study.runner, "report", "-w", ws, "--by", "difficulty")
+    s = json.loads((ws / "report" / "summary.json").read_text())
+    g = s["groups"]
+    assert g["by"] == "difficulty" and g["kind"] == "column"
+    gamma = s["study"]["gammas"][0]
+    segs = pl.read_parquet(AV / "segments.parquet", columns=["segment_id", "difficulty"])
+    difficulty = dict(segs.iter_rows())
+    scores = pl.read_parquet(ws / "scores.parquet")
+    p0 = dict(scores.select("segment_id", "p_0").iter_rows())
+    log = r["log"]
+    csv = r["failures"]
+    leads = set(csv.filter(pl.col("status") == "lead")["segment_id"]) if csv.height else set()
+    rows = g["rows"]
+    assert len(rows) == 5  # a numeric column: quantile bins
+    for i, row in enumerate(rows):
+        last = i == len(rows) - 1
+
+        def inside(sid, row=row, last=last):
+            v = difficulty[sid]
+            return row["low"] <= v and (v <= row["high"] if last else v < row["high"])
+
+        members = {sid for sid in difficulty if inside(sid)}
+        assert row["size"] == len(members)
+        assert row["expected_failures"] == pytest.approx(sum(p0[sid] for sid in members))
+        assert row["expected_unconfirmed"] == pytest.approx(
+            sum(p0[sid] for sid in members if sid not in r["level0"])
+        )
+        for lv in range(2):
+            runs = log.filter(
+                (pl.col("fidelity") == lv) & pl.col("segment_id").is_in(list(members))
+            )
+            assert row["runs_per_level"][str(lv)] == runs.height
+        assert row["confirmed"] == sum(r["level0"].get(sid, np.inf) <= gamma for sid in members)
+        assert row["leads"] == len(leads & members)
+    assert sum(row["size"] for row in rows) == len(difficulty)
+    html = (ws / "report" / "report.html").read_text()
+    assert "<h3>By difficulty</h3>" in html and "groups" in s["figures"]
+    before = {p.name: p.read_bytes() for p in (ws / "report").iterdir()}
+    bad = invoke(study.runner, "report", "-w", ws, "--by", "no_such_column")
+    assert bad.exit_code != 0 and "--by 'no_such_column'" in bad.stderr
+    assert "it has difficulty" in bad.stderr
+    assert {p.name: p.read_bytes() for p in (ws / "report").iterdir()} == before
+
+
+@pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
+def test_ground_truth_appears_only_with_truth(study, stage):
+    r = study.reports[stage]
+    s = r["summary"]
+    assert s["truth"] is None
+    assert "ground truth" not in r["html"].lower() and "data-truth" not in r["html"]
+    assert "rate_truth" not in s["figures"] and "recall" not in s["figures"]
+    assert "ground truth" not in r["md"].lower()
+
+
+def test_with_truth_its_section_is_marked_and_last(study, tmp_path):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(study.ws, ws)
+    ok(study.runner, "report", "-w", ws, "--truth", AV / "truth.parquet")
+    s = json.loads((ws / "report" / "summary.json").read_text())
+    html = (ws / "report" / "report.html").read_text()
+    assert s["truth"] is not None and {"rate_truth", "recall"} <= set(s["figures"])
+    start = html.index("<section class='truth' id='ground-truth' data-truth='1'>")
+    end = html.index("</section>", start)
+    section = html[start:end]
+    assert "<h2>Against ground truth (--truth)</h2>" in section
+    assert "Only because --truth was given" in section
+    assert "<h2>" not in html[end:]  # nothing follows it
+    # Its plots sit inside it; outside it, only the batches' mean f says it used the truth.
+    assert section.count("<img ") == 2
+    outside = html[:start] + html[end:]
+    assert outside.lower().count("ground truth") == 2  # that column and its note
+    md = (ws / "report" / "summary.md").read_text()
+    assert "**Against ground truth (--truth; a real study has none):** true rate" in md
+
+
+BROWSER_SIZES = [(1280, 720), (1920, 1080), (390, 844)]
+
+
+@pytest.mark.parametrize(("width", "height"), BROWSER_SIZES)
+def test_the_report_reads_in_a_browser_at_every_size(chromium, study, tmp_path, width, height):
+    import subprocess
+    import tempfile
+
+    r = study.reports[FINAL]
+    page = tmp_path / "report.html"
+    page.write_text(r["html"])
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             "--hide-scrollbars", f"--window-size={width},{height}"]  # fmt: skip
+    with tempfile.TemporaryDirectory() as profile:
+        dom = subprocess.run(
+            [chromium, *flags, f"--user-data-dir={profile}", "--virtual-time-budget=5000",
+             "--dump-dom", page.as_uri()],
+            capture_output=True, text=True, timeout=120,
+        ).stdout  # fmt: skip
+        shot = tmp_path / f"screen-{width}x{height}.png"
+        subprocess.run(
+            [chromium, *flags, f"--user-data-dir={profile}", f"--screenshot={shot}", page.as_uri()],
+            capture_output=True, timeout=120,
+        )  # fmt: skip
+    n_img = len(r["summary"]["figures"])
+    assert n_img >= 5 and dom.count("<img ") == n_img
+    title = dom[dom.index("<title>") + 7 : dom.index("</title>")]
+    assert title.startswith(f"images-ok {n_img}/{n_img} headline-in-first-screen "), title
+    # The page never scrolls sideways: wide tables scroll within their own box.
+    assert " fits-width " in title, title
+    assert shot.stat().st_size > 10_000  # the first screen, drawn
+
+
+def test_estimate_and_the_report_name_the_interval_s_kind(tmp_path):
+    s = Study(tmp_path, TOY)
+    ws = s.ws
+    s.run("init", "-w", ws, "--settings-from", TOY / "settings.toml")
+    identity = ("--columns", "x*", "--method", "identity", "--no-standardize")
+    s.run("embed-reduce", "-w", ws, TOY / "segments.parquet", *identity)
+    s.run("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "6")
+    s.simulate_and_ingest(ws / "batches" / "batch-0001.parquet")
+    s.run("fit", "-w", ws, "--restarts", "2")
+    s.run("estimate", "-w", ws, "--plan", "--stages", "1", "--samples", "30")
+    s.simulate_and_ingest(ws / "estimates" / "plan-0001-handoff.csv")
+    out = s.run("estimate", "-w", ws).stdout
+    assert "90% gamma interval)" in out  # the table's title
+    assert "interval: 90% gamma interval, allowing for one failure the sample may" in out
+    head = s.report("gamma")["summary"]["headline"]["width"]
+    assert "it is a gamma interval" in head
+    out = s.run("estimate", "-w", ws, "--interval", "fay-feuer", "--confidence", "0.8").stdout
+    assert "80% fay-feuer interval)" in out and "gamma interval" not in out
+    assert "interval: 80% fay-feuer interval, Fay and Feuer's, allowing for one missed" in out
+    r = s.report("fay-feuer")
+    assert "it is Fay and Feuer's interval" in r["summary"]["headline"]["width"]
+    assert "80% Fay-Feuer intervals." in r["html"]
+    assert r["summary"]["estimate_history"][-1]["interval"] == "fay-feuer"

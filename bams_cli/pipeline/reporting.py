@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -11,9 +12,10 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli import schemas_json
+from bams_cli import defaults, schemas_json
 from bams_cli.errors import (
     InputError,
+    OptionError,
     StaleStateError,
     WorkspaceError,
 )
@@ -22,8 +24,10 @@ from bams_cli.pipeline.estimation import design_note
 from bams_cli.pipeline.initialise import settings_summary
 from bams_cli.state import schemas
 from bams_cli.state.io import (
+    read_metadata,
     read_metadata_json,
     read_state,
+    read_state_schema,
     read_table,
     require_columns,
     transaction,
@@ -39,7 +43,8 @@ def report(
     root: Path,
     *,
     truth: Path | None = None,
-    n_diverse: int = 5,
+    n_diverse: int = defaults.DIVERSE,
+    by: str | None = None,
     max_points: int = 50_000,
 ) -> dict[str, Any]:
     """Write report/report.html, summary.json and summary.md for the study.
@@ -53,8 +58,11 @@ def report(
         The workspace folder (``--workspace``/``-w``).
     truth : Path, optional
         Ground truth (``segment_id``, ``value_0``), e.g. for sample data: adds recall.
-    n_diverse : int, default 5
+    n_diverse : int, default ``defaults.DIVERSE``
         How many diverse likely failures to list (``--diverse``).
+    by : str, optional
+        A pass-through column of the pool (a scenario tag ...) to break the failures down
+        by (``--by``); default: the pool's clusters, as ``select`` forms them.
     max_points : int, default 50000
         At most this many pool points drawn in the report's scatter plots.
     wait : bool, default False
@@ -73,6 +81,8 @@ def report(
         ``truth`` lacks a pool segment or has a bad value.
     WorkspaceError
         No workspace, ``n_diverse`` below 0 or ``max_points`` below 1.
+    OptionError
+        ``by`` is not a pass-through column of the pool.
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
@@ -198,7 +208,10 @@ def report(
         doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
         # A staged estimate rests on every stage's sample so far, not the last plan alone.
         made_of = (doc.get("staging") or {}).get("plans") or [shown_plan]
-        estimates = [{**e, "plan": shown_plan, "plans": made_of} for e in doc["estimates"]]
+        kind = doc.get("interval", "gamma")
+        estimates = [
+            {**e, "plan": shown_plan, "plans": made_of, "interval": kind} for e in doc["estimates"]
+        ]
         gp_rows = doc["gp"]
     elif scores is not None:
         from bams_cli.core.estimate import gp_estimate
@@ -212,6 +225,8 @@ def report(
     diverse = []
     if n_diverse < 0 or max_points < 1:
         raise WorkspaceError(f"--diverse {n_diverse}: must be >= 0")
+    if by is not None:
+        _passthrough_names(ws, by)  # an unknown column fails before anything is computed
     if scores is not None:
         p0 = scores[2][:, 0]
         if X.shape[1] == 2:
@@ -268,10 +283,46 @@ def report(
         confirmed.append(row)
     confirmed = _uniform_rows(confirmed)
     failures = _failures_found(ws, active, gammas, pos)
+    table = _failures_table(failures)  # failures.csv, and the page's table from its head
     head = rep.headline(estimates, gp_rows, failures, spent, gammas[0])
-    trends = _trends(ws, frames, log, gammas[0])
-    history = _estimate_history(ws, plans, gammas[0])
+    # The model each batch and plan was chosen with (stored snapshots, by the observation
+    # log they were fitted on): what it predicted before the results came in.
+    models = _Models(ws, n, gammas[0])
+    after = _plans_after_batch(ws, plans, frames)
+    prior = _prior_p(ws, ids, models, frames, plans, gammas[0])
+    trends = _trends(ws, frames, log, gammas[0], prior, pos)
+    history = _estimate_history(ws, plans, gammas[0], after)
     stopping = _stopping(trends, history, scores, known0)
+    spend = _spend(ws, log, costs, gammas[0], after)
+    predicted = _predicted_vs_found(trends)
+    p_dist = None
+    if scores is not None:
+        p_dist = _p_distribution(
+            scores[2][:, 0], known0, active, prior, pos, _plan_of(ws), gammas[0]
+        )
+    groups = _groups(
+        ws,
+        X,
+        model_doc,
+        frames,
+        settings.seed,
+        by,
+        scores,
+        known0,
+        log,
+        failures,
+        pos,
+        gammas[0],
+        settings.n_levels,
+    )
+    if any(t["gp_rate"] is not None for t in trends) or history:
+        figures["rate_band"] = rep.rate_band_plot(trends, history)
+    if predicted is not None:
+        figures["predicted"] = rep.predicted_plot(trends)
+    if p_dist is not None:
+        figures["p_distribution"] = rep.p_distribution_plot(p_dist)
+    if groups is not None and groups["rows"]:
+        figures["groups"] = rep.groups_plot(groups)
 
     truth_doc = None
     if truth_f0 is not None:
@@ -306,7 +357,10 @@ def report(
         if truth_doc is not None:  # by gamma, as the recall above
             rate = dict(zip(gammas, truth_doc["rate"], strict=True))  # type: ignore[call-overload]
             truth_rates = [rate.get(e["gamma"], float("nan")) for e in estimates]
-        figures["rate"] = rep.rate_plot(estimates, truth_rates)
+        if len(estimates) > 1:  # one gamma's estimate is in the trend's plot already
+            figures["rate"] = rep.rate_plot(estimates, None)
+        if truth_rates is not None:  # ground truth only in its own, marked section
+            figures["rate_truth"] = rep.rate_plot(estimates, truth_rates)
 
     out = ws.report_dir
     summary: dict[str, Any] = {
@@ -326,21 +380,22 @@ def report(
         "stopping": stopping,
         "gp_estimate": gp_rows,
         "confirmed_failures": confirmed,
-        "failures_found": {"csv": str(out / "failures.csv"), "count": len(failures)},
+        "failures_found": {
+            "csv": str(out / "failures.csv"),
+            "count": len(failures),
+            "confirmed": sum(1 for f in failures if f["status"] == "confirmed"),
+            "leads": sum(1 for f in failures if f["status"] == "lead"),
+            "columns": table.columns,
+            "shown": table.head(rep.FAILURES_SHOWN).to_dicts(),
+        },
+        "spend": spend,
+        "predicted_vs_found": predicted,
+        "p_distribution": p_dist,
+        "groups": groups,
         "diverse_failures": diverse,
         "truth": truth_doc,
         "figures": sorted(figures),
     }
-    table = pl.DataFrame(
-        [{k: (";".join(f"{g:g}" for g in v) if k == "fails_at" else v) for k, v in r.items()}
-         for r in failures] if failures else None,
-        schema=None if failures else {SID: pl.String, "status": pl.String, "found_by": pl.String},
-        infer_schema_length=None,
-    )  # fmt: skip
-    first = [SID, "status", "found_by", "fails_at"]
-    values = sorted((c for c in table.columns if c.startswith("value_")), key=lambda c: int(c[6:]))
-    order = [c for c in first if c in table.columns] + values
-    table = table.select(order + [c for c in table.columns if c not in order])
     with transaction() as tx:
         tx.write_text(out / "report.html", rep.render_html(summary, figures))
         tx.write_with(out / "failures.csv", lambda p: table.write_csv(p))
@@ -443,10 +498,156 @@ def _passthrough_rows(ws: Workspace, rows: np.ndarray) -> list[dict[str, Any]]:
     ]
 
 
-def _uniform_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Rows with one key set (segment_id first, then sorted), blanks where a row lacks one."""
+def _passthrough_names(ws: Workspace, by: str | None = None) -> list[str]:
+    """The pool's pass-through columns; with ``by``, insist it is one of them."""
+    segs_schema = ws.read_segments().schema
+    coords = set(ws.coordinate_columns())
+    names = [c for c in segs_schema.names if c != SID and c not in coords]
+    if by is not None and by not in names:
+        have = ", ".join(names) if names else "none (embed-reduce passes them through)"
+        raise OptionError(f"--by {by!r}: not a pass-through column of the pool; it has {have}")
+    return names
+
+
+#: A pass-through column with more distinct values than this is grouped: numbers into
+#: quantile bins (``GROUP_BINS``), other values into the largest groups and "other".
+GROUP_MAX = 12
+GROUP_BINS = 5
+
+
+def _column_groups(ws: Workspace, by: str) -> tuple[np.ndarray, list[dict[str, Any]], str]:
+    """Each pool segment's group by the pass-through column ``by``: the group index per
+    row, the groups (``group`` label, and ``low``/``high`` for a numeric column's quantile
+    bins: low <= value < high, the last bin closed), and how they were formed."""
+    col = ws.read_segments([SID, by]).column(by)
+    values = col.to_pylist()
+    numeric = pa.types.is_integer(col.type) or pa.types.is_floating(col.type)
+    distinct = {v for v in values if v is not None}
+    if numeric and len(distinct) > GROUP_MAX:
+        v = np.array([np.nan if x is None else float(x) for x in values])
+        finite = v[np.isfinite(v)]
+        edges = np.unique(np.quantile(finite, np.linspace(0, 1, GROUP_BINS + 1)))
+        inner = edges[1:-1]
+        label = np.where(np.isfinite(v), np.searchsorted(inner, v, side="right"), len(edges) - 1)
+        groups = [
+            {"group": f"{lo:.3g} to {hi:.3g}", "low": float(lo), "high": float(hi)}
+            for lo, hi in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        if not np.isfinite(v).all():
+            groups.append({"group": "(none)", "low": None, "high": None})
+        how = f"{len(edges) - 1} quantile bins of {by} (low <= {by} < high; the last closed)"
+        return label.astype(np.int64), groups, how
+    names = ["(none)" if x is None else str(x) for x in values]
+    counts: dict[str, int] = {}
+    for name in names:
+        counts[name] = counts.get(name, 0) + 1
+    ranked = sorted(counts, key=lambda k: (-counts[k], k))
+    keep = ranked if len(ranked) <= GROUP_MAX else ranked[: GROUP_MAX - 1]
+    labels = sorted(keep) + ([] if len(keep) == len(ranked) else ["other"])
+    index = {name: i for i, name in enumerate(labels)}
+    other = index.get("other", -1)
+    label = np.array([index.get(name, other) for name in names], dtype=np.int64)
+    how = (
+        f"each value of {by}"
+        if len(keep) == len(ranked)
+        else f"the {len(keep)} largest groups of {by}, and the rest as other"
+    )
+    return label, [{"group": g} for g in labels], how
+
+
+def _groups(
+    ws: Workspace,
+    X: np.ndarray,
+    model: dict[str, Any] | None,
+    frames: dict[int, pl.DataFrame],
+    seed: int,
+    by: str | None,
+    scores: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    known0: np.ndarray,
+    log: pl.DataFrame,
+    failures: list[dict[str, Any]],
+    pos: dict[str, int],
+    gamma: float,
+    n_levels: int,
+) -> dict[str, Any] | None:
+    """The study per part of the pool: by the pass-through column ``by``, else by the
+    pool's clusters as ``select`` forms them (K-means on the pool scaled by the model's
+    level-0 lengthscales, merged down to the latest BAMS batch's --clusters, else the
+    default). Per group: its size, the failures the model expects in it (sum of p_n) and
+    among the segments not yet run at level 0, the runs spent per level, the level-0
+    failures confirmed at the first gamma and the leads. None without a model and ``by``."""
+    from bams_cli.core.cluster import cluster_pool
+
+    n = len(X)
+    if by is not None:
+        label, groups, how = _column_groups(ws, by)
+        kind = "column"
+    elif model is not None:
+        lengthscales = np.asarray(model["hyperparameters"]["lengthscales0"], dtype=np.float64)
+        clusters = defaults.CLUSTERS
+        for b in sorted(frames, reverse=True):
+            options = read_metadata_json(schemas.batch_path(ws.root, b)).get("options") or {}
+            if options.get("strategy") in ("bams", "bas"):
+                clusters = int(options.get("clusters", clusters))
+                break
+        big = n > defaults.SELECT_EXACT_MAX_POOL
+        label = cluster_pool(
+            X,
+            lengthscales,
+            clusters,
+            rng=np.random.default_rng([seed, 0x5E1EC7]),
+            fit_max=defaults.SELECT_CLUSTER_FIT_MAX if big else None,
+        )
+        groups = [{"group": f"cluster {c}"} for c in range(int(label.max()) + 1)]
+        how = (
+            f"{len(groups)} clusters of the pool, formed as select forms them (K-means on the "
+            "pool scaled by the model's level-0 lengthscales, merged down)"
+        )
+        kind = "clusters"
+    else:
+        return None
+    g = len(groups)
+    size = np.bincount(label, minlength=g)
+    expected = unconfirmed = None
+    if scores is not None:
+        p0 = scores[2][:, 0]
+        expected = np.bincount(label, weights=p0, minlength=g)
+        unconfirmed = np.bincount(label[~known0], weights=p0[~known0], minlength=g)
+    runs = np.zeros((g, n_levels), dtype=np.int64)
+    for sid, lv in log.select(SID, "fidelity").iter_rows():
+        if sid in pos:
+            runs[label[pos[sid]], lv] += 1
+    confirmed = np.zeros(g, dtype=np.int64)
+    leads = np.zeros(g, dtype=np.int64)
+    for f in failures:
+        if f[SID] not in pos:
+            continue
+        if f["status"] == "confirmed" and gamma in f["fails_at"]:
+            confirmed[label[pos[f[SID]]]] += 1
+        elif f["status"] == "lead":
+            leads[label[pos[f[SID]]]] += 1
+    rows = []
+    for i, group in enumerate(groups):
+        rows.append(
+            {
+                **group,
+                "size": int(size[i]),
+                "expected_failures": None if expected is None else float(expected[i]),
+                "expected_unconfirmed": None if unconfirmed is None else float(unconfirmed[i]),
+                "runs_per_level": {str(lv): int(c) for lv, c in enumerate(runs[i])},
+                "confirmed": int(confirmed[i]),
+                "leads": int(leads[i]),
+            }
+        )
+    return {"by": by if by is not None else "cluster", "kind": kind, "how": how, "rows": rows}
+
+
+def _uniform_rows(rows: list[dict[str, Any]], blank: Any = "") -> list[dict[str, Any]]:
+    """Rows with one key set (segment_id first, then sorted), ``blank`` where a row lacks
+    one (None for a table whose columns must keep their type: a number column with "" in
+    it would be read back as text)."""
     keys = sorted({k for r in rows for k in r}, key=lambda k: (k != SID, k))
-    return [{k: r.get(k, "") for k in keys} for r in rows]
+    return [{k: r.get(k, blank) for k in keys} for r in rows]
 
 
 def _failures_found(
@@ -458,11 +659,7 @@ def _failures_found(
     request found it, and the segment's pass-through columns (``report/failures.csv``)."""
     if not active.height:
         return []
-    plan_of: dict[str, int] = {}
-    picks = ws.read_plan_picks()
-    if picks.height:
-        for sid, k in picks.select(SID, "plan").iter_rows():
-            plan_of.setdefault(sid, int(k))
+    plan_of = _plan_of(ws)
     values: dict[str, dict[int, tuple[float, int | None]]] = {}
     for sid, lv, value, batch in active.select(SID, "fidelity", "value", "batch").iter_rows():
         values.setdefault(sid, {})[int(lv)] = (float(value), batch)
@@ -505,19 +702,163 @@ def _failures_found(
     index = np.array([pos[r[SID]] for r in rows], dtype=np.int64)
     for row, more in zip(rows, _passthrough_rows(ws, index), strict=True):
         row.update(more)
-    return _uniform_rows(rows)
+    return _uniform_rows(rows, blank=None)
+
+
+def _failures_table(failures: list[dict[str, Any]]) -> pl.DataFrame:
+    """The failures found as one frame: report/failures.csv, and the page's table its head.
+    segment_id, status, found_by, fails_at (the gammas, ";"-joined), value_0, value_1 ...,
+    then the pass-through columns."""
+    table = pl.DataFrame(
+        [{k: (";".join(f"{g:g}" for g in v) if k == "fails_at" else v) for k, v in r.items()}
+         for r in failures] if failures else None,
+        schema=None if failures else {SID: pl.String, "status": pl.String, "found_by": pl.String},
+        infer_schema_length=None,
+    )  # fmt: skip
+    first = [SID, "status", "found_by", "fails_at"]
+    values = sorted((c for c in table.columns if c.startswith("value_")), key=lambda c: int(c[6:]))
+    order = [c for c in first if c in table.columns] + values
+    return table.select(order + [c for c in table.columns if c not in order])
+
+
+class _Models:
+    """The level-0 failure probabilities p_0 of every stored model (the snapshots in
+    ``history/`` and the current scores), by the hash of the observation log each was
+    fitted on; a column is read when first asked for. Models fitted for another first
+    gamma, or on another pool size, are left out."""
+
+    def __init__(self, ws: Workspace, n: int, gamma: float):
+        self.n = n
+        self.path: dict[str, Path] = {}
+        self.after_batch: dict[int, str] = {}  # batch -> hash of the snapshot after it
+        self._p: dict[str, np.ndarray | None] = {}
+        snaps = sorted(ws.history_dir.glob("scores-after-batch-*.parquet"))
+        for path in [*snaps, ws.scores_path]:
+            if not path.exists():
+                continue
+            meta = read_metadata_json(path)
+            h, gammas = meta.get("observations_hash"), meta.get("gammas")
+            if not h or not isinstance(gammas, list) or not gammas or gammas[0] != gamma:
+                continue
+            self.path.setdefault(str(h), path)
+            if path != ws.scores_path:
+                tail = path.stem.rsplit("-", 1)[1]
+                if tail.isdigit():
+                    self.after_batch[int(tail)] = str(h)
+
+    def p0(self, h: str | None) -> np.ndarray | None:
+        if not h or h not in self.path:
+            return None
+        if h not in self._p:
+            p = read_state(self.path[h], columns=["p_0"]).column("p_0").to_numpy()
+            self._p[h] = p if len(p) == self.n else None
+        return self._p[h]
+
+
+def _prior_p(
+    ws: Workspace,
+    ids: np.ndarray,
+    models: _Models,
+    frames: dict[int, pl.DataFrame],
+    plans: list[int],
+    gamma: float,
+) -> dict[tuple[str, int], tuple[str, np.ndarray]]:
+    """For each batch and estimate plan (``("batch", b)``, ``("plan", k)``), the p_0 over
+    the pool that a model fitted before its results gave, and which model that was: the
+    one that chose it (by the hash the batch or plan records), else for a batch the
+    snapshot after the latest earlier batch, else for a plan the p_n it stored when drawn
+    (at the first gamma only). Batches and plans without one are left out."""
+    out: dict[tuple[str, int], tuple[str, np.ndarray]] = {}
+    for b in frames:
+        meta = read_metadata_json(schemas.batch_path(ws.root, b))
+        p = models.p0(meta.get("model_hash"))
+        if p is not None:
+            out[("batch", b)] = ("the model that chose it", p)
+            continue
+        earlier = [k for k in models.after_batch if k < b]
+        if earlier:
+            k = max(earlier)
+            p = models.p0(models.after_batch[k])
+            if p is not None:
+                out[("batch", b)] = (f"the model fitted after batch {k}", p)
+    pos = {sid: i for i, sid in enumerate(ids)}
+    for k in plans:
+        path = ws.estimates_dir / f"plan-{k:04d}.parquet"
+        meta = read_metadata_json(path)
+        p = models.p0(meta.get("model_hash"))
+        if p is not None:
+            out[("plan", k)] = ("the model that drew it", p)
+        elif meta.get("plan_gamma") == gamma and "p_n" in read_state_schema(path).names:
+            # That model is gone (refitted since); the plan kept its p_n at its own rows.
+            rows = read_state(path, columns=[SID, "p_n"])
+            p = np.full(models.n, np.nan)
+            for sid, value in zip(rows.column(SID).to_pylist(), rows.column("p_n").to_pylist(),
+                                  strict=True):  # fmt: skip
+                if sid in pos:
+                    p[pos[sid]] = value
+            out[("plan", k)] = ("the p_n the plan stored when drawn", p)
+    return out
+
+
+def _plans_after_batch(
+    ws: Workspace, plans: list[int], frames: dict[int, pl.DataFrame]
+) -> dict[int, int]:
+    """Each estimate plan's place among the batches: the last batch written before it (0:
+    none), by the times the state files record."""
+    written = {
+        b: read_metadata(schemas.batch_path(ws.root, b)).get("written_at", "") for b in frames
+    }
+    out = {}
+    for k in plans:
+        at = read_metadata(ws.estimates_dir / f"plan-{k:04d}.parquet").get("written_at", "")
+        out[k] = max((b for b, w in written.items() if w and at and w <= at), default=0)
+    return out
+
+
+def _result_source(ws: Workspace, log: pl.DataFrame) -> pl.Series:
+    """For each row of the log: "batch", "plan" (a level-0 result an estimate plan asked
+    for) or "other" (results nobody asked for, ingested with --allow-unselected)."""
+    picks = ws.read_plan_picks()
+    planned = set(picks[SID].to_list()) if picks.height else set()
+    return pl.Series(
+        "source",
+        [
+            "batch" if b is not None else ("plan" if lv == 0 and sid in planned else "other")
+            for sid, lv, b in log.select(SID, "fidelity", "batch").iter_rows()
+        ],
+        dtype=pl.String,
+    )
+
+
+def _plan_of(ws: Workspace) -> dict[str, int]:
+    """The estimate plan that asked for each segment's level-0 run (the first, if several)."""
+    plan_of: dict[str, int] = {}
+    picks = ws.read_plan_picks()
+    if picks.height:
+        for sid, k in picks.select(SID, "plan").iter_rows():
+            plan_of.setdefault(sid, int(k))
+    return plan_of
 
 
 def _trends(
-    ws: Workspace, frames: dict[int, pl.DataFrame], log: pl.DataFrame, gamma: float
+    ws: Workspace,
+    frames: dict[int, pl.DataFrame],
+    log: pl.DataFrame,
+    gamma: float,
+    prior: dict[tuple[str, int], tuple[str, np.ndarray]],
+    pos: dict[str, int],
 ) -> list[dict[str, Any]]:
-    """One row per batch: its cost per level, the level-0 failures it confirmed (and all so
-    far), the model's rate after it (mean p_n of the snapshot fitted on its results, with
-    the Proposition-1 bound on its sd), and the pool's J before and after it (batches
-    written before bams-cli stored J leave those null)."""
+    """One row per batch: its cost per level (requested, and spent: results in), the
+    level-0 failures it confirmed (and all so far), the failures the model expected among
+    those level-0 results before they came in (the sum of its p_0 there, with the sd of
+    that count), the model's rate after it (mean p_n of the snapshot fitted on its
+    results, with the Proposition-1 bound on its sd), and the pool's J before and after it
+    (batches written before bams-cli stored J leave those null)."""
     from bams_cli.core.gp_rate import gp_estimate
 
-    active0 = log.filter(pl.col("active") & (pl.col("fidelity") == 0) & (pl.col("value") <= gamma))
+    active = log.filter(pl.col("active"))
+    level0 = active.filter(pl.col("fidelity") == 0)
+    active0 = level0.filter(pl.col("value") <= gamma)
     rows, seen = [], set()
     for b, df in frames.items():
         meta = read_metadata_json(schemas.batch_path(ws.root, b))
@@ -528,16 +869,31 @@ def _trends(
             .sort("fidelity")
             .iter_rows()
         }
+        spent_per_level = {
+            str(int(k)): int(v)
+            for k, v in log.filter(pl.col("batch") == b)
+            .group_by("fidelity")
+            .len()
+            .sort("fidelity")
+            .iter_rows()
+        }
         new = set(active0.filter(pl.col("batch") == b)[SID].to_list())
         seen |= new
         jb, ja = meta.get("j_before"), meta.get("j_after")
         cost = float(df["cost"].sum())
+        results0 = [pos[s] for s in level0.filter(pl.col("batch") == b)[SID].unique().to_list()
+                    if s in pos]  # fmt: skip
         row: dict[str, Any] = {
             "batch": b,
             "cost": cost,
             "cost_per_level": per_level,
+            "runs_per_level": spent_per_level,
+            "level0_results": len(results0),
             "confirmed": len(new),
             "confirmed_so_far": len(seen),
+            "predicted_failures": None,
+            "predicted_sd": None,
+            "predicted_by": None,
             "j_before": jb,
             "j_after": ja,
             "j_decrease_per_cost": (jb - ja) / cost
@@ -546,6 +902,12 @@ def _trends(
             "gp_rate": None,
             "gp_sd_bound": None,
         }
+        if ("batch", b) in prior and results0:  # a prediction needs level-0 results
+            by, p = prior[("batch", b)]
+            q = p[np.asarray(results0, dtype=np.int64)]
+            row["predicted_failures"] = float(q.sum())
+            row["predicted_sd"] = float(np.sqrt(np.sum(q * (1 - q))))
+            row["predicted_by"] = by
         snap = ws.history_dir / f"scores-after-batch-{b:04d}.parquet"
         if snap.exists():
             m, bound = gp_estimate(read_state(snap, columns=["p_0"]).column("p_0").to_numpy())
@@ -554,8 +916,118 @@ def _trends(
     return rows
 
 
-def _estimate_history(ws: Workspace, plans: list[int], gamma: float) -> list[dict[str, Any]]:
-    """Every estimate computed, oldest first, at the first gamma."""
+def _predicted_vs_found(trends: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Over the batches with a model before their results: the level-0 failures that model
+    expected among their level-0 results, with its sd (a sum of independent Bernoullis),
+    and the failures found there."""
+    rows = [t for t in trends if t["predicted_failures"] is not None]
+    if not rows:
+        return None
+    return {
+        "batches": [t["batch"] for t in rows],
+        "level0_results": sum(t["level0_results"] for t in rows),
+        "predicted": float(sum(t["predicted_failures"] for t in rows)),
+        "predicted_sd": float(np.sqrt(sum(t["predicted_sd"] ** 2 for t in rows))),
+        "found": sum(t["confirmed"] for t in rows),
+    }
+
+
+def _spend(
+    ws: Workspace,
+    log: pl.DataFrame,
+    costs: Sequence[float],
+    gamma: float,
+    after: dict[int, int],
+) -> dict[str, Any]:
+    """The runs spent (every result in the log, as the headline counts them), apart by
+    what asked for them: discovery batches, estimate plans (each plan on its own, with the
+    level-0 failures among its results), and results nobody asked for."""
+    source = _result_source(ws, log)
+    tagged = log.with_columns(source)
+
+    def per_level(rows: pl.DataFrame) -> dict[str, Any]:
+        counts = dict(rows.group_by("fidelity").len().iter_rows())
+        levels = {
+            str(lv): {"count": int(counts.get(lv, 0)), "cost": counts.get(lv, 0) * costs[lv]}
+            for lv in range(len(costs))
+        }
+        return {
+            "per_level": levels,
+            "count": rows.height,
+            "cost": float(sum(v["cost"] for v in levels.values())),
+        }
+
+    plan_of = _plan_of(ws)
+    estimate = tagged.filter(pl.col("source") == "plan")
+    by_plan = estimate.with_columns(
+        pl.Series("plan", [plan_of[s] for s in estimate[SID].to_list()], dtype=pl.Int64)
+    )
+    plans = []
+    for k in sorted(after):
+        rows = by_plan.filter(pl.col("plan") == k)
+        failed = rows.filter(pl.col("active") & (pl.col("value") <= gamma))[SID].n_unique()
+        plans.append({"plan": k, "after_batch": after[k], **per_level(rows), "confirmed": failed})
+    return {
+        "discovery": per_level(tagged.filter(pl.col("source") == "batch")),
+        "estimate": per_level(estimate),
+        "other": per_level(tagged.filter(pl.col("source") == "other")),
+        "plans": plans,
+    }
+
+
+#: Bins of the p_n distribution: [0, 1e-6), then four a decade up to 1 (1 itself included).
+P_EDGES = np.concatenate([[0.0], np.logspace(-6, 0, 25)])
+
+
+def _p_distribution(
+    p0: np.ndarray,
+    known0: np.ndarray,
+    active: pl.DataFrame,
+    prior: dict[tuple[str, int], tuple[str, np.ndarray]],
+    pos: dict[str, int],
+    plan_of: dict[str, int],
+    gamma: float,
+) -> dict[str, Any]:
+    """The model's p_n over the pool, binned on a log scale (``P_EDGES``): every segment,
+    those whose level-0 value is unknown and the failures the model expects among them
+    (sum of p_n per bin); and the level-0 results of batches and plans at the p_n a model
+    gave them before they came in, with the failures among them."""
+    edges = P_EDGES
+
+    def binned(p: np.ndarray, weights: np.ndarray | None = None) -> list[float]:
+        h, _ = np.histogram(np.clip(p, 0.0, 1.0), bins=edges, weights=weights)
+        return h.tolist()
+
+    unknown = p0[~known0]
+    level0 = active.filter(pl.col("fidelity") == 0)
+    run_p, run_failed, without = [], [], 0
+    for sid, value, batch in level0.select(SID, "value", "batch").iter_rows():
+        if sid not in pos:
+            continue
+        key = ("batch", int(batch)) if batch is not None else ("plan", plan_of.get(sid, -1))
+        if key not in prior:
+            without += 1
+            continue
+        run_p.append(prior[key][1][pos[sid]])
+        run_failed.append(value <= gamma)
+    rp, rf = np.asarray(run_p, float), np.asarray(run_failed, bool)
+    return {
+        "gamma": gamma,
+        "edges": edges.tolist(),
+        "pool": [int(c) for c in binned(p0)],
+        "unknown": [int(c) for c in binned(unknown)],
+        "expected_failures": binned(unknown, unknown),
+        "runs": [int(c) for c in binned(rp)],
+        "runs_failed": [int(c) for c in binned(rp[rf])],
+        "runs_without_prior": without,
+    }
+
+
+def _estimate_history(
+    ws: Workspace, plans: list[int], gamma: float, after: dict[int, int]
+) -> list[dict[str, Any]]:
+    """Every estimate computed, oldest first, at the first gamma: with its interval's kind,
+    the plans its sample rests on, and the last batch written before its plan."""
     out = []
     for k in plans:
         if not ws.estimate_path(k).exists():
@@ -567,7 +1039,10 @@ def _estimate_history(ws: Workspace, plans: list[int], gamma: float) -> list[dic
         out.append(
             {
                 "plan": k,
+                "plans": (doc.get("staging") or {}).get("plans") or [k],
+                "after_batch": after.get(k, 0),
                 "design": doc.get("design"),
+                "interval": doc.get("interval", "gamma"),
                 "samples_K": doc.get("samples_K"),
                 **{
                     key: e.get(key)
@@ -593,8 +1068,6 @@ def _stopping(
 ) -> dict[str, Any]:
     """When to stop: what the last batches bought, what the next could find, and what a
     tighter estimate would cost."""
-    from bams_cli import defaults
-
     last = [r["j_decrease_per_cost"] for r in trends[-3:] if r["j_decrease_per_cost"] is not None]
     expected = None
     if scores is not None:
