@@ -207,3 +207,8 @@ SELECT_MAX_CANDIDATES = 4_096
 SELECT_RANDOM_SHARE = 0.1
 #: ... and K-means with the merge loop runs on a sample of this many segments.
 SELECT_CLUSTER_FIT_MAX = 50_000
+
+#: ``--max-memory`` of ``select``, ``fit``, ``embed-reduce`` and ``report`` when not given:
+#: this share of the machine's RAM (``bams_cli.memory``), leaving the rest to the
+#: simulators and the operating system that share the machine.
+MAX_MEMORY_FRACTION = 0.5

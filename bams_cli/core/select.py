@@ -1259,11 +1259,13 @@ def select_batch(
     timings["cluster"] = time.perf_counter() - t
 
     biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
-    if plan.exact and biggest > MAX_CLUSTER_BYTES:
+    limit = (plan_options or {}).get("max_cluster_bytes")
+    limit = MAX_CLUSTER_BYTES if limit is None else limit
+    if plan.exact and biggest > limit:
         if approximate == "never":
             raise ValueError(
                 f"the largest cluster needs {biggest / 2**30:.1f} GiB for its rows x candidates "
-                f"covariance (limit {MAX_CLUSTER_BYTES / 2**30:.0f} GiB); raise n_clusters"
+                f"covariance (limit {limit / 2**30:.2g} GiB); raise n_clusters"
             )
         # Too big for exact even on a small pool (few clusters asked): the same clusters,
         # approximately.
@@ -1275,7 +1277,7 @@ def select_batch(
             approx.max_candidates,
             approx.random_share,
             f"approximate: the exact greedy's largest cluster needs {biggest / 2**30:.1f} GiB "
-            f"(limit {MAX_CLUSTER_BYTES / 2**30:.0f} GiB)",
+            f"(limit {limit / 2**30:.2g} GiB)",
         )
     report(f"plan: {plan.describe()}", 1, 1)
 
