@@ -108,6 +108,7 @@ def tree_rss(proc: psutil.Process | None = None) -> int:
 
 
 _budget: int | None = None
+_watch: Watch | None = None
 
 
 def budget() -> int:
@@ -166,6 +167,17 @@ class Watch:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+def check() -> None:
+    """Raise ``MemoryCeilingError`` when the running command has gone over its ceiling.
+
+    Every atomic commit calls it (``state.io.transaction``): the watchdog's interrupt can be
+    swallowed by a library that handles Ctrl-C itself, but nothing is committed after the
+    ceiling was reached.
+    """
+    if _watch is not None and _watch.fired:
+        raise MemoryCeilingError(_watch.message())
+
+
 @contextmanager
 def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
     """Run a command under a ceiling of ``limit`` bytes (None: ``default_budget()``).
@@ -173,9 +185,10 @@ def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
     ``budget()`` returns the limit inside. A watchdog interrupt becomes
     ``MemoryCeilingError`` with the watch's one-line message.
     """
-    global _budget
+    global _budget, _watch
     watch = Watch(limit=default_budget() if limit is None else int(limit), command=command)
     previous, _budget = _budget, watch.limit
+    previous_watch, _watch = _watch, watch
     thread = threading.Thread(target=watch._run, name="bams-max-memory", daemon=True)
     try:
         thread.start()  # inside: the first read may fire before start() returns
@@ -190,8 +203,9 @@ def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
             if thread.ident is not None:
                 thread.join()
         except KeyboardInterrupt:
-            # Fired as the command ended: it has finished (or is raising already).
+            # Fired as the command ended: its commit was refused (``check``), or it had
+            # committed before the ceiling was reached; either way it is raising or done.
             if not watch.fired:
                 raise
         finally:
-            _budget = previous
+            _budget, _watch = previous, previous_watch

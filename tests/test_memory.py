@@ -147,3 +147,21 @@ def test_the_ceiling_comes_from_the_environment_too(
     assert r.exit_code == 1 and "--max-memory '12X'" in r.stderr
     monkeypatch.setenv("BAMS_MAX_MEMORY", "4G")
     ok(runner, "fit", "-w", toy_ws, "--force")
+
+
+def test_nothing_is_committed_once_the_ceiling_was_reached(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A library that handles Ctrl-C itself can swallow the watchdog's interrupt; the
+    commit still refuses, and the staged files go."""
+    from bams_cli.state.io import transaction
+
+    target = tmp_path / "out.txt"
+    with transaction() as tx:  # no ceiling: commits
+        tx.write_text(target, "before")
+    watch = memory.Watch(limit=300 * MiB, command="bams-cli fit", peak=400 * MiB, fired=True)
+    monkeypatch.setattr(memory, "_watch", watch)
+    with pytest.raises(memory.MemoryCeilingError, match="over --max-memory 300.0 MiB"):
+        with transaction() as tx:
+            tx.write_text(target, "after")
+    assert target.read_text() == "before" and sorted(tmp_path.iterdir()) == [target]
