@@ -15,6 +15,8 @@ up to 45k segments, approximate above.
     .venv/bin/python bench/bench_select.py                       # 45k and 200k, 3 runs each
     nice .venv/bin/python bench/bench_select.py --million --pool-cache /tmp/bams-pools
     .venv/bin/python bench/bench_select.py --sizes 45000 --hyper flat   # worst case
+    .venv/bin/python bench/bench_select.py --sweep --sizes 10000 25000 45000 \
+        --pool-cache /tmp/bams-pools --caps 1024:1024 2048:2048   # J ratio per problem
 
 For every N it prints the plan taken, the median wall time over --runs runs, the peak
 resident memory of the process tree (this process plus the pool's workers, sampled every
