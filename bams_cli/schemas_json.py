@@ -281,7 +281,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                     {
                         "max_rows_per_cluster": nullable(COUNT),
                         "max_candidates_per_cluster": nullable(COUNT),
-                        "rows_sampled": nullable(COUNT),
+                        "rows_in_j": nullable(COUNT),
                         "h_left_out": nullable(NUM),
                     },
                 ),
