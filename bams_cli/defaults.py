@@ -188,6 +188,14 @@ RISK_ANCHOR_SD = 1.0
 #: d = 12, 203 s under load). The suite's fits stay below it (bench/bench_fit.py).
 FIT_SUBSET = 300
 
+#: ``fit`` conditions exactly on every observation while the training covariance and its
+#: Cholesky factor fit this many bytes (``core.gp.fit.max_conditioned``: 10,362
+#: observations); above, exactly on a subset of that many, level-0 observations first
+#: (``core.gp.fit.conditioning_subset``; its sds are never below the exact posterior's,
+#: its accuracy measured by ``bench/bench_fit.py --accuracy``). A study never needs more
+#: than this for the model; ``--max-memory`` will set it.
+FIT_CONDITION_MEMORY = 4 * 2**30
+
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
 #: brute-force greedy) on pools up to this many segments. Larger pools get an approximate
 #: plan (``core.select.plan_selection``) whose batch keeps >= 99% of the exact greedy's J
