@@ -193,7 +193,7 @@ FIT_SUBSET = 300
 #: observations); above, exactly on a subset of that many, level-0 observations first
 #: (``core.gp.fit.conditioning_subset``; its sds are never below the exact posterior's,
 #: its accuracy measured by ``bench/bench_fit.py --accuracy``). A study never needs more
-#: than this for the model; ``--max-memory`` will set it.
+#: than this for the model; under ``--max-memory`` at most half the ceiling is used.
 FIT_CONDITION_MEMORY = 4 * 2**30
 
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the

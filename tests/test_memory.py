@@ -165,3 +165,16 @@ def test_nothing_is_committed_once_the_ceiling_was_reached(
         with transaction() as tx:
             tx.write_text(target, "after")
     assert target.read_text() == "before" and sorted(tmp_path.iterdir()) == [target]
+
+
+def test_fit_conditions_within_half_the_ceiling(monkeypatch: pytest.MonkeyPatch) -> None:
+    from bams_cli.core.gp.fit import max_conditioned
+    from bams_cli.pipeline.fitting import condition_budget
+
+    assert condition_budget(123 * MiB) == 123 * MiB  # the API's explicit budget wins
+    monkeypatch.setattr(memory, "_budget", 64 * GiB)
+    assert condition_budget() == defaults.FIT_CONDITION_MEMORY
+    monkeypatch.setattr(memory, "_budget", 2 * GiB)
+    assert condition_budget() == GiB
+    cap = max_conditioned(condition_budget())
+    assert cap is not None and cap < max_conditioned(defaults.FIT_CONDITION_MEMORY)

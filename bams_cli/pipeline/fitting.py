@@ -13,7 +13,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli import defaults
+from bams_cli import defaults, memory
 from bams_cli.errors import (
     InputError,
     PendingResultsError,
@@ -219,7 +219,7 @@ def fit(
         model, g, evidence = fit_transformed(
             X[idx], lv, y, settings.n_levels, centre=float(settings.gammas[0]), rng=rng,
             restarts=restarts, transform=chosen, fixed=fixed,
-            max_memory=defaults.FIT_CONDITION_MEMORY if max_memory is None else max_memory,
+            max_memory=condition_budget(max_memory),
         )  # fmt: skip
     except GPFitError as exc:
         raise WorkspaceError(f"fit: {exc}") from None
@@ -317,6 +317,15 @@ def fit(
     }
 
 
+def condition_budget(max_memory: int | None = None) -> int:
+    """Bytes ``fit`` may spend on exact conditioning: ``max_memory`` when given, else
+    ``defaults.FIT_CONDITION_MEMORY`` or half the command's ``--max-memory`` ceiling,
+    whichever is less (the other half holds the pool, its scores and the search)."""
+    if max_memory is not None:
+        return max_memory
+    return min(defaults.FIT_CONDITION_MEMORY, memory.share(0.5))
+
+
 def _fit_up_to_date(
     ws: Workspace,
     settings: Settings,
@@ -355,7 +364,7 @@ def _fit_up_to_date(
     if not same:
         return None
     n = int(np.sum(n_obs or []))
-    cap = max_conditioned(defaults.FIT_CONDITION_MEMORY if max_memory is None else max_memory)
+    cap = max_conditioned(condition_budget(max_memory))
     recorded = (model.get("conditioning") or {}).get("conditioned_on", n)  # older: all
     if recorded != (n if cap is None else min(n, cap)):
         return None
