@@ -178,3 +178,25 @@ def test_fit_conditions_within_half_the_ceiling(monkeypatch: pytest.MonkeyPatch)
     assert condition_budget() == GiB
     cap = max_conditioned(condition_budget())
     assert cap is not None and cap < max_conditioned(defaults.FIT_CONDITION_MEMORY)
+
+
+def test_a_command_deaf_to_the_interrupt_is_ended_with_the_same_line() -> None:
+    """Blocked in a system call the interrupt cannot break, the command is ended by the
+    watchdog after ``GRACE_S``: the one line, exit code 1, not a hang."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from bams_cli import memory as m\n"
+        "m.tree_rss = lambda proc=None: 3 * 2**30\n"
+        "with m.ceiling(2 * 2**30, 'bams-cli select'):\n"
+        "    r, w = os.pipe()\n"
+        "    os.read(r, 1)\n"
+    )
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bams-cli select reached 3.0 GiB" in lines[0], done.stderr
+    assert time.monotonic() - t0 < 30
