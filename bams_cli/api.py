@@ -34,6 +34,12 @@ that touches a workspace, except ``status`` (which only reads), holds the worksp
 from its first read to its commit; while another command or notebook holds it the call
 raises ``WorkspaceLockedError`` at once, and ``wait=True`` blocks until the lock is free.
 
+``--max-memory`` is a context manager in the API: ``with memory.ceiling(8 * 2**30,
+"select"): api.select(ws)`` plans ``select``'s clusters (and ``fit``'s conditioning) within
+8 GiB and stops the call with ``MemoryCeilingError`` when the notebook's process tree
+goes over it (``from bams_cli import memory``). Without it the functions plan within
+``defaults.MAX_MEMORY_FRACTION`` of the machine's RAM and nothing watches.
+
 Functions taking ``progress`` (``embed_reduce``, ``fit``, ``select``,
 ``estimate_compute``) call it as ``progress(phase, done, total)``; ``loop`` takes
 ``on_step(description, done, total)``.

@@ -39,7 +39,7 @@ except ImportError:  # pragma: no cover - older typer on the real click
     from click import Context  # type: ignore[assignment]
     from click.exceptions import ClickException, UsageError  # type: ignore[assignment]
 
-from bams_cli import __version__, console, defaults, pipeline, schemas_json
+from bams_cli import __version__, console, defaults, memory, pipeline, schemas_json
 from bams_cli import abandon as abandon_runs
 from bams_cli import loop as study_loop
 from bams_cli.defaults import (
@@ -143,6 +143,17 @@ Workers = Annotated[
         help="Local worker processes for clusters \\[default: all cores].",
     ),
 ]
+MaxMemory = Annotated[
+    str | None,
+    typer.Option(
+        "--max-memory",
+        metavar="SIZE",
+        envvar="BAMS_MAX_MEMORY",
+        help="Memory ceiling for this command and its workers: 12G, 800M, or 40% of RAM; the "
+        "command plans its work to fit and is stopped in one line if it goes over "
+        f"\\[default: {defaults.MAX_MEMORY_FRACTION:.0%} of RAM].",
+    ),
+]
 HandoffInternal = Annotated[
     bool,
     typer.Option(
@@ -175,16 +186,24 @@ def _reflow(doc: str) -> str:
     return "\n\n".join(" ".join(line.strip() for line in p.splitlines()) for p in paragraphs)
 
 
-def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable[..., None]]:
+def command(
+    name: str | None = None, *, max_memory: bool = False
+) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Register a subcommand whose BamsErrors become one stderr line and their exit code
-    (1; 3 for ``PendingResultsError``, waiting on results)."""
+    (1; 3 for ``PendingResultsError``, waiting on results). ``max_memory``: the command
+    takes ``--max-memory`` and runs under that ceiling (``bams_cli.memory``)."""
 
     def register(fn: Callable[..., None]) -> Callable[..., None]:
+        label = f"bams-cli {name or fn.__name__.replace('_', '-')}"
+
         @functools.wraps(fn)
-        def boundary(*args: Any, quiet: bool = False, **kwargs: Any) -> None:
+        def boundary(
+            *args: Any, quiet: bool = False, max_memory: str | None = None, **kwargs: Any
+        ) -> None:
             console.set_mode(quiet=quiet or _QUIET, json_out=bool(kwargs.get("json_out")))
             try:
-                with warnings.catch_warnings():
+                limit = None if max_memory is None else memory.parse_size(max_memory)
+                with warnings.catch_warnings(), memory.ceiling(limit, label):
                     warnings.showwarning = _one_line_warning
                     fn(*args, **kwargs)
             except BamsError as exc:
@@ -210,13 +229,16 @@ def command(name: str | None = None) -> Callable[[Callable[..., None]], Callable
 
         # Every command takes --quiet: typer reads the parameters from this signature.
         sig = inspect.signature(fn, eval_str=True)
-        quiet = inspect.Parameter("quiet", inspect.Parameter.KEYWORD_ONLY, default=False)
-        params = [*sig.parameters.values(), quiet.replace(annotation=Quiet)]
+        keyword = inspect.Parameter.KEYWORD_ONLY
+        params = [*sig.parameters.values()]
+        extra: dict[str, Any] = {"quiet": Quiet}
+        if max_memory:
+            params.append(inspect.Parameter("max_memory", keyword, default=None))
+            extra["max_memory"] = MaxMemory
+        params.append(inspect.Parameter("quiet", keyword, default=False))
+        params = [p.replace(annotation=extra.get(p.name, p.annotation)) for p in params]
         boundary.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
-        boundary.__annotations__ = {
-            **typing.get_type_hints(fn, include_extras=True),
-            "quiet": Quiet,
-        }
+        boundary.__annotations__ = {**typing.get_type_hints(fn, include_extras=True), **extra}
         boundary.__doc__ = _reflow(fn.__doc__ or "")
         app.command(name)(boundary)
         return fn
@@ -353,7 +375,7 @@ def init(
     _show(summary, json_out, console.init_summary, "init")
 
 
-@command("embed-reduce")
+@command("embed-reduce", max_memory=True)
 def embed_reduce(
     segments: Annotated[
         Path, typer.Argument(help="Parquet file of segments: segment_id + embedding.")
@@ -542,7 +564,7 @@ def simulate(
     _show(summary, json_out, console.simulate_summary, "simulate")
 
 
-@command()
+@command(max_memory=True)
 def fit(
     workspace: Workspace = Path(defaults.WORKSPACE),
     fixed_hyperparameters: Annotated[
@@ -600,7 +622,7 @@ def fit(
     console.fit_summary(summary)
 
 
-@command()
+@command(max_memory=True)
 def select(
     workspace: Workspace = Path(defaults.WORKSPACE),
     strategy: Annotated[
@@ -1128,7 +1150,7 @@ def loop(
     console.loop_summary(summary)
 
 
-@command()
+@command(max_memory=True)
 def report(
     workspace: Workspace = Path(defaults.WORKSPACE),
     truth: Annotated[

@@ -409,6 +409,8 @@ def fit_summary(s: Mapping[str, Any]) -> None:
             f"discrepancy sd {_num(scale**0.5)}, noise sd {_num(hp['noise'][lv] ** 0.5)}, "
             f"lengthscales {ells(ell)}"
         )
+    if s.get("conditioning"):
+        rows["conditioning"] = s["conditioning"]["note"]
     rows["files"] = f"{s['model']}, {s['scores']}"
     facts(f"model fitted on {_plural(s['observations'], 'result')} ({counts})", rows)
     model_checks(s["checks"], s.get("transform"))

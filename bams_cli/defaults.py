@@ -188,6 +188,14 @@ RISK_ANCHOR_SD = 1.0
 #: d = 12, 203 s under load). The suite's fits stay below it (bench/bench_fit.py).
 FIT_SUBSET = 300
 
+#: ``fit`` conditions exactly on every observation while the training covariance and its
+#: Cholesky factor fit this many bytes (``core.gp.fit.max_conditioned``: 10,362
+#: observations); above, exactly on a subset of that many, level-0 observations first
+#: (``core.gp.fit.conditioning_subset``; its sds are never below the exact posterior's,
+#: its accuracy measured by ``bench/bench_fit.py --accuracy``). A study never needs more
+#: than this for the model; under ``--max-memory`` at most half the ceiling is used.
+FIT_CONDITION_MEMORY = 4 * 2**30
+
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
 #: brute-force greedy) on pools up to this many segments. Larger pools get an approximate
 #: plan (``core.select.plan_selection``) whose batch keeps >= 99% of the exact greedy's J
@@ -207,3 +215,8 @@ SELECT_MAX_CANDIDATES = 4_096
 SELECT_RANDOM_SHARE = 0.1
 #: ... and K-means with the merge loop runs on a sample of this many segments.
 SELECT_CLUSTER_FIT_MAX = 50_000
+
+#: ``--max-memory`` of ``select``, ``fit``, ``embed-reduce`` and ``report`` when not given:
+#: this share of the machine's RAM (``bams_cli.memory``), leaving the rest to the
+#: simulators and the operating system that share the machine.
+MAX_MEMORY_FRACTION = 0.5

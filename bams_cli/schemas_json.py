@@ -242,6 +242,17 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
             },
             {
                 "gp_rate_estimate": mapping(NUM, "gamma"),
+                "conditioning": nullable(
+                    obj(
+                        {
+                            "method": STR,
+                            "conditioned_on": COUNT,
+                            "observations": COUNT,
+                            "memory_budget_bytes": nullable(INT),
+                            "note": STR,
+                        }
+                    )
+                ),
                 "up_to_date": {"const": True},
                 "message": STR,
             },
@@ -281,7 +292,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                     {
                         "max_rows_per_cluster": nullable(COUNT),
                         "max_candidates_per_cluster": nullable(COUNT),
-                        "rows_sampled": nullable(COUNT),
+                        "rows_in_j": nullable(COUNT),
                         "h_left_out": nullable(NUM),
                     },
                 ),

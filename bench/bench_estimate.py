@@ -223,9 +223,12 @@ def bench_staged(N: int, repeats: int, seed: int) -> None:
     K = 5 * int(fail.sum())
     u = dz.relative_risk(p)
     norms = dz.risk_norms(u)
-    post0 = dz.risk_posterior([])
-    c1 = dz.choose_design(p, K=K / 2, posterior=post0)
-    s1 = draw_poisson(c1.pi, rng)
+
+    def stage1():
+        choice = dz.choose_design(p, K=K / 2, posterior=dz.risk_posterior([]))
+        return choice, draw_poisson(choice.pi, rng)
+
+    t_stage1, (c1, s1) = median_time(stage1, repeats)
     ev = dz.StageEvidence(u[s1], fail[s1], norms, p_mean=float(p.mean()))
 
     def stage2():
@@ -243,6 +246,12 @@ def bench_staged(N: int, repeats: int, seed: int) -> None:
         return dz.combine_stages([e1, e2], [0.5, 0.5], n_pool=N)
 
     t_comb, est = median_time(combined, repeats)
+    budget = 5.0  # issue 12: estimate --plan stays under 5 s per stage at N = 1e6
+    print(
+        f"staged, N = {N:,}, K = {K:,}: stage 1's plan (prior, design choice, draw) median "
+        f"{t_stage1:.3f} s; each stage under {budget:.0f} s: "
+        f"{'yes' if max(t_stage1, t_stage) < budget else 'NO'}"
+    )
     print(
         f"staged, N = {N:,}, K = {K:,}: a later stage's plan (posterior + design choice + "
         f"draw) median {t_stage:.3f} s ({choice.name}, predicted "

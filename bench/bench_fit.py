@@ -1,26 +1,37 @@
-"""Benchmark the multifidelity GP: MAP fit time and pool-scoring time and memory.
+"""Benchmark the multifidelity GP: fit time, peak memory, scoring, and accuracy of conditioning.
 
-Run: .venv/bin/python bench/bench_fit.py [--quick]
+Run: .venv/bin/python bench/bench_fit.py [--quick] [--sizes 1000,5000,20000,50000]
+     .venv/bin/python bench/bench_fit.py --accuracy 5000 --keep 2500,3750
 
-Fit: n = 50, 200, 500, 1,000 and 5,000 observations, d = 12, two levels (40% level 0, 60%
-level 1, a third of the level-1 points at level-0 sites), 8 restarts, median of 3 runs with
-different seeds (one run above 1,000; --sizes to choose). Above ``defaults.FIT_SUBSET``
-observations the MAP search runs on that many (``core.gp.fit_subset``) and the model
-conditions on all; --exact also times the search on all of them, and both fits' level-0
-posterior means are compared on 2,000 pool points (RMS difference over the sd of the mean). Score: the n = 200 and n = 500 models on N = 45,000 and 1,000,000 pool
-points, three gammas. Memory is the tracemalloc peak during score() (numpy reports its buffers to
-tracemalloc; the pool array itself is allocated before and not counted), plus the
-process's peak RSS (resource.getrusage ru_maxrss) for context.
+Fit: n observations, d = 12, two levels (40% level 0, 60% level 1, a third of the level-1
+points at level-0 sites), 8 restarts. Each size runs in a fresh child process, so its peak
+RSS (resource.getrusage ru_maxrss) is its own; wall and CPU seconds of the fit, then of
+scoring a 45,000-point pool (three gammas). Above ``defaults.FIT_SUBSET`` observations the
+MAP search runs on that many (``core.gp.fit_subset``); the model conditions exactly on all
+of them while they fit ``defaults.FIT_CONDITION_MEMORY`` (10,362 observations), else
+exactly on a subset of that many (``core.gp.fit.condition``): the "conditioned" column.
+--exact also times the MAP search on all observations (sizes up to a few thousand).
 
-Targets: fit n <= 200 under 5 s, 1,000 under 10 s, 5,000 under 60 s; scoring 1,000,000
-under 60 s and 2 GB. Wall and CPU seconds are both printed: the machine is shared.
+--accuracy N: N av_like observations (60% level 1, PCA to d = 12 as embed-reduce does),
+the exact posterior against the subset posterior that a budget for --keep observations
+gives, at 4,000 pool points: |mean error| and sd excess in units of the exact sd.
+
+Score (default run): the n = 200 and n = 500 models on N = 45,000 and 1,000,000 pool
+points. Memory is the tracemalloc peak during score() plus the process's peak RSS.
+
+Targets: fit n <= 200 under 5 s, 1,000 under 10 s, 5,000 under 60 s, 50,000 under 5 min;
+scoring 1,000,000 under 60 s and 2 GB. Wall and CPU seconds are both printed: the machine
+is shared.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
 import statistics
+import subprocess
 import sys
 import time
 import tracemalloc
@@ -31,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bams_cli.core.gp import MFGP, fit_mfgp  # noqa: E402
+from bams_cli.core.gp.fit import BYTES_PER_ENTRY, condition  # noqa: E402
 
 D = 12
 
@@ -47,6 +59,91 @@ def synthetic(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray,
     f = np.sin(X @ w / 2.0) + 0.3 * X[:, 0] ** 2
     y = f + levels * (0.2 * np.cos(X[:, 1]) + 0.1 * rng.normal(size=n))
     return X, levels, y
+
+
+def child(n: int, seed: int) -> None:
+    """One fit (and a 45k-pool score) in this process; prints one JSON line."""
+    X, levels, y = synthetic(n, np.random.default_rng(seed))
+    t, c = time.perf_counter(), time.process_time()
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed), restarts=8)
+    fit_wall, fit_cpu = time.perf_counter() - t, time.process_time() - c
+    pool = np.random.default_rng(0).normal(size=(45_000, D))
+    t, c = time.perf_counter(), time.process_time()
+    _, sd, p = model.score(pool, np.array([-0.5, 0.0, 0.5]))
+    score_wall, score_cpu = time.perf_counter() - t, time.process_time() - c
+    assert np.all(np.isfinite(p)) and np.all(sd >= 0)
+    out = {
+        "n": n,
+        "fitted_on": model.fitted_on,
+        "conditioned_on": model.conditioning["conditioned_on"],
+        "fit_wall": fit_wall,
+        "fit_cpu": fit_cpu,
+        "score_wall": score_wall,
+        "score_cpu": score_cpu,
+        "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    print(json.dumps(out), flush=True)
+
+
+def bench_sizes(sizes: list[int]) -> None:
+    """Every size in a fresh process (its own peak RSS); one run each."""
+    print(f"fit (d = {D}, two levels, restarts = 8, one run per size, fresh process each)")
+    print(f"load: {os.getloadavg()[0]:.1f} (1-min load average, 2 cores)")
+    print(
+        f"{'n':>6} {'search on':>9} {'conditioned':>11} {'fit s':>7} {'fit CPU s':>9} "
+        f"{'score 45k s':>11} {'score CPU s':>11} {'peak RSS MB':>11}"
+    )
+    for n in sizes:
+        res = subprocess.run(
+            [sys.executable, __file__, "--child", str(n)],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        print(
+            f"{n:>6} {r['fitted_on']:>9} {r['conditioned_on']:>11} {r['fit_wall']:>7.1f} "
+            f"{r['fit_cpu']:>9.1f} {r['score_wall']:>11.1f} {r['score_cpu']:>11.1f} "
+            f"{r['maxrss_mb']:>11.0f}",
+            flush=True,
+        )
+
+
+def bench_accuracy(n: int, keeps: list[int]) -> None:
+    """Exact posterior against the budget's subset posterior on av_like (module docstring)."""
+    from sklearn.decomposition import PCA
+
+    from bams_cli.core.synthetic import av_like
+
+    n_pool = max(4 * n, 8000)
+    pool = av_like(n_pool, seed=0)
+    X = PCA(D, random_state=0).fit_transform(pool.features)
+    rng = np.random.default_rng(1)
+    obs = rng.choice(n_pool, n, replace=False)
+    lv = (rng.random(n) < 0.6).astype(np.int64)
+    y = pool.truth[obs, lv]
+    t = time.perf_counter()
+    exact = fit_mfgp(X[obs], lv, y, 2, rng=np.random.default_rng(0), restarts=8, max_memory=None)
+    print(f"av_like, {n} observations ({int(np.sum(lv == 0))} at level 0), exact fit "
+          f"{time.perf_counter() - t:.1f} s; errors at 4,000 pool points in exact sds")  # fmt: skip
+    Xq = X[rng.choice(n_pool, 4000, replace=False)]
+    mu_e, s2_e = exact.predict_theta0(Xq)
+    sd_e = np.sqrt(s2_e)
+    print(
+        f"{'kept':>6} {'|mean err| median':>17} {'p90':>6} {'max':>7} "
+        f"{'sd excess median':>16} {'p90':>6} {'max':>6} {'min':>9}"
+    )
+    for keep in keeps:
+        sub = condition(
+            X[obs], lv, y, 2, exact.hyperparameters, max_memory=BYTES_PER_ENTRY * keep * keep
+        )
+        mu, s2 = sub.predict_theta0(Xq)
+        em = np.abs(mu - mu_e) / sd_e
+        es = (np.sqrt(s2) - sd_e) / sd_e
+        print(
+            f"{keep:>6} {np.median(em):>17.3f} {np.quantile(em, 0.9):>6.2f} {em.max():>7.1f} "
+            f"{np.median(es):>16.3f} {np.quantile(es, 0.9):>6.2f} {es.max():>6.1f} "
+            f"{es.min():>9.1e}",
+            flush=True,
+        )
 
 
 def bench_fit(sizes: list[int], repeats: int, exact: bool = False) -> dict[int, MFGP]:
@@ -113,7 +210,21 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="n <= 200, one repeat, N = 45k")
     parser.add_argument("--sizes", type=str, default=None, help="comma-separated n to fit")
     parser.add_argument("--exact", action="store_true", help="also fit on all observations")
+    parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--accuracy", type=int, default=None, help="exact vs subset at this n")
+    parser.add_argument("--keep", type=str, default=None, help="subset sizes for --accuracy")
     args = parser.parse_args()
+    if args.child is not None:
+        child(args.child, 0)
+        return
+    if args.accuracy is not None:
+        n = args.accuracy
+        keeps = [int(k) for k in args.keep.split(",")] if args.keep else [n // 2, 3 * n // 4]
+        bench_accuracy(n, keeps)
+        return
+    if args.sizes and not args.exact:
+        bench_sizes([int(s) for s in args.sizes.split(",")])
+        return
     sizes = [50, 200] if args.quick else [50, 200, 500, 1000, 5000]
     if args.sizes:
         sizes = [int(s) for s in args.sizes.split(",")]

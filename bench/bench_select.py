@@ -15,6 +15,8 @@ up to 45k segments, approximate above.
     .venv/bin/python bench/bench_select.py                       # 45k and 200k, 3 runs each
     nice .venv/bin/python bench/bench_select.py --million --pool-cache /tmp/bams-pools
     .venv/bin/python bench/bench_select.py --sizes 45000 --hyper flat   # worst case
+    .venv/bin/python bench/bench_select.py --sweep --sizes 10000 25000 45000 \
+        --pool-cache /tmp/bams-pools --caps 1024:1024 2048:2048   # J ratio per problem
 
 For every N it prints the plan taken, the median wall time over --runs runs, the peak
 resident memory of the process tree (this process plus the pool's workers, sampled every
@@ -40,6 +42,7 @@ need a 10 GB dense covariance, so the reference runs on the first N only.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import statistics
@@ -123,6 +126,102 @@ def make_posterior(X, obs, lev, y, hp=None, hyper="map"):
         post = fit_mfgp(X[obs], lev, y, 2, rng=np.random.default_rng(0), restarts=4)
         return post, post.hyperparameters
     return fit_mfgp(X[obs], lev, y, 2, rng=np.random.default_rng(0), fixed=hp), hp
+
+
+def problem_pool(name: str, n: int, cache: str | None = None, seed: int = 0):
+    """A pool of ``name`` at size n, as the J-ratio sweep uses it (``--sweep``).
+
+    av_like as ``make_pool``; toy2d (2-d) as it is; the suite problems (``core.suite``)
+    reduced to at most D dimensions by PCA like av_like. 30 observations (20 at level 0,
+    10 at level 1) at random pool points with the problem's true values. Returns
+    X, obs, lev, y, gamma, costs.
+    """
+    from sklearn.decomposition import PCA
+
+    from bams_cli.core import suite, synthetic
+
+    if name == "av_like":
+        X, obs, lev, y, gamma = cached_pool(n, cache, seed)
+        return X, obs, lev, y, gamma, COSTS
+    gen = synthetic.toy2d if name == "toy2d" else getattr(suite, name)
+    pool = gen(n, seed)
+    E = pool.features
+    if E.shape[1] > D:
+        E = PCA(D, random_state=0).fit_transform((E - E.mean(0)) / E.std(0))
+    rng = np.random.default_rng([seed, n])
+    obs = rng.choice(n, size=30, replace=False)
+    lev = np.r_[np.zeros(20, dtype=np.int64), np.ones(10, dtype=np.int64)]
+    return np.ascontiguousarray(E), obs, lev, pool.truth[obs, lev], pool.gamma, pool.costs
+
+
+def sweep(args, ex) -> None:
+    """J ratio and time of the approximate plan against the exact greedy, per pool and caps.
+
+    For every problem and size: the GP fitted by MAP on the pool's 30 observations, the
+    exact greedy's batch, then the approximate plan forced with each --caps ROWS:CANDIDATES
+    (same rng seed: same clusters at these sizes), its batch's exact J decrease over the
+    exact greedy's, its wall and CPU seconds (median over --runs) and the load.
+    """
+    from bams_cli.core.gp import fit_mfgp
+
+    print("problem      N       plan          J ratio  wall s  CPU s  load")
+    for name in args.problems:
+        for n in args.sizes:
+            X, obs, lev, y, gamma, costs = problem_pool(name, n, args.pool_cache)
+            post = fit_mfgp(X[obs], lev, y, 2, rng=np.random.default_rng(0), restarts=2)
+            obs0 = np.zeros(n, dtype=bool)
+            obs0[obs[lev == 0]] = True
+
+            def run(approximate, opts=None, X=X, post=post, obs0=obs0, gamma=gamma, costs=costs):
+                load = os.getloadavg()[0]
+                c0, t0 = time.process_time(), time.perf_counter()
+                res = select_batch(
+                    post,
+                    X,
+                    gamma=gamma,
+                    costs=costs,
+                    budget=BUDGET,
+                    n_clusters=args.clusters,
+                    overbudget=args.overbudget,
+                    observed_level0_mask=obs0,
+                    executor=ex,
+                    rng=np.random.default_rng(0),
+                    approximate=approximate,
+                    plan_options=opts,
+                )
+                wall = time.perf_counter() - t0
+                return res, wall, time.process_time() - c0 + res.timings["greedy.cpu"], load
+
+            # The exact greedy's batch is kept with --pool-cache (45k takes minutes on a
+            # busy machine); its decrease does not depend on the approximate plans swept.
+            key = f"exact-{name}-{n}-S{args.clusters}-eta{args.overbudget:g}.json"
+            path = os.path.join(args.pool_cache, key) if args.pool_cache else None
+            if path and os.path.exists(path):
+                with open(path) as f:
+                    dec, wall, cpu, load = json.load(f)
+            else:
+                exact, wall, cpu, load = run("never")
+                dec = exact.j_before - exact.j_after
+                if path:
+                    os.makedirs(args.pool_cache, exist_ok=True)
+                    with open(path, "w") as f:
+                        json.dump([dec, wall, cpu, load], f)
+            print(f"{name:<12} {n:<7} exact         1.0000  {wall:6.1f} {cpu:6.1f}  {load:.2f}")
+            for cap in args.caps:
+                r, c = (int(v) for v in cap.split(":"))
+                opts = dict(max_rows=r, max_candidates=c)
+                if args.cluster_fit_max:
+                    opts["cluster_fit_max"] = args.cluster_fit_max
+                runs = [run("always", opts) for _ in range(args.runs)]
+                res = runs[0][0]
+                ratio = (res.j_before - res.j_after) / dec
+                med = statistics.median(w for _, w, _, _ in runs)
+                cpus = statistics.median(c for _, _, c, _ in runs)
+                print(
+                    f"{name:<12} {n:<7} {r:>5}x{c:<7} {ratio:7.4f}  {med:6.1f} {cpus:6.1f}  "
+                    f"{runs[0][3]:.2f}",
+                    flush=True,
+                )
 
 
 class PeakRSS:
@@ -361,7 +460,31 @@ def main() -> None:
     ap.add_argument("--no-reference", dest="reference", action="store_false")
     ap.add_argument("--no-j-ratio", dest="j_ratio", action="store_false")
     ap.add_argument("--reference-cluster", choices=["smallest", "largest"], default="smallest")
+    ap.add_argument(
+        "--sweep",
+        action="store_true",
+        help="J ratio and time of the approximate plan per --problems, --sizes and --caps",
+    )
+    ap.add_argument(
+        "--problems",
+        nargs="+",
+        default=["av_like", "toy2d", "weak_cheap", "gap_sim"],
+        help="--sweep: av_like, toy2d or a core.suite problem",
+    )
+    ap.add_argument(
+        "--caps",
+        nargs="+",
+        default=["1024:1024", "2048:2048", "4096:4096"],
+        help="--sweep: approximate plans as ROWS:CANDIDATES per cluster",
+    )
+    ap.add_argument(
+        "--cluster-fit-max", type=int, default=None, help="--sweep: plan's cluster_fit_max"
+    )
     args = ap.parse_args()
+    if args.sweep:
+        with ProcessPoolExecutor(max_workers=args.workers) as ex:
+            sweep(args, ex)
+        return
     sizes = [*args.sizes, *([1_000_000] if args.million else [])]
 
     X, obs, lev, y, gamma = make_pool(2000)

@@ -40,7 +40,7 @@ NO_WORKSPACE = {"schema", "benchmark"}
 
 #: CLI parameters that are no API parameter: how the CLI prints, or which function it calls.
 CLI_ONLY: dict[str, set[str]] = {
-    "*": {"json_out", "quiet"},
+    "*": {"json_out", "quiet", "max_memory"},  # max_memory: ``with memory.ceiling(...)``
     "estimate": {"plan"},  # --plan: estimate_plan, else estimate_compute
     "ingest-results": {"abandon_failed"},  # ingest_results_abandoning_failed
 }

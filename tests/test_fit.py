@@ -253,3 +253,40 @@ def test_edited_gammas_make_the_model_stale_for_every_command(fitted_ws, runner)
     assert (
         invoke(runner, "select", "-w", fitted_ws, "--budget", "2", "--clusters", "1").exit_code == 0
     )
+
+
+def test_fit_records_its_conditioning_and_select_uses_the_same_posterior(fitted_ws, runner):
+    """Exact on all 20 below the budget; over it (15 of 20), an exact subset that model.json,
+    --json and the human summary name, and that select's posterior reproduces."""
+    from bams_cli import pipeline
+    from bams_cli.core.gp.fit import BYTES_PER_ENTRY
+
+    ws = Workspace(fitted_ws)
+    model = json.loads(ws.model_path.read_text())
+    assert model["conditioning"]["method"] == "exact"
+    assert model["conditioning"]["conditioned_on"] == model["conditioning"]["observations"] == 20
+    assert model["conditioning"]["note"] == "exact posterior: conditioned on all 20 observations"
+
+    budget = BYTES_PER_ENTRY * 15 * 15
+    summary = pipeline.fit(fitted_ws, restarts=2, max_memory=budget, force=True)
+    c = summary["conditioning"]
+    assert (c["method"], c["conditioned_on"], c["observations"]) == ("exact_subset", 15, 20)
+    assert c["memory_budget_bytes"] == budget and "15 of 20 observations" in c["note"]
+    model = json.loads(ws.model_path.read_text())
+    assert model["conditioning"] == c
+    assert model["n_observations_per_level"] == [8, 12]  # the log, not the subset
+    settings = ws.require_initialised()
+    ids, X = ws.read_pool()
+    post, _ = pipeline.load_posterior(ws, settings, ids, X)
+    assert post.conditioning["conditioned_on"] == 15
+    g = pipeline.fitting.model_transform(ws, model)
+    _, sd, _ = post.score(X, g.forward(np.asarray(settings.gammas, dtype=float)))
+    np.testing.assert_allclose(sd, pq.read_table(ws.scores_path).column("sd").to_numpy())
+    # The same budget again: up to date; the default budget holds all 20, so it refits.
+    assert pipeline.fit(fitted_ws, restarts=2, max_memory=budget)["up_to_date"] is True
+    assert "up_to_date" not in pipeline.fit(fitted_ws, restarts=2)
+    pipeline.fit(fitted_ws, restarts=2, max_memory=budget, force=True)
+    r = invoke(runner, "select", "-w", fitted_ws, "--budget", "2", "--clusters", "1", "--json")
+    assert r.exit_code == 0, r.output
+    r = invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2", "--force")
+    assert r.exit_code == 0 and "conditioning" in r.output and "exact posterior" in r.output

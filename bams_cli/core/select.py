@@ -153,8 +153,9 @@ class SelectionResult:
     plan : dict
         The plan taken (``plan_selection``) and what it kept: "exact", "reason",
         "clusters", "max_rows_per_cluster", "max_candidates_per_cluster", "random_share",
-        "candidates_offered", "candidates_kept", "rows_live", "rows_sampled" (None where
-        the exact plan has no such limit).
+        "candidates_offered", "candidates_kept", "rows_live" (rows with p_n (1 - p_n) > 0),
+        "rows_in_j" (rows J is averaged over, each cluster's largest p_n (1 - p_n)) (None
+        where the exact plan has no such limit).
     """
 
     index: IntArray
@@ -595,7 +596,7 @@ def _greedy_cluster(
 
 
 # --------------------------------------------------------------------------------------
-# The approximate plan: a row sample for J, a screened candidate subset
+# The approximate plan: J on the rows of largest h_n, a screened candidate subset
 # --------------------------------------------------------------------------------------
 
 
@@ -779,14 +780,14 @@ def _approximate_cluster(
     )
     h = point_variance(margin(mu, sigma2, gamma))
     live = np.flatnonzero(h > 0.0)
-    sample = live
+    j_rows = live
     if max_rows is not None and len(live) > max_rows:
         # The rows that can matter: a row's beta, and so anything a pick can take off it,
         # is at most h_n. Keeping the largest h_n leaves out at most the sum of the rest
         # (reported as "h_left_out"); a uniform sample instead spent most of its rows where
         # the model is sure, and kept 70% of the exact decrease where this keeps 99%.
         by_h = live[np.lexsort((live, -h[live]))]
-        sample = np.sort(by_h[:max_rows])
+        j_rows = np.sort(by_h[:max_rows])
     cand = np.asarray(candidate_mask, dtype=bool)
     if max_candidates is not None:
         cand = screen_candidates(
@@ -800,18 +801,18 @@ def _approximate_cluster(
             max_candidates=max_candidates,
             random_share=random_share,
             rng=rng,
-            j_rows=sample,
+            j_rows=j_rows,
         )
-    # Points the sub-problem needs: the sampled rows and the candidates' (and forced
+    # Points the sub-problem needs: the rows of J and the candidates' (and forced
     # pairs') own points, in pool order so ties still break to the lowest pool index.
     need = np.zeros(n_s, dtype=bool)
-    need[sample] = True
+    need[j_rows] = True
     need |= (cand | forced).any(axis=1)
     sub = np.flatnonzero(need)
     j_mask = np.zeros(n_s, dtype=bool)
-    j_mask[sample] = True
+    j_mask[j_rows] = True
     h_total = float(h.sum())
-    h_out = h_total - float(h[sample].sum())
+    h_out = h_total - float(h[j_rows].sum())
     timings["plan"] = time.perf_counter() - t0
     return _greedy_cluster(
         posterior,
@@ -832,7 +833,7 @@ def _approximate_cluster(
         timings=timings,
         cpu0=cpu0,
         stats={
-            "rows_sampled": len(sample),
+            "rows_in_j": len(j_rows),
             "rows_live": len(live),
             "h_left_out_ppb": int(round(1e9 * h_out / h_total)) if h_total > 0 else 0,
             "candidates_offered": int(np.count_nonzero(candidate_mask)),
@@ -996,9 +997,10 @@ class SelectionPlan:
     n_clusters : int
         S, the number of clusters Algorithm 2 makes.
     max_rows, max_candidates : int or None
-        Approximate plan only: per cluster, J is averaged over a uniform sample of at most
-        ``max_rows`` rows and the greedy chooses among at most ``max_candidates``
-        candidates (``screen_candidates``). None when exact.
+        Approximate plan only: per cluster, J is averaged over the at most ``max_rows``
+        rows of largest h_n = p_n (1 - p_n) (chosen, not sampled), and the greedy chooses
+        among at most ``max_candidates`` candidates (``screen_candidates``). None when
+        exact.
     random_share : float
         Share of the kept candidates drawn uniformly (approximate plan).
     reason : str
@@ -1259,11 +1261,13 @@ def select_batch(
     timings["cluster"] = time.perf_counter() - t
 
     biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
-    if plan.exact and biggest > MAX_CLUSTER_BYTES:
+    limit = (plan_options or {}).get("max_cluster_bytes")
+    limit = MAX_CLUSTER_BYTES if limit is None else limit
+    if plan.exact and biggest > limit:
         if approximate == "never":
             raise ValueError(
                 f"the largest cluster needs {biggest / 2**30:.1f} GiB for its rows x candidates "
-                f"covariance (limit {MAX_CLUSTER_BYTES / 2**30:.0f} GiB); raise n_clusters"
+                f"covariance (limit {limit / 2**30:.2g} GiB); raise n_clusters"
             )
         # Too big for exact even on a small pool (few clusters asked): the same clusters,
         # approximately.
@@ -1275,7 +1279,7 @@ def select_batch(
             approx.max_candidates,
             approx.random_share,
             f"approximate: the exact greedy's largest cluster needs {biggest / 2**30:.1f} GiB "
-            f"(limit {MAX_CLUSTER_BYTES / 2**30:.0f} GiB)",
+            f"(limit {limit / 2**30:.2g} GiB)",
         )
     report(f"plan: {plan.describe()}", 1, 1)
 
@@ -1384,7 +1388,7 @@ def select_batch(
         "rows_live": int(sum(q.stats.get("rows_live", 0) for q in queues))
         if not plan.exact
         else None,
-        "rows_sampled": int(sum(q.stats.get("rows_sampled", 0) for q in queues))
+        "rows_in_j": int(sum(q.stats.get("rows_in_j", 0) for q in queues))
         if not plan.exact
         else None,
         # Largest share of a cluster's sum h_n on rows left out of its J: a bound on how

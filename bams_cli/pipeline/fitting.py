@@ -13,7 +13,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli import defaults
+from bams_cli import defaults, memory
 from bams_cli.errors import (
     InputError,
     PendingResultsError,
@@ -92,9 +92,12 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
             f"`bams-cli fit -w {ws.root} --force`",
         ) from None
     g = model_transform(ws, model)
+    # Condition as fit did: its memory budget decides exact or the same subset (older
+    # models, without the record, conditioned exactly on all).
+    budget = (model.get("conditioning") or {}).get("memory_budget_bytes")
     return fit_mfgp(
         X[idx], lv, g.forward(y), settings.n_levels, rng=np.random.default_rng(settings.seed),
-        fixed=hp,
+        fixed=hp, max_memory=None if budget is None else int(budget),
     ), model  # fmt: skip
 
 
@@ -119,6 +122,7 @@ def fit(
     chunk_size: int = 50_000,
     transform: str = defaults.TRANSFORM,
     force: bool = False,
+    max_memory: int | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Train the multifidelity GP on the observation log and score every pool segment.
@@ -144,6 +148,10 @@ def fit(
         The output transform (above).
     force : bool, default False
         Fit again although the model is up to date.
+    max_memory : int, optional
+        Byte budget of conditioning (default ``defaults.FIT_CONDITION_MEMORY``): exact on
+        every observation while it fits, else exact on a subset (``core.gp.fit.condition``);
+        the summary's ``conditioning`` says which.
     progress : callable ``(phase, done, total) -> None``, optional
         Called as the work advances (the CLI draws its progress bar with it).
     wait : bool, default False
@@ -181,7 +189,9 @@ def fit(
     ws = Workspace(root)
     settings = ws.require_initialised()
     if not force and fixed_hyperparameters is None:
-        kept = _fit_up_to_date(ws, settings, restarts=restarts, transform=transform)
+        kept = _fit_up_to_date(
+            ws, settings, restarts=restarts, transform=transform, max_memory=max_memory
+        )
         if kept is not None:
             return kept
     ids, X = ws.read_pool()
@@ -209,6 +219,7 @@ def fit(
         model, g, evidence = fit_transformed(
             X[idx], lv, y, settings.n_levels, centre=float(settings.gammas[0]), rng=rng,
             restarts=restarts, transform=chosen, fixed=fixed,
+            max_memory=condition_budget(max_memory),
         )  # fmt: skip
     except GPFitError as exc:
         raise WorkspaceError(f"fit: {exc}") from None
@@ -228,7 +239,8 @@ def fit(
         if progress:
             progress("score pool", stop, n)
 
-    checks = check_model(model, idx)
+    rows = model.conditioned_rows
+    checks = check_model(model, idx if rows is None else idx[rows])
     warnings = [
         *model.notes,
         *checks.warnings,
@@ -240,7 +252,7 @@ def fit(
         "hyperparameters": hp.to_dict(),
         "log_marginal_likelihood": float(model.log_marginal_likelihood),
         "log_posterior": float(model.log_posterior),
-        "n_observations_per_level": [int(c) for c in model.n_obs_per_level],
+        "n_observations_per_level": [int(c) for c in np.bincount(lv, minlength=settings.n_levels)],
         "observations_hash": obs_hash,
         "pool": ws.pool_fingerprint(),
         "units": "outputscale0, outputscales and noise are variances; lengthscales and mean in the metric's units",
@@ -249,6 +261,9 @@ def fit(
         # The MAP search runs on at most defaults.FIT_SUBSET observations (core.gp.fit_subset);
         # the model conditions on all of them.
         "hyperparameters_fitted_on": int(model.fitted_on),
+        # Exact on all observations, or exact on a subset when they exceed the memory
+        # budget (core.gp.fit.condition); load_posterior conditions the same way.
+        "conditioning": {**model.conditioning, "note": conditioning_note(model.conditioning)},
         "seed": settings.seed,
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -295,22 +310,40 @@ def fit(
         "checks": doc["checks"],
         "jitter": doc["jitter"],
         "hyperparameters_fitted_on": doc["hyperparameters_fitted_on"],
+        "conditioning": doc["conditioning"],
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": warnings,
     }
 
 
+def condition_budget(max_memory: int | None = None) -> int:
+    """Bytes ``fit`` may spend on exact conditioning: ``max_memory`` when given, else
+    ``defaults.FIT_CONDITION_MEMORY`` or half the command's ``--max-memory`` ceiling,
+    whichever is less (the other half holds the pool, its scores and the search)."""
+    if max_memory is not None:
+        return max_memory
+    return min(defaults.FIT_CONDITION_MEMORY, memory.share(0.5))
+
+
 def _fit_up_to_date(
-    ws: Workspace, settings: Settings, *, restarts: int, transform: str
+    ws: Workspace,
+    settings: Settings,
+    *,
+    restarts: int,
+    transform: str,
+    max_memory: int | None = None,
 ) -> dict[str, Any] | None:
     """The summary of the model in ``model.json`` if fitting now would redo it, else None.
 
     Redoing it means: trained (not ``--fixed-hyperparameters``) on the current observation
     log and pool, with scores from that fit (``Workspace.require_model``), for the same
     gammas, seed and number of levels, with the same ``--restarts`` and ``--transform``.
-    ``--chunk-size`` only bounds memory, so it does not count.
+    ``--chunk-size`` only bounds memory, so it does not count; the conditioning budget
+    counts only if it would condition on another number of observations.
     """
+    from bams_cli.core.gp.fit import max_conditioned
+
     if not ws.model_path.exists() or not ws.segments_path.exists():
         return None
     try:
@@ -330,8 +363,12 @@ def _fit_up_to_date(
     )
     if not same:
         return None
-    _, _, _, p = read_scores(ws, len(settings.gammas))
     n = int(np.sum(n_obs or []))
+    cap = max_conditioned(condition_budget(max_memory))
+    recorded = (model.get("conditioning") or {}).get("conditioned_on", n)  # older: all
+    if recorded != (n if cap is None else min(n, cap)):
+        return None
+    _, _, _, p = read_scores(ws, len(settings.gammas))
     return {
         "up_to_date": True,
         "message": f"model is up to date (fitted on {n} observations); nothing to do "
@@ -348,12 +385,26 @@ def _fit_up_to_date(
                 "hyperparameters",
                 "checks",
                 "jitter",
+                "conditioning",
                 "transform",
             )
         },
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": model.get("warnings", []),
     }
+
+
+def conditioning_note(c: dict[str, Any]) -> str:
+    """One line saying what the posterior conditions on (``MFGP.conditioning``)."""
+    n = int(c["observations"])
+    if c["method"] == "exact":
+        return f"exact posterior: conditioned on all {n:,} observations"
+    budget = float(c.get("memory_budget_bytes") or 0)
+    return (
+        f"conditioned exactly on {int(c['conditioned_on']):,} of {n:,} observations (level 0 "
+        f"first), the most a {budget / 2**30:.1f} GiB budget holds; sds are never below the "
+        "exact posterior's"
+    )
 
 
 #: Output transforms ``fit --transform`` accepts.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli import defaults
+from bams_cli import defaults, memory
 from bams_cli.errors import (
     InputError,
     OptionError,
@@ -43,6 +44,24 @@ MODEL_STRATEGIES = ("bams", "bas")
 STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
 
 
+def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
+    """Bytes one cluster's rows x candidates covariance may take under ``--max-memory``.
+
+    What the command holds already stays; the rest is shared by the worker processes,
+    each of which holds one cluster's covariance and about as much again in the greedy's
+    temporaries and its own start-up (``bench/bench_memory.py``). With ``--scheduler``
+    the workers run elsewhere and only the local limit of ``core.select`` applies.
+    """
+    from bams_cli.core.select import MAX_CLUSTER_BYTES
+
+    if scheduler:
+        return MAX_CLUSTER_BYTES
+    n = workers or os.cpu_count() or 1
+    free = memory.budget() - memory.tree_rss()
+    per_worker = free / n - memory.WORKER_BASE_BYTES
+    return int(max(min(per_worker / 2, MAX_CLUSTER_BYTES), 0))
+
+
 @contextlib.contextmanager
 def _memory_limit_is_an_option() -> Iterator[None]:
     """select_batch's refusal of a cluster too large for memory, as a one-line error."""
@@ -51,7 +70,12 @@ def _memory_limit_is_an_option() -> Iterator[None]:
     except ValueError as exc:
         if "GiB" not in str(exc):
             raise
-        raise OptionError(f"select: {str(exc).replace('n_clusters', '--clusters')}") from None
+        text = str(exc).replace("n_clusters", "--clusters")
+        ceiling = memory.format_size(memory.budget())
+        raise OptionError(
+            f"select: {text} (what --max-memory {ceiling} leaves each worker; raise it or "
+            "pass --workers 1)"
+        ) from None
 
 
 def _existing_batch(
@@ -370,6 +394,7 @@ def select(
                     reobserve_level0=include_observed,
                     excluded_pairs=gone,
                     pending_pairs=waiting if waiting.any() else None,
+                    plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},
                 )
         n_greedy = 0 if result is None else len(result.index)
         picks = {

@@ -24,7 +24,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bams_cli import __version__
+from bams_cli import __version__, memory
 from bams_cli.errors import InputError, SchemaError, shown
 
 META_PREFIX = "bams."
@@ -273,6 +273,7 @@ def transaction() -> Iterator[Transaction]:
     token = _open_tx.set(tx)
     try:
         yield tx
+        memory.check()  # nothing lands once the command is over its --max-memory
     except BaseException:
         tx.rollback()
         raise

@@ -146,6 +146,36 @@ def test_choose_design_predicts_each_candidate_and_takes_the_smallest():
     assert choice.pi.sum() == pytest.approx(100, rel=1e-9)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_choose_design_with_a_presorted_subset_equals_the_plain_call(seed):
+    # staged_trials sorts U once and hands each trial's stage 2 the order of U minus stage
+    # 1's sample; the choice must be the plain call's, bit for bit.
+    rng = np.random.default_rng(seed)
+    n = 3000
+    p = rng.beta(0.05, 10, n)
+    p[:300] = p[300:600]  # ties
+    fail = rng.random(n) < p
+    order = np.argsort(-p, kind="stable")
+    s = rng.choice(n, 150, replace=False)
+    u = dz.relative_risk(p)
+    post = dz.risk_posterior([dz.StageEvidence(u[s], fail[s], dz.risk_norms(u), p.mean())])
+    rest = np.ones(n, bool)
+    rest[s] = False
+    order2 = (np.cumsum(rest) - 1)[order[rest[order]]]
+    for K in (30.0, 300.0, 1500.0):
+        plain = dz.choose_design(p[rest], K=K, posterior=post)
+        hinted = dz.choose_design(p[rest], K=K, posterior=post, order=order2)
+        assert hinted.name == plain.name and hinted.predicted == plain.predicted
+        np.testing.assert_array_equal(hinted.pi, plain.pi)
+        np.testing.assert_array_equal(hinted.risk, plain.risk)
+
+
+def test_posterior_exp_is_numpys_with_underflow_written_as_zero():
+    x = np.concatenate([np.linspace(-1e4, 0.0, 5000), [-745.2, -745.1, -745.0, -708.5]])
+    np.testing.assert_array_equal(dz._exp(x), np.exp(x))
+    assert dz._exp(np.array([-745.0]))[0] > 0  # subnormal, kept
+
+
 def _stage(pi, fail, take, *, n_pool, known_failures=0):
     s = np.flatnonzero(take)
     return estimate_from_sample(

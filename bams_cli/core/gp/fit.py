@@ -26,6 +26,14 @@ from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
 _N_POLISH = 2  # restarts continued to convergence
 _MAXITER = 300  # cap on those; converged runs stop well before
+#: Bytes per entry of the n x n training covariance that conditioning holds at its peak:
+#: K, its Cholesky factor (a copy) and the kernel's temporaries while K is built. Measured
+#: by bench/bench_fit.py (peak RSS at 5,000 observations); 40 leaves a margin.
+BYTES_PER_ENTRY = 40
+#: Seed of the draw that fills a conditioning subset (``conditioning_subset``): fixed, so
+#: the same observation log always gives the same subset, and ``select``'s posterior is
+#: the one ``fit`` scored with.
+_SUBSET_SEED = 20_241_116
 
 
 def _minimize(
@@ -47,6 +55,7 @@ def fit_mfgp(
     fixed: Hyperparameters | None = None,
     priors: PriorSpec | None = None,
     max_fit: int | None = defaults.FIT_SUBSET,
+    max_memory: int | None = defaults.FIT_CONDITION_MEMORY,
 ) -> MFGP:
     """Fit the multifidelity GP by MAP and condition it on the data.
 
@@ -54,6 +63,14 @@ def fit_mfgp(
     of ``max_fit`` of them (``fit_subset``: stratified by level), and the returned model
     conditions on every observation with them; ``model.fitted_on`` says how many the
     search saw.
+
+    Conditioning is exact on every observation while its covariance fits ``max_memory``
+    bytes (``max_conditioned``: 10,362 observations at the default 4 GiB). Above that the
+    model conditions exactly on a subset of that many (``conditioning_subset``: level 0
+    first); ``model.conditioning`` records which. A subset's posterior variance is never
+    below the exact one (conditioning on fewer observations cannot lower a Gaussian's
+    variance), so its sd errs on the cautious side; how far its mean and sd are from the
+    exact posterior is measured in bench/bench_fit.py --accuracy.
 
     Parameters
     ----------
@@ -77,6 +94,8 @@ def fit_mfgp(
         Hyperparameter priors; ``priors.DEFAULT_PRIORS`` when omitted.
     max_fit : int, optional
         Most observations the hyperparameter search runs on (None: all).
+    max_memory : int, optional
+        Byte budget of the conditioning (None: exact on all, whatever it costs).
 
     Returns
     -------
@@ -91,7 +110,7 @@ def fit_mfgp(
         raise GPFitError(f"n_levels must be >= 1, got {n_levels}")
     X, levels, y = check_data(X, levels, y, n_levels)
     if fixed is not None:
-        return MFGP(X, levels, y, n_levels, fixed, priors=priors)
+        return condition(X, levels, y, n_levels, fixed, priors=priors, max_memory=max_memory)
     if restarts < 1:
         raise GPFitError(f"restarts must be >= 1, got {restarts}")
 
@@ -129,13 +148,88 @@ def fit_mfgp(
     L, _ = cholesky(K)
     beta, _ = objective.gls_mean(L)
     hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
-    model = MFGP(X, levels, y, n_levels, hp, priors=priors)
+    model = condition(X, levels, y, n_levels, hp, priors=priors, max_memory=max_memory)
     model.fitted_on = y.size if sub is None else sub.size
     if np.ptp(y) == 0.0:
         model.notes.append(
             f"all {y.size} observed values equal {y[0]:.6g}: the model is flat, and its "
             "failure probabilities rest on the priors alone"
         )
+    return model
+
+
+def max_conditioned(max_memory: int | None) -> int | None:
+    """Most observations exact conditioning holds within ``max_memory`` bytes (None: no cap).
+
+    floor(sqrt(max_memory / BYTES_PER_ENTRY)), at least 1: the n x n covariance and its
+    factor dominate the memory of conditioning.
+    """
+    if max_memory is None:
+        return None
+    return max(1, math.isqrt(int(max_memory) // BYTES_PER_ENTRY))
+
+
+def conditioning_subset(levels: IntArray, n_levels: int, max_obs: int | None) -> IntArray | None:
+    """Indices of the observations the model conditions on; None for all of them.
+
+    Level-0 observations first (they measure theta0 itself; a cheap level's are blurred by
+    its discrepancy), a fixed-seed uniform draw among them if they alone are too many; the
+    remaining places go to a fixed-seed uniform draw from the cheap levels' observations
+    (never more than ``max_obs`` in all: the budget is a ceiling). Measured on av_like (6,000 observations, 60% cheap, a subset of
+    4,500): level 0 first kept the largest mean error at pool points to 22 posterior sds
+    where a uniform draw reached 92, at the same median. Deterministic in the log (fixed
+    seed, ``_SUBSET_SEED``); sorted, so the subset's order is the log's.
+    """
+    n = levels.size
+    if max_obs is None or n <= max_obs:
+        return None
+    rng = np.random.default_rng(_SUBSET_SEED)
+    first = np.flatnonzero(levels == 0)
+    if first.size >= max_obs:
+        return np.sort(rng.choice(first, size=max_obs, replace=False)).astype(np.int64)
+    rest = np.flatnonzero(levels != 0)
+    chosen = rng.choice(rest, size=max_obs - first.size, replace=False)
+    return np.sort(np.concatenate([first, chosen])).astype(np.int64)
+
+
+def condition(
+    X: FloatArray,
+    levels: IntArray,
+    y: FloatArray,
+    n_levels: int,
+    hyperparameters: Hyperparameters,
+    *,
+    priors: PriorSpec | None = None,
+    max_memory: int | None = defaults.FIT_CONDITION_MEMORY,
+) -> MFGP:
+    """The GP with these hyperparameters conditioned on the data, within ``max_memory``.
+
+    Exact on all observations when they fit the budget (the model is then exactly
+    ``MFGP(X, levels, y, n_levels, hyperparameters)``); else exact on
+    ``conditioning_subset``. ``model.conditioning`` says which, ``model.conditioned_rows``
+    which rows (None: all).
+    """
+    n = y.size
+    cap = max_conditioned(max_memory)
+    rows = conditioning_subset(levels, n_levels, cap)
+    if rows is None:
+        model = MFGP(X, levels, y, n_levels, hyperparameters, priors=priors)
+    else:
+        model = MFGP(X[rows], levels[rows], y[rows], n_levels, hyperparameters, priors=priors)
+        model.notes.append(
+            f"the model conditions on {rows.size:,} of the {n:,} observations "
+            f"({int(np.sum(levels[rows] == 0)):,} of them level 0, taken first): exact "
+            f"conditioning on all would need {BYTES_PER_ENTRY * n * n / 2**30:.1f} GiB, over "
+            f"the budget of {float(max_memory or 0) / 2**30:.1f} GiB; its sds are never below "
+            "the exact posterior's"
+        )
+    model.conditioned_rows = rows
+    model.conditioning = {
+        "method": "exact" if rows is None else "exact_subset",
+        "conditioned_on": int(n if rows is None else rows.size),
+        "observations": int(n),
+        "memory_budget_bytes": None if max_memory is None else int(max_memory),
+    }
     return model
 
 
@@ -178,12 +272,13 @@ def fit_transformed(
     transform: OutputTransform | None = None,
     fixed: Hyperparameters | None = None,
     priors: PriorSpec | None = None,
+    max_memory: int | None = defaults.FIT_CONDITION_MEMORY,
 ) -> tuple[MFGP, OutputTransform, list[dict[str, float]]]:
     """Fit the GP to g(y), choosing the output transform g by evidence (``transform``).
 
     Parameters
     ----------
-    X, levels, y, n_levels, rng, restarts, fixed, priors
+    X, levels, y, n_levels, rng, restarts, fixed, priors, max_memory
         As ``fit_mfgp``; y in the metric's units.
     centre : float
         c of the asinh transform (the study's first gamma).
@@ -210,7 +305,7 @@ def fit_transformed(
     for g in candidates:
         model = fit_mfgp(
             X, levels, g.forward(y), n_levels, rng=np.random.default_rng(seed),
-            restarts=restarts, fixed=fixed, priors=priors,
+            restarts=restarts, fixed=fixed, priors=priors, max_memory=max_memory,
         )  # fmt: skip
         score = model.log_posterior + g.log_jacobian(y)
         evidence.append({"scale": g.scale, "log_evidence": float(score)})

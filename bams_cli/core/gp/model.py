@@ -106,6 +106,17 @@ class MFGP:
         #: How many observations the hyperparameter search saw (``fit.fit_subset``); all
         #: of them unless set by ``fit_mfgp``.
         self.fitted_on: int = int(np.asarray(y).size)
+        #: Which observations the posterior conditions on (``fit.condition``): rows of the
+        #: data it was given, None for all of them (this object's X_train is the rest).
+        self.conditioned_rows: IntArray | None = None
+        #: How it conditions: method "exact" (on all) or "exact_subset", conditioned_on,
+        #: observations, memory_budget_bytes (``fit.condition`` fills it in).
+        self.conditioning: dict[str, Any] = {
+            "method": "exact",
+            "conditioned_on": int(n),
+            "observations": int(n),
+            "memory_budget_bytes": None,
+        }
         if self.jitter > 0.0:
             rel = self.jitter / float(np.mean(np.diag(K)))
             self.notes.append(

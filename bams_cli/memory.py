@@ -1,0 +1,210 @@
+"""A memory ceiling for the commands that grow with the pool: ``--max-memory``.
+
+``select``, ``fit``, ``embed-reduce`` and ``report`` take ``--max-memory SIZE`` (``12G``,
+``800M``, ``40%`` of the machine's RAM; default ``defaults.MAX_MEMORY_FRACTION`` of it).
+The ceiling works in two ways:
+
+* planning: a command that sizes its work (``select``'s clusters and its rows x candidates
+  covariance, ``embed-reduce``'s row batches, ``fit``'s exact conditioning) asks
+  ``budget()`` and plans to stay within a share of it;
+* a watchdog: while the command runs, a thread reads the resident memory of the process
+  and its worker processes every ``POLL_S`` seconds. Past the ceiling it stops the command
+  the way Ctrl-C does: files being written are discarded (every write is atomic), and the
+  command ends with one line naming the ceiling and what it reached, exit code 1. If the
+  command cannot be interrupted within ``GRACE_S`` (a long call in compiled code) while
+  still over the ceiling, the watchdog prints the same line and ends the process tree
+  (exit code 1); the workspace is then as a kill leaves it
+  (``tests/test_crash_campaign.py``): as before, or as after the step's atomic commit.
+"""
+
+from __future__ import annotations
+
+import _thread
+import os
+import re
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import psutil
+
+from bams_cli import defaults
+from bams_cli.errors import BamsError
+
+#: Seconds between two reads of the process tree's resident memory.
+POLL_S = 0.05
+#: Resident bytes of a worker process before it holds any work (Python, numpy, numba).
+WORKER_BASE_BYTES = 200 * 2**20
+#: Seconds the command has to stop after an interrupt before the watchdog ends it.
+GRACE_S = 1.0
+
+_UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?b)?\s*$", re.IGNORECASE)
+_PERCENT = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*%\s*$")
+
+
+class MemoryCeilingError(BamsError):
+    """A command reached its ``--max-memory`` ceiling and was stopped."""
+
+
+def total_ram() -> int:
+    """Bytes of physical memory on this machine."""
+    return int(psutil.virtual_memory().total)
+
+
+def default_budget() -> int:
+    """``defaults.MAX_MEMORY_FRACTION`` of the machine's RAM, in bytes."""
+    return int(defaults.MAX_MEMORY_FRACTION * total_ram())
+
+
+def parse_size(text: str, flag: str = "--max-memory") -> int:
+    """Bytes from ``12G``, ``12GiB``, ``12GB``, ``800M``, ``512k``, ``1000000`` or ``40%``.
+
+    Units are binary (``G`` = ``GB`` = ``GiB`` = 2**30 bytes); a percentage is of the
+    machine's RAM. Anything else, zero, or a size under 64 MiB is a one-line error.
+    """
+    percent = _PERCENT.match(text)
+    if percent:
+        share = float(percent.group(1)) / 100.0
+        if not 0.0 < share <= 1.0:
+            raise BamsError(f"{flag} {text!r}: a percentage of RAM must be in (0%, 100%]")
+        size = int(share * total_ram())
+    else:
+        match = _SIZE.match(text)
+        if not match:
+            raise BamsError(f"{flag} {text!r}: expected a size such as 12G, 800M or 40% (of RAM)")
+        size = int(float(match.group(1)) * _UNITS[match.group(2).lower()])
+    if size < 256 * 2**20:
+        raise BamsError(
+            f"{flag} {text!r}: below 256M, less than a command needs to start (Python, numpy, numba)"
+        )
+    return size
+
+
+def format_size(n: float) -> str:
+    """``1.5 GiB``, ``800 MiB``: the unit that keeps the number between 1 and 1024."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(n) < 1024:
+            return f"{n:.0f} {unit}" if unit in ("B", "KiB") else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def tree_rss(proc: psutil.Process | None = None) -> int:
+    """Resident bytes of a process and all its descendants (pages they share count
+    once per process, so this never under-counts)."""
+    proc = proc or psutil.Process()
+    total = 0
+    for p in [proc, *proc.children(recursive=True)]:
+        try:
+            total += p.memory_info().rss
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return total
+
+
+_budget: int | None = None
+_watch: Watch | None = None
+
+
+def budget() -> int:
+    """The ceiling of the running command, in bytes (``default_budget()`` outside one)."""
+    return default_budget() if _budget is None else _budget
+
+
+def share(fraction: float) -> int:
+    """``fraction`` of the running command's ceiling, in bytes: what one part of its work
+    (one cluster's covariance, one batch of rows) may plan to hold."""
+    return int(fraction * budget())
+
+
+@dataclass
+class Watch:
+    """What the watchdog saw: the ceiling, the largest tree RSS read, and whether it fired."""
+
+    limit: int
+    command: str
+    peak: int = 0
+    fired: bool = False
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def message(self) -> str:
+        return (
+            f"{self.command} reached {format_size(self.peak)} resident, over --max-memory "
+            f"{format_size(self.limit)} and was stopped (writes are atomic: nothing half-written "
+            "is left); raise --max-memory (or BAMS_MAX_MEMORY) or free memory on this machine"
+        )
+
+    def _run(self) -> None:
+        me = psutil.Process()
+        fired_at = 0.0
+        while not self._stop.wait(POLL_S):
+            rss = tree_rss(me)
+            self.peak = max(self.peak, rss)
+            if rss <= self.limit:
+                continue
+            if not self.fired:
+                self.fired, fired_at = True, time.monotonic()
+                _thread.interrupt_main()
+            elif time.monotonic() - fired_at > GRACE_S:
+                self._end_tree(me)
+
+    def _end_tree(self, me: psutil.Process) -> None:
+        """The command did not stop after the interrupt: say why, then end it and its workers."""
+        from bams_cli import console
+
+        console.error(self.message())
+        sys.stderr.flush()
+        for child in me.children(recursive=True):
+            try:
+                child.kill()
+            except psutil.NoSuchProcess:
+                pass
+        os._exit(1)  # no cleanup: a kill's state (tests/test_crash_campaign.py)
+
+
+def check() -> None:
+    """Raise ``MemoryCeilingError`` when the running command has gone over its ceiling.
+
+    Every atomic commit calls it (``state.io.transaction``): the watchdog's interrupt can be
+    swallowed by a library that handles Ctrl-C itself, but nothing is committed after the
+    ceiling was reached.
+    """
+    if _watch is not None and _watch.fired:
+        raise MemoryCeilingError(_watch.message())
+
+
+@contextmanager
+def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
+    """Run a command under a ceiling of ``limit`` bytes (None: ``default_budget()``).
+
+    ``budget()`` returns the limit inside. A watchdog interrupt becomes
+    ``MemoryCeilingError`` with the watch's one-line message.
+    """
+    global _budget, _watch
+    watch = Watch(limit=default_budget() if limit is None else int(limit), command=command)
+    previous, _budget = _budget, watch.limit
+    previous_watch, _watch = _watch, watch
+    thread = threading.Thread(target=watch._run, name="bams-max-memory", daemon=True)
+    try:
+        thread.start()  # inside: the first read may fire before start() returns
+        yield watch
+    except KeyboardInterrupt:
+        if watch.fired:
+            raise MemoryCeilingError(watch.message()) from None
+        raise
+    finally:
+        try:
+            watch._stop.set()
+            if thread.ident is not None:
+                thread.join()
+        except KeyboardInterrupt:
+            # Fired as the command ended: its commit was refused (``check``), or it had
+            # committed before the ceiling was reached; either way it is raising or done.
+            if not watch.fired:
+                raise
+        finally:
+            _budget, _watch = previous, previous_watch

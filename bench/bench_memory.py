@@ -1,0 +1,127 @@
+"""Benchmark the memory ceiling (``--max-memory``) of the commands that grow with the pool.
+
+    .venv/bin/python bench/bench_memory.py                      # N = 1,000,000 toy2d segments
+    .venv/bin/python bench/bench_memory.py --n 200000 --limits 2G,1G --keep /tmp/bm
+
+Builds a study as a user does, one ``bams-cli`` process per step (the harness's toy2d pool
+at N segments, a random mixed-fidelity first batch, its simulated results, ``fit``), then
+runs each command that takes ``--max-memory`` (``embed-reduce``, ``fit``, ``select
+--strategy bams``, ``report``) once with no ceiling given (the default,
+``defaults.MAX_MEMORY_FRACTION`` of RAM) and once under each of ``--limits``, on a fresh
+copy of the study each time. It prints each run's wall seconds and the peak resident memory
+of its whole process tree (the command and its worker processes, read every 20 ms through
+psutil), and whether the command finished or stopped at its ceiling. The ceiling holds when
+every finished run's peak is under its limit; a run that stops at its ceiling prints the
+one-line error the user sees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import psutil
+
+from bams_cli.benchmark import PROTOCOLS, prepare_data
+from bams_cli.memory import format_size, parse_size, tree_rss
+
+BIN = Path(sys.executable).parent / "bams-cli"
+
+
+def run(args: list[object], log: Path) -> tuple[float, int, int]:
+    """Wall seconds, peak process-tree RSS (bytes) and exit code of one bams-cli process."""
+    t0 = time.perf_counter()
+    peak = 0
+    with log.open("w") as out:
+        proc = subprocess.Popen([str(BIN), *map(str, args)], stdout=out, stderr=out)
+        done = threading.Event()
+
+        def sample() -> None:
+            nonlocal peak
+            me = psutil.Process(proc.pid)
+            while not done.wait(0.02):
+                try:
+                    peak = max(peak, tree_rss(me))
+                except psutil.NoSuchProcess:
+                    return
+
+        t = threading.Thread(target=sample, daemon=True)
+        t.start()
+        code = proc.wait()
+        done.set()
+        t.join()
+    return time.perf_counter() - t0, peak, code
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=1_000_000)
+    ap.add_argument("--limits", default="2G,1G", help="comma-separated --max-memory values")
+    ap.add_argument("--keep", type=Path, help="keep the data and study here")
+    a = ap.parse_args()
+    limits = [x.strip() for x in a.limits.split(",") if x.strip()]
+
+    with tempfile.TemporaryDirectory(prefix="bams-bench-") as tmp:
+        root = a.keep or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        data = prepare_data(PROTOCOLS["toy2d"], a.n, root)
+        seg, truth, log = data / "segments.parquet", data / "truth.parquet", root / "step.log"
+        base = root / "base"
+        shutil.rmtree(base, ignore_errors=True)
+        reduce = ["embed-reduce", "-w", base, seg, "--columns", "x*", "--method", "identity",
+                  "--no-standardize"]  # fmt: skip
+        setup: list[list[object]] = [
+            ["init", "-w", base, "--settings-from", data / "settings.toml"],
+            reduce,
+            ["select", "-w", base, "--strategy", "random", "--mixed-fidelity", "--budget", "20"],
+            ["simulate", base / "batches" / "batch-0001.parquet", "--truth", truth,
+             "-o", root / "r1.parquet"],
+            ["ingest-results", "-w", base, root / "r1.parquet"],
+            ["fit", "-w", base, "--restarts", "4"],
+        ]  # fmt: skip
+        t = time.perf_counter()
+        for args in setup:
+            if run(args, log)[2] != 0:
+                sys.exit(f"bams-cli {' '.join(map(str, args))} failed:\n{log.read_text()}")
+        print(f"N = {a.n:,} segments (toy2d), study set up in {time.perf_counter() - t:.0f} s; "
+              f"RAM {format_size(psutil.virtual_memory().total)}")  # fmt: skip
+
+        def work(ws: Path) -> dict[str, list[object]]:
+            return {
+                "embed-reduce": [*reduce[:2], ws, *reduce[3:], "--force"],
+                "fit": ["fit", "-w", ws, "--restarts", "4", "--force"],
+                "select bams": ["select", "-w", ws, "--strategy", "bams", "--budget", "15"],
+                "report": ["report", "-w", ws],
+            }  # fmt: skip
+
+        print(f"{'command':<14}{'--max-memory':>14}{'wall s':>9}{'peak RSS':>12}  outcome")
+        held = True
+        for name in work(base):
+            for limit in [None, *limits]:
+                ws = root / "run"
+                shutil.rmtree(ws, ignore_errors=True)
+                shutil.copytree(base, ws)
+                args = work(ws)[name] + ([] if limit is None else ["--max-memory", limit])
+                dt, peak, code = run(args, log)
+                cap = None if limit is None else parse_size(limit)
+                if code == 0:
+                    ok = cap is None or peak <= cap
+                    held &= ok
+                    outcome = "finished" + ("" if ok else "  OVER THE CEILING")
+                else:
+                    lines = log.read_text().strip().splitlines()
+                    outcome = f"exit {code}: {lines[-1] if lines else ''}"
+                print(f"{name:<14}{limit or 'default':>14}{dt:>9.1f}{format_size(peak):>12}  "
+                      f"{outcome}", flush=True)  # fmt: skip
+        print("every finished run stayed under its ceiling" if held else "A CEILING WAS EXCEEDED")
+        sys.exit(0 if held else 1)
+
+
+if __name__ == "__main__":
+    main()

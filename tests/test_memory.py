@@ -1,0 +1,202 @@
+"""--max-memory: sizes as users write them, the planning share, and the watchdog's stop."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+from bams_cli import defaults, memory
+from bams_cli.errors import BamsError
+from bams_cli.pipeline.selection import cluster_bytes
+
+from .conftest import invoke, ok, simulate_and_ingest, tree_hash
+
+GiB, MiB = 2**30, 2**20
+
+
+@pytest.mark.parametrize(
+    ("text", "size"),
+    [
+        ("12G", 12 * GiB),
+        ("12GiB", 12 * GiB),
+        ("12gb", 12 * GiB),
+        ("1.5G", 3 * GiB // 2),
+        ("800M", 800 * MiB),
+        (" 512 MiB ", 512 * MiB),
+        ("1T", 2**40),
+        (str(3 * GiB), 3 * GiB),
+        ("1048576k", GiB),
+    ],
+)
+def test_sizes_are_read_in_binary_units(text: str, size: int) -> None:
+    assert memory.parse_size(text) == size
+
+
+def test_a_percentage_is_of_the_machines_ram() -> None:
+    assert memory.parse_size("40%") == int(0.4 * memory.total_ram())
+    assert memory.default_budget() == int(defaults.MAX_MEMORY_FRACTION * memory.total_ram())
+
+
+@pytest.mark.parametrize("text", ["", "G", "12X", "-1G", "0%", "150%", "12 G B", "100M", "1e9"])
+def test_bad_sizes_are_one_line_errors_naming_the_flag(text: str) -> None:
+    with pytest.raises(BamsError) as err:
+        memory.parse_size(text)
+    assert "--max-memory" in str(err.value) and "\n" not in str(err.value)
+
+
+@given(st.integers(min_value=256 * MiB, max_value=2**44))
+def test_a_byte_count_reads_back_exactly(n: int) -> None:
+    assert memory.parse_size(str(n)) == n
+    assert memory.parse_size(f"{n / GiB!r}G") == pytest.approx(n, rel=1e-12, abs=1)
+
+
+@given(st.text(max_size=12))
+def test_any_text_is_a_size_or_a_one_line_error(text: str) -> None:
+    try:
+        size = memory.parse_size(text)
+    except BamsError as exc:
+        assert "\n" not in str(exc)
+    else:
+        assert size >= 256 * MiB
+
+
+def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 400 * MiB)
+    t0 = time.monotonic()
+    with pytest.raises(memory.MemoryCeilingError) as err:
+        with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
+            assert memory.budget() == 300 * MiB
+            while time.monotonic() - t0 < 10:
+                time.sleep(0.01)
+    assert time.monotonic() - t0 < 2  # stopped at the first reads, not at the loop's end
+    assert watch.fired and watch.peak == 400 * MiB
+    text = str(err.value)
+    assert "bams-cli fit reached 400.0 MiB" in text and "--max-memory 300.0 MiB" in text
+    assert memory.budget() == memory.default_budget()  # the ceiling ends with its command
+
+
+def test_under_the_ceiling_nothing_fires(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 200 * MiB)
+    with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
+        time.sleep(0.3)
+    assert not watch.fired and watch.peak == 200 * MiB
+
+
+def test_the_real_process_tree_is_read() -> None:
+    rss = memory.tree_rss()
+    assert 20 * MiB < rss < memory.total_ram()
+
+
+def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatch) -> None:
+    from bams_cli.core.select import MAX_CLUSTER_BYTES
+
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 500 * MiB)
+    monkeypatch.setattr(memory, "_budget", 2 * GiB)
+    # (2 GiB - 500 MiB) over 2 workers, less a worker's own start-up, half of it for C.
+    assert cluster_bytes(2, None) == ((2048 - 500) * MiB / 2 - memory.WORKER_BASE_BYTES) // 2
+    assert cluster_bytes(1, None) == ((2048 - 500) * MiB - memory.WORKER_BASE_BYTES) // 2
+    assert cluster_bytes(2, "tcp://elsewhere:8786") == MAX_CLUSTER_BYTES  # not our memory
+    monkeypatch.setattr(memory, "_budget", 64 * GiB)
+    assert cluster_bytes(2, None) == MAX_CLUSTER_BYTES  # never above select's own limit
+
+
+def fitted(runner: CliRunner, ws: Path, truth: Path) -> None:
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "10")
+    handoff = ws / "batches" / "batch-0001.parquet"
+    simulate_and_ingest(runner, ws, handoff, truth, ws.parent / "r1.parquet")
+    ok(runner, "fit", "-w", ws, "--restarts", "2")
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["fit", "--force"],
+        ["select", "--strategy", "bams", "--budget", "5"],
+        ["report"],
+    ],
+)
+def test_a_command_stopped_at_its_ceiling_leaves_the_workspace_as_it_was(
+    runner: CliRunner,
+    toy_ws: Path,
+    toy_files: tuple[Path, Path],
+    monkeypatch: pytest.MonkeyPatch,
+    args: list[str],
+) -> None:
+    fitted(runner, toy_ws, toy_files[1])
+    before = tree_hash(toy_ws)
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 3 * GiB)
+    monkeypatch.setattr(memory, "POLL_S", 0.001)  # first read before the command's work
+    r = invoke(runner, *args[:1], "-w", toy_ws, *args[1:], "--max-memory", "2G")
+    assert r.exit_code == 1, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "over --max-memory 2.0 GiB" in lines[0], r.stderr
+    assert tree_hash(toy_ws) == before
+
+
+def test_the_ceiling_comes_from_the_environment_too(
+    runner: CliRunner, toy_ws: Path, toy_files: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fitted(runner, toy_ws, toy_files[1])
+    monkeypatch.setenv("BAMS_MAX_MEMORY", "12X")
+    r = invoke(runner, "fit", "-w", toy_ws, "--force")
+    assert r.exit_code == 1 and "--max-memory '12X'" in r.stderr
+    monkeypatch.setenv("BAMS_MAX_MEMORY", "4G")
+    ok(runner, "fit", "-w", toy_ws, "--force")
+
+
+def test_nothing_is_committed_once_the_ceiling_was_reached(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A library that handles Ctrl-C itself can swallow the watchdog's interrupt; the
+    commit still refuses, and the staged files go."""
+    from bams_cli.state.io import transaction
+
+    target = tmp_path / "out.txt"
+    with transaction() as tx:  # no ceiling: commits
+        tx.write_text(target, "before")
+    watch = memory.Watch(limit=300 * MiB, command="bams-cli fit", peak=400 * MiB, fired=True)
+    monkeypatch.setattr(memory, "_watch", watch)
+    with pytest.raises(memory.MemoryCeilingError, match="over --max-memory 300.0 MiB"):
+        with transaction() as tx:
+            tx.write_text(target, "after")
+    assert target.read_text() == "before" and sorted(tmp_path.iterdir()) == [target]
+
+
+def test_fit_conditions_within_half_the_ceiling(monkeypatch: pytest.MonkeyPatch) -> None:
+    from bams_cli.core.gp.fit import max_conditioned
+    from bams_cli.pipeline.fitting import condition_budget
+
+    assert condition_budget(123 * MiB) == 123 * MiB  # the API's explicit budget wins
+    monkeypatch.setattr(memory, "_budget", 64 * GiB)
+    assert condition_budget() == defaults.FIT_CONDITION_MEMORY
+    monkeypatch.setattr(memory, "_budget", 2 * GiB)
+    assert condition_budget() == GiB
+    cap = max_conditioned(condition_budget())
+    assert cap is not None and cap < max_conditioned(defaults.FIT_CONDITION_MEMORY)
+
+
+def test_a_command_deaf_to_the_interrupt_is_ended_with_the_same_line() -> None:
+    """Blocked in a system call the interrupt cannot break, the command is ended by the
+    watchdog after ``GRACE_S``: the one line, exit code 1, not a hang."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from bams_cli import memory as m\n"
+        "m.tree_rss = lambda proc=None: 3 * 2**30\n"
+        "with m.ceiling(2 * 2**30, 'bams-cli select'):\n"
+        "    r, w = os.pipe()\n"
+        "    os.read(r, 1)\n"
+    )
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bams-cli select reached 3.0 GiB" in lines[0], done.stderr
+    assert time.monotonic() - t0 < 30
