@@ -66,7 +66,7 @@ def test_any_text_is_a_size_or_a_one_line_error(text: str) -> None:
 
 
 def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 400 * MiB)
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 400 * MiB)
     t0 = time.monotonic()
     with pytest.raises(memory.MemoryCeilingError) as err:
         with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
@@ -81,7 +81,7 @@ def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.Monke
 
 
 def test_under_the_ceiling_nothing_fires(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 200 * MiB)
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 200 * MiB)
     with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
         time.sleep(0.3)
     assert not watch.fired and watch.peak == 200 * MiB
@@ -95,7 +95,7 @@ def test_the_real_process_tree_is_read() -> None:
 def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatch) -> None:
     from bams_cli.core.select import MAX_CLUSTER_BYTES
 
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 500 * MiB)
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 500 * MiB)
     monkeypatch.setattr(memory, "_budget", 2 * GiB)
     # (2 GiB - 500 MiB) over 2 workers, less a worker's own start-up, half of it for C.
     assert cluster_bytes(2, None) == ((2048 - 500) * MiB / 2 - memory.WORKER_BASE_BYTES) // 2
@@ -129,7 +129,7 @@ def test_a_command_stopped_at_its_ceiling_leaves_the_workspace_as_it_was(
 ) -> None:
     fitted(runner, toy_ws, toy_files[1])
     before = tree_hash(toy_ws)
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None: 3 * GiB)
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 3 * GiB)
     monkeypatch.setattr(memory, "POLL_S", 0.001)  # first read before the command's work
     r = invoke(runner, *args[:1], "-w", toy_ws, *args[1:], "--max-memory", "2G")
     assert r.exit_code == 1, r.output
@@ -189,7 +189,7 @@ def test_a_command_deaf_to_the_interrupt_is_ended_with_the_same_line() -> None:
     code = (
         "import os\n"
         "from bams_cli import memory as m\n"
-        "m.tree_rss = lambda proc=None: 3 * 2**30\n"
+        "m.tree_rss = lambda proc=None, children=None: 3 * 2**30\n"
         "with m.ceiling(2 * 2**30, 'bams-cli select'):\n"
         "    r, w = os.pipe()\n"
         "    os.read(r, 1)\n"
