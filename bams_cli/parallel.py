@@ -3,7 +3,13 @@
 Per-cluster selection is independent work. It goes through a
 ``concurrent.futures.Executor``: a local process pool by default, an in-process runner for
 ``--workers 1``, or a ``dask.distributed`` cluster when the user names a scheduler
-(``client.get_executor()``). One code path either way, and the same answer.
+(``DaskExecutor``). One code path either way, and the same answer.
+
+On dask, nothing large goes through the scheduler: a task's array arguments, when they
+add up to ``SCATTER_MIN_BYTES`` or more, go straight to a worker
+(``Client.scatter(direct=True)``), and
+an object shared by every task (the fitted model) goes to every worker once
+(``broadcast=True``); the task the scheduler sees holds only references to them.
 
 Local workers die with the command that started them: a worker outliving a killed command
 would sit idle forever (it waits on a queue whose other end it holds itself) and, before
@@ -24,7 +30,15 @@ from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
+import numpy as np
+
 from bams_cli.errors import BamsError
+
+#: A task's array arguments, together at least this large, go to a dask worker directly.
+SCATTER_MIN_BYTES = 64 * 1024
+
+#: Arguments sent inside a dask task as they are.
+_PLAIN = (int, float, bool, str, bytes, type(None), np.generic)
 
 
 class InlineExecutor(Executor):
@@ -37,6 +51,60 @@ class InlineExecutor(Executor):
         except BaseException as exc:  # handed to the caller through the future
             future.set_exception(exc)
         return future
+
+
+class DaskExecutor(Executor):
+    """A ``dask.distributed`` client as an Executor that keeps large data off the scheduler.
+
+    ``submit(fn, *args, **kwargs)`` sends ``fn`` with small arguments inside the task.
+    The task's ndarrays, when they add up to ``SCATTER_MIN_BYTES`` or more, are scattered
+    to one worker first (the scheduler then runs the task there); any other object (the fitted model every cluster's
+    greedy needs) is broadcast to every worker, once per object however many tasks use it.
+    """
+
+    def __init__(self, client: Any, min_bytes: int | None = None) -> None:
+        self._client = client
+        self._inner = client.get_executor()
+        self._min_bytes = SCATTER_MIN_BYTES if min_bytes is None else min_bytes
+        self._turn = -1
+        # id -> (object, its future): the object is held so that its id stays its own.
+        self._shared: dict[int, tuple[Any, Any]] = {}
+
+    def _shared_future(self, obj: Any) -> Any:
+        if id(obj) not in self._shared:
+            fut = self._client.scatter(obj, direct=True, broadcast=True, hash=False)
+            self._shared[id(obj)] = (obj, fut)
+        return self._shared[id(obj)][1]
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Future:
+        values: dict[Any, Any] = dict(enumerate(args)) | kwargs
+        big = [k for k, v in values.items() if isinstance(v, np.ndarray)]
+        if sum(values[k].nbytes for k in big) >= self._min_bytes:
+            # One task's arrays to one worker, workers in turn: the task runs where its
+            # data is, and the tasks spread over the workers.
+            workers = sorted(self._client.scheduler_info()["workers"])
+            self._turn += 1
+            where = [workers[self._turn % len(workers)]] if workers else None
+            futs = self._client.scatter(
+                [values[k] for k in big], direct=True, hash=False, workers=where
+            )
+            values |= dict(zip(big, futs, strict=True))
+        for k, v in values.items():
+            if not isinstance(v, (*_PLAIN, np.ndarray)) and not _is_future(v):
+                values[k] = self._shared_future(v)
+        n = len(args)
+        shipped = [values[i] for i in range(n)]
+        return self._inner.submit(fn, *shipped, **{k: values[k] for k in kwargs})
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._inner.shutdown(wait=wait)
+        self._shared.clear()
+
+
+def _is_future(obj: Any) -> bool:
+    from dask.distributed import Future as DaskFuture
+
+    return isinstance(obj, DaskFuture)
 
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
@@ -101,7 +169,7 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
         except OSError as exc:
             raise BamsError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         try:
-            yield client.get_executor()
+            yield DaskExecutor(client)
         finally:
             client.close()
         return

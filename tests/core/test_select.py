@@ -9,6 +9,7 @@ decrease. It shares no code with the rank-1 recursion under test.
 from __future__ import annotations
 
 import math
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
@@ -645,10 +646,12 @@ def test_select_batch_with_pending_picks_in_several_clusters(pool_problem):
         np.testing.assert_allclose(q.delta_j, dj, rtol=1e-9, atol=1e-15)
 
 
-def test_approximate_plan_on_a_dask_cluster_gives_the_local_batch():
+def test_approximate_plan_on_a_dask_cluster_gives_the_local_batch(monkeypatch):
     # The plan a large pool gets, with its clusters' greedies run on a two-process dask
     # LocalCluster (as `select --scheduler tcp://...`): the same batch as local processes.
     distributed = pytest.importorskip("distributed")
+    import dask
+
     from bams_cli.parallel import executor
 
     post, X, observed0, gamma = _av_like_problem(3000, 0)
@@ -664,12 +667,19 @@ def test_approximate_plan_on_a_dask_cluster_gives_the_local_batch():
     )
     with executor(2) as pool:
         local = select_batch(post, X, rng=np.random.default_rng(0), executor=pool, **kw)
+    # Nothing large through the scheduler: with arrays of 1 kB and more scattered, no task
+    # the scheduler receives reaches 20 kB (a cluster's points alone are ~45 kB here, so
+    # sending them inside the task trips dask's large-graph warning, an error here).
+    monkeypatch.setattr("bams_cli.parallel.SCATTER_MIN_BYTES", 1024)
     with (
+        dask.config.set({"distributed.admin.large-graph-warning-threshold": "20kB"}),
+        warnings.catch_warnings(),
         distributed.LocalCluster(
             n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
         ) as cluster,
         executor(scheduler=cluster.scheduler_address) as pool,
     ):
+        warnings.filterwarnings("error", message="Sending large graph")
         remote = select_batch(post, X, rng=np.random.default_rng(0), executor=pool, **kw)
     assert not remote.plan["exact"]
     np.testing.assert_array_equal(local.index, remote.index)
