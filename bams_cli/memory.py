@@ -8,7 +8,11 @@ The ceiling works in two ways:
   covariance, ``embed-reduce``'s row batches, ``fit``'s exact conditioning) asks
   ``budget()`` and plans to stay within a share of it;
 * a watchdog: while the command runs, a thread reads the resident memory of the process
-  and its worker processes every ``POLL_S`` seconds. Past the ceiling it stops the command
+  and its worker processes every ``POLL_S`` seconds. Their resident sizes summed count a
+  page a forked worker shares with the command once per process (three times over with two
+  workers); while that sum is over the ceiling, the watchdog reads what the tree really
+  holds, its proportional set size (each page once, ``tree_pss``), at most every ``PSS_S``
+  seconds since that read costs milliseconds. Past the ceiling it stops the command
   the way Ctrl-C does: files being written are discarded (every write is atomic), and the
   command ends with one line naming the ceiling and what it reached, exit code 1. If the
   command cannot be interrupted within ``GRACE_S`` (a long call in compiled code) while
@@ -39,6 +43,9 @@ POLL_S = 0.05
 #: Seconds between two listings of the worker processes (a listing reads every process's
 #: /proc entry: 2.4 ms of CPU with 63 processes, too much to repeat every ``POLL_S``).
 LIST_S = 1.0
+#: Seconds between two reads of the tree's proportional set size, made only while the
+#: cheap resident sum is over the ceiling (a read costs about 5 ms per 500 MB a process holds).
+PSS_S = 0.2
 #: Resident bytes of a worker process before it holds any work (Python, numpy, numba).
 WORKER_BASE_BYTES = 200 * 2**20
 #: Seconds the command has to stop after an interrupt before the watchdog ends it.
@@ -114,6 +121,27 @@ def tree_rss(
     return total
 
 
+def tree_pss(
+    proc: psutil.Process | None = None, children: list[psutil.Process] | None = None
+) -> int:
+    """Proportional set size of a process and its descendants: the memory the tree holds.
+
+    A page shared by k processes counts 1/k in each, so a forked worker's pages that are
+    still its parent's count once in the total, where ``tree_rss`` counts them in every
+    process. Reads /proc/PID/smaps_rollup: milliseconds per process, not microseconds.
+    """
+    proc = proc or psutil.Process()
+    if children is None:
+        children = proc.children(recursive=True)
+    total = 0
+    for p in [proc, *children]:
+        try:
+            total += p.memory_full_info().pss
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return total
+
+
 _budget: int | None = None
 _watch: Watch | None = None
 
@@ -131,7 +159,9 @@ def share(fraction: float) -> int:
 
 @dataclass
 class Watch:
-    """What the watchdog saw: the ceiling, the largest tree RSS read, and whether it fired."""
+    """What the watchdog saw: the ceiling, the most memory it read the tree holding (its
+    resident sum, or its proportional set size where that sum was over the ceiling), and
+    whether it fired."""
 
     limit: int
     command: str
@@ -141,21 +171,27 @@ class Watch:
 
     def message(self) -> str:
         return (
-            f"{self.command} reached {format_size(self.peak)} resident, over --max-memory "
+            f"{self.command} reached {format_size(self.peak)} of memory, over --max-memory "
             f"{format_size(self.limit)} and was stopped (writes are atomic: nothing half-written "
             "is left); raise --max-memory (or BAMS_MAX_MEMORY) or free memory on this machine"
         )
 
     def _run(self) -> None:
         me = psutil.Process()
-        fired_at = listed_at = 0.0
+        fired_at = listed_at = pss_at = 0.0
+        pss = 0
         children: list[psutil.Process] = []
         while not self._stop.wait(POLL_S):
-            if time.monotonic() - listed_at > LIST_S:  # listing scans all of /proc
-                children, listed_at = me.children(recursive=True), time.monotonic()
-            rss = tree_rss(me, children)
-            self.peak = max(self.peak, rss)
-            if rss <= self.limit:
+            now = time.monotonic()
+            if now - listed_at > LIST_S:  # listing scans all of /proc
+                children, listed_at = me.children(recursive=True), now
+            used = tree_rss(me, children)  # never less than what the tree holds
+            if used > self.limit:
+                if now - pss_at >= PSS_S:
+                    pss, pss_at = tree_pss(me, children), now
+                used = min(used, pss)
+            self.peak = max(self.peak, used)
+            if used <= self.limit:
                 continue
             if not self.fired:
                 self.fired, fired_at = True, time.monotonic()

@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/bench_memory.py                      # N = 1,000,000 toy2d segments
     .venv/bin/python bench/bench_memory.py --n 200000 --limits 2G,1G --keep /tmp/bm
+    .venv/bin/python bench/bench_memory.py --commands "select bams" --limits 1G,700M
 
 Builds a study as a user does, one ``bams-cli`` process per step (the harness's toy2d pool
 at N segments, a random mixed-fidelity first batch, its simulated results, ``fit``), then
@@ -10,7 +11,9 @@ runs each command that takes ``--max-memory`` (``embed-reduce``, ``fit``, ``sele
 ``defaults.MAX_MEMORY_FRACTION`` of RAM) and once under each of ``--limits``, on a fresh
 copy of the study each time. It prints each run's wall seconds and the peak resident memory
 of its whole process tree (the command and its worker processes, read every 20 ms through
-psutil), and whether the command finished or stopped at its ceiling. The ceiling holds when
+psutil) as its proportional set size, the memory it holds (a page shared by forked workers
+counts once), beside the sum of the processes' resident sizes (which counts such a page in
+every process), and whether the command finished or stopped at its ceiling. The ceiling holds when
 every finished run's peak is under its limit; a run that stops at its ceiling prints the
 one-line error the user sees.
 """
@@ -29,25 +32,28 @@ from pathlib import Path
 import psutil
 
 from bams_cli.benchmark import PROTOCOLS, prepare_data
-from bams_cli.memory import format_size, parse_size, tree_rss
+from bams_cli.memory import format_size, parse_size, tree_pss, tree_rss
 
 BIN = Path(sys.executable).parent / "bams-cli"
 
 
-def run(args: list[object], log: Path) -> tuple[float, int, int]:
-    """Wall seconds, peak process-tree RSS (bytes) and exit code of one bams-cli process."""
+def run(args: list[object], log: Path) -> tuple[float, int, int, int]:
+    """Wall seconds, peak process-tree memory (proportional set size, and resident sum;
+    bytes) and exit code of one bams-cli process."""
     t0 = time.perf_counter()
-    peak = 0
+    peak = peak_rss = 0
     with log.open("w") as out:
         proc = subprocess.Popen([str(BIN), *map(str, args)], stdout=out, stderr=out)
         done = threading.Event()
 
         def sample() -> None:
-            nonlocal peak
+            nonlocal peak, peak_rss
             me = psutil.Process(proc.pid)
             while not done.wait(0.02):
                 try:
-                    peak = max(peak, tree_rss(me))
+                    kids = me.children(recursive=True)
+                    peak_rss = max(peak_rss, tree_rss(me, kids))
+                    peak = max(peak, tree_pss(me, kids))
                 except psutil.NoSuchProcess:
                     return
 
@@ -56,7 +62,7 @@ def run(args: list[object], log: Path) -> tuple[float, int, int]:
         code = proc.wait()
         done.set()
         t.join()
-    return time.perf_counter() - t0, peak, code
+    return time.perf_counter() - t0, peak, peak_rss, code
 
 
 def main() -> None:
@@ -64,6 +70,11 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=1_000_000)
     ap.add_argument("--limits", default="2G,1G", help="comma-separated --max-memory values")
     ap.add_argument("--keep", type=Path, help="keep the data and study here")
+    ap.add_argument(
+        "--commands",
+        default="embed-reduce,fit,select bams,report",
+        help="comma-separated subset of: embed-reduce, fit, select bams, report",
+    )
     a = ap.parse_args()
     limits = [x.strip() for x in a.limits.split(",") if x.strip()]
 
@@ -87,7 +98,7 @@ def main() -> None:
         ]  # fmt: skip
         t = time.perf_counter()
         for args in setup:
-            if run(args, log)[2] != 0:
+            if run(args, log)[3] != 0:
                 sys.exit(f"bams-cli {' '.join(map(str, args))} failed:\n{log.read_text()}")
         print(f"N = {a.n:,} segments (toy2d), study set up in {time.perf_counter() - t:.0f} s; "
               f"RAM {format_size(psutil.virtual_memory().total)}")  # fmt: skip
@@ -100,15 +111,16 @@ def main() -> None:
                 "report": ["report", "-w", ws],
             }  # fmt: skip
 
-        print(f"{'command':<14}{'--max-memory':>14}{'wall s':>9}{'peak RSS':>12}  outcome")
+        print(f"{'command':<14}{'--max-memory':>14}{'wall s':>9}{'peak PSS':>12}"
+              f"{'RSS sum':>12}  outcome")  # fmt: skip
         held = True
-        for name in work(base):
+        for name in [c.strip() for c in a.commands.split(",")]:
             for limit in [None, *limits]:
                 ws = root / "run"
                 shutil.rmtree(ws, ignore_errors=True)
                 shutil.copytree(base, ws)
                 args = work(ws)[name] + ([] if limit is None else ["--max-memory", limit])
-                dt, peak, code = run(args, log)
+                dt, peak, peak_rss, code = run(args, log)
                 cap = None if limit is None else parse_size(limit)
                 if code == 0:
                     ok = cap is None or peak <= cap
@@ -117,8 +129,8 @@ def main() -> None:
                 else:
                     lines = log.read_text().strip().splitlines()
                     outcome = f"exit {code}: {lines[-1] if lines else ''}"
-                print(f"{name:<14}{limit or 'default':>14}{dt:>9.1f}{format_size(peak):>12}  "
-                      f"{outcome}", flush=True)  # fmt: skip
+                print(f"{name:<14}{limit or 'default':>14}{dt:>9.1f}{format_size(peak):>12}"
+                      f"{format_size(peak_rss):>12}  {outcome}", flush=True)  # fmt: skip
         print("every finished run stayed under its ceiling" if held else "A CEILING WAS EXCEEDED")
         sys.exit(0 if held else 1)
 

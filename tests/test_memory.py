@@ -5,13 +5,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from bams_cli import defaults, memory
-from bams_cli.errors import BamsError
+from bams_cli.errors import BamsError, OptionError
 from bams_cli.pipeline.selection import cluster_bytes
 
 from .conftest import invoke, ok, simulate_and_ingest, tree_hash
@@ -65,8 +66,14 @@ def test_any_text_is_a_size_or_a_one_line_error(text: str) -> None:
         assert size >= 256 * MiB
 
 
+def uses(monkeypatch: pytest.MonkeyPatch, n: int) -> None:
+    """The process tree holds n bytes, however it is read."""
+    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: n)
+    monkeypatch.setattr(memory, "tree_pss", lambda proc=None, children=None: n)
+
+
 def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 400 * MiB)
+    uses(monkeypatch, 400 * MiB)
     t0 = time.monotonic()
     with pytest.raises(memory.MemoryCeilingError) as err:
         with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
@@ -76,7 +83,7 @@ def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.Monke
     assert time.monotonic() - t0 < 2  # stopped at the first reads, not at the loop's end
     assert watch.fired and watch.peak == 400 * MiB
     text = str(err.value)
-    assert "bams-cli fit reached 400.0 MiB" in text and "--max-memory 300.0 MiB" in text
+    assert "bams-cli fit reached 400.0 MiB of memory" in text and "--max-memory 300.0 MiB" in text
     assert memory.budget() == memory.default_budget()  # the ceiling ends with its command
 
 
@@ -92,10 +99,31 @@ def test_the_real_process_tree_is_read() -> None:
     assert 20 * MiB < rss < memory.total_ram()
 
 
+def test_pages_forked_workers_share_with_the_command_count_once() -> None:
+    """Two forked workers map the command's 300 MB: the resident sum counts it three
+    times, the proportional set size once, and the watchdog goes by the latter."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    held = np.ones(300 * MiB // 8)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        naps = [pool.submit(time.sleep, 2.0) for _ in range(2)]
+        time.sleep(0.5)
+        rss, pss = memory.tree_rss(), memory.tree_pss()
+        assert rss > pss + 500 * MiB, (rss, pss)
+        limit = pss + 100 * MiB  # the tree holds less, its resident sum is far more
+        with memory.ceiling(limit, "bams-cli select") as watch:
+            time.sleep(0.6)
+        assert not watch.fired and watch.peak <= limit
+        for nap in naps:
+            nap.result()
+    assert held.sum() == held.size
+
+
 def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatch) -> None:
     from bams_cli.core.select import MAX_CLUSTER_BYTES
 
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 500 * MiB)
+    uses(monkeypatch, 500 * MiB)
     monkeypatch.setattr(memory, "_budget", 2 * GiB)
     # (2 GiB - 500 MiB) over 2 workers, less a worker's own start-up, half of it for C.
     assert cluster_bytes(2, None) == ((2048 - 500) * MiB / 2 - memory.WORKER_BASE_BYTES) // 2
@@ -103,6 +131,10 @@ def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatc
     assert cluster_bytes(2, "tcp://elsewhere:8786") == MAX_CLUSTER_BYTES  # not our memory
     monkeypatch.setattr(memory, "_budget", 64 * GiB)
     assert cluster_bytes(2, None) == MAX_CLUSTER_BYTES  # never above select's own limit
+    monkeypatch.setattr(memory, "_budget", 800 * MiB)  # 150 MiB a worker: not enough
+    with pytest.raises(OptionError, match=r"holds 500.0 MiB already .* --workers 1$"):
+        cluster_bytes(2, None)
+    assert cluster_bytes(1, None) == (300 * MiB - memory.WORKER_BASE_BYTES) // 2
 
 
 def fitted(runner: CliRunner, ws: Path, truth: Path) -> None:
@@ -129,7 +161,7 @@ def test_a_command_stopped_at_its_ceiling_leaves_the_workspace_as_it_was(
 ) -> None:
     fitted(runner, toy_ws, toy_files[1])
     before = tree_hash(toy_ws)
-    monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 3 * GiB)
+    uses(monkeypatch, 3 * GiB)
     monkeypatch.setattr(memory, "POLL_S", 0.001)  # first read before the command's work
     r = invoke(runner, *args[:1], "-w", toy_ws, *args[1:], "--max-memory", "2G")
     assert r.exit_code == 1, r.output
@@ -189,7 +221,7 @@ def test_a_command_deaf_to_the_interrupt_is_ended_with_the_same_line() -> None:
     code = (
         "import os\n"
         "from bams_cli import memory as m\n"
-        "m.tree_rss = lambda proc=None, children=None: 3 * 2**30\n"
+        "m.tree_rss = m.tree_pss = lambda proc=None, children=None: 3 * 2**30\n"
         "with m.ceiling(2 * 2**30, 'bams-cli select'):\n"
         "    r, w = os.pipe()\n"
         "    os.read(r, 1)\n"

@@ -57,9 +57,17 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
     if scheduler:
         return MAX_CLUSTER_BYTES
     n = workers or os.cpu_count() or 1
-    free = memory.budget() - memory.tree_rss()
-    per_worker = free / n - memory.WORKER_BASE_BYTES
-    return int(max(min(per_worker / 2, MAX_CLUSTER_BYTES), 0))
+    held = memory.tree_rss()
+    per_worker = (memory.budget() - held) / n - memory.WORKER_BASE_BYTES
+    if per_worker <= 0:
+        raise OptionError(
+            f"select: --max-memory {memory.format_size(memory.budget())} leaves no room for "
+            f"{n} worker process{'es' if n > 1 else ''}: this command holds "
+            f"{memory.format_size(held)} already and a worker needs about "
+            f"{memory.format_size(memory.WORKER_BASE_BYTES)} to start; raise --max-memory"
+            + (" or pass --workers 1" if n > 1 else "")
+        )
+    return int(min(per_worker / 2, MAX_CLUSTER_BYTES))
 
 
 @contextlib.contextmanager
