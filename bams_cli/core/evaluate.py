@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from bams_cli import defaults
 from bams_cli.core.estimate import DESIGNS, Design, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
@@ -301,6 +302,7 @@ def staged_trials(
     known: ArrayLike | None = None,
     share: float | None = None,
     prior: tuple[float, float] | None = None,
+    anchor_sd: float | None = defaults.RISK_ANCHOR_SD,
     confidence: float = 0.9,
     n_trials: int = 1000,
     rng: np.random.Generator,
@@ -329,6 +331,9 @@ def staged_trials(
         Stage 1's share of K; default ``defaults.STAGE1_SHARE``.
     prior : (float, float), optional
         Beta prior on lam; default ``defaults.RISK_MIX_PRIOR``.
+    anchor_sd : float or None
+        ``core.design.risk_posterior``'s: how far the failure count may stray from p_n's
+        prediction (None: where the failures fell only).
     confidence : float
     n_trials : int
     rng : numpy.random.Generator
@@ -348,7 +353,7 @@ def staged_trials(
     with threadpool_limits(limits=1, user_api="blas"):
         run = _staged_trials if reference else _staged_trials_fast
         return run(
-            p, is_failure, K=K, known=known, share=share, prior=prior,
+            p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
 
@@ -361,6 +366,7 @@ def _staged_trials(
     known: ArrayLike | None,
     share: float | None,
     prior: tuple[float, float] | None,
+    anchor_sd: float | None,
     confidence: float,
     n_trials: int,
     rng: np.random.Generator,
@@ -402,7 +408,9 @@ def _staged_trials(
             known_failures=known_f, confidence=confidence, w_model=wm1,
         )  # fmt: skip
         post = dz.risk_posterior(
-            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))], prior=prior
+            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))],
+            prior=prior,
+            anchor_sd=anchor_sd,
         )
         rest = np.ones(n1, bool)
         rest[s1] = False
@@ -504,6 +512,7 @@ def _staged_trials_fast(
     known: ArrayLike | None,
     share: float | None,
     prior: tuple[float, float] | None,
+    anchor_sd: float | None,
     confidence: float,
     n_trials: int,
     rng: np.random.Generator,
@@ -546,8 +555,8 @@ def _staged_trials_fast(
     if not (min(float(K), float(n1)) > 0 and 0 < share < 1 and eps > 0):
         # Nothing to sample, or a single stage: the reference handles (or rejects) it.
         return _staged_trials(
-            p, fail, K=K, known=known_m, share=share, prior=prior, confidence=confidence,
-            n_trials=n_trials, rng=rng,
+            p, fail, K=K, known=known_m, share=share, prior=prior, anchor_sd=anchor_sd,
+            confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
     known_f = int(fail[known_m].sum())
     K = min(float(K), float(n1))
@@ -588,7 +597,9 @@ def _staged_trials_fast(
             w_model=wm1,
         )  # fmt: skip
         post = dz.risk_posterior(
-            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=p_mean1)], prior=prior
+            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=p_mean1)],
+            prior=prior,
+            anchor_sd=anchor_sd,
         )
         lam[t] = post.lam_mean
         kept = ~take1

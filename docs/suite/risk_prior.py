@@ -1,13 +1,16 @@
 """The Beta prior on lam (``defaults.RISK_MIX_PRIOR``) on the suite: variance against
 uniform and coverage of the default two-stage estimate design under other priors.
 
-    .venv/bin/python docs/suite/risk_prior.py "1,1;1,3;0.5,3" 0.5 30 [workers]
+    .venv/bin/python docs/suite/risk_prior.py "1,1;1,3;0.5,3" 0.5 30 [workers] \
+        [--strategies bams,mcm-gp] [--anchor-sd 1.0]
 
-Arguments: priors (a,b pairs separated by ';'), stage-1 shares, draws per run, workers.
-Reads the suite's saved runs (``bams-cli benchmark --protocol suite --save-arrays --out
-/tmp/suite-arrays``, as docs/suite/estimate_design.py) and draws the design for the BAMS
-runs of every problem, seeds 0-9, with ``core.evaluate.staged_trials``. Prints a table per
-prior; docs/suite/risk_prior.md holds the run that chose the default.
+Arguments: priors (a,b pairs separated by ';'), stage-1 shares, draws per run, workers;
+the strategies whose runs to draw on (default bams) and the posterior's anchor sd (default
+``defaults.RISK_ANCHOR_SD``). Reads the suite's saved runs (``bams-cli benchmark --protocol
+suite --save-arrays --out /tmp/suite-arrays``, as docs/suite/estimate_design.py) and draws
+the design for the runs of every problem, seeds 0-9, with ``core.evaluate.staged_trials``.
+Prints a table per prior and share; docs/suite/risk_prior.md holds the runs that chose the
+defaults.
 """
 
 import multiprocessing as mp
@@ -24,35 +27,48 @@ PROBLEMS = ("toy2d", "av_like", "weak_cheap", "digits", "rare_regions", "gap_sim
 
 
 def one(args):
-    problem, seed, prior, share, trials = args
+    problem, strategy, seed, prior, share, anchor_sd, trials = args
     warnings.simplefilter("ignore")
     from bams_cli.core.evaluate import staged_trials
 
     z = np.load(F / problem / "runs.npz")
     fail = z["f0"] <= float(z["gamma"])
-    known, p = z[f"bams-{seed}-known"], z[f"bams-{seed}-p"]
+    known, p = z[f"{strategy}-{seed}-known"], z[f"{strategy}-{seed}-p"]
     r = staged_trials(
         p, fail, K=float(z["K"]), known=known, n_trials=trials, share=share, prior=prior,
-        rng=np.random.default_rng(seed),
+        anchor_sd=anchor_sd, rng=np.random.default_rng(seed),
     )  # fmt: skip
     inside = (r.ci_low <= r.rate) & (r.rate <= r.ci_high)
     return {
-        "problem": problem, "seed": seed, "prior": prior, "share": share,
+        "problem": problem, "strategy": strategy, "seed": seed, "prior": prior, "share": share,
         "ratio": r.var / r.var_uniform, "cov": float(inside.mean()),
         "below": float((r.ci_high < r.rate).mean()), "lam": float(r.lam.mean()),
     }  # fmt: skip
 
 
 def main(argv):
+    from bams_cli import defaults
+
+    strategies, anchor_sd = ["bams"], defaults.RISK_ANCHOR_SD
+    for flag in ("--strategies", "--anchor-sd"):
+        if flag in argv:
+            i = argv.index(flag)
+            value = argv[i + 1]
+            del argv[i : i + 2]
+            if flag == "--strategies":
+                strategies = value.split(",")
+            else:
+                anchor_sd = None if value == "none" else float(value)
     priors = [tuple(map(float, s.split(","))) for s in argv[0].split(";")]
     shares = [float(s) for s in argv[1].split(",")]
     trials = int(argv[2])
     workers = int(argv[3]) if len(argv) > 3 else 1
     jobs = [
-        (pb, s, pr, sh, trials)
+        (pb, st, s, pr, sh, anchor_sd, trials)
         for pr in priors
         for sh in shares
         for pb in PROBLEMS
+        for st in strategies
         for s in range(10)
     ]
     t0 = time.time()
@@ -60,16 +76,21 @@ def main(argv):
         rows = list(ex.map(one, jobs))
     for pr in priors:
         for sh in shares:
-            print(f"prior {pr} share {sh}")
+            print(f"prior {pr} share {sh} anchor sd {anchor_sd}")
             for pb in PROBLEMS:
-                rs = [r for r in rows if (r["problem"], r["prior"], r["share"]) == (pb, pr, sh)]
-                rat = [r["ratio"] for r in rs]
-                print(
-                    f"  {pb:13s} ratio {np.mean(rat):.3f} [max {np.max(rat):.3f}] "
-                    f"cov {np.mean([r['cov'] for r in rs]):.3f} "
-                    f"below {np.mean([r['below'] for r in rs]):.3f} "
-                    f"lam {np.mean([r['lam'] for r in rs]):.2f}"
-                )
+                for st in strategies:
+                    rs = [
+                        r
+                        for r in rows
+                        if (r["problem"], r["strategy"], r["prior"], r["share"]) == (pb, st, pr, sh)
+                    ]
+                    rat = [r["ratio"] for r in rs]
+                    print(
+                        f"  {pb:13s} {st:7s} ratio {np.mean(rat):.3f} [max {np.max(rat):.3f}] "
+                        f"cov {np.mean([r['cov'] for r in rs]):.3f} "
+                        f"below {np.mean([r['below'] for r in rs]):.3f} "
+                        f"lam {np.mean([r['lam'] for r in rs]):.2f}"
+                    )
     print("wall", time.time() - t0)
 
 

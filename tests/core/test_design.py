@@ -286,22 +286,24 @@ def _pool(rng, n, kind):
 
 
 @pytest.mark.parametrize(
-    "kind, K, known_share, no_failures, share",
+    "kind, K, known_share, no_failures, share, anchor_sd",
     [
-        ("beta", 100.0, 0.1, False, None),
-        ("beta", 100.0, 0.1, True, None),  # zero failures: every stage samples none
-        ("beta", 1.5, 0.0, False, None),  # K below 2: stage 2 has floor(K_2) = 0
-        ("beta", 5000.0, 0.1, False, None),  # K >= |U|: stage 2 takes all that is left
-        ("beta", 0.9 * 1800, 0.1, False, None),  # K_2 >= |U_2| in most trials
-        ("beta", 4.0, 0.995, False, None),  # |U| = 10
-        ("beta", 100.0, 0.1, False, 0.2),
-        ("constant", 100.0, 0.1, False, None),  # every candidate ties uniform
-        ("zeros", 100.0, 0.1, False, None),
-        ("extreme", 60.0, 0.0, False, None),  # the capped carry most of the mass
+        ("beta", 100.0, 0.1, False, None, 1.0),
+        ("beta", 100.0, 0.1, True, None, 1.0),  # zero failures: every stage samples none
+        ("beta", 1.5, 0.0, False, None, 1.0),  # K below 2: stage 2 has floor(K_2) = 0
+        ("beta", 5000.0, 0.1, False, None, 1.0),  # K >= |U|: stage 2 takes all that is left
+        ("beta", 0.9 * 1800, 0.1, False, None, 1.0),  # K_2 >= |U_2| in most trials
+        ("beta", 4.0, 0.995, False, None, 1.0),  # |U| = 10
+        ("beta", 100.0, 0.1, False, 0.2, 1.0),
+        ("constant", 100.0, 0.1, False, None, 1.0),  # every candidate ties uniform
+        ("zeros", 100.0, 0.1, False, None, 1.0),
+        ("extreme", 60.0, 0.0, False, None, 1.0),  # the capped carry most of the mass
+        ("beta", 100.0, 0.1, False, None, None),  # where the failures fell only
+        ("beta", 100.0, 0.1, False, 0.3, 0.4),
     ],
 )
 def test_staged_trials_fast_path_equals_the_tools_functions(
-    kind, K, known_share, no_failures, share
+    kind, K, known_share, no_failures, share, anchor_sd
 ):
     # The evaluation's fast path against the reference, which runs each trial through
     # choose_design, estimate_from_sample and combine_stages: the same draws (so the same
@@ -313,7 +315,7 @@ def test_staged_trials_fast_path_equals_the_tools_functions(
     known = np.zeros(n, bool)
     known[: int(known_share * n)] = True
     known = rng.permutation(known)
-    kw = dict(K=K, known=known, share=share, n_trials=25)
+    kw = dict(K=K, known=known, share=share, anchor_sd=anchor_sd, n_trials=25)
     fast = staged_trials(p, fail, rng=np.random.default_rng(5), **kw)
     ref = staged_trials(p, fail, rng=np.random.default_rng(5), reference=True, **kw)
     assert fast.stage2_design == ref.stage2_design
