@@ -38,10 +38,16 @@ def one(args):
         p, fail, K=float(z["K"]), known=known, n_trials=trials, share=share, prior=prior,
         anchor_sd=anchor_sd, rng=np.random.default_rng(seed),
     )  # fmt: skip
+    from bams_cli.core import design as dz
+
+    U = np.flatnonzero(~known)
+    K1 = share * min(float(z["K"]), U.size)
+    pi1 = dz.choose_design(p[U], K=K1, posterior=dz.risk_posterior([], prior=prior)).pi
     inside = (r.ci_low <= r.rate) & (r.rate <= r.ci_high)
     return {
         "problem": problem, "strategy": strategy, "seed": seed, "prior": prior, "share": share,
         "ratio": r.var / r.var_uniform, "cov": float(inside.mean()),
+        "f_u": int(fail[U].sum()), "f_stage1": float(pi1[fail[U]].sum()),
         "below": float((r.ci_high < r.rate).mean()), "lam": float(r.lam.mean()),
     }  # fmt: skip
 
@@ -89,7 +95,9 @@ def main(argv):
                         f"  {pb:13s} {st:7s} ratio {np.mean(rat):.3f} [max {np.max(rat):.3f}] "
                         f"cov {np.mean([r['cov'] for r in rs]):.3f} "
                         f"below {np.mean([r['below'] for r in rs]):.3f} "
-                        f"lam {np.mean([r['lam'] for r in rs]):.2f}"
+                        f"lam {np.mean([r['lam'] for r in rs]):.2f} "
+                        f"failures in U {np.mean([r['f_u'] for r in rs]):.0f}, "
+                        f"expected in stage 1 {np.mean([r['f_stage1'] for r in rs]):.1f}"
                     )
     print("wall", time.time() - t0)
 
