@@ -3,6 +3,7 @@ uniform and coverage of the default two-stage estimate design under other priors
 
     .venv/bin/python docs/suite/risk_prior.py "1,1;1,3;0.5,3" 0.5 30 [workers] \
         [--strategies bams,mcm-gp] [--anchor-sd 1.0]
+    .venv/bin/python docs/suite/risk_prior.py --fixed-lam 0,0.1,0.25,0.5 [--strategies ...]
 
 Arguments: priors (a,b pairs separated by ';'), stage-1 shares, draws per run, workers;
 the strategies whose runs to draw on (default bams) and the posterior's anchor sd (default
@@ -52,10 +53,47 @@ def one(args):
     }  # fmt: skip
 
 
+def fixed_lam(lams: list[float], strategies: list[str]) -> None:
+    """The exact variance over uniform's of a single-stage calibrated design at fixed lam
+    (tau 1), mean over seeds 0-9: what a design that knew how far to trust p_n would get."""
+    from bams_cli.core import design as dz
+
+    for pb in PROBLEMS:
+        z = np.load(F / pb / "runs.npz")
+        fail = z["f0"] <= float(z["gamma"])
+        for st in strategies:
+            ratios = []
+            for seed in range(10):
+                known, p = z[f"{st}-{seed}-known"], z[f"{st}-{seed}-p"]
+                U = np.flatnonzero(~known)
+                K = min(float(z["K"]), U.size)
+                fu, u = fail[U], dz.relative_risk(p[U])
+                v_u = fu.sum() * (U.size - K) / K
+                row = []
+                for lam in lams:
+                    pi = dz.calibrated_design(lam + (1.0 - lam) * u, K=K)
+                    row.append(float(((1.0 - pi[fu]) / pi[fu]).sum()) / v_u)
+                ratios.append(row)
+            print(
+                f"  {pb:13s} {st:7s} fixed lam "
+                + " / ".join(
+                    f"{lam:g}: {r:.3f}"
+                    for lam, r in zip(lams, np.mean(ratios, axis=0), strict=True)
+                )
+            )
+
+
 def main(argv):
     from bams_cli import defaults
 
     strategies, anchor_sd = ["bams"], defaults.RISK_ANCHOR_SD
+    if "--fixed-lam" in argv:
+        i = argv.index("--fixed-lam")
+        lams = [float(x) for x in argv[i + 1].split(",")]
+        if "--strategies" in argv:
+            strategies = argv[argv.index("--strategies") + 1].split(",")
+        fixed_lam(lams, strategies)
+        return
     for flag in ("--strategies", "--anchor-sd"):
         if flag in argv:
             i = argv.index(flag)
