@@ -580,7 +580,8 @@ def _staged_trials_fast(
     for i, tau in enumerate(taus):
         powers[i] = p1**tau
     powers[-1, pos] = p1[pos] ** defaults.ALPHA
-    pos_f = pos.astype(np.float64)
+    sums1 = powers.sum(axis=1)  # over U; a trial's sums over U2 drop its stage-1 sample
+    n_pos1 = int(np.count_nonzero(pos))
     last = order1[::-1]  # ascending p_n
     est = np.empty((2, 4, n_trials))  # per stage: total, certain, v, w_allow
     found2 = np.empty(n_trials)
@@ -612,9 +613,11 @@ def _staged_trials_fast(
             # ``RiskPosterior.risk`` over U2 (kept), as lam + sum_tau b_tau p^tau.
             w_tau = post.weights.sum(axis=1)
             trust = post.weights @ (1.0 - post.lams)
-            sums = powers @ kf
+            gone = powers[:, s1].sum(axis=1)
+            # By difference, unless the sample holds over half of a sum (digits would go).
+            sums = sums1 - gone if np.all(gone <= 0.5 * sums1) else powers @ kf
             coef = np.zeros(taus.size)
-            positive = float(pos_f @ kf) > 0
+            positive = n_pos1 > int(np.count_nonzero(pos[s1]))
             for i in range(taus.size):
                 if w_tau[i] > 0:
                     coef[i] = trust[i] / (sums[i] / n2) if positive else 0.0
@@ -643,10 +646,16 @@ def _staged_trials_fast(
                 if flat:
                     pv[cand] = pv["uniform"]
                     continue
-                m, c = _capped(gg[head], _sum_less(gg, float(gg @ kf), head, kf, cache), K2t)
-                rq = g if cand == "calibrated" else r / q  # r / pi = rq / c where pi < 1
+                g_rest = _sum_less(gg, float(gg @ kf), head, kf, cache)
+                m, c = _capped(gg[head], g_rest, K2t)
                 r_m = rest_r + float(r[head[m:]].sum())
-                rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(rq[head[m:]].sum())
+                if cand == "calibrated":  # r / pi = g / c where pi < 1
+                    rq_m = g_rest + float(g[head[m:]].sum())
+                else:  # r / pi = (r / q) / c
+                    rq = r / q
+                    rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(
+                        rq[head[m:]].sum()
+                    )
                 pv[cand] = rq_m / c - r_m
                 scale[cand] = (c, float(gg[head[m - 1]]) if m else math.inf, r_m)
             base = pv["uniform"]
@@ -659,7 +668,8 @@ def _staged_trials_fast(
                 gg = g if name == "calibrated" else q
                 c, thr, mass = scale[name]  # mass: sum of r where pi < 1
                 pi_u = np.minimum(1.0, c * gg)
-                pi_u[gg >= thr] = 1.0
+                if thr < math.inf:
+                    pi_u[gg >= thr] = 1.0
             wm2 = pv[name] / mass if mass > 0 else math.nan
         pi2 = pi_u[kept]
         f2 = f1[kept]
