@@ -38,6 +38,7 @@ Var(T) = sum_s w_s^2 Var(T_s), estimated by sum_s w_s^2 v_s (``combine_stages``)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 
@@ -215,8 +216,8 @@ def risk_posterior(
     n_f = n_s = 0
     anchored = anchor_sd is not None and all(ev.p_mean and ev.p_mean > 0 for ev in evidence)
     # log(c / mean_U p_n) on a grid, c the failure rate per unit risk (anchored form only).
-    Z = np.linspace(-6.0, 6.0, 97)
-    ll_z = np.zeros((taus.size, lam.size, Z.size))
+    Z, c_z, log_c_z = _Z_GRID, None, None
+    ll_z = np.zeros((taus.size, lam.size, Z.size)) if anchored else None
     for ev in evidence:
         u = np.asarray(ev.u, dtype=np.float64)
         failed = np.asarray(ev.failed, dtype=bool)
@@ -231,6 +232,10 @@ def risk_posterior(
         n_f += k
         if not k and not anchored:
             continue
+        if anchored:
+            assert ev.p_mean is not None
+            c_z = ev.p_mean * np.exp(Z)
+            log_c_z = k * np.log(c_z)
         for t, tau in enumerate(taus):
             A = u**tau / ev.norms[t]
             log_rf = (
@@ -241,9 +246,8 @@ def risk_posterior(
             sum_r = (1.0 - lam) * A.sum() + lam * u.size
             if anchored:
                 # Poisson counts: intensity c r_i per sampled segment, c = p_mean e^z.
-                assert ev.p_mean is not None
-                c = ev.p_mean * np.exp(Z)
-                ll_z[t] += log_rf[:, None] + k * np.log(c)[None, :] - sum_r[:, None] * c[None, :]
+                assert ll_z is not None and c_z is not None and log_c_z is not None
+                ll_z[t] += log_rf[:, None] + log_c_z[None, :] - sum_r[:, None] * c_z[None, :]
             else:
                 # Where the failures fell, given their count (c profiled out).
                 log_post[t] += log_rf - k * np.log(sum_r)
@@ -251,26 +255,31 @@ def risk_posterior(
         # The model is taken at its word for the failures it explains, c (1 - lam) =
         # mean p_n, up to a log-normal factor of sd ``anchor_sd``: so a count of failures
         # far above what p_n predicts says the model misses failure mass (lam large).
-        assert anchor_sd is not None
-        prior_z = -0.5 * ((Z[None, :] + np.log1p(-lam)[:, None]) / anchor_sd) ** 2
-        total = ll_z + prior_z[None, :, :]
+        assert anchor_sd is not None and ll_z is not None
+        total = ll_z  # in place: (tau, lam, z) grids are 46,000 terms, allocated once
+        total += _prior_z(float(anchor_sd))[None, :, :]
         top = total.max(axis=2, keepdims=True)
-        log_post += top[..., 0] + np.log(_exp(total - top).sum(axis=2))
+        total -= top
+        # Terms below e^-700 are written as e^-700: each row's sum holds e^0 = 1, so they
+        # vanish in it as the 0 that exp would give (and np.exp never takes its slow path
+        # for results that underflow, 30 times one fast pass over these 46,000 terms).
+        np.maximum(total, -700.0, out=total)
+        log_post += top[..., 0] + np.log(np.exp(total, out=total).sum(axis=2))
     w = np.exp(log_post - log_post.max()) * np.gradient(lam)[None, :]
     w /= w.sum()
     return RiskPosterior(taus=taus, lams=lam, weights=w, failures=n_f, sampled=n_s)
 
 
-def _exp(x: FloatArray) -> FloatArray:
-    """np.exp(x), bit for bit, without exp's slow path where it underflows to 0.
+#: The grid over z = log(c / mean_U p_n) of the anchored posterior (``risk_posterior``).
+_Z_GRID = np.linspace(-6.0, 6.0, 97)
 
-    exp(x) is exactly 0 below x ~ -745.13, and numpy's vectorised exp leaves its fast
-    path for such x: over the posterior's (tau, lam, z) grid, where most terms lie far
-    below the maximum, that made the log-sum-exp 30 times one fast exp pass (2.8 ms of a
-    ``staged_trials`` trial at 46,000 terms). Those terms are written as the 0 they are.
-    """
-    out = np.zeros_like(x)
-    np.exp(x, out=out, where=x > -746.0)
+
+@functools.lru_cache(maxsize=8)
+def _prior_z(anchor_sd: float) -> FloatArray:
+    """log prior of z given lam over (lam, z), up to a constant: the same for every call."""
+    lam = _LAM_GRID[1:-1]
+    out = -0.5 * ((_Z_GRID[None, :] + np.log1p(-lam)[:, None]) / anchor_sd) ** 2
+    out.flags.writeable = False
     return out
 
 

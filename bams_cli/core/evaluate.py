@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from bams_cli import defaults
 from bams_cli.core.estimate import DESIGNS, Design, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
@@ -301,9 +302,11 @@ def staged_trials(
     known: ArrayLike | None = None,
     share: float | None = None,
     prior: tuple[float, float] | None = None,
+    anchor_sd: float | None = defaults.RISK_ANCHOR_SD,
     confidence: float = 0.9,
     n_trials: int = 1000,
     rng: np.random.Generator,
+    reference: bool = False,
 ) -> StagedTrials:
     """Draw the default two-stage estimate design ``n_trials`` times from a known truth.
 
@@ -328,9 +331,17 @@ def staged_trials(
         Stage 1's share of K; default ``defaults.STAGE1_SHARE``.
     prior : (float, float), optional
         Beta prior on lam; default ``defaults.RISK_MIX_PRIOR``.
+    anchor_sd : float or None
+        ``core.design.risk_posterior``'s: how far the failure count may stray from p_n's
+        prediction (None: where the failures fell only).
     confidence : float
     n_trials : int
     rng : numpy.random.Generator
+    reference : bool
+        Run each trial through the tool's own functions (``choose_design``,
+        ``estimate_from_sample``, ``combine_stages``) instead of the evaluation's fast path
+        (``_staged_trials_fast``): the same draws and, to rounding, the same numbers, at
+        several times the cost on a large U.
 
     Returns
     -------
@@ -340,8 +351,9 @@ def staged_trials(
     # contend there (measured: twice the CPU time on 2 busy cores), and their split sums
     # make the last digits depend on the thread count. One thread: same numbers anywhere.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _staged_trials(
-            p, is_failure, K=K, known=known, share=share, prior=prior,
+        run = _staged_trials if reference else _staged_trials_fast
+        return run(
+            p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
 
@@ -354,6 +366,7 @@ def _staged_trials(
     known: ArrayLike | None,
     share: float | None,
     prior: tuple[float, float] | None,
+    anchor_sd: float | None,
     confidence: float,
     n_trials: int,
     rng: np.random.Generator,
@@ -395,7 +408,9 @@ def _staged_trials(
             known_failures=known_f, confidence=confidence, w_model=wm1,
         )  # fmt: skip
         post = dz.risk_posterior(
-            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))], prior=prior
+            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))],
+            prior=prior,
+            anchor_sd=anchor_sd,
         )
         rest = np.ones(n1, bool)
         rest[s1] = False
@@ -425,6 +440,264 @@ def _staged_trials(
         p_hat=out["p_hat"], ci_low=out["lo"], ci_high=out["hi"], lam=out["lam"],
         stage2_design=names, var=var, var_uniform=var_u, stage1_design=c1.name,
         rate=float(fail.mean()),
+    )  # fmt: skip
+
+
+def _capped(head: FloatArray, rest: float, K: float) -> tuple[int, float]:
+    """Capped count m and the scale c of pi = min(1, c g), sum K, for g > 0 (``_capped_count``).
+
+    ``head``: the floor(K) + 1 largest g, descending; ``rest``: the sum of the other g (the
+    design is over more than K segments). m is the smallest count with K - m <=
+    sum_{j >= m} g_j / g_m; the uncapped share K - m in proportion to g: c = (K - m) /
+    sum_{j >= m} g_j. The tail sums add positive terms only, so no digits are lost however
+    much of the sum the capped hold.
+    """
+    tails = rest + np.cumsum(head[::-1])[::-1]  # sum_{j >= m} g_j
+    ms = np.arange(head.size)
+    ok = (K - ms) * head <= tails
+    m = int(np.argmax(ok)) if ok.any() else head.size - 1
+    return m, (K - m) / float(tails[m])
+
+
+def _sum_less(
+    x: FloatArray, x_all: float, head: IntArray, kf: FloatArray, cache: dict[str, FloatArray]
+) -> float:
+    """sum of x over the segments with kf = 1, less ``head`` (x_all: the sum with it).
+
+    By difference, unless the head holds over half of it and the difference would lose
+    digits: then summed afresh (the indicator without the head is kept in ``cache``).
+    """
+    h = float(x[head].sum())
+    if h <= 0.5 * x_all:
+        return x_all - h
+    if "kf" not in cache:
+        cache["kf"] = kf.copy()
+        cache["kf"][head] = 0.0
+    return float(x @ cache["kf"])
+
+
+def _stage_terms(
+    pf: FloatArray, n_sampled: int, n_certain: int, *, n_unknown: int, budget: float,
+    known: float, w_model: float,
+) -> tuple[float, float, float, float, float, float]:  # fmt: skip
+    """What ``combine_stages`` takes from a poisson stage's ``estimate_from_sample``.
+
+    ``pf``: the inclusion probabilities of the stage's sampled failures; ``n_certain``: its
+    sampled segments with pi = 1. Returns (total, certain, v, w_allow, found, hi_cap),
+    totals over U, formed as that function forms them.
+    """
+    rand = pf < 1.0
+    pr = pf[rand]
+    inv = 1.0 / pr
+    D = float(pf.size - pr.size)
+    R = float(inv.sum())
+    v = float(((1.0 - pr) * inv**2).sum())
+    w_seen = float(((1.0 - pr) * inv).max(initial=0.0))
+    if math.isnan(w_model):
+        K_r = budget - n_certain
+        w0 = (n_unknown - n_certain - K_r) / K_r if K_r > 0 else 0.0
+        w_allow = w_seen if pr.size else w0
+    else:
+        w_allow = max(w_seen, w_model)
+    found = known + D + pr.size
+    hi_cap = known + n_unknown - (n_sampled - pf.size)
+    return known + D + R, known + D, v, w_allow, found, hi_cap
+
+
+def _staged_trials_fast(
+    p: ArrayLike,
+    is_failure: ArrayLike,
+    *,
+    K: float,
+    known: ArrayLike | None,
+    share: float | None,
+    prior: tuple[float, float] | None,
+    anchor_sd: float | None,
+    confidence: float,
+    n_trials: int,
+    rng: np.random.Generator,
+) -> StagedTrials:
+    """``_staged_trials``' numbers from per-run precomputations (``staged_trials``).
+
+    Stage 2's design over U2 = U minus stage 1's sample needs no sort, exp or log per trial:
+
+    * the posterior risk u^tau / mean_U2(u^tau) is p^tau / mean_U2(p^tau) whatever
+      mean_U2(p) is, so r = lam + sum_tau b_tau p^tau with p^tau computed once, and every
+      sum over U2 is a dot product with U2's indicator;
+    * each weighted candidate is pi = min(1, c g) (g = sqrt(r), or q of the p^alpha form):
+      its capped count m needs only the floor(K) + 1 segments of U2 with the largest p_n
+      (one sort of U serves every trial) and the sum of g over U2;
+    * its predicted variance sum_{pi < 1} r (1 - pi)/pi is sum_{j >= m} r_j / (c g_j) less
+      sum_{j >= m} r_j: for the calibrated design T_m / c (r / g = g), for p^alpha one dot
+      product; only the chosen design's pi is formed, for the draw;
+    * a stage's estimate needs only its sampled failures, and ``combine_stages``'s interval
+      is computed for every trial at once.
+
+    The draws are the reference's, from the same stream in the same order. A candidate
+    whose g is constant over U2 has the uniform design's pi and predicted variance exactly,
+    as in the reference (where a tie goes to uniform): so a p_n constant over U2 gives
+    uniform without a comparison that rounding could tip. Equal to ``_staged_trials`` to
+    rounding (tests/core/test_design.py).
+    """
+    from bams_cli import defaults
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import _gamma_interval
+
+    share = defaults.STAGE1_SHARE if share is None else share
+    prior = defaults.RISK_MIX_PRIOR if prior is None else prior
+    p = np.asarray(p, dtype=np.float64)
+    fail = np.asarray(is_failure, dtype=bool)
+    N = p.size
+    known_m = np.zeros(N, bool) if known is None else np.asarray(known, dtype=bool)
+    U1 = np.flatnonzero(~known_m)
+    n1 = U1.size
+    eps = defaults.DEFENSIVE
+    if not (min(float(K), float(n1)) > 0 and 0 < share < 1 and eps > 0):
+        # Nothing to sample, or a single stage: the reference handles (or rejects) it.
+        return _staged_trials(
+            p, fail, K=K, known=known_m, share=share, prior=prior, anchor_sd=anchor_sd,
+            confidence=confidence, n_trials=n_trials, rng=rng,
+        )  # fmt: skip
+    known_f = int(fail[known_m].sum())
+    K = min(float(K), float(n1))
+    K1, K2 = share * K, (1.0 - share) * K
+    p1, f1 = p[U1], fail[U1]
+    u1 = dz.relative_risk(p1)
+    norms1 = dz.risk_norms(u1)
+    p_mean1 = float(p1.mean())
+    post0 = dz.risk_posterior([], prior=prior)
+    order1 = np.argsort(-p1, kind="stable")
+    c1 = dz.choose_design(p1, K=K1, posterior=post0, order=order1)
+    pi1 = c1.pi
+    wm1 = dz.unseen_failure_weight(c1.risk, pi1)
+    V1 = float(((1.0 - pi1[f1]) / pi1[f1]).sum())
+    n_certain1 = int(np.count_nonzero(pi1 >= 1.0))
+    weights = [share, 1.0 - share]
+    taus = np.asarray(dz.TAUS, dtype=np.float64)
+    pos = p1 > 0
+    # Rows: p^tau for each tau (the risk), p^alpha (the paper-form candidate), over U.
+    powers = np.zeros((taus.size + 1, n1))
+    for i, tau in enumerate(taus):
+        powers[i] = p1**tau
+    powers[-1, pos] = p1[pos] ** defaults.ALPHA
+    sums1 = powers.sum(axis=1)  # over U; a trial's sums over U2 drop its stage-1 sample
+    n_pos1 = int(np.count_nonzero(pos))
+    last = order1[::-1]  # ascending p_n
+    est = np.empty((2, 4, n_trials))  # per stage: total, certain, v, w_allow
+    found2 = np.empty(n_trials)
+    cap2 = np.empty(n_trials)
+    lam = np.empty(n_trials)
+    V2 = np.empty(n_trials)
+    names: list[str] = []
+    for t in range(n_trials):
+        take1 = rng.random(n1) < pi1
+        s1 = np.flatnonzero(take1)
+        fs1 = f1[s1]
+        *est[0, :, t], _, _ = _stage_terms(
+            pi1[s1[fs1]], s1.size, n_certain1, n_unknown=n1, budget=K1, known=known_f,
+            w_model=wm1,
+        )  # fmt: skip
+        post = dz.risk_posterior(
+            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=p_mean1)],
+            prior=prior,
+            anchor_sd=anchor_sd,
+        )
+        lam[t] = post.lam_mean
+        kept = ~take1
+        kf = kept.astype(np.float64)
+        n2 = n1 - s1.size
+        K2t = min(K2, float(n2))
+        if K2t >= n2:
+            name, pi_u, wm2 = "uniform", np.ones(n1), math.nan
+        else:
+            # ``RiskPosterior.risk`` over U2 (kept), as lam + sum_tau b_tau p^tau.
+            w_tau = post.weights.sum(axis=1)
+            trust = post.weights @ (1.0 - post.lams)
+            gone = powers[:, s1].sum(axis=1)
+            # By difference, unless the sample holds over half of a sum (digits would go).
+            sums = sums1 - gone if np.all(gone <= 0.5 * sums1) else powers @ kf
+            coef = np.zeros(taus.size)
+            positive = n_pos1 > int(np.count_nonzero(pos[s1]))
+            for i in range(taus.size):
+                if w_tau[i] > 0:
+                    coef[i] = trust[i] / (sums[i] / n2) if positive else 0.0
+            r = coef @ powers[:-1] + (
+                post.lam_mean if positive else post.lam_mean + float(trust[w_tau > 0].sum())
+            )
+            top = min(n2 - 1, int(math.floor(K2t)))
+            head = order1[: top + 1 + s1.size]
+            head = head[kept[head]][: top + 1]  # U2's top + 1 largest p_n, descending
+            tail = last[: s1.size + 1]
+            low = int(tail[kept[tail]][0])  # U2's smallest p_n
+            R_all = float(r @ kf)
+            pu = K2t / n2
+            pv = {"uniform": R_all * (1.0 - pu) / pu}
+            scale: dict[str, tuple[float, float, float]] = {}
+            g = np.sqrt(r)
+            q = (
+                (1.0 - eps) * powers[-1] / float(sums[-1]) + eps / n2
+                if positive
+                else np.full(n1, 1.0 / n2)
+            )
+            cache: dict[str, FloatArray] = {}
+            rest_r = _sum_less(r, R_all, head, kf, cache)
+            flat = p1[head[0]] == p1[low]  # p_n constant over U2: every candidate is uniform
+            for cand, gg in (("calibrated", g), ("p^alpha", q)):
+                if flat:
+                    pv[cand] = pv["uniform"]
+                    continue
+                g_rest = _sum_less(gg, float(gg @ kf), head, kf, cache)
+                m, c = _capped(gg[head], g_rest, K2t)
+                r_m = rest_r + float(r[head[m:]].sum())
+                if cand == "calibrated":  # r / pi = g / c where pi < 1
+                    rq_m = g_rest + float(g[head[m:]].sum())
+                else:  # r / pi = (r / q) / c
+                    rq = r / q
+                    rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(
+                        rq[head[m:]].sum()
+                    )
+                pv[cand] = rq_m / c - r_m
+                scale[cand] = (c, float(gg[head[m - 1]]) if m else math.inf, r_m)
+            base = pv["uniform"]
+            pred = {k: (v / base if base > 0 else 1.0) for k, v in pv.items()}
+            name = min(pred, key=lambda k: (pred[k], k != "uniform"))
+            if name == "uniform":
+                pi_u = np.full(n1, pu)
+                mass = R_all
+            else:
+                gg = g if name == "calibrated" else q
+                c, thr, mass = scale[name]  # mass: sum of r where pi < 1
+                pi_u = np.minimum(1.0, c * gg)
+                if thr < math.inf:
+                    pi_u[gg >= thr] = 1.0
+            wm2 = pv[name] / mass if mass > 0 else math.nan
+        pi2 = pi_u[kept]
+        f2 = f1[kept]
+        take2 = rng.random(n2) < pi2
+        *est[1, :, t], found2[t], cap2[t] = _stage_terms(
+            pi2[take2 & f2], int(np.count_nonzero(take2)), int(np.count_nonzero(pi2 >= 1.0)),
+            n_unknown=n2, budget=K2t, known=known_f + int(fs1.sum()), w_model=wm2,
+        )  # fmt: skip
+        pf = pi2[f2]
+        V2[t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+        names.append(name)
+    # ``combine_stages`` on every trial's stage figures, in its order of operations.
+    Nf = float(N)
+    w = np.asarray(weights, dtype=np.float64)
+    tot, cer, var, wal = est[:, 0], est[:, 1], est[:, 2], est[:, 3]
+    total = (0 + w[0] * (tot[0] / Nf) + w[1] * (tot[1] / Nf)) * Nf
+    certain = (0 + w[0] * (cer[0] / Nf) + w[1] * (cer[1] / Nf)) * Nf
+    v = (0 + w[0] ** 2 * (var[0] / Nf**2) + w[1] ** 2 * (var[1] / Nf**2)) * Nf**2
+    w_next = 0 + w[0] ** 2 * wal[0] + w[1] ** 2 * wal[1]
+    lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
+    hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
+    lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
+    n_fail_u = int(f1.sum())
+    var_d = (weights[0] ** 2 * V1 + weights[1] ** 2 * float(V2.mean())) / N**2
+    var_u = n_fail_u * (n1 - K) / K / N**2 if K > 0 else math.inf
+    return StagedTrials(
+        p_hat=total / Nf, ci_low=lo / Nf, ci_high=hi / Nf, lam=lam, stage2_design=names,
+        var=var_d, var_uniform=var_u, stage1_design=c1.name, rate=float(fail.mean()),
     )  # fmt: skip
 
 

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
+import resource
 import sys
 import time
 import warnings
@@ -103,10 +105,15 @@ def main(argv: list[str]) -> None:
                 k for k in z.files if k.startswith(f"{src}-") and k.endswith("-known")
             ):
                 jobs.append((str(folder), problem, strategy, int(key.split("-")[-2]), trials))
-    t0 = time.perf_counter()
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
     with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as pool:
         rows = list(pool.map(_one, jobs))
-    wall = time.perf_counter() - t0
+    wall, load1 = time.perf_counter() - t0, os.getloadavg()[0]
+    cpu_all = sum(
+        getattr(resource.getrusage(who), f)
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+        for f in ("ru_utime", "ru_stime")
+    )
     (HERE / "estimate_design.json").write_text(json.dumps(rows, indent=1) + "\n")
     lines = [
         "# The default estimate design on the suite",
@@ -121,7 +128,9 @@ def main(argv: list[str]) -> None:
         "leaves to uniform risk. DR / HT: the exact variance of the difference (doubly "
         "robust) form, sum_U p_n + sum_s (y - p_n)/pi, over Horvitz-Thompson's on stage 1's "
         f"design, mean [max] over seeds. Wall time {wall:.0f} s on 2 workers "
-        f"({sum(r['cpu_seconds'] for r in rows):.0f} CPU s in the trials).",
+        f"({sum(r['cpu_seconds'] for r in rows):.0f} CPU s in the trials, {cpu_all:.0f} CPU s "
+        f"in all with the workers' start; load average {load0:.1f} at the start, "
+        f"{load1:.1f} at the end, on 2 cores).",
         "",
         "| problem | strategy | draws | var / uniform | p^alpha / uniform | coverage | below | above | width / rate | mean p_hat / rate | lam | DR / HT |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",

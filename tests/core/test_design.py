@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import integrate, optimize, stats
+from scipy import integrate, optimize, special, stats
 
 from bams_cli.core import design as dz
 from bams_cli.core.estimate import estimate_from_sample
-from bams_cli.core.evaluate import staged_trials
+from bams_cli.core.evaluate import _capped, staged_trials
+from bams_cli.core.sampling import inclusion_probabilities
 
 
 def _evidence(u: np.ndarray, failed: np.ndarray, pool_u: np.ndarray) -> dz.StageEvidence:
@@ -170,10 +171,62 @@ def test_choose_design_with_a_presorted_subset_equals_the_plain_call(seed):
         np.testing.assert_array_equal(hinted.risk, plain.risk)
 
 
-def test_posterior_exp_is_numpys_with_underflow_written_as_zero():
-    x = np.concatenate([np.linspace(-1e4, 0.0, 5000), [-745.2, -745.1, -745.0, -708.5]])
-    np.testing.assert_array_equal(dz._exp(x), np.exp(x))
-    assert dz._exp(np.array([-745.0]))[0] > 0  # subnormal, kept
+def _posterior_plain(evidence, prior=(1.0, 1.0), anchor_sd=1.0):
+    # risk_posterior's anchored form written out directly: the grids allocated afresh, the
+    # log-sum-exp over z with numpy's own exp.
+    taus = np.asarray(dz.TAUS)
+    lam = dz._LAM_GRID[1:-1]
+    a, b = prior
+    log_post = np.broadcast_to(
+        (a - 1.0) * np.log(lam) + (b - 1.0) * np.log1p(-lam) - special.betaln(a, b),
+        (taus.size, lam.size),
+    ).copy()
+    Z = np.linspace(-6.0, 6.0, 97)
+    ll_z = np.zeros((taus.size, lam.size, Z.size))
+    for ev in evidence:
+        k = int(ev.failed.sum())
+        for t, tau in enumerate(taus):
+            A = ev.u**tau / ev.norms[t]
+            log_rf = (
+                np.log((1.0 - lam)[:, None] * A[ev.failed][None, :] + lam[:, None]).sum(axis=1)
+                if k
+                else np.zeros(lam.size)
+            )
+            sum_r = (1.0 - lam) * A.sum() + lam * ev.u.size
+            c = ev.p_mean * np.exp(Z)
+            ll_z[t] += log_rf[:, None] + k * np.log(c)[None, :] - sum_r[:, None] * c[None, :]
+    prior_z = -0.5 * ((Z[None, :] + np.log1p(-lam)[:, None]) / anchor_sd) ** 2
+    total = ll_z + prior_z[None, :, :]
+    top = total.max(axis=2, keepdims=True)
+    log_post += top[..., 0] + np.log(np.exp(total - top).sum(axis=2))
+    w = np.exp(log_post - log_post.max()) * np.gradient(lam)[None, :]
+    return w / w.sum()
+
+
+@pytest.mark.parametrize("case", ["one stage", "two stages", "no failure", "many failures"])
+def test_anchored_posterior_equals_its_plain_form_bit_for_bit(case):
+    # risk_posterior sums exp over z in place and writes terms below e^-700 as e^-700 (they
+    # vanish beside the row's e^0 = 1); the weights must be the plain form's, bit for bit.
+    rng = np.random.default_rng(len(case))
+    pool = rng.gamma(0.3, size=4000)
+    pool = pool / pool.mean()
+    p_mean = 0.004 if case != "many failures" else 0.0001
+
+    def stage(n_s, n_f):
+        s = rng.choice(pool.size, n_s, replace=False)
+        failed = np.zeros(n_s, bool)
+        failed[np.argsort(-pool[s])[:n_f]] = True
+        return dz.StageEvidence(pool[s], failed, dz.risk_norms(pool), p_mean=p_mean)
+
+    evidence = {
+        "one stage": [stage(200, 3)],
+        "two stages": [stage(200, 3), stage(150, 1)],
+        "no failure": [stage(300, 0)],
+        "many failures": [stage(500, 60)],
+    }[case]
+    for prior in ((1.0, 1.0), (2.0, 5.0)):
+        got = dz.risk_posterior(evidence, prior=prior).weights
+        np.testing.assert_array_equal(got, _posterior_plain(evidence, prior=prior))
 
 
 def _stage(pi, fail, take, *, n_pool, known_failures=0):
@@ -217,6 +270,94 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
     assert res.p_hat.var(ddof=1) == pytest.approx(res.var, rel=0.2)
     assert res.coverage >= 0.85
+
+
+def _pool(rng, n, kind):
+    p = rng.beta(0.05, 10, n)
+    p[: n // 8] = p[n // 8 : n // 4]  # ties
+    p[n // 4 : n // 4 + n // 20] = 0.0  # zeros
+    if kind == "constant":
+        p = np.full(n, 0.3)
+    elif kind == "zeros":
+        p = np.zeros(n)
+    elif kind == "extreme":
+        p = np.where(rng.random(n) < 0.02, 1.0, 1e-12)
+    return p
+
+
+@pytest.mark.parametrize(
+    "kind, K, known_share, no_failures, share, anchor_sd",
+    [
+        ("beta", 100.0, 0.1, False, None, 1.0),
+        ("beta", 100.0, 0.1, True, None, 1.0),  # zero failures: every stage samples none
+        ("beta", 1.5, 0.0, False, None, 1.0),  # K below 2: stage 2 has floor(K_2) = 0
+        ("beta", 5000.0, 0.1, False, None, 1.0),  # K >= |U|: stage 2 takes all that is left
+        ("beta", 0.9 * 1800, 0.1, False, None, 1.0),  # K_2 >= |U_2| in most trials
+        ("beta", 4.0, 0.995, False, None, 1.0),  # |U| = 10
+        ("beta", 100.0, 0.1, False, 0.2, 1.0),
+        ("constant", 100.0, 0.1, False, None, 1.0),  # every candidate ties uniform
+        ("zeros", 100.0, 0.1, False, None, 1.0),
+        ("extreme", 60.0, 0.0, False, None, 1.0),  # the capped carry most of the mass
+        ("beta", 100.0, 0.1, False, None, None),  # where the failures fell only
+        ("beta", 100.0, 0.1, False, 0.3, 0.4),
+    ],
+)
+def test_staged_trials_fast_path_equals_the_tools_functions(
+    kind, K, known_share, no_failures, share, anchor_sd
+):
+    # The evaluation's fast path against the reference, which runs each trial through
+    # choose_design, estimate_from_sample and combine_stages: the same draws (so the same
+    # stage-2 designs and lam, exactly) and the same numbers to 1e-12.
+    rng = np.random.default_rng(int(K) + len(kind))
+    n = 2000
+    p = _pool(rng, n, kind)
+    fail = (rng.random(n) < np.clip(3.0 * p, 0.01, 1.0)) & (not no_failures)
+    known = np.zeros(n, bool)
+    known[: int(known_share * n)] = True
+    known = rng.permutation(known)
+    kw = dict(K=K, known=known, share=share, anchor_sd=anchor_sd, n_trials=25)
+    fast = staged_trials(p, fail, rng=np.random.default_rng(5), **kw)
+    ref = staged_trials(p, fail, rng=np.random.default_rng(5), reference=True, **kw)
+    assert fast.stage2_design == ref.stage2_design
+    assert fast.stage1_design == ref.stage1_design
+    np.testing.assert_array_equal(fast.lam, ref.lam)
+    for name in ("p_hat", "ci_low", "ci_high"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(ref, name), rtol=1e-12, atol=0)
+    assert fast.var == pytest.approx(ref.var, rel=1e-12, abs=0)
+    assert fast.var_uniform == ref.var_uniform and fast.rate == ref.rate
+
+
+def test_staged_trials_with_all_of_U_known_fails_as_the_tool_does():
+    p = np.full(50, 0.1)
+    fail = np.arange(50) < 5
+    for reference in (False, True):
+        with pytest.raises(ValueError, match="non-empty"):
+            staged_trials(
+                p, fail, K=10.0, known=np.ones(50, bool), n_trials=3,
+                rng=np.random.default_rng(0), reference=reference,
+            )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_capped_scale_gives_inclusion_probabilities_pi(seed):
+    # pi = min(1, c g), the m largest capped, against inclusion_probabilities on g^2 with
+    # alpha = 1/2 (pi proportional to g): ties, a few large g, K near |U|.
+    rng = np.random.default_rng(seed)
+    n = 500
+    g = rng.gamma(0.3, size=n) + 1e-9
+    g[:50] = g[50:100]
+    g[rng.choice(n, 5)] *= 1e4
+    order = np.argsort(-g, kind="stable")
+    for K in (0.5, 3.0, 40.0, 250.7, 499.0):
+        top = min(n - 1, int(np.floor(K)))
+        head = order[: top + 1]
+        m, c = _capped(g[head], float(np.delete(g, head).sum()), K)
+        pi = np.minimum(1.0, c * g)
+        if m:
+            pi[g >= g[order[m - 1]]] = 1.0
+        want = inclusion_probabilities(g**2 / (g**2).max(), alpha=0.5, defensive=0.0, K=K)
+        np.testing.assert_allclose(pi, want, rtol=1e-12, atol=0)
+        assert int(np.count_nonzero(pi >= 1.0)) == int(np.count_nonzero(want >= 1.0)) == m
 
 
 @pytest.mark.slow
