@@ -213,6 +213,10 @@ SELECT_MAX_ROWS = 4_096
 #: pools the candidate limit costs more of the J decrease than the row limit does.
 SELECT_MAX_CANDIDATES = 4_096
 SELECT_RANDOM_SHARE = 0.1
+#: ... screened anew, given the picks so far, this many times as each cluster's greedy
+#: spends its budget (after each 1/R of it): one screen from the first-step score keeps
+#: candidates near the first picks only.
+SELECT_SCREEN_ROUNDS = 3
 #: ... and K-means with the merge loop runs on a sample of this many segments.
 SELECT_CLUSTER_FIT_MAX = 50_000
 

@@ -208,8 +208,10 @@ def sweep(args, ex) -> None:
                         json.dump([dec, wall, cpu, load], f)
             print(f"{name:<12} {n:<7} exact         1.0000  {wall:6.1f} {cpu:6.1f}  {load:.2f}")
             for cap in args.caps:
-                r, c = (int(v) for v in cap.split(":"))
+                r, c, *rounds = (int(v) for v in cap.split(":"))
                 opts = dict(max_rows=r, max_candidates=c)
+                if rounds:
+                    opts["screen_rounds"] = rounds[0]
                 if args.cluster_fit_max:
                     opts["cluster_fit_max"] = args.cluster_fit_max
                 runs = [run("always", opts) for _ in range(args.runs)]
@@ -218,7 +220,7 @@ def sweep(args, ex) -> None:
                 med = statistics.median(w for _, w, _, _ in runs)
                 cpus = statistics.median(c for _, _, c, _ in runs)
                 print(
-                    f"{name:<12} {n:<7} {r:>5}x{c:<7} {ratio:7.4f}  {med:6.1f} {cpus:6.1f}  "
+                    f"{name:<12} {n:<7} {cap:<13} {ratio:7.4f}  {med:6.1f} {cpus:6.1f}  "
                     f"{runs[0][3]:.2f}",
                     flush=True,
                 )
@@ -475,7 +477,7 @@ def main() -> None:
         "--caps",
         nargs="+",
         default=["1024:1024", "2048:2048", "4096:4096"],
-        help="--sweep: approximate plans as ROWS:CANDIDATES per cluster",
+        help="--sweep: approximate plans as ROWS:CANDIDATES[:SCREEN_ROUNDS] per cluster",
     )
     ap.add_argument(
         "--cluster-fit-max", type=int, default=None, help="--sweep: plan's cluster_fit_max"
