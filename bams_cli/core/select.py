@@ -704,6 +704,7 @@ def screen_candidates(
     j_rows: IntArray | None = None,
     prescreen: int | None = None,
     given: tuple[FloatArray, IntArray] | None = None,
+    own: tuple[FloatArray, FloatArray] | None = None,
 ) -> BoolArray:
     """Keep at most ``max_candidates`` candidates: the best next picks, plus a random share.
 
@@ -733,6 +734,10 @@ def screen_candidates(
     given : (ndarray of shape (g, d), int ndarray of shape (g,)), optional
         Points and levels of the pairs the scores are conditional on (the greedy's picks
         so far, pairs of an earlier batch); none of them may be a candidate.
+    own : (ndarray, ndarray) of shape (n_s, n_levels) each, optional
+        cov_n(theta0(x_c), y_c) and var_n(y_c) of every candidate, given the data only,
+        filled in here where NaN: a caller screening the same cluster again passes the
+        same arrays (they do not depend on ``given``).
 
     Returns
     -------
@@ -827,8 +832,14 @@ def screen_candidates(
     for i0 in range(0, n_c, blk):
         B = np.arange(i0, min(i0 + blk, n_c))
         Xb = np.ascontiguousarray(X[cand_row[B]])
-        c_own = _own_point_cov(posterior, Xb, cand_level[B])
-        V0 = np.asarray(posterior.obs_var(Xb, cand_level[B]), dtype=np.float64)
+        rb, lb = cand_row[B], cand_level[B]
+        if own is None or np.isnan(own[0][rb, lb]).any():
+            c_own = _own_point_cov(posterior, Xb, lb)
+            V0 = np.asarray(posterior.obs_var(Xb, lb), dtype=np.float64)
+            if own is not None:
+                own[0][rb, lb], own[1][rb, lb] = c_own, V0
+        else:
+            c_own, V0 = own[0][rb, lb], own[1][rb, lb]
         V = V0
         ok = (V > 0) & (sig2[B] > 0)
         wc = None
@@ -839,10 +850,10 @@ def screen_candidates(
             ok &= V > V_TINY_REL * V0
         with np.errstate(divide="ignore", invalid="ignore"):
             t_b = np.where(ok, tS_c[B] - c_own**2 / (V * sig2[B]), tS_c[B])
-        own = b_c[B] - beta(s_c[B], np.clip(t_b, 0.0, 1.0))
+        at_own = b_c[B] - beta(s_c[B], np.clip(t_b, 0.0, 1.0))
         invV = np.zeros(len(B))
         np.divide(1.0, V, out=invV, where=ok)
-        score[B] = (own + decrease(r1, Xb, cand_level[B], invV, wc)) / costs[cand_level[B]]
+        score[B] = (at_own + decrease(r1, Xb, cand_level[B], invV, wc)) / costs[cand_level[B]]
     pre = np.lexsort((np.arange(n_c), -score))[:n_pre]  # best first, then lowest index
 
     # Stage 2: the next-step decrease over the SCREEN_ROWS rows, screened like the
@@ -937,6 +948,7 @@ def _approximate_cluster(
     in_batch = forced.copy()  # pairs the round's greedy starts conditioned on
     kept = np.zeros_like(cand0)
     most = 0  # most candidates in one round: the greedy's C has this many columns
+    own = (np.full(cand0.shape, np.nan), np.full(cand0.shape, np.nan))  # screen's cache
     spent: list[float] = []
     parts: list[ClusterQueue] = []
     n_exact = 0
@@ -959,6 +971,7 @@ def _approximate_cluster(
                 rng=rng,
                 j_rows=j_rows,
                 given=(np.ascontiguousarray(X[gi]), gl.astype(np.int64)) if len(gi) else None,
+                own=own,
             )
         kept |= cand
         most = max(most, int(np.count_nonzero(cand)))
