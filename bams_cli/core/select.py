@@ -954,6 +954,11 @@ def _approximate_cluster(
     n_exact = 0
     timings["plan"] = time.perf_counter() - t0
     for r in range(n_rounds):
+        stop = budget * (r + 1) / n_rounds if r + 1 < n_rounds else None
+        if r > 0 and not _level_fits(spent, costs, budget).any():
+            break  # the budget is spent
+        if stop is not None and math.fsum(spent) >= stop:
+            continue  # one expensive pick took this round's share too
         t0 = time.perf_counter()
         cand = cand0 & ~in_batch
         if screened and max_candidates is not None:
@@ -998,13 +1003,11 @@ def _approximate_cluster(
             timings=timings,
             cpu0=cpu0,
             spent=spent,
-            stop_cost=budget * (r + 1) / n_rounds if r + 1 < n_rounds else None,
+            stop_cost=stop,
         )
         timings = q.timings
         parts.append(q)
         n_exact += q.stats["exact_evaluations"]
-        if not len(q.index):
-            break
         in_batch[np.searchsorted(rows, q.index), q.level] = True
         spent += q.cost.tolist()
     return ClusterQueue(

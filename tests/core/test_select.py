@@ -762,4 +762,7 @@ def test_screening_again_as_the_greedy_goes_keeps_99_percent_of_the_exact_j_decr
         # every round screens anew: more candidates seen over the rounds than in one
         assert (approx.plan["candidates_kept"] > 360) == (rounds > 1)
         ratio[rounds] = (approx.j_before - approx.j_after) / (exact.j_before - exact.j_after)
+        for q in approx.queues:  # every round's picks count, and the budget is spent
+            b_k = math.ceil(2.0 * 15.0 * q.n_rows / len(X) - 1e-9)
+            assert b_k - min(costs) < math.fsum(q.cost.tolist()) <= b_k
     assert ratio[1] < 0.99 <= ratio[3]
