@@ -207,12 +207,16 @@ SELECT_EXACT_MAX_POOL = 45_000
 SELECT_CLUSTER_ROWS = 25_000
 #: ... each cluster's J is summed over at most this many of its rows (those where the
 #: model is least sure, largest p_n (1 - p_n)) ...
-SELECT_MAX_ROWS = 4_096
+SELECT_MAX_ROWS = 1_024
 #: ... and the greedy chooses among at most this many candidates: the best first picks
 #: (``core.select.screen_candidates``), plus a uniform random share of the rest. On av_like
 #: pools the candidate limit costs more of the J decrease than the row limit does.
-SELECT_MAX_CANDIDATES = 4_096
+SELECT_MAX_CANDIDATES = 1_024
 SELECT_RANDOM_SHARE = 0.1
+#: ... screened anew, given the picks so far, this many times as each cluster's greedy
+#: spends its budget (after each 1/R of it): one screen from the first-step score keeps
+#: candidates near the first picks only.
+SELECT_SCREEN_ROUNDS = 3
 #: ... and K-means with the merge loop runs on a sample of this many segments.
 SELECT_CLUSTER_FIT_MAX = 50_000
 

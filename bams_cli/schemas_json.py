@@ -294,6 +294,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "max_candidates_per_cluster": nullable(COUNT),
                         "rows_in_j": nullable(COUNT),
                         "h_left_out": nullable(NUM),
+                        "screen_rounds": nullable(COUNT),
+                        "candidates_per_round": nullable(COUNT),
                     },
                 ),
             },

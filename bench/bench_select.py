@@ -16,13 +16,20 @@ up to 45k segments, approximate above.
     nice .venv/bin/python bench/bench_select.py --million --pool-cache /tmp/bams-pools
     .venv/bin/python bench/bench_select.py --sizes 45000 --hyper flat   # worst case
     .venv/bin/python bench/bench_select.py --sweep --sizes 10000 25000 45000 \
-        --pool-cache /tmp/bams-pools --caps 1024:1024 2048:2048   # J ratio per problem
+        --pool-cache /tmp/bams-pools --caps 1024:1024:3 1024:1024:1   # J ratio per problem
 
 For every N it prints the plan taken, the median wall time over --runs runs, the peak
 resident memory of the process tree (this process plus the pool's workers, sampled every
 20 ms from /proc), each phase's share of one run, and the load average (the machine is
 shared: CPU seconds are the steadier number). "greedy.*" lines are seconds summed over
 clusters (they overlap in time across the two processes).
+
+--sweep's --caps are ROWS:CANDIDATES[:ROUNDS] per cluster, ROUNDS the times the candidates
+are screened as the greedy spends the budget (``plan_selection``'s ``screen_rounds``;
+default ``defaults.SELECT_SCREEN_ROUNDS``). Measured 2026-11-23 (load 6-10, README
+"Performance"): 1024:1024:3, the default plan, kept >= 99.3% of the exact greedy's J
+decrease on av_like, toy2d, weak_cheap and gap_sim at 10k, 25k and 45k, in 5.1-5.4 CPU s at
+45k; 1024:1024:1 kept 95.8% (toy2d, 45k) to 100%.
 
 J ratio (--j-ratio, on by default): where the exact greedy is feasible (N <= 45k under the
 default plan), the same pool and clusters are selected again with the approximate plan
@@ -208,8 +215,10 @@ def sweep(args, ex) -> None:
                         json.dump([dec, wall, cpu, load], f)
             print(f"{name:<12} {n:<7} exact         1.0000  {wall:6.1f} {cpu:6.1f}  {load:.2f}")
             for cap in args.caps:
-                r, c = (int(v) for v in cap.split(":"))
+                r, c, *rounds = (int(v) for v in cap.split(":"))
                 opts = dict(max_rows=r, max_candidates=c)
+                if rounds:
+                    opts["screen_rounds"] = rounds[0]
                 if args.cluster_fit_max:
                     opts["cluster_fit_max"] = args.cluster_fit_max
                 runs = [run("always", opts) for _ in range(args.runs)]
@@ -218,7 +227,7 @@ def sweep(args, ex) -> None:
                 med = statistics.median(w for _, w, _, _ in runs)
                 cpus = statistics.median(c for _, _, c, _ in runs)
                 print(
-                    f"{name:<12} {n:<7} {r:>5}x{c:<7} {ratio:7.4f}  {med:6.1f} {cpus:6.1f}  "
+                    f"{name:<12} {n:<7} {cap:<13} {ratio:7.4f}  {med:6.1f} {cpus:6.1f}  "
                     f"{runs[0][3]:.2f}",
                     flush=True,
                 )
@@ -474,8 +483,8 @@ def main() -> None:
     ap.add_argument(
         "--caps",
         nargs="+",
-        default=["1024:1024", "2048:2048", "4096:4096"],
-        help="--sweep: approximate plans as ROWS:CANDIDATES per cluster",
+        default=["1024:1024:3", "1024:1024:1", "2048:2048:3"],
+        help="--sweep: approximate plans as ROWS:CANDIDATES[:SCREEN_ROUNDS] per cluster",
     )
     ap.add_argument(
         "--cluster-fit-max", type=int, default=None, help="--sweep: plan's cluster_fit_max"

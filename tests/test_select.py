@@ -8,6 +8,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from bams_cli import defaults
 from tests.conftest import invoke, ok, tree_hash, write_batch
 
 
@@ -132,6 +133,9 @@ def test_a_cluster_too_large_for_exact_selection_is_selected_approximately(
     plan = summary["selection_plan"]
     assert plan["exact"] is False and "GiB" in plan["reason"] and plan["clusters"] == 1
     assert plan["max_rows_per_cluster"] * plan["max_candidates_per_cluster"] * 8 <= 2**18
+    assert plan["screen_rounds"] == defaults.SELECT_SCREEN_ROUNDS
+    assert 0 < plan["candidates_per_round"] <= plan["max_candidates_per_cluster"]
+    assert plan["candidates_per_round"] <= plan["candidates_kept"] <= plan["candidates_offered"]
     assert summary["picks"] == len(batch["segment_id"]) > 0
 
 

@@ -82,6 +82,10 @@ COMPACT_BELOW = 0.75
 _PREDICT_BLOCK = 8192
 #: Rows (largest h_n) the candidate screen's first-pick score sums over (``screen_candidates``).
 SCREEN_ROWS = 1024
+#: Of those, rows the first stage of the screen sums over for every candidate.
+SCREEN_ROWS_FIRST = 128
+#: Stage 2 of the screen scores this many times ``max_candidates`` candidates.
+SCREEN_PRESCREEN = 2
 
 
 @dataclass
@@ -153,7 +157,9 @@ class SelectionResult:
     plan : dict
         The plan taken (``plan_selection``) and what it kept: "exact", "reason",
         "clusters", "max_rows_per_cluster", "max_candidates_per_cluster", "random_share",
-        "candidates_offered", "candidates_kept", "rows_live" (rows with p_n (1 - p_n) > 0),
+        "screen_rounds", "candidates_offered", "candidates_kept" (over all screening rounds),
+        "candidates_per_round" (most in one cluster's round: the columns its greedy holds),
+        "rows_live" (rows with p_n (1 - p_n) > 0),
         "rows_in_j" (rows J is averaged over, each cluster's largest p_n (1 - p_n)) (None
         where the exact plan has no such limit).
     """
@@ -275,6 +281,7 @@ def greedy_cluster(
     max_candidates: int | None = None,
     random_share: float = 0.1,
     seed: int = 0,
+    screen_rounds: int = 1,
 ) -> ClusterQueue:
     """Greedy selection in one cluster until its budget is spent (Algorithm 1, inner loop).
 
@@ -321,6 +328,9 @@ def greedy_cluster(
         Share of ``max_candidates`` drawn uniformly from the candidates the screen passed over.
     seed : int
         Seeds the random share of candidates (with ``cluster``).
+    screen_rounds : int
+        Approximate plan: the candidates are screened anew this many times as the greedy
+        spends the budget, given the picks so far (``_approximate_cluster``).
 
     Returns
     -------
@@ -348,6 +358,7 @@ def greedy_cluster(
                 max_candidates=max_candidates,
                 random_share=random_share,
                 seed=seed,
+                screen_rounds=screen_rounds,
             )
         return _greedy_cluster(*args, **kwargs)
 
@@ -372,10 +383,16 @@ def _greedy_cluster(
     timings: dict[str, float] | None = None,
     cpu0: float | None = None,
     stats: dict[str, int] | None = None,
+    spent: list[float] | None = None,
+    stop_cost: float | None = None,
 ) -> ClusterQueue:
     """The greedy itself. ``j_mask`` (default all) marks the rows J is summed over;
     a pick's Delta J is that sum divided by ``n_norm`` (default len(rows)). The
-    approximate plan passes its kept rows and candidates this way (``_approximate_cluster``)."""
+    approximate plan passes its kept rows and candidates this way (``_approximate_cluster``).
+    ``spent``: costs of picks made before this call (conditioned on as ``forced_mask``),
+    counted against ``budget``; ``stop_cost``: stop once the picks' costs with ``spent``
+    reach it (the picks up to there are those of the greedy with no stop)."""
+    spent = [] if spent is None else list(spent)
     timings = {"build": 0.0, "screen": 0.0, "exact": 0.0, "update": 0.0} | (timings or {})
     cpu0 = time.process_time() if cpu0 is None else cpu0
     t0 = time.perf_counter()
@@ -450,6 +467,8 @@ def _greedy_cluster(
     out_cost: list[float] = []
     a_vec = np.zeros(len(K))
     g_vec = np.zeros(n_c)
+    pend_a: list[FloatArray] = []  # forced pairs' rank-1 steps not yet applied to C
+    pend_g: list[FloatArray] = []
     acc = np.zeros(n_c)
     n_exact = 0
     arange_c = np.arange(n_c)
@@ -483,12 +502,27 @@ def _greedy_cluster(
             if not alive[s]:  # determined already: conditioning on it changes nothing
                 picked[s] = True
                 continue
+            # The rank-1 steps are kept pending (one matrix product for all of them once
+            # the picking starts, instead of one pass over C each); only column s is needed.
             t3 = time.perf_counter()
-            _update_and_screen(C, a_vec, g_vec, inv_sig2_K, tS_K, b_K, M_K, np.zeros(n_c), acc)
+            pend_a.append(a_vec)
+            pend_g.append(g_vec)
             a_vec = np.zeros(len(K))
+            colK = C[:, s] - np.column_stack(pend_a) @ np.array([gk[s] for gk in pend_g])
             best_CD = dropped_columns(np.array([s]))[:, 0] if len(D) else np.zeros(0)
         else:
-            eligible = alive & ~picked & _level_fits(used, costs, budget)[cand_level]
+            if stop_cost is not None and math.fsum([*spent, *used]) >= stop_cost:
+                break
+            if pend_a:  # the forced pairs' steps, and the last one, in row blocks
+                t1 = time.perf_counter()
+                A = np.column_stack([*pend_a, a_vec])
+                Gp = np.vstack([*pend_g, g_vec])
+                for i0 in range(0, len(K), blk):
+                    C[i0 : i0 + blk] -= A[i0 : i0 + blk] @ Gp
+                pend_a, pend_g = [], []
+                a_vec = np.zeros(len(K))
+                timings["update"] += time.perf_counter() - t1
+            eligible = alive & ~picked & _level_fits([*spent, *used], costs, budget)[cand_level]
             if not eligible.any():
                 break
             if eligible.sum() < COMPACT_BELOW * n_c:
@@ -549,7 +583,8 @@ def _greedy_cluster(
 
         # Conditioning on y_s: one rank-1 step for everything we keep.
         Vs = V[s]
-        colK = C[:, s].copy()
+        if not pend_a:
+            colK = C[:, s].copy()
         g = np.asarray(
             posterior.cov_obs_obs(
                 Xc[s : s + 1], cand_level[s : s + 1], Xc, cand_level, same=(arange_c == s)[None, :]
@@ -615,6 +650,45 @@ def _own_point_cov(posterior: Posterior, Xc: FloatArray, levels: IntArray) -> Fl
     return out
 
 
+class _Given:
+    """Conditioning on pairs already in the batch, for scores outside the greedy's C.
+
+    With Sigma = cov_n(y_G, y_G) (noise on the diagonal) = L L^T, anything's covariance
+    given y_G is its covariance given the data minus w_a^T w_b, w = L^-1 cov_n(y_G, .).
+    A singular Sigma (a noise-free pair repeated) keeps the directions it resolves, as
+    ``batch_variance`` does.
+    """
+
+    def __init__(self, posterior: Posterior, Xg: FloatArray, levels: IntArray) -> None:
+        self.posterior, self.Xg, self.levels = posterior, Xg, levels
+        S = np.asarray(
+            posterior.cov_obs_obs(Xg, levels, Xg, levels, same=np.eye(len(Xg), dtype=bool)),
+            dtype=np.float64,
+        )
+        S = 0.5 * (S + S.T)
+        try:
+            L, _ = cho_factor(S, lower=True)
+            L = np.tril(L)
+            self._whiten = lambda K: solve_triangular(L, K, lower=True)
+        except np.linalg.LinAlgError:
+            lam, Q = eigh(S)
+            keep = lam > 1e-12 * max(lam.max(), 0.0)
+            P = Q[:, keep] / np.sqrt(lam[keep])
+            self._whiten = lambda K: P.T @ K
+
+    def w_theta0(self, X: FloatArray) -> FloatArray:
+        """L^-1 cov_n(y_G, theta0(X)), shape (|G|, len(X))."""
+        K = self.posterior.cov_theta0_obs(X, self.Xg, self.levels)
+        return self._whiten(np.asarray(K, dtype=np.float64).T)
+
+    def w_obs(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
+        """L^-1 cov_n(y_G, y_c), shape (|G|, len(Xc)); no c is one of G's observations."""
+        K = self.posterior.cov_obs_obs(
+            self.Xg, self.levels, Xc, levels, same=np.zeros((len(self.Xg), len(Xc)), dtype=bool)
+        )
+        return self._whiten(np.asarray(K, dtype=np.float64))
+
+
 def screen_candidates(
     posterior: Posterior,
     X: FloatArray,
@@ -628,18 +702,23 @@ def screen_candidates(
     random_share: float,
     rng: np.random.Generator,
     j_rows: IntArray | None = None,
-    prescreen: int = 4,
+    prescreen: int | None = None,
+    given: tuple[FloatArray, IntArray] | None = None,
+    own: tuple[FloatArray, FloatArray] | None = None,
 ) -> BoolArray:
-    """Keep at most ``max_candidates`` candidates: the best first picks, plus a random share.
+    """Keep at most ``max_candidates`` candidates: the best next picks, plus a random share.
 
-    Two stages, each a restriction of the greedy's first step (paper eq. (5)):
+    Two stages, each a restriction of the greedy's next step (paper eq. (5)) given the
+    pairs ``given`` already in the batch (none: the first step):
 
     1. Own point: c = (x_c, l) scored by the decrease it causes at x_c alone, per cost,
-       [beta(s_c, 1) - beta(s_c, t_c)] / c_l with t_c = 1 - C(x_c, c)^2 / (V(c) sigma_n^2(x_c)).
+       [beta(s_c, t_S) - beta(s_c, t_c)] / c_l with t_c = t_S - C_S(x_c, c)^2 /
+       (V_S(c) sigma_n^2(x_c)), t_S = sigma_{n+S}^2(x_c) / sigma_n^2(x_c).
        The ``prescreen`` x ``max_candidates`` best go on.
-    2. First pick: those are scored by the decrease they cause summed over ``j_rows`` (the
+    2. Next pick: those are scored by the decrease they cause summed over ``j_rows`` (the
        rows the approximate greedy sums J over; the ``SCREEN_ROWS`` of them with the
-       largest h_n), the greedy's own first-step score, in the compiled screening loop.
+       largest beta(s, t_S), i.e. h_n when nothing is given), the greedy's own score, in
+       the compiled screening loop.
 
     The best ``(1 - random_share) max_candidates`` of stage 2 are kept, plus a uniform draw
     from all the others: stage 1 misses candidates whose value lies in their neighbours,
@@ -652,6 +731,13 @@ def screen_candidates(
     candidate_mask : bool ndarray of shape (n_s, n_levels)
     j_rows : int ndarray, optional
         Indices into X of the rows stage 2 sums over; default all.
+    given : (ndarray of shape (g, d), int ndarray of shape (g,)), optional
+        Points and levels of the pairs the scores are conditional on (the greedy's picks
+        so far, pairs of an earlier batch); none of them may be a candidate.
+    own : (ndarray, ndarray) of shape (n_s, n_levels) each, optional
+        cov_n(theta0(x_c), y_c) and var_n(y_c) of every candidate, given the data only,
+        filled in here where NaN: a caller screening the same cluster again passes the
+        same arrays (they do not depend on ``given``).
 
     Returns
     -------
@@ -663,72 +749,127 @@ def screen_candidates(
     if n_c <= max_candidates:
         return np.asarray(candidate_mask, dtype=bool).copy()
     cand_level = cand_level.astype(np.int64)
-    sig2 = np.asarray(sigma2, dtype=np.float64)[cand_row]
-    s_c = margin(np.asarray(mu)[cand_row], sig2, gamma)
-    h_c = point_variance(s_c)
+    sig2_all = np.asarray(sigma2, dtype=np.float64)
+    s_all = margin(mu, sig2_all, gamma)
+    cond = None if given is None or len(given[0]) == 0 else _Given(posterior, *given)
+
+    def remaining(idx: IntArray) -> tuple[FloatArray, FloatArray | None]:
+        """t_S = sigma_{n+S}^2 / sigma_n^2 at rows idx, and their w (None: nothing given)."""
+        if cond is None:
+            return np.ones(len(idx)), None
+        w = cond.w_theta0(np.ascontiguousarray(X[idx]))
+        sg = sig2_all[idx]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(sg > 0, (sg - (w * w).sum(axis=0)) / np.where(sg > 0, sg, 1.0), 1.0)
+        return np.clip(t, 0.0, 1.0), w
+
+    sig2 = sig2_all[cand_row]
+    s_c = s_all[cand_row]
+    u_row, u_inv = np.unique(cand_row, return_inverse=True)
+    tS_u, w_u = remaining(u_row)
+    tS_c = tS_u[u_inv]
+    b_c = beta(s_c, tS_c)
     n_rand = int(round(random_share * max_candidates))
     n_top = max_candidates - n_rand
-    n_pre = min(n_c, prescreen * max_candidates)
-    # Stage 1. beta >= 0, so a candidate's own-point decrease is at most h_n(x_c) / c_l.
-    # Scores are computed in blocks in order of that bound, and no further once the bound
-    # drops below the n_pre-th best score so far: the same top set as scoring everyone, at
-    # a fraction of the kernel evaluations. Candidates never scored keep -inf.
-    bound = h_c / costs[cand_level]
-    by_bound = np.lexsort((np.arange(n_c), -bound))
-    score = np.full(n_c, -np.inf)
-    blk = max(n_pre, 1024)
+    n_pre = min(n_c, (SCREEN_PRESCREEN if prescreen is None else prescreen) * max_candidates)
+
+    # The rows the scores sum over: of the J rows, the SCREEN_ROWS with the largest
+    # beta(s, t_S) (stage 2), and the SCREEN_ROWS_FIRST largest of those (stage 1). At 1M
+    # segments stage 2 on all 4,096 J rows was three quarters of select's time (351 of
+    # 461 s summed over clusters).
+    rows_j = np.arange(len(X)) if j_rows is None else np.asarray(j_rows, dtype=np.int64)
+    rows_j = rows_j[sig2_all[rows_j] > 0]
+    tS_r, w_r = remaining(rows_j)
+    s_r = s_all[rows_j]
+    b_r = beta(s_r, tS_r)
+    by_b = np.lexsort((rows_j, -b_r))
+    if len(rows_j) > SCREEN_ROWS:
+        top_h = np.sort(by_b[:SCREEN_ROWS])
+        rows_j, s_r, tS_r, b_r = rows_j[top_h], s_r[top_h], tS_r[top_h], b_r[top_h]
+        w_r = None if w_r is None else np.ascontiguousarray(w_r[:, top_h])
+        by_b = np.lexsort((rows_j, -b_r))
+    inv_sig2 = 1.0 / sig2_all[rows_j]
+    M_r, _ = beta_poly(s_r)
+    Xr = np.ascontiguousarray(X[rows_j])
+
+    def decrease(
+        r: IntArray, Xb: FloatArray, lb: IntArray, invV: FloatArray, wb: Any
+    ) -> FloatArray:
+        """Screened sum over rows r (indices into rows_j) of the decrease each of Xb, lb
+        causes, given the pairs (w_r, wb); blocks of ~64 MB of C."""
+        out = np.zeros(len(Xb))
+        wr = None if w_r is None else np.ascontiguousarray(w_r[:, r])
+        cblk = max(1, (8 * 2**20) // max(len(r), 1))
+        for j0 in range(0, len(Xb), cblk):
+            J = slice(j0, j0 + cblk)
+            Cb = np.ascontiguousarray(
+                posterior.cov_theta0_obs(Xr[r], Xb[J], lb[J]), dtype=np.float64
+            )
+            if wr is not None and wb is not None:
+                Cb -= wr.T @ wb[:, J]
+            acc = np.zeros(Cb.shape[1])
+            _update_and_screen(
+                Cb,
+                np.zeros(len(r)),
+                np.zeros(Cb.shape[1]),
+                np.ascontiguousarray(inv_sig2[r]),
+                np.ascontiguousarray(tS_r[r]),
+                np.ascontiguousarray(b_r[r]),
+                np.ascontiguousarray(M_r[r]),
+                np.ascontiguousarray(invV[J]),
+                acc,
+            )
+            out[J] = acc
+        return out
+
+    # Stage 1, every candidate: the decrease at its own point plus that over the
+    # SCREEN_ROWS_FIRST rows of largest beta(s, t_S). The own point alone misses a
+    # candidate where the model is sure (p_n (1 - p_n) = 0) between unsure rows: at 45,000
+    # av_like segments the exact greedy picks such candidates.
+    r1 = np.sort(by_b[:SCREEN_ROWS_FIRST])
+    score = np.empty(n_c)
+    blk = 8192
     for i0 in range(0, n_c, blk):
-        B = by_bound[i0 : i0 + blk]
-        if i0 >= n_pre:
-            kth = np.partition(score[by_bound[:i0]], i0 - n_pre)[i0 - n_pre]
-            if bound[B[0]] < kth:
-                break
+        B = np.arange(i0, min(i0 + blk, n_c))
         Xb = np.ascontiguousarray(X[cand_row[B]])
-        c_own = _own_point_cov(posterior, Xb, cand_level[B])
-        V = np.asarray(posterior.obs_var(Xb, cand_level[B]), dtype=np.float64)
+        rb, lb = cand_row[B], cand_level[B]
+        if own is None or np.isnan(own[0][rb, lb]).any():
+            c_own = _own_point_cov(posterior, Xb, lb)
+            V0 = np.asarray(posterior.obs_var(Xb, lb), dtype=np.float64)
+            if own is not None:
+                own[0][rb, lb], own[1][rb, lb] = c_own, V0
+        else:
+            c_own, V0 = own[0][rb, lb], own[1][rb, lb]
+        V = V0
+        ok = (V > 0) & (sig2[B] > 0)
+        wc = None
+        if cond is not None and w_u is not None:
+            wc = cond.w_obs(Xb, cand_level[B])
+            c_own = c_own - (w_u[:, u_inv[B]] * wc).sum(axis=0)
+            V = V0 - (wc * wc).sum(axis=0)
+            ok &= V > V_TINY_REL * V0
         with np.errstate(divide="ignore", invalid="ignore"):
-            t_b = np.where((V > 0) & (sig2[B] > 0), 1.0 - c_own**2 / (V * sig2[B]), 1.0)
-        score[B] = (h_c[B] - beta(s_c[B], np.clip(t_b, 0.0, 1.0))) / costs[cand_level[B]]
+            t_b = np.where(ok, tS_c[B] - c_own**2 / (V * sig2[B]), tS_c[B])
+        at_own = b_c[B] - beta(s_c[B], np.clip(t_b, 0.0, 1.0))
+        invV = np.zeros(len(B))
+        np.divide(1.0, V, out=invV, where=ok)
+        score[B] = (at_own + decrease(r1, Xb, cand_level[B], invV, wc)) / costs[cand_level[B]]
     pre = np.lexsort((np.arange(n_c), -score))[:n_pre]  # best first, then lowest index
 
-    # Stage 2: the first-step decrease over the J rows, screened like the greedy's picks,
-    # over the SCREEN_ROWS of them with the largest h_n. At 1M segments stage 2 on all
-    # 4,096 J rows was three quarters of select's time (351 of 461 s summed over clusters).
-    rows_j = np.arange(len(X)) if j_rows is None else np.asarray(j_rows, dtype=np.int64)
-    s_r = margin(np.asarray(mu)[rows_j], np.asarray(sigma2)[rows_j], gamma)
-    live = np.asarray(sigma2)[rows_j] > 0
-    rows_j, s_r = rows_j[live], s_r[live]
-    if len(rows_j) > SCREEN_ROWS:
-        top_h = np.sort(np.lexsort((rows_j, -point_variance(s_r)))[:SCREEN_ROWS])
-        rows_j, s_r = rows_j[top_h], s_r[top_h]
-    inv_sig2 = 1.0 / np.asarray(sigma2, dtype=np.float64)[rows_j]
-    b_r = beta(s_r, np.ones(len(rows_j)))
-    M_r, _ = beta_poly(s_r)
+    # Stage 2: the next-step decrease over the SCREEN_ROWS rows, screened like the
+    # greedy's picks.
     Xp = np.ascontiguousarray(X[cand_row[pre]])
-    Vp = np.asarray(posterior.obs_var(Xp, cand_level[pre]), dtype=np.float64)
+    lp = cand_level[pre]
+    Vp = np.asarray(posterior.obs_var(Xp, lp), dtype=np.float64)
+    floor = np.zeros(n_pre)
+    w_p = None
+    if cond is not None:
+        w_p = cond.w_obs(Xp, lp)
+        floor = V_TINY_REL * Vp
+        Vp = Vp - (w_p * w_p).sum(axis=0)
     invV = np.zeros(n_pre)
-    np.divide(1.0, Vp, out=invV, where=Vp > 0)
-    first = np.zeros(n_pre)
-    acc = np.zeros(0)
-    cblk = max(1, (8 * 2**20) // max(len(rows_j), 1))  # ~64 MB of C at a time
-    for j0 in range(0, n_pre, cblk):
-        J = slice(j0, j0 + cblk)
-        Cb = np.ascontiguousarray(
-            posterior.cov_theta0_obs(X[rows_j], Xp[J], cand_level[pre][J]), dtype=np.float64
-        )
-        acc = np.zeros(Cb.shape[1])
-        _update_and_screen(
-            Cb,
-            np.zeros(len(rows_j)),
-            np.zeros(Cb.shape[1]),
-            inv_sig2,
-            np.ones(len(rows_j)),
-            b_r,
-            M_r,
-            np.ascontiguousarray(invV[J]),
-            acc,
-        )
-        first[J] = acc / costs[cand_level[pre][J]]
+    np.divide(1.0, Vp, out=invV, where=Vp > floor)
+    first = decrease(np.arange(len(rows_j)), Xp, lp, invV, w_p) / costs[lp]
     top = pre[np.lexsort((pre, -first))[:n_top]]
     others = np.setdiff1d(np.arange(n_c), top)
     chosen = np.concatenate([top, rng.choice(others, size=min(n_rand, len(others)), replace=False)])
@@ -755,6 +896,7 @@ def _approximate_cluster(
     max_candidates: int | None,
     random_share: float,
     seed: int,
+    screen_rounds: int = 1,
 ) -> ClusterQueue:
     """The greedy on the rows that matter most and a candidate subset of one cluster.
 
@@ -763,6 +905,14 @@ def _approximate_cluster(
     by at most (1/N_s) times the sum of their h_n; the share of sum h_n left out is in the
     stats ("h_left_out_ppb", parts per billion). The candidates are those of
     ``screen_candidates``; the conditioning steps are exact on that subset.
+
+    ``screen_rounds`` R > 1 screens again as the greedy goes: round r (1..R) runs the greedy
+    until the cluster has spent r/R of its budget (the picks are those the greedy would make
+    on that round's candidates with the whole budget), then the candidates are screened
+    anew given every pick so far, and the next round continues the same greedy (its picks
+    conditioned on, as ``forced_mask`` pairs) on them. One screen, from the first-step
+    score, keeps candidates near the first picks and misses those that become the best
+    once the region around the first picks is resolved.
     Memory: (kept rows) x (kept candidates) floats instead of N_s x (L + 1) N_s.
     """
     timings = {"build": 0.0, "screen": 0.0, "exact": 0.0, "update": 0.0, "plan": 0.0}
@@ -788,51 +938,93 @@ def _approximate_cluster(
         # the model is sure, and kept 70% of the exact decrease where this keeps 99%.
         by_h = live[np.lexsort((live, -h[live]))]
         j_rows = np.sort(by_h[:max_rows])
-    cand = np.asarray(candidate_mask, dtype=bool)
-    if max_candidates is not None:
-        cand = screen_candidates(
-            posterior,
-            X,
-            mu,
-            sigma2,
-            cand,
-            gamma=gamma,
-            costs=costs,
-            max_candidates=max_candidates,
-            random_share=random_share,
-            rng=rng,
-            j_rows=j_rows,
-        )
-    # Points the sub-problem needs: the rows of J and the candidates' (and forced
-    # pairs') own points, in pool order so ties still break to the lowest pool index.
-    need = np.zeros(n_s, dtype=bool)
-    need[j_rows] = True
-    need |= (cand | forced).any(axis=1)
-    sub = np.flatnonzero(need)
+    cand0 = np.asarray(candidate_mask, dtype=bool)
+    screened = max_candidates is not None and np.count_nonzero(cand0) > max_candidates
+    n_rounds = max(1, int(screen_rounds)) if screened else 1
     j_mask = np.zeros(n_s, dtype=bool)
     j_mask[j_rows] = True
     h_total = float(h.sum())
     h_out = h_total - float(h[j_rows].sum())
+    in_batch = forced.copy()  # pairs the round's greedy starts conditioned on
+    kept = np.zeros_like(cand0)
+    most = 0  # most candidates in one round: the greedy's C has this many columns
+    own = (np.full(cand0.shape, np.nan), np.full(cand0.shape, np.nan))  # screen's cache
+    spent: list[float] = []
+    parts: list[ClusterQueue] = []
+    n_exact = 0
     timings["plan"] = time.perf_counter() - t0
-    return _greedy_cluster(
-        posterior,
-        X[sub],
-        rows[sub],
-        np.asarray(mu)[sub],
-        np.asarray(sigma2)[sub],
-        cand[sub],
-        gamma=gamma,
-        costs=costs,
-        budget=budget,
+    for r in range(n_rounds):
+        stop = budget * (r + 1) / n_rounds if r + 1 < n_rounds else None
+        if r > 0 and not _level_fits(spent, costs, budget).any():
+            break  # the budget is spent
+        if stop is not None and math.fsum(spent) >= stop:
+            continue  # one expensive pick took this round's share too
+        t0 = time.perf_counter()
+        cand = cand0 & ~in_batch
+        if screened and max_candidates is not None:
+            gi, gl = np.nonzero(in_batch)
+            cand = screen_candidates(
+                posterior,
+                X,
+                mu,
+                sigma2,
+                cand,
+                gamma=gamma,
+                costs=costs,
+                max_candidates=max_candidates,
+                random_share=random_share,
+                rng=rng,
+                j_rows=j_rows,
+                given=(np.ascontiguousarray(X[gi]), gl.astype(np.int64)) if len(gi) else None,
+                own=own,
+            )
+        kept |= cand
+        most = max(most, int(np.count_nonzero(cand)))
+        # Points the sub-problem needs: the rows of J, the candidates' and the pairs in
+        # the batch's own points, in pool order so ties still break to the lowest index.
+        sub = np.flatnonzero(j_mask | (cand | in_batch).any(axis=1))
+        timings["plan"] += time.perf_counter() - t0
+        q = _greedy_cluster(
+            posterior,
+            X[sub],
+            rows[sub],
+            np.asarray(mu)[sub],
+            np.asarray(sigma2)[sub],
+            cand[sub],
+            gamma=gamma,
+            costs=costs,
+            budget=budget,
+            cluster=cluster,
+            row_drop_rtol=row_drop_rtol,
+            forced_mask=in_batch[sub] if in_batch.any() else None,
+            j_mask=j_mask[sub],
+            n_norm=float(n_s),
+            n_rows=n_s,
+            timings=timings,
+            cpu0=cpu0,
+            spent=spent,
+            stop_cost=stop,
+        )
+        timings = q.timings
+        parts.append(q)
+        n_exact += q.stats["exact_evaluations"]
+        in_batch[np.searchsorted(rows, q.index), q.level] = True
+        spent += q.cost.tolist()
+    return ClusterQueue(
         cluster=cluster,
-        row_drop_rtol=row_drop_rtol,
-        forced_mask=forced[sub] if forced_mask is not None else None,
-        j_mask=j_mask[sub],
-        n_norm=float(n_s),
         n_rows=n_s,
+        index=np.concatenate([q.index for q in parts]),
+        level=np.concatenate([q.level for q in parts]),
+        delta_j=np.concatenate([q.delta_j for q in parts]),
+        cost=np.concatenate([q.cost for q in parts]),
         timings=timings,
-        cpu0=cpu0,
         stats={
+            "rows_screened": parts[-1].stats["rows_screened"],
+            "rows_dropped": parts[-1].stats["rows_dropped"],
+            "candidates": int(np.count_nonzero(kept)),
+            "candidates_per_round": most,
+            "exact_evaluations": n_exact,
+            "screen_rounds": len(parts),
             "rows_in_j": len(j_rows),
             "rows_live": len(live),
             "h_left_out_ppb": int(round(1e9 * h_out / h_total)) if h_total > 0 else 0,
@@ -1008,6 +1200,9 @@ class SelectionPlan:
     cluster_fit_max : int or None
         Approximate plan: K-means and the merge loop run on a sample of this many points
         (``cluster.cluster_pool``'s ``fit_max``). None: on every point.
+    screen_rounds : int
+        Approximate plan: how many times each cluster's candidates are screened as its
+        greedy spends the budget (``_approximate_cluster``); 1 when exact.
     """
 
     exact: bool
@@ -1017,6 +1212,7 @@ class SelectionPlan:
     random_share: float
     reason: str
     cluster_fit_max: int | None = None
+    screen_rounds: int = 1
 
     def describe(self) -> str:
         """One line for the progress display."""
@@ -1041,6 +1237,7 @@ def plan_selection(
     random_share: float = defaults.SELECT_RANDOM_SHARE,
     cluster_fit_max: int = defaults.SELECT_CLUSTER_FIT_MAX,
     max_cluster_bytes: int | None = None,
+    screen_rounds: int = defaults.SELECT_SCREEN_ROUNDS,
 ) -> SelectionPlan:
     """Choose exact or approximate selection for a pool of ``n_pool`` points.
 
@@ -1083,6 +1280,7 @@ def plan_selection(
         if approximate == "auto"
         else "approximate: asked for",
         cluster_fit_max,
+        max(1, int(screen_rounds)),
     )
 
 
@@ -1280,6 +1478,7 @@ def select_batch(
             approx.random_share,
             f"approximate: the exact greedy's largest cluster needs {biggest / 2**30:.1f} GiB "
             f"(limit {limit / 2**30:.2g} GiB)",
+            screen_rounds=approx.screen_rounds,
         )
     report(f"plan: {plan.describe()}", 1, 1)
 
@@ -1306,6 +1505,7 @@ def select_batch(
                 max_candidates=plan.max_candidates,
                 random_share=plan.random_share,
                 seed=plan_seed,
+                screen_rounds=plan.screen_rounds,
             )
         jobs.append((args, kwargs))
     report("greedy", 0, n_cl)
@@ -1378,6 +1578,7 @@ def select_batch(
         "max_rows_per_cluster": plan.max_rows,
         "max_candidates_per_cluster": plan.max_candidates,
         "random_share": plan.random_share if not plan.exact else None,
+        "screen_rounds": plan.screen_rounds if not plan.exact else None,
         "cluster_fit_sample": plan.cluster_fit_max
         if plan.cluster_fit_max is not None and plan.cluster_fit_max < N
         else None,
@@ -1385,6 +1586,11 @@ def select_batch(
         if not plan.exact
         else stats["candidates"],
         "candidates_kept": stats["candidates"],
+        "candidates_per_round": max(
+            (q.stats.get("candidates_per_round", 0) for q in queues), default=0
+        )
+        if not plan.exact
+        else None,
         "rows_live": int(sum(q.stats.get("rows_live", 0) for q in queues))
         if not plan.exact
         else None,
