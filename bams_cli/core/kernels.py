@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from numpy.typing import NDArray
 from scipy.spatial.distance import cdist
 
@@ -205,8 +205,10 @@ def matern52_cross(
     """Matern-5/2 ARD covariance k(XA, XB), one compiled pass over the output.
 
     The same covariance as ``matern52(..., exact=True)`` (direct differences, so exactly
-    s2 on identical rows), computed row by row on all cores with one exp per entry instead
-    of numpy's ten passes over (na, nb) temporaries. ``MFGP.score`` builds the pool x
+    s2 on identical rows), computed row by row with one exp per entry instead of numpy's
+    ten passes over (na, nb) temporaries. Serial on purpose: numba's threads (GNU OpenMP
+    here) leave a process unable to fork workers that use them again (``select`` forks
+    its cluster workers after loading the posterior). ``MFGP.score`` builds the pool x
     observations block with it: at 5,000 observations that block is a fifth of the
     scoring time the numpy path took.
 
@@ -228,11 +230,11 @@ def matern52_cross(
     return K
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _matern52_cross(A, BT, s2, K):  # pragma: no cover
     na, d = A.shape
     nb = BT.shape[1]
-    for i in prange(na):
+    for i in range(na):
         row = K[i]
         for j in range(nb):
             row[j] = 0.0
@@ -282,8 +284,8 @@ def matern52_aug_lower(
     Matern-5/2 ARD kernel with direct differences (as ``matern52(..., exact=True)``:
     exactly s0 + s_l on the diagonal). The strict upper triangle is not touched. No
     temporaries: the numpy path held three (n, n) arrays at once, which set the memory
-    ceiling of exact conditioning. Columns are split between threads in pairs (j,
-    n - 1 - j), so each thread gets the same share of the triangle.
+    ceiling of exact conditioning. Serial, as ``matern52_cross``: O(n^2 d) against the
+    factorisation's O(n^3 / 3).
 
     Parameters
     ----------
@@ -314,13 +316,10 @@ def matern52_aug_lower(
     return K
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _matern52_aug_lower(S, levels, s, K):  # pragma: no cover
-    n = S.shape[1]
-    for jj in prange((n + 1) // 2):
-        _aug_column(S, levels, s, K, jj)
-        if n - 1 - jj != jj:
-            _aug_column(S, levels, s, K, n - 1 - jj)
+    for j in range(S.shape[1]):
+        _aug_column(S, levels, s, K, j)
 
 
 @njit(cache=True, error_model="numpy")

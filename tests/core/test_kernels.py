@@ -6,6 +6,8 @@ The reference is GPML eq. 4.17 written out with explicit differences, never the 
 from __future__ import annotations
 
 import math
+import multiprocessing
+import sys
 
 import numpy as np
 import pytest
@@ -87,3 +89,21 @@ def test_aug_lower_needs_a_fortran_float64_square():
     for K in (np.zeros((3, 3)), np.zeros((3, 2), order="F"), np.zeros((3, 3), np.float32, "F")):
         with pytest.raises(ValueError, match="Fortran-contiguous float64"):
             matern52_aug_lower(X, lv, np.ones((1, 2)), np.ones(1), K)
+
+
+def _cross_sum(A):
+    return float(matern52_cross(A, A, np.ones(A.shape[1]), 1.0).sum())
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork is Linux's default")
+def test_a_process_that_used_the_kernels_can_fork_workers_that_use_them():
+    """select loads the posterior (both kernels run), then forks its cluster workers, which
+    score again. Threaded numba kernels (GNU OpenMP) kill such a worker at its first call."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    A = np.random.default_rng(0).normal(size=(50, 3))
+    K = np.zeros((50, 50), order="F")
+    matern52_aug_lower(A, np.zeros(50, np.int64), np.ones((1, 3)), np.ones(1), K)
+    want = _cross_sum(A)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        assert list(pool.map(_cross_sum, [A, A])) == [want, want]
