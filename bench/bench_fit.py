@@ -8,7 +8,7 @@ points at level-0 sites), 8 restarts. Each size runs in a fresh child process, s
 RSS (resource.getrusage ru_maxrss) is its own; wall and CPU seconds of the fit, then of
 scoring a 45,000-point pool (three gammas). Above ``defaults.FIT_SUBSET`` observations the
 MAP search runs on that many (``core.gp.fit_subset``); the model conditions exactly on all
-of them while they fit ``defaults.FIT_CONDITION_MEMORY`` (16,384 observations), else
+of them while they fit ``defaults.FIT_CONDITION_MEMORY`` (14,654 observations), else
 exactly on a subset of that many (``core.gp.fit.condition``): the "conditioned" column.
 --exact also times the MAP search on all observations (sizes up to a few thousand).
 

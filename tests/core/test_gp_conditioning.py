@@ -38,7 +38,7 @@ def test_max_conditioned_is_the_square_root_of_the_budget():
     assert max_conditioned(BYTES_PER_ENTRY * 1000 * 1000) == 1000
     assert max_conditioned(BYTES_PER_ENTRY * 1000 * 1000 - 1) == 999
     assert max_conditioned(0) == 1
-    assert max_conditioned(defaults.FIT_CONDITION_MEMORY) == 16_384
+    assert max_conditioned(defaults.FIT_CONDITION_MEMORY) == 14_654
 
 
 def test_conditioning_subset_takes_level0_first_and_is_deterministic():

@@ -67,7 +67,7 @@ def fit_mfgp(
     search saw.
 
     Conditioning is exact on every observation while its covariance fits ``max_memory``
-    bytes (``max_conditioned``: 16,384 observations at the default 2.5 GiB). Above that the
+    bytes (``max_conditioned``: 14,654 observations at the default 2 GiB). Above that the
     model conditions exactly on a subset of that many (``conditioning_subset``: level 0
     first); ``model.conditioning`` records which. A subset's posterior variance is never
     below the exact one (conditioning on fewer observations cannot lower a Gaussian's
