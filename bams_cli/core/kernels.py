@@ -209,8 +209,8 @@ def matern52_cross(
     ten passes over (na, nb) temporaries. Serial on purpose: numba's threads (GNU OpenMP
     here) leave a process unable to fork workers that use them again (``select`` forks
     its cluster workers after loading the posterior). ``MFGP.score`` builds the pool x
-    observations block with it: at 5,000 observations that block is a fifth of the
-    scoring time the numpy path took.
+    observations block with it: 0.18 CPU s for 3,355 x 5,000 entries where numpy took
+    0.83, about a quarter of all scoring's CPU time at 5,000 observations.
 
     Parameters
     ----------
