@@ -188,13 +188,16 @@ RISK_ANCHOR_SD = 1.0
 #: d = 12, 203 s under load). The suite's fits stay below it (bench/bench_fit.py).
 FIT_SUBSET = 300
 
-#: ``fit`` conditions exactly on every observation while the training covariance and its
-#: Cholesky factor fit this many bytes (``core.gp.fit.max_conditioned``: 10,362
-#: observations); above, exactly on a subset of that many, level-0 observations first
+#: ``fit`` conditions exactly on every observation while the training covariance (factorised
+#: in place) fits this many bytes (``core.gp.fit.max_conditioned``: 14,654 observations);
+#: above, exactly on a subset of that many, level-0 observations first
 #: (``core.gp.fit.conditioning_subset``; its sds are never below the exact posterior's,
-#: its accuracy measured by ``bench/bench_fit.py --accuracy``). A study never needs more
-#: than this for the model; under ``--max-memory`` at most half the ceiling is used.
-FIT_CONDITION_MEMORY = 4 * 2**30
+#: its accuracy measured by ``bench/bench_fit.py --accuracy``). The size also sets the
+#: time of scoring (pool size x n^2 flops, 9.7e12 for 45,000 points at 14,654): with
+#: 2.5 GiB (16,384) 50,000 observations took 313 s on 2 lightly loaded cores, over the
+#: 5-minute target (README, Performance). A study never needs more than this for the
+#: model; under ``--max-memory`` at most half the ceiling is used.
+FIT_CONDITION_MEMORY = 2 * 2**30
 
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
 #: brute-force greedy) on pools up to this many segments. Larger pools get an approximate

@@ -93,8 +93,14 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
         ) from None
     g = model_transform(ws, model)
     # Condition as fit did: its memory budget decides exact or the same subset (older
-    # models, without the record, conditioned exactly on all).
-    budget = (model.get("conditioning") or {}).get("memory_budget_bytes")
+    # models, without the record, conditioned exactly on all). A subset is rebuilt from
+    # its recorded size, which stays right when a release changes the bytes per entry.
+    record = model.get("conditioning") or {}
+    budget = record.get("memory_budget_bytes")
+    if record.get("method") == "exact_subset" and record.get("conditioned_on"):
+        from bams_cli.core.gp.fit import BYTES_PER_ENTRY
+
+        budget = BYTES_PER_ENTRY * int(record["conditioned_on"]) ** 2
     return fit_mfgp(
         X[idx], lv, g.forward(y), settings.n_levels, rng=np.random.default_rng(settings.seed),
         fixed=hp, max_memory=None if budget is None else int(budget),

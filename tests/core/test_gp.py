@@ -697,3 +697,50 @@ def test_hyperparameters_from_a_subset_and_the_model_conditions_on_every_observa
     m_sub, _ = model.predict_theta0(grid)
     m_all, _ = exact.predict_theta0(grid)
     assert np.sqrt(np.mean((m_sub - m_all) ** 2)) < 0.05 * np.std(m_all)
+
+
+def test_score_of_a_large_threaded_model_equals_a_dense_scipy_posterior():
+    """From 2,000 observations the training covariance is built by the compiled kernel in
+    place and factorised with every BLAS thread; score's pool block comes from the compiled
+    cross kernel. Reference: the covariance from scipy's cdist and GPML eq. 4.17, scipy's
+    Cholesky, GPML Alg. 2.1, at new points and at observed ones (sd near 0 there: the
+    noise is small, as fitted level-0 noise usually is)."""
+    from scipy.linalg import cho_factor, cho_solve
+    from scipy.spatial.distance import cdist
+
+    rng = np.random.default_rng(21)
+    d, n_levels, n = 12, 3, 2100
+    X = rng.normal(size=(n, d))
+    levels = rng.integers(0, n_levels, n)
+    X[n // 2 :: 7] = X[: len(X[n // 2 :: 7])]  # sites observed at two levels or twice
+    y = np.sin(X[:, :3]).sum(1) + 0.2 * levels + 0.01 * rng.normal(size=n)
+    hp = dataclasses.replace(random_hp(rng, d, n_levels), noise=np.array([1e-4, 1e-3, 1e-3]))
+    hp = dataclasses.replace(hp, lengthscales0=rng.uniform(2.0, 6.0, d))
+    model = MFGP(X, levels, y, n_levels, hp)
+
+    def k(A, B, ell, s2):
+        r = math.sqrt(5) * cdist(A / ell, B / ell)
+        return s2 * (1 + r + r**2 / 3) * np.exp(-r)
+
+    K = k(X, X, hp.lengthscales0, hp.outputscale0) + np.diag(hp.noise[levels])
+    for lv in range(1, n_levels):
+        m = levels == lv
+        K[np.ix_(m, m)] += k(X[m], X[m], hp.lengthscales[lv - 1], hp.outputscales[lv - 1])
+    c = cho_factor(K, lower=True)
+    Xp = np.vstack([rng.normal(size=(300, d)), X[levels == 0][:100]])
+    kp = k(Xp, X, hp.lengthscales0, hp.outputscale0)
+    mu_ref = hp.mean + kp @ cho_solve(c, y - hp.mean - np.r_[0.0, hp.offsets][levels])
+    s2_ref = hp.outputscale0 - np.einsum("ij,ji->i", kp, cho_solve(c, kp.T))
+    mu, sd, _ = model.score(Xp, np.array([0.0]), chunk_size=150)  # three chunks
+    prior_sd = math.sqrt(hp.outputscale0)
+    assert sd[300:].max() < 0.02 * prior_sd  # observed level 0: strong cancellation
+    np.testing.assert_allclose(mu, mu_ref, rtol=0, atol=1e-9 * prior_sd)
+    np.testing.assert_allclose(sd, np.sqrt(np.maximum(s2_ref, 0)), rtol=0, atol=1e-9 * prior_sd)
+    assert model.log_marginal_likelihood == pytest.approx(
+        -0.5
+        * (y - hp.mean - np.r_[0.0, hp.offsets][levels])
+        @ cho_solve(c, y - hp.mean - np.r_[0.0, hp.offsets][levels])
+        - np.log(np.diag(c[0])).sum()
+        - 0.5 * n * math.log(2 * math.pi),
+        rel=1e-10,
+    )

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 from sklearn.decomposition import PCA
 
 from bams_cli import defaults
 from bams_cli.core.gp import MFGP, fit_mfgp
+from bams_cli.core.gp._numerics import JITTERS, GPFitError, cholesky, cholesky_inplace
 from bams_cli.core.gp.fit import (
     BYTES_PER_ENTRY,
     condition,
@@ -35,7 +38,7 @@ def test_max_conditioned_is_the_square_root_of_the_budget():
     assert max_conditioned(BYTES_PER_ENTRY * 1000 * 1000) == 1000
     assert max_conditioned(BYTES_PER_ENTRY * 1000 * 1000 - 1) == 999
     assert max_conditioned(0) == 1
-    assert max_conditioned(defaults.FIT_CONDITION_MEMORY) == 10_362
+    assert max_conditioned(defaults.FIT_CONDITION_MEMORY) == 14_654
 
 
 def test_conditioning_subset_takes_level0_first_and_is_deterministic():
@@ -102,3 +105,52 @@ def test_fixed_hyperparameters_condition_like_the_fit(av_fit):
     )
     np.testing.assert_array_equal(a.conditioned_rows, b.conditioned_rows)
     np.testing.assert_array_equal(a.predict_theta0(X[:200])[1], b.predict_theta0(X[:200])[1])
+
+
+def test_exact_conditioning_holds_one_covariance_at_its_peak(av_fit):
+    """The budget's bytes per entry are real: K is built and factorised in place.
+
+    tracemalloc sees every numpy and scipy allocation; building K, then copying it for the
+    factor (or holding the kernel's temporaries) would need 16 to 24 bytes per entry.
+    """
+    _, Xo, lv, y, exact = av_fit
+    n = y.size
+    MFGP(Xo[:50], lv[:50], y[:50], 2, exact.hyperparameters)  # compiled, imported
+    tracemalloc.start()
+    model = MFGP(Xo, lv, y, 2, exact.hyperparameters)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert 8 * n * n <= peak < 1.25 * 8 * n * n <= BYTES_PER_ENTRY * n * n
+    assert model._L.flags.f_contiguous and model._L.shape == (n, n)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.3])
+def test_inplace_cholesky_is_the_copying_one(noise):
+    """Same factor and jitter as ``cholesky`` (a copy, never overwritten); with zero noise
+    the repeated rows need the jitter ladder, whose rungs rebuild K first."""
+    rng = np.random.default_rng(4)
+    A = np.repeat(rng.normal(size=(6, 2)), 2, axis=0)
+    K0 = np.exp(-0.5 * ((A[:, None, :] - A[None, :, :]) ** 2).sum(-1)) + noise * np.eye(12)
+    want, jitter = cholesky(K0)
+    K = np.asfortranarray(K0)
+    rebuilds = []
+
+    def rebuild():
+        rebuilds.append(1)
+        K[...] = K0
+
+    L, got_jitter = cholesky_inplace(K, rebuild)
+    assert L is K and got_jitter == jitter and (jitter > 0) == (noise == 0.0)
+    scale = float(np.mean(np.diag(K0)))
+    assert len(rebuilds) == JITTERS.index(jitter / scale)  # one rebuild per failed rung
+    np.testing.assert_allclose(np.tril(L), np.tril(want), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.tril(L) @ np.tril(L).T, K0 + jitter * np.eye(12), atol=1e-9)
+
+
+def test_inplace_cholesky_rejects_what_cholesky_rejects():
+    with pytest.raises(GPFitError, match="non-finite"):
+        cholesky_inplace(np.asfortranarray([[1.0, 0.0], [np.inf, 1.0]]), lambda: None)
+    bad = np.array([[1.0, 2.0], [2.0, 1.0]])
+    K = np.asfortranarray(bad)
+    with pytest.raises(GPFitError, match="jitter.*noise variance"):
+        cholesky_inplace(K, lambda: K.__setitem__(Ellipsis, bad))

@@ -4,6 +4,7 @@ the jittered Cholesky factorisation."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -115,6 +116,58 @@ def cholesky(K: FloatArray) -> tuple[FloatArray, float]:
         except np.linalg.LinAlgError:
             continue
         return L, jitter
+    raise GPFitError(
+        f"Cholesky factorisation of the {n}x{n} training covariance failed even with jitter "
+        f"{JITTERS[-1]:g} x its mean diagonal ({scale:.3g}): it is numerically indefinite, "
+        "which Matern covariances only become at extreme hyperparameters (lengthscales "
+        "orders of magnitude beyond the input range with zero noise). Refit instead of "
+        "passing fixed hyperparameters, or give every level a positive noise variance"
+    )
+
+
+def cholesky_inplace(K: FloatArray, rebuild: Callable[[], None]) -> tuple[FloatArray, float]:
+    """``cholesky`` without a copy: K is factorised where it lies.
+
+    The same jitter ladder and errors as ``cholesky``; a failed attempt has overwritten K,
+    so ``rebuild`` refills it (the kernel costs O(n^2 d), the factorisation O(n^3)) before
+    the next rung's jitter goes on the diagonal. Peak memory is K itself: the exact
+    conditioning budget (``fit.BYTES_PER_ENTRY``) rests on this.
+
+    Parameters
+    ----------
+    K : ndarray of shape (n, n), Fortran-contiguous float64
+        Lower triangle (with the diagonal) holds the covariance; overwritten by the factor.
+    rebuild : callable
+        Writes the covariance into K's lower triangle again.
+
+    Returns
+    -------
+    L : K itself, its lower triangle the factor of K + jitter I
+    jitter : float
+    """
+    n = K.shape[0]
+    step = max(1, (1 << 22) // max(n, 1))  # bounded temporaries for the finiteness test
+    for j in range(0, n, step):
+        if not np.all(np.isfinite(K[j:, j : j + step])):
+            raise GPFitError(
+                f"the {n}x{n} training covariance has non-finite entries; the inputs are too "
+                "large for the lengthscales or the hyperparameters overflow: rescale X (e.g. "
+                "standardise the embedding) or pass smaller outputscales"
+            )
+    diag = np.diag_indices(n)
+    scale = float(np.mean(K[diag])) if n else 1.0
+    for attempt, rel in enumerate(JITTERS):
+        jitter = rel * scale
+        if attempt > 0:
+            rebuild()
+            K[diag] += jitter
+        try:
+            L, _ = cho_factor(K, lower=True, overwrite_a=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            continue
+        if not np.shares_memory(L, K):  # pragma: no cover - scipy copies only non-F input
+            K[...] = L
+        return K, jitter
     raise GPFitError(
         f"Cholesky factorisation of the {n}x{n} training covariance failed even with jitter "
         f"{JITTERS[-1]:g} x its mean diagonal ({scale:.3g}): it is numerically indefinite, "

@@ -19,14 +19,20 @@ from bams_cli.core.gp._numerics import (
     IntArray,
     check_data,
     check_levels,
-    cholesky,
+    cholesky_inplace,
     standardise,
 )
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
 from bams_cli.core.gp.priors import PriorSpec, _Priors
-from bams_cli.core.kernels import matern52, matern52_cross_minus
+from bams_cli.core.kernels import (
+    matern52,
+    matern52_aug_lower,
+    matern52_cross,
+    matern52_cross_minus,
+)
 
 _REUSE_MIN_COLUMNS = 1024  # _obs_factor_reused: smaller sets are cheap to recompute
+_THREADED_FROM = 2000  # MFGP(): factorise with every BLAS thread from this many observations
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
 
 
@@ -96,11 +102,22 @@ class MFGP:
         self._ell = np.vstack([hp.lengthscales0[None, :], hp.lengthscales])
 
         n = X.shape[0]
-        with np.errstate(over="ignore", invalid="ignore"):  # _cholesky reports non-finite K
-            K = self._k_aug(self._Xt, levels, self._Xt, levels, exact=True)
-        K[np.diag_indices(n)] += hp.noise[levels]
-        with threadpool_limits(limits=1, user_api="blas"):  # small matrix: see fit_mfgp
-            self._L, self.jitter = cholesky(K)
+        # K is built and factorised in place, one n x n array at its peak (the budget of
+        # exact conditioning, fit.BYTES_PER_ENTRY, rests on it); zeros, so the strict
+        # upper triangle the kernel does not write is defined.
+        K = np.zeros((n, n), order="F")
+
+        def build() -> None:
+            with np.errstate(over="ignore", invalid="ignore"):  # reported by the factoriser
+                matern52_aug_lower(self._Xt, levels, self._ell, self._s, K)
+            K[np.diag_indices(n)] += hp.noise[levels]
+
+        build()
+        mean_diag = float(np.mean(np.diag(K)))
+        # One BLAS thread for small matrices (see fit_mfgp); all of them from a few
+        # thousand observations on, where the factorisation is seconds of dense work.
+        with threadpool_limits(limits=1 if n < _THREADED_FROM else None, user_api="blas"):
+            self._L, self.jitter = cholesky_inplace(K, build)
         #: Facts about this fit a user should hear: jitter needed, a flat model.
         self.notes: list[str] = []
         #: How many observations the hyperparameter search saw (``fit.fit_subset``); all
@@ -118,7 +135,7 @@ class MFGP:
             "memory_budget_bytes": None,
         }
         if self.jitter > 0.0:
-            rel = self.jitter / float(np.mean(np.diag(K)))
+            rel = self.jitter / mean_diag
             self.notes.append(
                 f"the training covariance needed jitter {self.jitter:.3g} ({rel:.0e} of its "
                 "mean diagonal) to factorise: some observations nearly repeat each other "
@@ -213,7 +230,7 @@ class MFGP:
 
         Paper sec. 2 (GP predictions) with the constant mean; GPML Alg. 2.1.
         """
-        k = self._k0(Xc, self._Xt)  # (m, n), C order
+        k = matern52_cross(Xc, self._Xt, self._ell[0], self._s[0])  # (m, n), C order
         mu = self.hyperparameters.mean + k @ self._alpha  # GPML Alg. 2.1 line 4
         v = self._solve_L(k.T)  # F-ordered view: LAPACK solves in place, no copy
         sigma2 = self._s[0] - np.einsum("ij,ij->j", v, v)  # GPML Alg. 2.1 lines 5-6
