@@ -29,7 +29,7 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -103,22 +103,31 @@ def format_size(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
-def tree_rss(
-    proc: psutil.Process | None = None, children: list[psutil.Process] | None = None
+def _tree_sum(
+    read: Callable[[psutil.Process], int],
+    proc: psutil.Process | None,
+    children: list[psutil.Process] | None,
 ) -> int:
-    """Resident bytes of a process and all its descendants (pages they share count
-    once per process, so this never under-counts). ``children``: the descendants as last
-    listed, which spares the scan of every process on the machine that listing costs."""
+    """``read`` summed over a process and its descendants (``children``: as last listed,
+    which spares the scan of every process on the machine that listing costs)."""
     proc = proc or psutil.Process()
     if children is None:
         children = proc.children(recursive=True)
     total = 0
     for p in [proc, *children]:
         try:
-            total += p.memory_info().rss
+            total += read(p)
         except (psutil.NoSuchProcess, psutil.AccessDenied):
             pass
     return total
+
+
+def tree_rss(
+    proc: psutil.Process | None = None, children: list[psutil.Process] | None = None
+) -> int:
+    """Resident bytes of a process and all its descendants (pages they share count
+    once per process, so this never under-counts). Microseconds per process."""
+    return _tree_sum(lambda p: p.memory_info().rss, proc, children)
 
 
 def tree_pss(
@@ -130,16 +139,7 @@ def tree_pss(
     still its parent's count once in the total, where ``tree_rss`` counts them in every
     process. Reads /proc/PID/smaps_rollup: milliseconds per process, not microseconds.
     """
-    proc = proc or psutil.Process()
-    if children is None:
-        children = proc.children(recursive=True)
-    total = 0
-    for p in [proc, *children]:
-        try:
-            total += p.memory_full_info().pss
-        except (psutil.NoSuchProcess, psutil.AccessDenied):
-            pass
-    return total
+    return _tree_sum(lambda p: p.memory_full_info().pss, proc, children)
 
 
 _budget: int | None = None

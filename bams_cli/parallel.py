@@ -67,6 +67,7 @@ class DaskExecutor(Executor):
         self._inner = client.get_executor()
         self._min_bytes = SCATTER_MIN_BYTES if min_bytes is None else min_bytes
         self._turn = -1
+        self._workers: list[str] | None = None  # listed once, at the first large task
         # id -> (object, its future): the object is held so that its id stays its own.
         self._shared: dict[int, tuple[Any, Any]] = {}
 
@@ -82,7 +83,9 @@ class DaskExecutor(Executor):
         if sum(values[k].nbytes for k in big) >= self._min_bytes:
             # One task's arrays to one worker, workers in turn: the task runs where its
             # data is, and the tasks spread over the workers.
-            workers = sorted(self._client.scheduler_info()["workers"])
+            if self._workers is None:
+                self._workers = sorted(self._client.scheduler_info()["workers"])
+            workers = self._workers
             self._turn += 1
             where = [workers[self._turn % len(workers)]] if workers else None
             futs = self._client.scatter(
