@@ -231,41 +231,34 @@ def matern52_cross(
 
 
 @njit(cache=True, error_model="numpy")
-def _matern52_cross(A, BT, s2, K):  # pragma: no cover
-    na, d = A.shape
+def _matern52_row(A, i, BT, s2, out):  # pragma: no cover
+    """out[j] = s2 k52(|A[i] - BT[:, j]|) for every j (lengthscales already divided out)."""
+    d = A.shape[1]
     nb = BT.shape[1]
-    for i in range(na):
-        row = K[i]
+    for j in range(nb):
+        out[j] = 0.0
+    for k in range(d):
+        aik = A[i, k]
+        bk = BT[k]
         for j in range(nb):
-            row[j] = 0.0
-        for k in range(d):
-            aik = A[i, k]
-            bk = BT[k]
-            for j in range(nb):
-                diff = aik - bk[j]
-                row[j] += diff * diff
-        for j in range(nb):
-            z = SQRT5 * math.sqrt(row[j])
-            row[j] = s2 * (1.0 + z * (1.0 + z / 3.0)) * math.exp(-z)
+            diff = aik - bk[j]
+            out[j] += diff * diff
+    for j in range(nb):
+        z = SQRT5 * math.sqrt(out[j])
+        out[j] = s2 * (1.0 + z * (1.0 + z / 3.0)) * math.exp(-z)
+
+
+@njit(cache=True, error_model="numpy")
+def _matern52_cross(A, BT, s2, K):  # pragma: no cover
+    for i in range(A.shape[0]):
+        _matern52_row(A, i, BT, s2, K[i])
 
 
 @njit(cache=True, error_model="numpy")
 def _matern52_cross_minus(A, BT, group, s2, P):  # pragma: no cover
-    na, d = A.shape
-    nb = BT.shape[1]
-    krow = np.empty(nb)
-    for i in range(na):
-        for j in range(nb):
-            krow[j] = 0.0
-        for k in range(d):
-            aik = A[i, k]
-            bk = BT[k]
-            for j in range(nb):
-                diff = aik - bk[j]
-                krow[j] += diff * diff
-        for j in range(nb):
-            z = SQRT5 * math.sqrt(krow[j])
-            krow[j] = s2 * (1.0 + z * (1.0 + z / 3.0)) * math.exp(-z)
+    krow = np.empty(BT.shape[1])
+    for i in range(A.shape[0]):
+        _matern52_row(A, i, BT, s2, krow)
         row = P[i]
         for j in range(group.shape[0]):
             row[j] = krow[group[j]] - row[j]
