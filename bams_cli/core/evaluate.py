@@ -358,6 +358,75 @@ def staged_trials(
         )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class _Stage1:
+    """What every trial of ``staged_trials`` shares: U, the split of K, stage 1's design."""
+
+    N: int
+    n1: int
+    known_f: int
+    K: float
+    K1: float
+    K2: float
+    weights: list[float]
+    p1: FloatArray
+    f1: NDArray[np.bool_]
+    u1: FloatArray
+    norms1: FloatArray
+    order1: NDArray[np.intp]
+    name1: str
+    pi1: FloatArray
+    wm1: float
+    V1: float
+    rate: float
+
+    def result(
+        self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
+        names: list[str], V2_mean: float,
+    ) -> StagedTrials:  # fmt: skip
+        """The trials' figures with the design's variance against uniform's."""
+        N, K, w = self.N, self.K, self.weights
+        var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
+        var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
+        return StagedTrials(
+            p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, var=var,
+            var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
+        )  # fmt: skip
+
+
+def _stage1(
+    p: ArrayLike,
+    is_failure: ArrayLike,
+    K: float,
+    known: ArrayLike | None,
+    share: float,
+    prior: tuple[float, float],
+) -> _Stage1:
+    from bams_cli.core import design as dz
+
+    p = np.asarray(p, dtype=np.float64)
+    fail = np.asarray(is_failure, dtype=bool)
+    N = p.size
+    known_m = np.zeros(N, bool) if known is None else np.asarray(known, dtype=bool)
+    U1 = np.flatnonzero(~known_m)
+    n1 = U1.size
+    K = min(float(K), float(n1))
+    K1 = share * K
+    p1, f1 = p[U1], fail[U1]
+    u1 = dz.relative_risk(p1)
+    # One sort of U by p_n serves every trial: stage 2's U is U minus stage 1's sample, and
+    # dropping segments from a sorted list leaves it sorted (``choose_design``'s order).
+    order1 = np.argsort(-p1, kind="stable")
+    c1 = dz.choose_design(p1, K=K1, posterior=dz.risk_posterior([], prior=prior), order=order1)
+    pi1 = c1.pi
+    return _Stage1(
+        N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, K1=K1, K2=(1.0 - share) * K,
+        weights=[share, 1.0 - share], p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
+        order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(c1.risk, pi1),
+        V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
+    )  # fmt: skip
+
+
 def _staged_trials(
     p: ArrayLike,
     is_failure: ArrayLike,
@@ -377,27 +446,9 @@ def _staged_trials(
 
     share = defaults.STAGE1_SHARE if share is None else share
     prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    p = np.asarray(p, dtype=np.float64)
-    fail = np.asarray(is_failure, dtype=bool)
-    N = p.size
-    known_m = np.zeros(N, bool) if known is None else np.asarray(known, dtype=bool)
-    U1 = np.flatnonzero(~known_m)
-    n1 = U1.size
-    known_f = int(fail[known_m].sum())
-    K = min(float(K), float(n1))
-    K1, K2 = share * K, (1.0 - share) * K
-    p1, f1 = p[U1], fail[U1]
-    u1 = dz.relative_risk(p1)
-    norms1 = dz.risk_norms(u1)
-    post0 = dz.risk_posterior([], prior=prior)
-    # One sort of U by p_n serves every trial: stage 2's U is U minus stage 1's sample, and
-    # dropping segments from a sorted list leaves it sorted (``choose_design``'s order).
-    order1 = np.argsort(-p1, kind="stable")
-    c1 = dz.choose_design(p1, K=K1, posterior=post0, order=order1)
-    pi1 = c1.pi
-    wm1 = dz.unseen_failure_weight(c1.risk, pi1)
-    V1 = float(((1.0 - pi1[f1]) / pi1[f1]).sum())
-    weights = [share, 1.0 - share]
+    st = _stage1(p, is_failure, K, known, share, prior)
+    N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
+    p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
     out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2")}
     names: list[str] = []
     for t in range(n_trials):
@@ -433,14 +484,7 @@ def _staged_trials(
         pf = pi2[f2]
         out["V2"][t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
         names.append(c2.name)
-    n_fail_u = int(f1.sum())
-    var = (weights[0] ** 2 * V1 + weights[1] ** 2 * float(out["V2"].mean())) / N**2
-    var_u = n_fail_u * (n1 - K) / K / N**2 if K > 0 else math.inf
-    return StagedTrials(
-        p_hat=out["p_hat"], ci_low=out["lo"], ci_high=out["hi"], lam=out["lam"],
-        stage2_design=names, var=var, var_uniform=var_u, stage1_design=c1.name,
-        rate=float(fail.mean()),
-    )  # fmt: skip
+    return st.result(out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()))
 
 
 def _capped(head: FloatArray, rest: float, K: float) -> tuple[int, float]:
@@ -545,32 +589,17 @@ def _staged_trials_fast(
 
     share = defaults.STAGE1_SHARE if share is None else share
     prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    p = np.asarray(p, dtype=np.float64)
-    fail = np.asarray(is_failure, dtype=bool)
-    N = p.size
-    known_m = np.zeros(N, bool) if known is None else np.asarray(known, dtype=bool)
-    U1 = np.flatnonzero(~known_m)
-    n1 = U1.size
     eps = defaults.DEFENSIVE
-    if not (min(float(K), float(n1)) > 0 and 0 < share < 1 and eps > 0):
+    st = _stage1(p, is_failure, K, known, share, prior)
+    if not (st.K > 0 and 0 < share < 1 and eps > 0):
         # Nothing to sample, or a single stage: the reference handles (or rejects) it.
         return _staged_trials(
-            p, fail, K=K, known=known_m, share=share, prior=prior, anchor_sd=anchor_sd,
+            p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
-    known_f = int(fail[known_m].sum())
-    K = min(float(K), float(n1))
-    K1, K2 = share * K, (1.0 - share) * K
-    p1, f1 = p[U1], fail[U1]
-    u1 = dz.relative_risk(p1)
-    norms1 = dz.risk_norms(u1)
+    N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
+    p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
     p_mean1 = float(p1.mean())
-    post0 = dz.risk_posterior([], prior=prior)
-    order1 = np.argsort(-p1, kind="stable")
-    c1 = dz.choose_design(p1, K=K1, posterior=post0, order=order1)
-    pi1 = c1.pi
-    wm1 = dz.unseen_failure_weight(c1.risk, pi1)
-    V1 = float(((1.0 - pi1[f1]) / pi1[f1]).sum())
     n_certain1 = int(np.count_nonzero(pi1 >= 1.0))
     weights = [share, 1.0 - share]
     taus = np.asarray(dz.TAUS, dtype=np.float64)
@@ -692,13 +721,7 @@ def _staged_trials_fast(
     lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
     lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
-    n_fail_u = int(f1.sum())
-    var_d = (weights[0] ** 2 * V1 + weights[1] ** 2 * float(V2.mean())) / N**2
-    var_u = n_fail_u * (n1 - K) / K / N**2 if K > 0 else math.inf
-    return StagedTrials(
-        p_hat=total / Nf, ci_low=lo / Nf, ci_high=hi / Nf, lam=lam, stage2_design=names,
-        var=var_d, var_uniform=var_u, stage1_design=c1.name, rate=float(fail.mean()),
-    )  # fmt: skip
+    return st.result(total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()))
 
 
 def exact_variance(
