@@ -651,12 +651,13 @@ def _own_point_cov(posterior: Posterior, Xc: FloatArray, levels: IntArray) -> Fl
 
 
 class _Given:
-    """Conditioning on pairs already in the batch, for scores outside the greedy's C.
+    """Conditioning on pairs already in the batch: for the screen's scores outside the
+    greedy's C, and for ``batch_variance``.
 
     With Sigma = cov_n(y_G, y_G) (noise on the diagonal) = L L^T, anything's covariance
     given y_G is its covariance given the data minus w_a^T w_b, w = L^-1 cov_n(y_G, .).
-    A singular Sigma (a noise-free pair repeated) keeps the directions it resolves, as
-    ``batch_variance`` does.
+    A singular Sigma (a noise-free pair repeated) keeps only the directions it resolves:
+    the others carry no information.
     """
 
     def __init__(self, posterior: Posterior, Xg: FloatArray, levels: IntArray) -> None:
@@ -1132,27 +1133,10 @@ def batch_variance(
     """
     if len(index) == 0:
         return sigma2.copy()
-    XB = X[index]
-    S = posterior.cov_obs_obs(XB, level, XB, level, same=np.eye(len(index), dtype=bool))
-    S = 0.5 * (S + S.T)
-    try:
-        L, _ = cho_factor(S, lower=True)
-        L = np.tril(L)
-
-        def whiten(Cb: FloatArray) -> FloatArray:
-            return solve_triangular(L, Cb.T, lower=True)
-    except np.linalg.LinAlgError:
-        lam, Q = eigh(S)
-        keep = lam > 1e-12 * max(lam.max(), 0.0)
-        P = Q[:, keep] / np.sqrt(lam[keep])
-
-        def whiten(Cb: FloatArray) -> FloatArray:
-            return P.T @ Cb.T
-
+    given = _Given(posterior, X[index], level)
     out = np.empty(len(X))
     for i0 in range(0, len(X), _PREDICT_BLOCK):
-        Cb = posterior.cov_theta0_obs(X[i0 : i0 + _PREDICT_BLOCK], XB, level)
-        W = whiten(np.asarray(Cb, dtype=np.float64))
+        W = given.w_theta0(X[i0 : i0 + _PREDICT_BLOCK])
         out[i0 : i0 + _PREDICT_BLOCK] = sigma2[i0 : i0 + _PREDICT_BLOCK] - (W**2).sum(axis=0)
     return np.maximum(out, 0.0)
 
