@@ -296,6 +296,7 @@ class RunSpec:
     clusters: int
     K: float
     keep_workspace: bool = False
+    greedy: str = defaults.GREEDY.value
 
 
 @dataclass
@@ -413,6 +414,7 @@ def run_one(spec: RunSpec) -> RunResult:
                 clusters=spec.clusters,
                 level0_share=spec.level0_share,
                 workers=1,
+                greedy=spec.greedy,
                 **SELECT_DEFAULTS,
                 **_select_kwargs(spec.strategy, b),
             )
@@ -894,6 +896,7 @@ def run_benchmark(
     first_seed: int = 0,
     command: str | None = None,
     save_arrays: bool = False,
+    greedy: str = defaults.GREEDY.value,
 ) -> dict[str, Any]:
     """Run a paper protocol over seeds and write its tables, plots and results.json.
 
@@ -931,6 +934,9 @@ def run_benchmark(
         (``<strategy>-<seed>-p``, ``-known``) the final p_n (or importance scores) and the
         known stratum, in truth-file order. Estimate designs can then be studied on the
         runs without repeating them (``core.design``, ``docs/suite/estimate_design.py``).
+    greedy : {"auto", "exact", "approximate"}
+        BAMS / BAS ``select --greedy``: how the approximate plan is checked against the
+        exact greedy on the same protocol.
 
     Returns
     -------
@@ -974,7 +980,17 @@ def run_benchmark(
         # Slow strategies first, so the pool's last workers are not left with a long run.
         order = sorted(chosen, key=lambda s: (s not in ("bams", "bas"), chosen.index(s)))
         specs = [
-            RunSpec(protocol, s, first_seed + i, str(data), str(scratch), level0_share, clusters, K)
+            RunSpec(
+                protocol,
+                s,
+                first_seed + i,
+                str(data),
+                str(scratch),
+                level0_share,
+                clusters,
+                K,
+                greedy=greedy,
+            )
             for s in order
             for i in range(seeds)
         ]
@@ -1041,6 +1057,7 @@ def run_benchmark(
             "batches": proto.n_batches,
             "level0_share": level0_share,
             "clusters": clusters,
+            "greedy": greedy,
             "seeds": seeds,
             "first_seed": first_seed,
             "quick": quick,
@@ -1089,6 +1106,7 @@ def run_suite(
     problems: Sequence[str] = SUITE,
     command: str | None = None,
     save_arrays: bool = False,
+    greedy: str = defaults.GREEDY.value,
 ) -> dict[str, Any]:
     """Run every suite problem (``run_benchmark`` each) and write ``suite.md`` over them.
 
@@ -1103,7 +1121,7 @@ def run_suite(
         Pool size of every problem (capped at digits' 1,797 images); default each
         problem's own.
     seeds, quick, out_dir, level0_share, workers, progress, clusters, first_seed, command,
-    save_arrays
+    save_arrays, greedy
         As ``run_benchmark``.
 
     Returns
@@ -1141,6 +1159,7 @@ def run_suite(
             first_seed=first_seed,
             command=command,
             save_arrays=save_arrays,
+            greedy=greedy,
         )
     condensed = {p: suite_rows(r) for p, r in results.items()}
     (out_dir / "suite.json").write_text(json.dumps(condensed, indent=1, default=_json) + "\n")

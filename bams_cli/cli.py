@@ -45,6 +45,7 @@ from bams_cli import loop as study_loop
 from bams_cli.defaults import (
     Design,
     FailedAs,
+    Greedy,
     Interval,
     Method,
     Pooling,
@@ -658,6 +659,16 @@ def select(
             "--pooling", help="global: compare (N_s/N) dJ/c across clusters; raw: the paper's dJ."
         ),
     ] = defaults.POOLING,
+    greedy: Annotated[
+        Greedy,
+        typer.Option(
+            "--greedy",
+            envvar="BAMS_GREEDY",
+            help="bams/bas: exact (every segment and candidate), approximate (bounded "
+            f"clusters, screened candidates) or auto: exact up to "
+            f"{defaults.SELECT_EXACT_MAX_POOL:,} segments.",
+        ),
+    ] = defaults.GREEDY,
     mixed_fidelity: Annotated[
         bool, typer.Option("--mixed-fidelity", help="random: spread the picks over every level.")
     ] = False,
@@ -742,6 +753,7 @@ def select(
             clusters=clusters,
             overbudget=overbudget,
             pooling=pooling.value,
+            greedy=greedy.value,
             mixed_fidelity=mixed_fidelity,
             level0_share=level0_share,
             confirm_share=confirm_share,
@@ -1268,6 +1280,14 @@ def benchmark(
     clusters: Annotated[
         int, typer.Option("--clusters", envvar="BAMS_CLUSTERS", help="BAMS/BAS clusters S.")
     ] = defaults.CLUSTERS,
+    greedy: Annotated[
+        Greedy,
+        typer.Option(
+            "--greedy",
+            envvar="BAMS_GREEDY",
+            help="BAMS/BAS select --greedy: compare the approximate plan with the exact greedy.",
+        ),
+    ] = defaults.GREEDY,
     workers: Annotated[
         int, typer.Option("--workers", envvar="BAMS_WORKERS", help="Runs in parallel processes.")
     ] = defaults.BENCHMARK_WORKERS,
@@ -1311,6 +1331,7 @@ def benchmark(
         "workers": workers,
         "n": n,
         "clusters": clusters,
+        "greedy": greedy.value,
         "command": shlex.join(["bams-cli", *sys.argv[1:]]),
         "save_arrays": save_arrays,
     }

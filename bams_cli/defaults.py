@@ -31,6 +31,14 @@ class Pooling(StrEnum):
     RAW = "raw"
 
 
+class Greedy(StrEnum):
+    """``select --greedy``: the exact greedy, the approximate plan, or by pool size."""
+
+    AUTO = "auto"
+    EXACT = "exact"
+    APPROXIMATE = "approximate"
+
+
 class Method(StrEnum):
     """``embed-reduce --method``."""
 
@@ -115,6 +123,7 @@ STRATEGY = Strategy.BAMS
 CLUSTERS = 6
 OVERBUDGET = 2.0
 POOLING = Pooling.GLOBAL
+GREEDY = Greedy.AUTO
 #: random (mixed fidelity), mcm-gp and the benchmark's random batches: level-0 share.
 LEVEL0_SHARE = 0.5
 DIFFICULTY_COLUMN = "difficulty"
@@ -200,10 +209,14 @@ FIT_SUBSET = 300
 FIT_CONDITION_MEMORY = 2 * 2**30
 
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
-#: brute-force greedy) on pools up to this many segments. Larger pools get an approximate
-#: plan (``core.select.plan_selection``) whose batch keeps >= 99% of the exact greedy's J
-#: decrease where both can be run (``bench/bench_select.py``, tests/core/test_select.py).
-SELECT_EXACT_MAX_POOL = 45_000
+#: brute-force greedy) on pools up to this many segments, ``select --greedy`` overriding.
+#: Larger pools get an approximate plan (``core.select.plan_selection``) whose batch keeps
+#: >= 99% of the exact greedy's J decrease where both can be run (``bench/bench_select.py
+#: --sweep``, tests/core/test_select.py). The exact greedy's work grows as N^2 / S: on
+#: av_like pools on 2 idle cores it took 1.5 s at 10,000 segments, 7.5 s at 25,000 and
+#: 18 s at 45,000, the approximate plan 1.7 s, 2.8 s and 5 s (2026-11-23). Past 20,000
+#: the exact greedy costs more than twice the approximate plan for < 1% more J decrease.
+SELECT_EXACT_MAX_POOL = 20_000
 
 #: Approximate plan of ``select``: the pool is cut into clusters of about this many
 #: segments (never fewer clusters than asked) ...

@@ -145,6 +145,20 @@ def test_select_json_says_the_small_pool_ran_exactly(lead_ws, runner):
     assert summary["selection_plan"]["clusters"] == 2
 
 
+def test_select_greedy_forces_the_plan_and_a_batch_rerun_must_ask_for_the_same(lead_ws, runner):
+    summary, batch = _select(runner, lead_ws, "--greedy", "approximate", "--batch", "2")
+    plan = summary["selection_plan"]
+    assert plan["exact"] is False and plan["reason"] == "approximate: asked for"
+    assert plan["max_rows_per_cluster"] == defaults.SELECT_MAX_ROWS
+    assert summary["picks"] == len(batch["segment_id"]) > 0
+    before = tree_hash(lead_ws)
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "2", "--greedy", "exact")
+    assert r.exit_code == 1 and "greedy 'approximate' there, 'exact' asked" in r.stderr
+    r = invoke(runner, "select", "-w", lead_ws, "--greedy", "fast")
+    assert r.exit_code == 2 and "fast" in r.stderr
+    assert tree_hash(lead_ws) == before
+
+
 def test_no_plan_fitting_memory_is_a_one_line_error(lead_ws, runner, monkeypatch):
     import bams_cli.core.select as core_select
 

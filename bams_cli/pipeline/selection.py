@@ -7,7 +7,7 @@ import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import polars as pl
@@ -42,6 +42,12 @@ from bams_cli.state.workspace import Workspace
 # ---------------------------------------------------------------------------------------
 MODEL_STRATEGIES = ("bams", "bas")
 STRATEGIES = ("bams", "bas", "random", "mc-gp", "mcm-gp", "ds", "ds-gp", "ce")
+#: ``--greedy`` to ``core.select.select_batch``'s ``approximate``.
+GREEDY_PLANS: dict[str, Literal["auto", "never", "always"]] = {
+    "auto": "auto",
+    "exact": "never",
+    "approximate": "always",
+}
 
 
 def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
@@ -186,6 +192,7 @@ def select(
     clusters: int = 6,
     overbudget: float = 2.0,
     pooling: str = "global",
+    greedy: str = "auto",
     mixed_fidelity: bool = False,
     level0_share: float = 0.5,
     confirm_share: float = defaults.CONFIRM_SHARE,
@@ -235,6 +242,10 @@ def select(
         eta >= 1: each cluster plans ceil(eta m N_s / N).
     pooling : {"global", "raw"}, default "global"
         global: compare (N_s/N) dJ/c across clusters; raw: the paper's dJ.
+    greedy : {"auto", "exact", "approximate"}, default "auto"
+        bams / bas: the exact greedy (every segment and candidate), the approximate plan
+        (bounded clusters, rows and screened candidates; ``core.select.plan_selection``),
+        or "auto": exact up to ``defaults.SELECT_EXACT_MAX_POOL`` segments.
     mixed_fidelity : bool, default False
         ``strategy="random"``: spread the picks over every level.
     level0_share : float, default 0.5
@@ -281,7 +292,7 @@ def select(
     WorkspaceError
         No workspace or pool, no model (or one older than the log) for a model-based
         strategy, nothing that fits the budget, or an option out of range or unknown
-        (strategy, pooling, budget, shares).
+        (strategy, pooling, greedy, budget, shares).
     OptionError
         A ``batch`` that is not the next one or exists with other options, an ``out``
         that is a folder, or bad clusters.
@@ -299,6 +310,8 @@ def select(
         raise WorkspaceError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
     if pooling not in ("global", "raw"):
         raise WorkspaceError(f"--pooling {pooling!r}: choose global or raw")
+    if greedy not in GREEDY_PLANS:
+        raise WorkspaceError(f"--greedy {greedy!r}: choose one of {', '.join(GREEDY_PLANS)}")
     if clusters < 1 or not overbudget >= 1:
         raise WorkspaceError(
             f"--clusters {clusters} must be >= 1 and --overbudget {overbudget} >= 1"
@@ -326,6 +339,7 @@ def select(
         "clusters": clusters,
         "overbudget": overbudget,
         "pooling": pooling,
+        "greedy": greedy,
         "mixed_fidelity": mixed_fidelity,
         "level0_share": level0_share,
         "confirm_share": confirm_share,
@@ -402,6 +416,7 @@ def select(
                     reobserve_level0=include_observed,
                     excluded_pairs=gone,
                     pending_pairs=waiting if waiting.any() else None,
+                    approximate=GREEDY_PLANS[greedy],
                     plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},
                 )
         n_greedy = 0 if result is None else len(result.index)
