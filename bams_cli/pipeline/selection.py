@@ -301,7 +301,6 @@ def select(
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
-    from bams_cli.core import baselines
     from bams_cli.core.confirm import confirmation_picks, n_confirmations
     from bams_cli.core.select import select_batch
     from bams_cli.parallel import executor
@@ -466,6 +465,8 @@ def select(
             pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
             o = obs.join(pos, on=SID).select("_i", "value")
             observed_index, observed_value = o["_i"].to_numpy(), o["value"].to_numpy()
+        from bams_cli.core import baselines
+
         index, level = baselines.pick_baseline(
             strategy,  # type: ignore[arg-type]  # checked against STRATEGIES above
             n_pool=len(ids),
