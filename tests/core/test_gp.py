@@ -161,6 +161,13 @@ def test_multifidelity_posterior_equals_dense(n_levels, d):
     np.testing.assert_allclose(sigma2, np.diag(cov_pp), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.cov_theta0(Xp, Xp), cov_pp, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.cov_theta0_obs(Xp, Xc, lc), cov_pc, rtol=1e-8, atol=1e-10)
+    # Each candidate at its own point: the dense diagonal (select's first screen).
+    cov_own = ref_matern52(Xc, Xc, hp.lengthscales0, hp.outputscale0) - ref_matern52(
+        Xc, X, hp.lengthscales0, hp.outputscale0
+    ) @ solve(kc)
+    np.testing.assert_allclose(
+        model.cov_theta0_obs_own(Xc, lc), np.diag(cov_own), rtol=1e-8, atol=1e-10
+    )
     np.testing.assert_allclose(model.cov_obs_obs(Xc, lc, Xc, lc), cov_cc, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.obs_var(Xc, lc), np.diag(cov_cc), rtol=1e-8, atol=1e-10)
     # An explicit `same` replaces the default: here no pair is the same observation.

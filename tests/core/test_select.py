@@ -536,6 +536,33 @@ def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch):
     np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
 
 
+def test_own_point_covariance_of_the_gp_equals_the_posterior_interfaces_diagonal(monkeypatch):
+    # The screen's first stage: MFGP's own diagonal against the diagonal of
+    # cov_theta0_obs that any Posterior gives (blocks of 128), both levels, repeated points,
+    # and MFGP's column blocks forced down to 7 so every block boundary is crossed.
+    from bams_cli.core.gp import fit_mfgp
+    from bams_cli.core.select import _own_point_cov
+
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(40, 3))
+    lev = rng.integers(0, 2, 40)
+    y = np.sin(X).sum(axis=1) + 0.3 * lev
+    mf = fit_mfgp(X, lev, y, 2, rng=np.random.default_rng(0), restarts=1)
+    Xc = np.repeat(rng.normal(size=(150, 3)), 2, axis=0)
+    lc = np.tile([0, 1], 150)
+
+    class Interface:  # the Posterior protocol only: no cov_theta0_obs_own
+        n_levels = 2
+        cov_theta0_obs = staticmethod(mf.cov_theta0_obs)
+
+    dense = _own_point_cov(Interface(), Xc, lc)
+    np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
+    from bams_cli.core.gp import model as gp_model
+
+    monkeypatch.setattr(gp_model, "_OWN_BLOCK_ELEMENTS", 7 * 40)
+    np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize("keep", [[0, 2, 3], [1], [0, 1, 2, 3, 4], [4]])
 def test_compact_columns_in_place_equals_fancy_indexing(keep):
     from bams_cli.core.select import _compact_columns

@@ -34,6 +34,7 @@ from bams_cli.core.kernels import (
 _REUSE_MIN_COLUMNS = 1024  # _obs_factor_reused: smaller sets are cheap to recompute
 _THREADED_FROM = 2000  # MFGP(): factorise with every BLAS thread from this many observations
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
+_OWN_BLOCK_ELEMENTS = 8 << 20  # cov_theta0_obs_own: n_obs x columns per block (64 MB)
 
 
 class MFGP:
@@ -305,6 +306,33 @@ class MFGP:
         group = np.cumsum(new) - 1
         P = np.ascontiguousarray(V.T @ W)
         return matern52_cross_minus(A, B[new], group, self._ell[0], self._s[0], P)
+
+    def cov_theta0_obs_own(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
+        """cov_n(theta0(x_c), y_c) of every candidate at its own point: the diagonal of
+        ``cov_theta0_obs(Xc, Xc, levels)`` without the off-diagonal entries.
+
+        k0(x, x) - k0(x, X_n) K^-1 k_aug(Y_n, (x, l)), with k0(x, x) the level-0 output
+        variance (stationary kernel), in column blocks of ~64 MB of the n x m factors.
+
+        Parameters
+        ----------
+        Xc : ndarray of shape (m, d)
+        levels : int ndarray of shape (m,)
+
+        Returns
+        -------
+        c : ndarray of shape (m,)
+        """
+        B = self._centre(Xc, "Xc")
+        lc = self._levels(levels, B.shape[0])
+        out = np.empty(B.shape[0])
+        blk = max(1, _OWN_BLOCK_ELEMENTS // max(1, self._Xt.shape[0]))
+        for i0 in range(0, B.shape[0], blk):
+            Bb, lb = B[i0 : i0 + blk], lc[i0 : i0 + blk]
+            V = self._solve_L(self._k0(self._Xt, Bb))
+            W = self._obs_factor(Bb, lb)
+            out[i0 : i0 + blk] = self._s[0] - np.einsum("ij,ij->j", V, W)
+        return out
 
     def cov_obs_obs(
         self,
