@@ -935,8 +935,8 @@ def run_benchmark(
         known stratum, in truth-file order. Estimate designs can then be studied on the
         runs without repeating them (``core.design``, ``docs/suite/estimate_design.py``).
     greedy : {"auto", "exact", "approximate"}
-        BAMS / BAS ``select --greedy``: how the approximate plan is checked against the
-        exact greedy on the same protocol.
+        BAMS / BAS: the plan ``select --greedy`` runs; forcing each in turn compares the
+        approximate plan with the exact greedy on the same protocol and seeds.
 
     Returns
     -------

@@ -665,7 +665,7 @@ def select(
             "--greedy",
             envvar="BAMS_GREEDY",
             help="bams/bas: exact (every segment and candidate), approximate (bounded "
-            f"clusters, screened candidates) or auto: exact up to "
+            "clusters, screened candidates) or auto: exact up to "
             f"{defaults.SELECT_EXACT_MAX_POOL:,} segments.",
         ),
     ] = defaults.GREEDY,
@@ -1285,7 +1285,7 @@ def benchmark(
         typer.Option(
             "--greedy",
             envvar="BAMS_GREEDY",
-            help="BAMS/BAS select --greedy: compare the approximate plan with the exact greedy.",
+            help="BAMS/BAS: the plan select runs (select --greedy).",
         ),
     ] = defaults.GREEDY,
     workers: Annotated[

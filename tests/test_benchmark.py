@@ -23,8 +23,15 @@ from tests.conftest import invoke
 REQUIRED = ("recall", "recall_se", "rv", "rv_se", "rv_median", "seeds")
 
 
-def test_tiny_synthetic_run_writes_finite_tables(tmp_path):
+def test_tiny_synthetic_run_writes_finite_tables(tmp_path, monkeypatch):
+    from bams_cli import pipeline
+
     calls = []
+    asked = []  # select's --greedy in every batch
+    real_select = pipeline.select
+    monkeypatch.setattr(
+        pipeline, "select", lambda *a, **kw: asked.append(kw["greedy"]) or real_select(*a, **kw)
+    )
     res = run_benchmark(
         "toy2d",
         seeds=1,
@@ -35,8 +42,11 @@ def test_tiny_synthetic_run_writes_finite_tables(tmp_path):
         workers=1,
         progress=lambda phase, done, total: calls.append((phase, done, total)),
         n=1500,
+        greedy="approximate",
     )
     doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["setup"]["greedy"] == "approximate" and set(asked) == {"approximate"}
+    assert len(asked) == 2 * PROTOCOLS["toy2d"].n_batches
     assert (tmp_path / "tables.md").read_text().startswith("# toy2d")
     assert (tmp_path / "retention-recall.png").stat().st_size > 0
     for strategy in ("bas", "mc"):

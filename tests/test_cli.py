@@ -65,6 +65,8 @@ def test_help_has_no_bool_metavar_and_shows_every_default(runner, name, monkeypa
     [
         ("select", "<bams|bas|random|mc-gp|mcm-gp|ds|ds-gp|ce>"),
         ("select", "<global|raw>"),
+        ("select", "<auto|exact|approximate>"),
+        ("benchmark", "<auto|exact|approximate>"),
         ("estimate", "<poisson|fixed|with-replacement>"),
         ("estimate", "<auto|uniform|p-alpha>"),
         ("estimate", "<gamma|fay-feuer>"),
@@ -353,7 +355,9 @@ def test_enums_are_their_values_wherever_a_string_goes():
         "with-replacement"
     )
     assert json.dumps({"s": defaults.STRATEGY}) == '{"s": "bams"}'
-    assert all(issubclass(e, enum.StrEnum) for e in (defaults.Interval, defaults.Pooling))
+    assert all(
+        issubclass(e, enum.StrEnum) for e in (defaults.Interval, defaults.Pooling, defaults.Greedy)
+    )
 
 
 def test_readme_documents_the_environment_variables():

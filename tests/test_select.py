@@ -159,6 +159,19 @@ def test_select_greedy_forces_the_plan_and_a_batch_rerun_must_ask_for_the_same(l
     assert tree_hash(lead_ws) == before
 
 
+def test_an_exact_greedy_too_large_for_memory_names_the_flag_that_forced_it(
+    lead_ws, runner, monkeypatch
+):
+    import bams_cli.core.select as core_select
+
+    monkeypatch.setattr(core_select, "MAX_CLUSTER_BYTES", 2**18)  # auto: approximate
+    before = tree_hash(lead_ws)
+    r = invoke(runner, "select", "-w", lead_ws, "--clusters", "1", "--greedy", "exact")
+    assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "raise --clusters" in r.stderr and "leave out --greedy exact" in r.stderr
+    assert tree_hash(lead_ws) == before
+
+
 def test_no_plan_fitting_memory_is_a_one_line_error(lead_ws, runner, monkeypatch):
     import bams_cli.core.select as core_select
 

@@ -584,13 +584,15 @@ def _groups(
         kind = "column"
     elif model is not None:
         lengthscales = np.asarray(model["hyperparameters"]["lengthscales0"], dtype=np.float64)
-        clusters = defaults.CLUSTERS
+        clusters, greedy = defaults.CLUSTERS, defaults.GREEDY.value
         for b in sorted(frames, reverse=True):
             options = read_metadata_json(schemas.batch_path(ws.root, b)).get("options") or {}
             if options.get("strategy") in ("bams", "bas"):
                 clusters = int(options.get("clusters", clusters))
+                greedy = str(options.get("greedy", greedy))
                 break
-        big = n > defaults.SELECT_EXACT_MAX_POOL
+        # Clustered as select clustered: on a sample under the approximate plan.
+        big = greedy == "approximate" or (greedy == "auto" and n > defaults.SELECT_EXACT_MAX_POOL)
         label = cluster_pool(
             X,
             lengthscales,

@@ -77,7 +77,7 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
 
 
 @contextlib.contextmanager
-def _memory_limit_is_an_option() -> Iterator[None]:
+def _memory_limit_is_an_option(greedy: str = "auto") -> Iterator[None]:
     """select_batch's refusal of a cluster too large for memory, as a one-line error."""
     try:
         yield
@@ -86,9 +86,10 @@ def _memory_limit_is_an_option() -> Iterator[None]:
             raise
         text = str(exc).replace("n_clusters", "--clusters")
         ceiling = memory.format_size(memory.budget())
+        exact = ", or leave out --greedy exact" if greedy == "exact" else ""
         raise OptionError(
             f"select: {text} (what --max-memory {ceiling} leaves each worker; raise it or "
-            "pass --workers 1)"
+            f"pass --workers 1{exact})"
         ) from None
 
 
@@ -301,6 +302,7 @@ def select(
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
+    from bams_cli.core import baselines
     from bams_cli.core.confirm import confirmation_picks, n_confirmations
     from bams_cli.core.select import select_batch
     from bams_cli.parallel import executor
@@ -397,7 +399,7 @@ def select(
         taken0[confirm] = True
         result = None
         if rest >= costs.min() - 1e-12:
-            with executor(workers, scheduler) as pool, _memory_limit_is_an_option():
+            with executor(workers, scheduler) as pool, _memory_limit_is_an_option(greedy):
                 result = select_batch(
                     posterior,
                     X,
@@ -465,8 +467,6 @@ def select(
             pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
             o = obs.join(pos, on=SID).select("_i", "value")
             observed_index, observed_value = o["_i"].to_numpy(), o["value"].to_numpy()
-        from bams_cli.core import baselines
-
         index, level = baselines.pick_baseline(
             strategy,  # type: ignore[arg-type]  # checked against STRATEGIES above
             n_pool=len(ids),

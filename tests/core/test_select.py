@@ -399,6 +399,8 @@ def test_plan_selection_is_exact_on_small_pools_and_bounded_on_large_ones():
 
     small = plan_selection(defaults.SELECT_EXACT_MAX_POOL, 2, 6)
     assert small.exact and small.n_clusters == 6 and small.max_rows is None
+    above = plan_selection(defaults.SELECT_EXACT_MAX_POOL + 1, 2, 6)
+    assert not above.exact and above.max_rows == defaults.SELECT_MAX_ROWS
     for n in (200_000, 1_000_000, 10_000_000):
         plan = plan_selection(n, 2, 6)
         assert not plan.exact and plan.n_clusters >= 6
@@ -541,6 +543,7 @@ def test_own_point_covariance_of_the_gp_equals_the_posterior_interfaces_diagonal
     # cov_theta0_obs that any Posterior gives (blocks of 128), both levels, repeated points,
     # and MFGP's column blocks forced down to 7 so every block boundary is crossed.
     from bams_cli.core.gp import fit_mfgp
+    from bams_cli.core.gp import model as gp_model
     from bams_cli.core.select import _own_point_cov
 
     rng = np.random.default_rng(5)
@@ -557,8 +560,6 @@ def test_own_point_covariance_of_the_gp_equals_the_posterior_interfaces_diagonal
 
     dense = _own_point_cov(Interface(), Xc, lc)
     np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
-    from bams_cli.core.gp import model as gp_model
-
     monkeypatch.setattr(gp_model, "_OWN_BLOCK_ELEMENTS", 7 * 40)
     np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
 
