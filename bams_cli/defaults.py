@@ -212,10 +212,12 @@ FIT_CONDITION_MEMORY = 2 * 2**30
 #: brute-force greedy) on pools up to this many segments, ``select --greedy`` overriding.
 #: Larger pools get an approximate plan (``core.select.plan_selection``) whose batch keeps
 #: >= 99% of the exact greedy's J decrease where both can be run (``bench/bench_select.py
-#: --sweep``, tests/core/test_select.py). The exact greedy's work grows as N^2 / S: on
-#: av_like pools on 2 idle cores it took 1.5 s at 10,000 segments, 7.5 s at 25,000 and
-#: 18 s at 45,000, the approximate plan 1.7 s, 2.8 s and 5 s (2026-11-23). Past 20,000
-#: the exact greedy costs more than twice the approximate plan for < 1% more J decrease.
+#: --sweep``, tests/core/test_select.py). The exact greedy's work grows as N^2 / S:
+#: ``bench/bench_select.py --sizes 10000 25000 45000 --no-reference`` (av_like, 2 idle
+#: cores, 2026-11-23) took 1.0 s at 10,000 segments, 4.6 s at 25,000 and 13.4 s at 45,000
+#: exactly, the approximate plan 1.5 s, 2.7 s and 3.7 s, with J ratios 1.0000, 1.0026 and
+#: 1.0000. The two cost the same somewhere between 10,000 and 25,000; 20,000 keeps the
+#: benchmark's toy2d and av_like pools (20,000) on the exact greedy.
 SELECT_EXACT_MAX_POOL = 20_000
 
 #: Approximate plan of ``select``: the pool is cut into clusters of about this many
