@@ -769,6 +769,9 @@ def select(
             wait=wait,
             progress=bar,
         )
+    fewer = (summary.get("selection_plan") or {}).get("workers_reason")
+    if fewer:
+        console.warning(fewer)
     _show(summary, json_out, console.select_summary, "select")
 
 

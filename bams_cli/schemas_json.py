@@ -296,6 +296,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "h_left_out": nullable(NUM),
                         "screen_rounds": nullable(COUNT),
                         "candidates_per_round": nullable(COUNT),
+                        "workers": nullable(COUNT),
+                        "workers_reason": STR,
                     },
                 ),
             },

@@ -172,6 +172,27 @@ def test_an_exact_greedy_too_large_for_memory_names_the_flag_that_forced_it(
     assert tree_hash(lead_ws) == before
 
 
+def test_a_tight_memory_ceiling_runs_fewer_workers_and_says_so(lead_ws, runner, monkeypatch):
+    from bams_cli import memory
+    from bams_cli.pipeline import selection
+
+    # 250 MiB of room: one worker (200 MiB to start) fits, two do not.
+    monkeypatch.setattr(memory, "tree_rss", lambda *_: 100 * 2**20)
+    monkeypatch.setattr(selection.os, "cpu_count", lambda: 2)
+    r = ok(runner, "select", "-w", lead_ws, "--budget", "5", "--clusters", "2", "--json",
+           "--max-memory", "350M")  # fmt: skip
+    plan = json.loads(r.stdout)["selection_plan"]
+    assert plan["workers"] == 1
+    assert "leaves room for 1 of 2 worker processes" in plan["workers_reason"]
+    assert json.loads(r.stderr.strip().splitlines()[-1])["warning"] == plan["workers_reason"]
+    # Asked for, the workers are what was asked (and the ceiling's check refuses two).
+    before = tree_hash(lead_ws)
+    r = invoke(runner, "select", "-w", lead_ws, "--budget", "5", "--workers", "2",
+               "--allow-pending", "--max-memory", "350M")  # fmt: skip
+    assert r.exit_code == 1 and "leaves no room for 2 worker processes" in r.stderr
+    assert tree_hash(lead_ws) == before
+
+
 def test_no_plan_fitting_memory_is_a_one_line_error(lead_ws, runner, monkeypatch):
     import bams_cli.core.select as core_select
 

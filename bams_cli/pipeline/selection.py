@@ -76,6 +76,29 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
     return int(min(per_worker / 2, MAX_CLUSTER_BYTES))
 
 
+def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:
+    """``--workers`` left out: one worker process per core, or as many as ``--max-memory``
+    leaves room for (``cluster_bytes``' rule), down to 1 (the greedies run in the command).
+
+    Returns the workers to use (``workers`` itself when given, None with ``--scheduler``)
+    and, when fewer than the cores, why in one sentence (else "").
+    """
+    if workers is not None or scheduler:
+        return workers, ""
+    cores = os.cpu_count() or 1
+    room = memory.budget() - memory.tree_rss()
+    n = cores
+    while n > 1 and room / n - memory.WORKER_BASE_BYTES <= 0:
+        n -= 1
+    if n == cores:
+        return None, ""
+    return n, (
+        f"--max-memory {memory.format_size(memory.budget())} leaves room for {n} of "
+        f"{cores} worker processes (a worker needs about "
+        f"{memory.format_size(memory.WORKER_BASE_BYTES)} beside what the command holds)"
+    )
+
+
 @contextlib.contextmanager
 def _memory_limit_is_an_option(greedy: str = "auto") -> Iterator[None]:
     """select_batch's refusal of a cluster too large for memory, as a one-line error."""
@@ -399,6 +422,7 @@ def select(
         taken0[confirm] = True
         result = None
         if rest >= costs.min() - 1e-12:
+            workers, fewer_workers = workers_within_memory(workers, scheduler)
             with executor(workers, scheduler) as pool, _memory_limit_is_an_option(greedy):
                 result = select_batch(
                     posterior,
@@ -441,7 +465,10 @@ def select(
         if result is not None:
             j_before, j_after = float(result.j_before), float(result.j_after)
             timings = {k: round(float(v), 3) for k, v in result.timings.items()}
-            selection_plan = result.plan
+            selection_plan = dict(result.plan)
+            selection_plan["workers"] = None if scheduler else (workers or os.cpu_count() or 1)
+            if fewer_workers:
+                selection_plan["workers_reason"] = fewer_workers
     else:
         multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
         n_rest = settings.n_levels - 1
