@@ -176,11 +176,12 @@ def test_a_tight_memory_ceiling_runs_fewer_workers_and_says_so(lead_ws, runner, 
     from bams_cli import memory
     from bams_cli.pipeline import selection
 
-    # 250 MiB of room: one worker (200 MiB to start) fits, two do not.
+    # 500 MiB of room: two workers would start (200 MiB each) but leave each cluster less
+    # than the full plan's 4,096 x 1,024 covariance (twice 32 MiB); one worker keeps it.
     monkeypatch.setattr(memory, "tree_rss", lambda *_: 100 * 2**20)
     monkeypatch.setattr(selection.os, "cpu_count", lambda: 2)
     r = ok(runner, "select", "-w", lead_ws, "--budget", "5", "--clusters", "2", "--json",
-           "--max-memory", "350M")  # fmt: skip
+           "--max-memory", "600M")  # fmt: skip
     plan = json.loads(r.stdout)["selection_plan"]
     assert plan["workers"] == 1
     assert "leaves room for 1 of 2 worker processes" in plan["workers_reason"]

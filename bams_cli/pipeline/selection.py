@@ -78,7 +78,15 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
 
 def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:
     """``--workers`` left out: one worker process per core, or as many as ``--max-memory``
-    leaves room for (``cluster_bytes``' rule), down to 1 (the greedies run in the command).
+    leaves room for at the full approximate plan, down to 1 (the greedies run in the
+    command).
+
+    A worker needs ``memory.WORKER_BASE_BYTES`` to start and, by ``cluster_bytes``' rule,
+    twice its cluster's rows x candidates covariance; below the default plan's
+    (``defaults.SELECT_MAX_ROWS`` x ``SELECT_MAX_CANDIDATES`` floats) ``cluster_bytes``
+    would shrink the rows J is summed over. Fewer workers take longer; fewer rows lose J
+    decrease without a word (at 1,000,000 segments under 1G two workers kept 202 rows of J
+    per cluster, one worker the full 4,096).
 
     Returns the workers to use (``workers`` itself when given, None with ``--scheduler``)
     and, when fewer than the cores, why in one sentence (else "").
@@ -87,15 +95,19 @@ def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[i
         return workers, ""
     cores = os.cpu_count() or 1
     room = memory.budget() - memory.tree_rss()
+    need = (
+        memory.WORKER_BASE_BYTES + 2 * 8 * defaults.SELECT_MAX_ROWS * defaults.SELECT_MAX_CANDIDATES
+    )
     n = cores
-    while n > 1 and room / n - memory.WORKER_BASE_BYTES <= 0:
+    while n > 1 and room / n < need:
         n -= 1
     if n == cores:
         return None, ""
     return n, (
         f"--max-memory {memory.format_size(memory.budget())} leaves room for {n} of "
-        f"{cores} worker processes (a worker needs about "
-        f"{memory.format_size(memory.WORKER_BASE_BYTES)} beside what the command holds)"
+        f"{cores} worker processes at the full plan (a worker needs about "
+        f"{memory.format_size(need)} beside what the command holds); pass --workers to "
+        "run more with fewer rows of J each"
     )
 
 
