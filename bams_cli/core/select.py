@@ -1506,10 +1506,19 @@ def select_batch(
     else:
         # Largest clusters first: with fewer workers than clusters this evens out the tail.
         order = sorted(range(n_cl), key=lambda k: -len(members[k]))
-        futures = {k: executor.submit(greedy_cluster, *jobs[k][0], **jobs[k][1]) for k in order}
+        futures: dict[int, Any] = {}
+        shown = 0
+        for k in order:
+            futures[k] = executor.submit(greedy_cluster, *jobs[k][0], **jobs[k][1])
+            done = sum(f.done() for f in futures.values())  # an inline executor: all
+            if done > shown:
+                shown = done
+                report("greedy", shown, n_cl)
         for i, k in enumerate(order):
             futures[k].result()
-            report("greedy", i + 1, n_cl)
+            if i + 1 > shown:
+                shown = i + 1
+                report("greedy", shown, n_cl)
         queues = [futures[k].result() for k in range(n_cl)]
     timings["greedy"] = time.perf_counter() - t
     for phase in ("build", "screen", "exact", "update", "plan", "cpu"):

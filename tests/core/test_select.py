@@ -356,6 +356,28 @@ def test_select_batch_single_level_and_progress(pool_problem):
     np.testing.assert_array_equal(res.index, res.queues[0].index)
 
 
+def test_an_inline_executor_reports_each_cluster_as_it_is_done(pool_problem):
+    # The inline executor runs a cluster at submit time: its progress must say so then,
+    # one cluster at a time and never backwards, not all of them at the end.
+    from bams_cli.parallel import InlineExecutor
+
+    seen: list[tuple[int, int]] = []
+    done_when = []
+
+    class Counting(InlineExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            done_when.append(len(seen))
+            return super().submit(fn, *args, **kwargs)
+
+    def progress(phase, done, total):
+        if phase == "greedy" and done:
+            seen.append((done, total))
+
+    _select(pool_problem, n_clusters=3, executor=Counting(), progress=progress)
+    assert seen == [(1, 3), (2, 3), (3, 3)]
+    assert done_when == [0, 1, 2]  # each report came before the next cluster started
+
+
 @pytest.mark.parametrize(
     "kw, match",
     [
