@@ -137,6 +137,23 @@ def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatc
     assert cluster_bytes(1, None) == (300 * MiB - memory.WORKER_BASE_BYTES) // 2
 
 
+def test_select_starts_the_workers_the_ceiling_leaves_room_for(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from bams_cli.pipeline import selection
+
+    need = memory.WORKER_BASE_BYTES + 2 * 8 * 4096 * 1024  # start-up, twice the full plan's C
+    monkeypatch.setattr(selection.os, "cpu_count", lambda: 4)
+    uses(monkeypatch, 500 * MiB)
+    for room, expected in [(4 * need, None), (3 * need + MiB, 3), (need, 1), (need - MiB, None)]:
+        monkeypatch.setattr(memory, "_budget", 500 * MiB + room)
+        n, why = selection.workers_within_memory(None, None)
+        assert n == expected, (room, n)
+        assert (f"room for {n} of 4 worker processes" in why) if n else why == ""
+    assert selection.workers_within_memory(3, None) == (3, "")  # asked for: kept
+    assert selection.workers_within_memory(None, "tcp://elsewhere:8786") == (None, "")
+
+
 def fitted(runner: CliRunner, ws: Path, truth: Path) -> None:
     ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "10")
     handoff = ws / "batches" / "batch-0001.parquet"

@@ -79,7 +79,7 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
 def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:
     """``--workers`` left out: one worker process per core, or as many as ``--max-memory``
     leaves room for at the full approximate plan, down to 1 (the greedies run in the
-    command).
+    command); where not even one fits, one per core as asked (``cluster_bytes`` decides).
 
     A worker needs ``memory.WORKER_BASE_BYTES`` to start and, by ``cluster_bytes``' rule,
     twice its cluster's rows x candidates covariance; below the default plan's
@@ -98,11 +98,12 @@ def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[i
     need = (
         memory.WORKER_BASE_BYTES + 2 * 8 * defaults.SELECT_MAX_ROWS * defaults.SELECT_MAX_CANDIDATES
     )
-    n = cores
-    while n > 1 and room / n < need:
-        n -= 1
-    if n == cores:
+    fits = [n for n in range(cores, 0, -1) if room / n >= need]
+    if not fits or fits[0] == cores:
+        # All cores fit, or not even one worker: cluster_bytes then shrinks the plan or
+        # refuses in one line before any work.
         return None, ""
+    n = fits[0]
     return n, (
         f"--max-memory {memory.format_size(memory.budget())} leaves room for {n} of "
         f"{cores} worker processes at the full plan (a worker needs about "
