@@ -26,6 +26,7 @@ from __future__ import annotations
 import _thread
 import os
 import re
+import signal
 import sys
 import threading
 import time
@@ -236,6 +237,15 @@ def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
     previous, _budget = _budget, watch.limit
     previous_watch, _watch = _watch, watch
     thread = threading.Thread(target=watch._run, name="bams-max-memory", daemon=True)
+    # Started with Ctrl-C ignored (nohup, a script's background job, some CI runners),
+    # Python has no SIGINT handler and the watchdog's interrupt would do nothing: the
+    # grace period would then end the whole process. Handle it for the command's time.
+    ignored = None
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.getsignal(signal.SIGINT)
+        if handler in (signal.SIG_IGN, signal.SIG_DFL, None):
+            ignored = handler
+            signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         thread.start()  # inside: the first read may fire before start() returns
         yield watch
@@ -255,3 +265,5 @@ def ceiling(limit: int | None, command: str) -> Iterator[Watch]:
                 raise
         finally:
             _budget, _watch = previous, previous_watch
+            if ignored is not None:
+                signal.signal(signal.SIGINT, ignored)

@@ -87,6 +87,40 @@ def test_the_watchdog_stops_a_command_over_its_ceiling(monkeypatch: pytest.Monke
     assert memory.budget() == memory.default_budget()  # the ceiling ends with its command
 
 
+def test_the_watchdog_stops_a_command_started_with_ctrl_c_ignored() -> None:
+    """nohup, a script's background job or a CI runner start a process with SIGINT
+    ignored; the watchdog's interrupt must still stop the command with its one line, not
+    leave the grace period to end the whole process."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import time\n"
+        "from bams_cli import memory\n"
+        "memory.tree_rss = memory.tree_pss = lambda *a: 400 * 2**20\n"
+        "try:\n"
+        "    with memory.ceiling(300 * 2**20, 'bams-cli fit'):\n"
+        "        t0 = time.monotonic()\n"
+        "        while time.monotonic() - t0 < 10:\n"
+        "            time.sleep(0.01)\n"
+        "except memory.MemoryCeilingError as exc:\n"
+        "    print('stopped:', exc)\n"
+        "import signal\n"
+        "print('afterwards', signal.getsignal(signal.SIGINT) == signal.SIG_IGN)\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "stopped: bams-cli fit reached 400.0 MiB of memory" in r.stdout
+    assert "afterwards True" in r.stdout  # the process's own choice is restored
+
+
 def test_under_the_ceiling_nothing_fires(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(memory, "tree_rss", lambda proc=None, children=None: 200 * MiB)
     with memory.ceiling(300 * MiB, "bams-cli fit") as watch:
