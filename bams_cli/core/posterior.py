@@ -4,10 +4,11 @@ Selection never touches a concrete GP: it asks a ``Posterior`` for the handful o
 covariances the greedy recursion needs (DESIGN.md, "The math, as the code should compute
 it"). Tests can hand it a small dense posterior written independently.
 
-One optional fast path sits outside the protocol: ``cov_theta0_obs_own(Xc, levels)``,
-cov_n(theta0(x_c), y_c) of each candidate at its own point (shape (m,), the diagonal of
-``cov_theta0_obs(Xc, Xc, levels)``). Selection's first screen uses it when a posterior has
-it (``core.gp.MFGP`` does) and takes the diagonal of ``cov_theta0_obs`` blocks otherwise.
+One optional fast path sits outside the protocol: ``own_point(Xc, levels)``, each
+candidate at its own point: cov_n(theta0(x_c), y_c) (the diagonal of
+``cov_theta0_obs(Xc, Xc, levels)``) and ``obs_var(Xc, levels)``, both of shape (m,).
+Selection's first screen uses it when a posterior has it (``core.gp.MFGP`` does) and takes
+the diagonal of ``cov_theta0_obs`` blocks and ``obs_var`` otherwise.
 
 Notation: a pool point ``x`` (row of ``X``) and a candidate observation ``c = (x_c, l)``:
 segment coordinates ``x_c`` simulated at fidelity level ``l`` (0 = high fidelity), whose

@@ -635,24 +635,27 @@ def _greedy_cluster(
 # --------------------------------------------------------------------------------------
 
 
-def _own_point_cov(posterior: Posterior, Xc: FloatArray, levels: IntArray) -> FloatArray:
-    """cov_n(theta0(x_c), y_c) for every candidate c at its own point; shape (m,).
+def _own_point(
+    posterior: Posterior, Xc: FloatArray, levels: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """cov_n(theta0(x_c), y_c) and var_n(y_c) for every candidate c at its own point.
 
-    The posterior's own diagonal (``Posterior``'s optional ``cov_theta0_obs_own``, which
-    ``MFGP`` has) where it has one: the blocks of 128 otherwise needed cost 128 kernel
+    The posterior's own (``Posterior``'s optional ``own_point``, which ``MFGP`` has) where
+    it has one: the blocks of 128 of ``cov_theta0_obs`` otherwise needed cost 128 kernel
     values per candidate instead of one, and the approximate plan at 45,000 av_like
     segments took 8.2-8.5 CPU s with them against 6.4-6.8 without. Blocks of 32 cost three
     times the CPU of 128 (per-call overhead; 3.3 s vs 1.2 s for 10,000 candidates).
     """
-    own = getattr(posterior, "cov_theta0_obs_own", None)
+    own = getattr(posterior, "own_point", None)
     if own is not None:
-        return np.asarray(own(Xc, levels), dtype=np.float64)
+        cov, var = own(Xc, levels)
+        return np.asarray(cov, dtype=np.float64), np.asarray(var, dtype=np.float64)
     out = np.empty(len(Xc))
     blk = 128
     for i0 in range(0, len(Xc), blk):
         Cb = posterior.cov_theta0_obs(Xc[i0 : i0 + blk], Xc[i0 : i0 + blk], levels[i0 : i0 + blk])
         out[i0 : i0 + blk] = np.diagonal(np.asarray(Cb, dtype=np.float64))
-    return out
+    return out, np.asarray(posterior.obs_var(Xc, levels), dtype=np.float64)
 
 
 class _Given:
@@ -834,18 +837,19 @@ def screen_candidates(
     # av_like segments the exact greedy picks such candidates.
     r1 = np.sort(by_b[:SCREEN_ROWS_FIRST])
     score = np.empty(n_c)
+    v_data = np.empty(n_c)  # var_n(y_c) given the data only; stage 2 reads it too
     blk = 8192
     for i0 in range(0, n_c, blk):
         B = np.arange(i0, min(i0 + blk, n_c))
         Xb = np.ascontiguousarray(X[cand_row[B]])
         rb, lb = cand_row[B], cand_level[B]
         if own is None or np.isnan(own[0][rb, lb]).any():
-            c_own = _own_point_cov(posterior, Xb, lb)
-            V0 = np.asarray(posterior.obs_var(Xb, lb), dtype=np.float64)
+            c_own, V0 = _own_point(posterior, Xb, lb)
             if own is not None:
                 own[0][rb, lb], own[1][rb, lb] = c_own, V0
         else:
             c_own, V0 = own[0][rb, lb], own[1][rb, lb]
+        v_data[B] = V0
         V = V0
         ok = (V > 0) & (sig2[B] > 0)
         wc = None
@@ -866,7 +870,7 @@ def screen_candidates(
     # greedy's picks.
     Xp = np.ascontiguousarray(X[cand_row[pre]])
     lp = cand_level[pre]
-    Vp = np.asarray(posterior.obs_var(Xp, lp), dtype=np.float64)
+    Vp = v_data[pre]
     floor = np.zeros(n_pre)
     w_p = None
     if cond is not None:

@@ -165,9 +165,9 @@ def test_multifidelity_posterior_equals_dense(n_levels, d):
     cov_own = ref_matern52(Xc, Xc, hp.lengthscales0, hp.outputscale0) - ref_matern52(
         Xc, X, hp.lengthscales0, hp.outputscale0
     ) @ solve(kc)
-    np.testing.assert_allclose(
-        model.cov_theta0_obs_own(Xc, lc), np.diag(cov_own), rtol=1e-8, atol=1e-10
-    )
+    own_cov, own_var = model.own_point(Xc, lc)
+    np.testing.assert_allclose(own_cov, np.diag(cov_own), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(own_var, np.diag(cov_cc), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.cov_obs_obs(Xc, lc, Xc, lc), cov_cc, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.obs_var(Xc, lc), np.diag(cov_cc), rtol=1e-8, atol=1e-10)
     # An explicit `same` replaces the default: here no pair is the same observation.

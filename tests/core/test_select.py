@@ -561,12 +561,12 @@ def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch):
 
 
 def test_own_point_covariance_of_the_gp_equals_the_posterior_interfaces_diagonal(monkeypatch):
-    # The screen's first stage: MFGP's own diagonal against the diagonal of
-    # cov_theta0_obs that any Posterior gives (blocks of 128), both levels, repeated points,
+    # The screen's first stage: MFGP's own diagonal and variance against the diagonal of
+    # cov_theta0_obs and obs_var that any Posterior gives (blocks of 128), both levels, repeated points,
     # and MFGP's column blocks forced down to 7 so every block boundary is crossed.
     from bams_cli.core.gp import fit_mfgp
     from bams_cli.core.gp import model as gp_model
-    from bams_cli.core.select import _own_point_cov
+    from bams_cli.core.select import _own_point
 
     rng = np.random.default_rng(5)
     X = rng.normal(size=(40, 3))
@@ -576,14 +576,17 @@ def test_own_point_covariance_of_the_gp_equals_the_posterior_interfaces_diagonal
     Xc = np.repeat(rng.normal(size=(150, 3)), 2, axis=0)
     lc = np.tile([0, 1], 150)
 
-    class Interface:  # the Posterior protocol only: no cov_theta0_obs_own
+    class Interface:  # the Posterior protocol only: no own_point
         n_levels = 2
         cov_theta0_obs = staticmethod(mf.cov_theta0_obs)
+        obs_var = staticmethod(mf.obs_var)
 
-    dense = _own_point_cov(Interface(), Xc, lc)
-    np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
-    monkeypatch.setattr(gp_model, "_OWN_BLOCK_ELEMENTS", 7 * 40)
-    np.testing.assert_allclose(_own_point_cov(mf, Xc, lc), dense, rtol=1e-9, atol=1e-12)
+    dense = _own_point(Interface(), Xc, lc)
+    for blocks in (None, 7 * 40):  # MFGP's column blocks as shipped, then of 7 columns
+        if blocks:
+            monkeypatch.setattr(gp_model, "_OWN_BLOCK_ELEMENTS", blocks)
+        for got, want in zip(_own_point(mf, Xc, lc), dense, strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("keep", [[0, 2, 3], [1], [0, 1, 2, 3, 4], [4]])

@@ -34,7 +34,7 @@ from bams_cli.core.kernels import (
 _REUSE_MIN_COLUMNS = 1024  # _obs_factor_reused: smaller sets are cheap to recompute
 _THREADED_FROM = 2000  # MFGP(): factorise with every BLAS thread from this many observations
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
-_OWN_BLOCK_ELEMENTS = 8 << 20  # cov_theta0_obs_own: n_obs x columns per block (64 MB)
+_OWN_BLOCK_ELEMENTS = 8 << 20  # own_point: n_obs x columns per block (64 MB)
 
 
 class MFGP:
@@ -307,12 +307,14 @@ class MFGP:
         P = np.ascontiguousarray(V.T @ W)
         return matern52_cross_minus(A, B[new], group, self._ell[0], self._s[0], P)
 
-    def cov_theta0_obs_own(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
-        """cov_n(theta0(x_c), y_c) of every candidate at its own point: the diagonal of
-        ``cov_theta0_obs(Xc, Xc, levels)`` without the off-diagonal entries.
+    def own_point(self, Xc: FloatArray, levels: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Each candidate at its own point: cov_n(theta0(x_c), y_c), the diagonal of
+        ``cov_theta0_obs(Xc, Xc, levels)``, and var_n(y_c), ``obs_var(Xc, levels)``, from
+        one factor W = L^-1 k_aug(Y_n, c).
 
-        k0(x, x) - k0(x, X_n) K^-1 k_aug(Y_n, (x, l)), with k0(x, x) the level-0 output
-        variance (stationary kernel), in column blocks of ~64 MB of the n x m factors.
+        cov = k0(x, x) - k0(x, X_n) K^-1 k_aug(Y_n, (x, l)), with k0(x, x) the level-0 output
+        variance (stationary kernel); var as ``obs_var``. In column blocks of ~64 MB of the
+        n x m factors.
 
         Parameters
         ----------
@@ -321,18 +323,19 @@ class MFGP:
 
         Returns
         -------
-        c : ndarray of shape (m,)
+        cov, var : ndarrays of shape (m,)
         """
         B = self._centre(Xc, "Xc")
         lc = self._levels(levels, B.shape[0])
-        out = np.empty(B.shape[0])
+        cov, var = np.empty(B.shape[0]), np.empty(B.shape[0])
         blk = max(1, _OWN_BLOCK_ELEMENTS // max(1, self._Xt.shape[0]))
         for i0 in range(0, B.shape[0], blk):
             Bb, lb = B[i0 : i0 + blk], lc[i0 : i0 + blk]
             V = self._solve_L(self._k0(self._Xt, Bb))
             W = self._obs_factor(Bb, lb)
-            out[i0 : i0 + blk] = self._s[0] - np.einsum("ij,ij->j", V, W)
-        return out
+            cov[i0 : i0 + blk] = self._s[0] - np.einsum("ij,ij->j", V, W)
+            var[i0 : i0 + blk] = self._obs_var_from(lb, W)
+        return cov, var
 
     def cov_obs_obs(
         self,
@@ -392,8 +395,11 @@ class MFGP:
         """
         B = self._centre(Xc, "Xc")
         lc = self._levels(levels, B.shape[0])
+        return self._obs_var_from(lc, self._obs_factor(B, lc))
+
+    def _obs_var_from(self, lc: IntArray, W: FloatArray) -> FloatArray:
+        """``obs_var`` given the candidates' levels and their factor W = L^-1 k_aug(Y_n, c)."""
         prior = self._s[0] + np.where(lc >= 1, self._s[lc], 0.0) + self.hyperparameters.noise[lc]
-        W = self._obs_factor(B, lc)
         return np.maximum(prior - np.einsum("ij,ij->j", W, W), 0.0)
 
     def score(
