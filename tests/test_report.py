@@ -669,6 +669,8 @@ def test_the_breakdown_by_cluster_adds_up_to_the_study(study, stage):
     ]
     want = json.loads(bams[-1]["options"])["clusters"] if bams else 6
     assert len(rows) == want
+    if bams:  # what select ran on is recorded with the batch
+        assert json.loads(bams[-1]["selection_plan"])["clusters"] == want
     assert sum(row["size"] for row in rows) == s["study"]["pool_size"]
     if r["scores"] is not None:
         p = r["scores"]["p_0"].to_numpy()
@@ -684,6 +686,43 @@ def test_the_breakdown_by_cluster_adds_up_to_the_study(study, stage):
     leads = csv.filter(pl.col("status") == "lead").height if csv.height else 0
     assert sum(row["leads"] for row in rows) == leads
     assert "<h3>By cluster</h3>" in r["html"] and "By cluster: " in r["md"]
+
+
+def test_the_cluster_view_has_the_clusters_the_batch_s_greedy_ran_on(study, tmp_path):
+    """On a large pool the approximate plan runs on more clusters than --clusters; the
+    batch records the plan it took, and the report's cluster view follows it."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(study.ws, ws)
+    path = ws / "batches" / "batch-0004.parquet"
+    table = pq.read_table(path)
+    meta = dict(table.schema.metadata)
+    assert json.loads(meta[b"bams.options"])["clusters"] == 2
+    plan = json.loads(meta[b"bams.selection_plan"])
+    plan["clusters"] = 3  # as the approximate plan on a large pool records it
+    meta[b"bams.selection_plan"] = json.dumps(plan).encode()
+    pq.write_table(table.replace_schema_metadata(meta), path)
+    ok(study.runner, "report", "-w", ws)
+    g = json.loads((ws / "report" / "summary.json").read_text())["groups"]
+    assert g["kind"] == "clusters" and len(g["rows"]) == 3
+    assert sum(row["size"] for row in g["rows"]) == study.reports[FINAL]["summary"]["study"][
+        "pool_size"
+    ]
+
+
+def test_a_batch_without_a_recorded_plan_is_clustered_as_select_would_plan_it(tmp_path):
+    """Batches from before the plan was recorded: the plan select makes for the pool size
+    (at 1,000,000 segments, one cluster per 25,000 and K-means on a 50,000 sample)."""
+    from bams_cli import defaults
+    from bams_cli.pipeline.reporting import _select_clustering
+
+    ws = Workspace(tmp_path)
+    assert _select_clustering(ws, {}, 1_000_000, 2) == (
+        1_000_000 // defaults.SELECT_CLUSTER_ROWS,
+        defaults.SELECT_CLUSTER_FIT_MAX,
+    )
+    assert _select_clustering(ws, {}, 5_000, 2) == (defaults.CLUSTERS, None)
 
 
 def test_report_by_a_pass_through_column(study, tmp_path):

@@ -29,8 +29,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
-from scipy.stats import rankdata
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -205,6 +203,8 @@ def difficulty_weights(
             "fill or drop them"
         )
     if transform == "rank":
+        from scipy.stats import rankdata
+
         w = rankdata(d) / len(d)
     elif transform == "linear":
         span = d.max() - d.min() if len(d) else 0.0
@@ -308,6 +308,8 @@ def pick_cross_entropy(
     elite = observed_index[np.argsort(observed_value, kind="stable")[: max(n_elite, 2)]]
     mean = X[elite].mean(axis=0)
     var = X[elite].var(axis=0) + var_floor * X.var(axis=0)
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(X[free])
     taken = np.zeros(len(free), dtype=bool)
     out: list[int] = []

@@ -555,6 +555,36 @@ def _column_groups(ws: Workspace, by: str) -> tuple[np.ndarray, list[dict[str, A
     return label, [{"group": g} for g in labels], how
 
 
+def _select_clustering(
+    ws: Workspace, frames: dict[int, Any], n: int, n_levels: int
+) -> tuple[int, int | None]:
+    """How many clusters the latest BAMS/BAS batch's greedy ran on, and the K-means sample
+    size it clustered on (None: every point).
+
+    The batch's recorded plan when it has one; else (batches from before plans were
+    recorded) ``plan_selection`` from its options, as ``select`` would have planned: the
+    approximate plan runs on more clusters than --clusters once the pool is large.
+    """
+    from bams_cli.core.select import plan_selection
+    from bams_cli.pipeline.selection import GREEDY_PLANS
+
+    clusters, greedy = defaults.CLUSTERS, defaults.GREEDY.value
+    for b in sorted(frames, reverse=True):
+        meta = read_metadata_json(schemas.batch_path(ws.root, b))
+        options = meta.get("options") or {}
+        if options.get("strategy") not in ("bams", "bas"):
+            continue
+        taken = meta.get("selection_plan") or {}
+        if isinstance(taken.get("clusters"), int) and taken["clusters"] >= 1:
+            sample = taken.get("cluster_fit_sample")
+            return taken["clusters"], sample if isinstance(sample, int) and sample > 0 else None
+        clusters = int(options.get("clusters", clusters))
+        greedy = str(options.get("greedy", greedy))
+        break
+    plan = plan_selection(n, n_levels, clusters, approximate=GREEDY_PLANS.get(greedy, "auto"))
+    return plan.n_clusters, plan.cluster_fit_max
+
+
 def _groups(
     ws: Workspace,
     X: np.ndarray,
@@ -584,21 +614,13 @@ def _groups(
         kind = "column"
     elif model is not None:
         lengthscales = np.asarray(model["hyperparameters"]["lengthscales0"], dtype=np.float64)
-        clusters, greedy = defaults.CLUSTERS, defaults.GREEDY.value
-        for b in sorted(frames, reverse=True):
-            options = read_metadata_json(schemas.batch_path(ws.root, b)).get("options") or {}
-            if options.get("strategy") in ("bams", "bas"):
-                clusters = int(options.get("clusters", clusters))
-                greedy = str(options.get("greedy", greedy))
-                break
-        # Clustered as select clustered: on a sample under the approximate plan.
-        big = greedy == "approximate" or (greedy == "auto" and n > defaults.SELECT_EXACT_MAX_POOL)
+        clusters, fit_max = _select_clustering(ws, frames, n, n_levels)
         label = cluster_pool(
             X,
             lengthscales,
             clusters,
             rng=np.random.default_rng([seed, 0x5E1EC7]),
-            fit_max=defaults.SELECT_CLUSTER_FIT_MAX if big else None,
+            fit_max=fit_max,
         )
         groups = [{"group": f"cluster {c}"} for c in range(int(label.max()) + 1)]
         how = (

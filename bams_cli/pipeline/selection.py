@@ -569,6 +569,9 @@ def select(
         "j_before": j_before,
         "j_after": j_after,
     }
+    if selection_plan is not None:
+        # The plan as taken (clusters, rows, candidates): the report clusters as select did.
+        meta["selection_plan"] = selection_plan
     table = schemas.BATCH.conform(pa.table(cols), meta)
     path = schemas.batch_path(ws.root, number)
     with transaction() as tx:
