@@ -260,7 +260,14 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
 
 
 def _json(name: str, summary: dict[str, Any]) -> None:
-    """Print a command's --json output, led by the version of its schema (``bams-cli schema``)."""
+    """Print a command's --json output, led by the version of its schema (``bams-cli schema``).
+
+    The summary's ``warnings`` also go to stderr, one JSON object per line, as every other
+    warning does under --json (a script watching stderr sees them without parsing stdout);
+    not for a no-op re-run, which only repeats what was warned when the work was done."""
+    if not summary.get("up_to_date"):
+        for text in summary.get("warnings") or []:
+            console.warning(str(text))
     console.print_json({"schema_version": schemas_json.version(name), **summary})
 
 
@@ -803,7 +810,9 @@ def estimate(
     samples: Annotated[
         float | None,
         typer.Option(
-            "--samples", "-K", help="Simulation budget K \\[default: 5 x the GP's p x N]."
+            "--samples",
+            "-K",
+            help="Simulation budget K \\[default: 5 x the GP's p x N, at least 100].",
         ),
     ] = None,
     weighting: Annotated[

@@ -466,6 +466,8 @@ def plan_summary(s: Mapping[str, Any]) -> None:
     )
     for text in s.get("notes") or []:
         note(text)
+    for text in s.get("warnings") or []:
+        warning(text)
 
 
 def report_summary(s: Mapping[str, Any]) -> None:

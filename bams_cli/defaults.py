@@ -171,6 +171,13 @@ ALPHA = 0.75
 #: confidence costs a bounded, not an astronomical, variance (DESIGN.md, "Rate estimate").
 DEFENSIVE = 0.1
 
+#: ``estimate --plan``'s default K is 5 x the GP's expected failures (the paper's 5 p N),
+#: at least 5 x (the level-0 failures seen + 1) and at least this many simulations (or every
+#: segment without a level-0 result). A GP that has seen no level-0 failure put its rate at
+#: 1e-6 in a study with a true 0.0057 (15,000 segments, three batches), and K = 5 gave
+#: "0, 90% interval [0, 0.49]"; 100 uniform samples with no failure bound the rate at ~2.3%.
+PLAN_MIN_SAMPLES = 100
+
 #: The rate estimate runs in stages (``estimate --plan`` once per stage): stage 1 spends
 #: this share of the budget K, and its level-0 outcomes check the model before the later
 #: stages spend the rest (``core.design``).

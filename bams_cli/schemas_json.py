@@ -339,6 +339,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                     }
                 ),
                 "notes": array(STR),
+                "warnings": array(STR),
             }
         ),
     ),

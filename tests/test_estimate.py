@@ -338,3 +338,51 @@ def test_a_plan_stores_pi_and_q_and_no_separate_prob(fitted_ws, tmp_path, design
         if level0[r["segment_id"]] <= 0.56
     )
     assert out["estimates"][1]["p_hat"] == pytest.approx(total / 400, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "values, warned", [([3.1, 2.9, 3.0, 3.2, 3.3], True), ([0.3, 3.1, 2.9, 3.0, 3.2], False)]
+)
+def test_the_default_k_has_a_floor_and_says_when_no_level0_failure_checked_the_rate(
+    toy_ws, runner, tmp_path, values, warned
+):
+    """A GP that has seen no level-0 failure can put its rate near 0 and K = 5 p N at 5,
+    an estimate of "0, at most 0.5": the default K is at least defaults.PLAN_MIN_SAMPLES,
+    and with no level-0 failure known the plan says so, on stderr as a JSON line under
+    --json, with the model's rate and how to size K."""
+    import pyarrow as pa
+
+    from tests.conftest import write_batch
+
+    ids = [f"t{i:06d}" for i in range(0, 400, 40)][: len(values)]
+    write_batch(toy_ws, 1, ids, [0] * len(ids))
+    res = tmp_path / "r1.parquet"
+    pq.write_table(pa.table({"segment_id": ids, "fidelity": [0] * len(ids), "value": values}), res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    hp = {
+        "mean": 3.0,
+        "outputscale0": 0.25,
+        "lengthscales0": [1.0, 1.0],
+        "outputscales": [0.01],
+        "lengthscales": [[1.0, 1.0]],
+        "noise": [1e-4, 1e-4],
+    }
+    saved = tmp_path / "hp.json"
+    saved.write_text(json.dumps(hp))
+    ok(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved)
+    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--json")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    n_unknown = 400 - len(ids)
+    paper = 5 * max(s["gp_rate_estimate"] * 400, (0 if warned else 1) + 1)
+    assert s["series_K"] == min(round(max(paper, defaults.PLAN_MIN_SAMPLES)), n_unknown)
+    if warned:  # the model's rate alone would have planned a handful of runs
+        assert paper < 10 and s["series_K"] == defaults.PLAN_MIN_SAMPLES
+    lines = [json.loads(line)["warning"] for line in r.stderr.splitlines()]
+    assert lines == s["warnings"]
+    if warned:
+        [w] = s["warnings"]
+        assert "no level-0 failure is known" in w and f"{s['gp_rate_estimate']:.2g}" in w
+        assert "--samples" in w
+    else:
+        assert s["warnings"] == []

@@ -169,6 +169,19 @@ def test_fit_warns_when_level0_runs_surprise_the_model(toy_ws, runner, tmp_path)
     assert model["jitter"] == 0.0
 
 
+def test_fit_s_warnings_reach_stderr_as_json_lines_under_json(toy_ws, runner, tmp_path):
+    # The README's contract: under --json every warning is one {"warning": ...} line on
+    # stderr, the model's self-check included (it was only inside the JSON on stdout).
+    _, _ = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=1e-4)
+    saved = tmp_path / "hp.json"
+    r = invoke(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved, "--json", "--force")
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(line) for line in r.stderr.splitlines()]
+    summary = json.loads(r.stdout)
+    assert summary["warnings"] and lines == [{"warning": w} for w in summary["warnings"]]
+    assert "overconfident at level 0" in lines[0]["warning"]
+
+
 def test_fit_records_its_output_transform_and_fixed_hyperparameters_reuse_it(
     fitted_ws, runner, tmp_path
 ):

@@ -229,7 +229,7 @@ def test_help_paragraphs_come_out_whole_on_a_wide_terminal(runner, name, monkeyp
     [
         ("benchmark", "[default: the committed sample data]"),
         ("benchmark", "[default: all]"),
-        ("estimate", "[default: 5 x the GP's p x N]"),
+        ("estimate", "[default: 5 x the GP's p x N, at least 100]"),
         ("estimate", "[default: the latest]"),
         ("select", "[default: all cores]"),
         ("embed-reduce", "[default: settings, 12]"),

@@ -706,9 +706,10 @@ def test_the_cluster_view_has_the_clusters_the_batch_s_greedy_ran_on(study, tmp_
     ok(study.runner, "report", "-w", ws)
     g = json.loads((ws / "report" / "summary.json").read_text())["groups"]
     assert g["kind"] == "clusters" and len(g["rows"]) == 3
-    assert sum(row["size"] for row in g["rows"]) == study.reports[FINAL]["summary"]["study"][
-        "pool_size"
-    ]
+    assert (
+        sum(row["size"] for row in g["rows"])
+        == study.reports[FINAL]["summary"]["study"]["pool_size"]
+    )
 
 
 def test_a_batch_without_a_recorded_plan_is_clustered_as_select_would_plan_it(tmp_path):

@@ -183,6 +183,7 @@ def estimate_plan(
     n_unknown = int((~known).sum())
     number = (plan_numbers(ws) or [0])[-1] + 1
 
+    warnings: list[str] = []
     # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
     staged = design == "poisson"
     prev = st.plan_info(ws, number - 1) if number > 1 else None
@@ -210,10 +211,21 @@ def estimate_plan(
     else:
         if samples is None:
             # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
-            # can put p N near 0, so the failures already seen at level 0 set a floor.
+            # can put p N near 0, so the failures already seen at level 0 set a floor, and
+            # so does defaults.PLAN_MIN_SAMPLES: a GP that has seen no failure at level 0
+            # can put its rate at 1e-6 and K at 5, an estimate of "0, at most 0.5".
             obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
             seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
-            samples = float(round(5 * max(gp_rate * n, seen + 1)))
+            paper = 5 * max(gp_rate * n, seen + 1)
+            samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
+            if seen == 0:
+                warnings.append(
+                    f"no level-0 failure is known, so nothing has checked the model's rate "
+                    f"({gp_rate:.2g}); K = {min(samples, n_unknown):g} is the default's "
+                    f"floor (5 x the model's expected failures would be {paper:.3g}): pass "
+                    "--samples K sized for the smallest rate the estimate must rule out "
+                    "(no failure among K uniform samples bounds it at about 2.3/K, 90%)"
+                )
         if design == "with-replacement":
             samples = float(round(samples))
         if design != "with-replacement":
@@ -376,6 +388,7 @@ def estimate_plan(
         "seed": stream[0],
         "seed_source": meta["seed_source"],
         "notes": notes,
+        "warnings": warnings,
     }
 
 
