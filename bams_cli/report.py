@@ -328,6 +328,8 @@ def _img(b64: str, alt: str) -> str:
 
 
 def _sig(x: float) -> str:
+    if x == 0:
+        return "0"
     return f"{x:.2g}" if x >= 1e-3 else f"{x:.1e}"
 
 
@@ -363,12 +365,31 @@ def headline(
     e = next((r for r in estimates if r["gamma"] == gamma), None)
     if e is not None:
         rate = e["p_hat"]
-        one_in = f" (about 1 in {round(1 / rate):,})" if rate > 0 else ""
-        text = (
-            f"failure rate {_sig(rate)} per segment{one_in}; "
-            f"{100 * e['confidence']:g}% interval {_sig(e['ci_low'])} to {_sig(e['ci_high'])}; "
-            f"{found}; {runs} runs spent"
+        conf = f"{100 * e['confidence']:g}%"
+        interval = f"{conf} interval {_sig(e['ci_low'])} to {_sig(e['ci_high'])}"
+        abandoned = int(e.get("abandoned") or 0)
+        if e.get("p_hat_low") is not None and e.get("p_hat_high") is not None:
+            # --failed-as bounds: a range over the abandoned segments, not one rate.
+            rate_text = (
+                f"failure rate between {_sig(e['p_hat_low'])} and {_sig(e['p_hat_high'])} per "
+                f"segment (the {abandoned} abandoned segment{'s' if abandoned != 1 else ''} "
+                f"all passing, then all failing); {interval}"
+            )
+        elif rate == 0 and not e.get("failures_sampled") and not e.get("failures_known"):
+            rate_text = (
+                f"failure rate at most {_sig(e['ci_high'])} per segment (no failure in the "
+                f"estimate's sample; {interval})"
+            )
+        else:
+            one_in = f" (about 1 in {round(1 / rate):,})" if rate > 0 else ""
+            rate_text = f"failure rate {_sig(rate)} per segment{one_in}; {interval}"
+        done, planned = int(e.get("stages_done") or 1), int(e.get("stages") or 1)
+        stage_text = (
+            f"; stage {done} of {planned} only: the next `estimate --plan` draws the rest"
+            if done < planned
+            else ""
         )
+        text = f"{rate_text}{stage_text}; {found}; {runs} runs spent"
         plans = e.get("plans") or [e.get("plan", "?")]
         by = (
             f"plan {plans[0]}"
@@ -379,13 +400,15 @@ def headline(
             f"The interval rests on {e['failures_sampled']} failure"
             f"{'s' if e['failures_sampled'] != 1 else ''} among {e['n_sampled']} segments "
             f"sampled by {by}"
+            + (f" ({abandoned} of them abandoned)" if abandoned else "")
             + (f", beside {e['failures_known']} known before it" if e.get("failures_known") else "")
             + "; "
             + INTERVAL_KINDS.get(e.get("interval", "gamma"), "")
             + "More samples (a larger `estimate --plan --samples K`) narrow it."
         )
         if e.get("variance_note"):
-            width += f" {e['variance_note']}"
+            note = str(e["variance_note"])
+            width += f" {note[:1].upper()}{note[1:]}"
         return {"text": text, "width": width}
     g = next((r for r in gp_rows if r["gamma"] == gamma), None)
     model = (

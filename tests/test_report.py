@@ -371,6 +371,10 @@ def test_the_headline_and_failures_csv_say_what_the_log_says(study, stage):
         assert f"among {e['n_sampled']} segments sampled by {by}" in s["headline"]["width"]
         if stage == "plan 2 computed":  # the second stage of a two-stage estimate
             assert made_of == [1, 2] and "sampled by plans 1 and 2" in s["headline"]["width"]
+        # Between the stages the headline says the estimate rests on stage 1 alone.
+        remains = doc["staging"]["stages_done"] < doc["staging"]["stages"]
+        assert ("stage 1 of 2 only" in head) == remains
+        assert remains == (stage in ("plan 1 computed", "plan 2 pending"))
     else:
         assert head.startswith("no failure-rate estimate yet")
     # It leads summary.md and the HTML, above every table.
@@ -866,3 +870,54 @@ def test_estimate_and_the_report_name_the_interval_s_kind(tmp_path):
     assert "it is Fay and Feuer's interval" in r["summary"]["headline"]["width"]
     assert "80% Fay-Feuer intervals." in r["html"]
     assert r["summary"]["estimate_history"][-1]["interval"] == "fay-feuer"
+
+
+def _estimate_row(**over):
+    row = {
+        "gamma": 0.0,
+        "p_hat": 0.0,
+        "ci_low": 0.0,
+        "ci_high": 0.49,
+        "confidence": 0.9,
+        "failures_sampled": 0,
+        "failures_known": 0,
+        "n_sampled": 3,
+        "plan": 1,
+        "plans": [1],
+        "interval": "gamma",
+        "stages_done": 1,
+        "stages": 1,
+    }
+    return row | over
+
+
+SPENT = {"per_level": {"0": {"count": 20}, "1": {"count": 40}}}
+
+
+def test_a_headline_with_no_failure_sampled_is_an_upper_limit_not_a_rate_of_zero():
+    h = rep.headline([_estimate_row()], [], [], SPENT, 0.0)
+    assert h["text"].startswith(
+        "failure rate at most 0.49 per segment (no failure in the estimate's sample; "
+        "90% interval 0 to 0.49); 0 failures confirmed at level 0"
+    )
+    assert "0.0e+00" not in h["text"]
+
+
+def test_a_headline_over_abandoned_segments_is_a_range_and_says_a_stage_remains():
+    note = "1 planned segments abandoned: the interval runs from ..."
+    e = _estimate_row(
+        p_hat=0.1546, p_hat_low=6.67e-5, p_hat_high=0.1546, ci_low=6.67e-5, ci_high=0.733,
+        abandoned=1, failures_known=1, stages_done=1, stages=2, variance_note=note,
+    )  # fmt: skip
+    h = rep.headline([e], [], [], SPENT, 0.0)
+    assert h["text"].startswith(
+        "failure rate between 6.7e-05 and 0.15 per segment (the 1 abandoned segment all "
+        "passing, then all failing); 90% interval 6.7e-05 to 0.73; stage 1 of 2 only: the "
+        "next `estimate --plan` draws the rest; "
+    )
+    assert "among 3 segments sampled by plan 1 (1 of them abandoned)" in h["width"]
+    assert "narrow it. 1 planned" in h["width"]  # a sentence of its own, capitalised
+    # One stage of one: nothing remains, and a sampled failure gives a rate.
+    h = rep.headline([_estimate_row(p_hat=0.002, failures_sampled=2)], [], [], SPENT, 0.0)
+    assert h["text"].startswith("failure rate 0.002 per segment (about 1 in 500); 90% interval")
+    assert "stage" not in h["text"]

@@ -207,10 +207,15 @@ def report(
     if shown_plan is not None:
         doc = ws.read_estimate(shown_plan)  # a damaged file is named, with its fix
         # A staged estimate rests on every stage's sample so far, not the last plan alone.
-        made_of = (doc.get("staging") or {}).get("plans") or [shown_plan]
+        staging = doc.get("staging") or {}
+        made_of = staging.get("plans") or [shown_plan]
         kind = doc.get("interval", "gamma")
+        # How many of the estimate's planned stages it rests on (the headline says when
+        # one remains).
+        stages = {"stages_done": staging.get("stages_done", 1), "stages": staging.get("stages", 1)}
         estimates = [
-            {**e, "plan": shown_plan, "plans": made_of, "interval": kind} for e in doc["estimates"]
+            {**e, "plan": shown_plan, "plans": made_of, "interval": kind, **stages}
+            for e in doc["estimates"]
         ]
         gp_rows = doc["gp"]
     elif scores is not None:
