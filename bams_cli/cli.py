@@ -544,6 +544,8 @@ def ingest_results(
         console.rows_table(
             f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
         )
+    elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
+        console.note("nothing pending: every selected segment has a result or is abandoned")
     else:
         console.note("nothing pending: every selected segment has a result")
 

@@ -222,7 +222,7 @@ def _next_step(
         return step(
             "ingest-results",
             cmd,
-            f"{n} picks await results: simulate {' and '.join(waiting)} and run `{cmd}` "
+            f"{n} {'pick awaits' if n == 1 else 'picks await'} results: simulate {' and '.join(waiting)} and run `{cmd}` "
             "(RESULTS.parquet: the results file, Parquet or CSV)",
             handoffs=waiting,
         )

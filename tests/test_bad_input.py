@@ -210,6 +210,13 @@ INGEST_CASES = [
          "value 1e+308 is beyond +-1e+150", column="value", row=2),
     Case("results-value-text", _csv(HEADER + f"{P0},0,abc\n"), RC,
          "value must be a finite number, got 'abc'", column="value", row=1),
+    # A CSV's "nan" or "NA" is what it says, not an empty field (pyarrow's default reads
+    # them as missing, and the message said "got nothing").
+    Case("results-value-nan-csv", _csv(HEADER + f"{P0},0,1\n{P1},0,nan\n"), RC,
+         "value must be a finite number, got nan; fill it in, or say why there is none in the "
+         "status column", column="value", row=2),
+    Case("results-value-na-csv", _csv(HEADER + f"{P0},0,NA\n"), RC,
+         "value must be a finite number, got 'NA'", column="value", row=1),
     Case("results-value-empty", _csv(HEADER + f"{P0},0,1\n{P1},0,\n"), RC,
          "value must be a finite number, got nothing; fill it in, or say why there is none in the "
          "status column", column="value", row=2),

@@ -206,6 +206,12 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     for g, e in enumerate(out["estimates"]):
         assert e["p_hat"] == pytest.approx(w1 * one.p_hat[g] + w2 * two.p_hat[g], rel=1e-12)
         assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
+        # Failures are counted once: known before stage 1, then sampled by either stage
+        # (stage 2's known stratum holds stage 1's sampled failures).
+        assert e["failures_known"] == one.n_known_failures[g]
+        assert e["failures_sampled"] == one.n_failures_sampled[g] + two.n_failures_sampled[g]
+        assert e["failures_known"] + e["failures_sampled"] == e["distinct_failures_found"]
+    assert one.n_failures_sampled.max() > 0  # else the double count could not show
     # The third plan starts a new estimate: the series is complete.
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)

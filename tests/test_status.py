@@ -137,6 +137,9 @@ def test_pending_picks_name_their_hand_off_list(study, stage, handoff):
     assert f"simulate {study.ws / handoff} and run" in study.stages[stage]["text"]
     rows = got["plans"] if "plan" in stage else got["batches"]
     assert rows[-1]["pending"] == got["pending"] > 0
+    n = got["pending"]
+    says = f"{n} pick awaits results" if n == 1 else f"{n} picks await results"
+    assert says in got["next"]["text"]
     assert all(r["pending"] == 0 for r in rows[:-1])
 
 

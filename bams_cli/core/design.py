@@ -478,6 +478,9 @@ def combine_stages(
         rel_var=rel_var,
         n_sampled=np.sum([s.n_sampled for s in stages], axis=0),
         n_failures_sampled=np.sum([s.n_failures_sampled for s in stages], axis=0),
+        # Known before the estimate began: a later stage's known stratum holds the earlier
+        # stages' sampled failures, already counted in n_failures_sampled.
+        n_known_failures=stages[0].n_known_failures,
         n_eff=n_eff,
         variance_basis=basis.astype(np.int8),
         w_allow=w_next,

@@ -304,7 +304,12 @@ def read_table(path: Path, *, what: str = "table") -> pa.Table:
             # Ids stay text: type inference would turn "029" into 29; an empty status
             # column is still text.
             text = {name: pa.string() for name in ("segment_id", "request_id", "status")}
-            convert = pacsv.ConvertOptions(column_types=text)
+            # Only an empty field is missing: pyarrow's default also reads "nan", "NA" and
+            # "NULL" as missing, and an error about a cell holding "nan" then said "got
+            # nothing" (a Parquet file's NaN said "got nan").
+            convert = pacsv.ConvertOptions(
+                column_types=text, null_values=[""], strings_can_be_null=True
+            )
             # One thread: only then does pyarrow number a ragged row (the handler keeps it).
             ragged: list[Any] = []
 
