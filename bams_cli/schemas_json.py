@@ -105,6 +105,7 @@ CHECKS: Schema = obj(
                 "mean_z2": nullable(NUM),
                 "max_abs_z": nullable(NUM),
                 "p_value": nullable(NUM),
+                "max_p_value": nullable(NUM),
             },
         ),
         "pairs": array(

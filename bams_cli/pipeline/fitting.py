@@ -246,7 +246,7 @@ def fit(
             progress("score pool", stop, n)
 
     rows = model.conditioned_rows
-    checks = check_model(model, idx if rows is None else idx[rows])
+    checks = check_model(model, idx if rows is None else idx[rows], names=ids)
     warnings = [
         *model.notes,
         *checks.warnings,

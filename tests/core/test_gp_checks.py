@@ -3,6 +3,8 @@ differences, and the warnings they give."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -116,3 +118,33 @@ def test_calibrated_model_has_loo_mean_square_near_one():
     checks = check_model(MFGP(X, np.zeros(150, int), y, 1, hp), np.arange(150))
     assert 0.7 < checks.loo_mean_z2 < 1.35
     assert not checks.warnings
+
+
+def test_one_level0_run_far_from_its_prediction_is_flagged_by_name():
+    """A mean square of z that passes can hide one run many sds off (|z| 5.5 among twenty
+    in a trial study): the largest |z| gets its own Bonferroni test, and the warning names
+    the segment. Data drawn from the model itself, then one result moved by 1.3 (~5 sd
+    of its leave-one-out prediction)."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-2, 2, size=(300, 2))
+    hp = Hyperparameters(
+        mean=0.0, outputscale0=1.0, lengthscales0=np.full(2, 0.7), outputscales=np.zeros(0),
+        lengthscales=np.zeros((0, 2)), noise=np.array([0.05]),
+    )  # fmt: skip
+    from tests.core.test_gp import ref_matern52
+
+    K = ref_matern52(X, X, hp.lengthscales0, 1.0) + 0.05 * np.eye(300)
+    y = np.linalg.cholesky(K) @ rng.normal(size=300)
+    seg = np.arange(300) + 1000  # pool rows
+    names = np.array([f"s{i:05d}" for i in range(1200)])
+    calm = check_model(MFGP(X, np.zeros(300, int), y, 1, hp), seg, names=names)
+    assert calm.loo_max_p_value > 0.01 and not calm.warnings
+    y[37] += 1.3
+    checks = check_model(MFGP(X, np.zeros(300, int), y, 1, hp), seg, names=names)
+    assert checks.loo_p_value >= 0.01  # the mean square alone would not say it
+    assert checks.loo_max_abs_z > 5 and checks.loo_max_row == 1037
+    bound = 300 * math.erfc(checks.loo_max_abs_z / math.sqrt(2))
+    assert checks.loo_max_p_value == pytest.approx(bound) and bound < 1e-4
+    [w] = checks.warnings
+    assert "near segment s01037" in w and f"{checks.loo_max_abs_z:.1f} sd" in w
+    assert checks.to_dict()["loo_level0"]["max_p_value"] == pytest.approx(bound)
