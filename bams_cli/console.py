@@ -189,9 +189,17 @@ def study_status(s: Mapping[str, Any]) -> None:
     out.print(f"model: {text}", markup=False, highlight=False, soft_wrap=True)
     e = s["latest_estimate"]
     if e is not None:
+        done, planned = e.get("stages_done", 1), e.get("stages", 1)
+        of = f", stage {done} of {planned} only" if done < planned else ""
         for row in e["estimates"]:
+            rate = (
+                f"p_hat between {row['p_hat_low']:.4g} and {row['p_hat_high']:.4g} (abandoned "
+                "segments passing, then failing)"
+                if "p_hat_high" in row
+                else f"p_hat {row['p_hat']:.4g}"
+            )
             out.print(
-                f"estimate (plan {e['plan']}): gamma {row['gamma']:g}: p_hat {row['p_hat']:.4g}, "
+                f"estimate (plan {e['plan']}{of}): gamma {row['gamma']:g}: {rate}, "
                 f"{round(100 * row['confidence'])}% interval [{row['ci_low']:.4g}, "
                 f"{row['ci_high']:.4g}]",
                 markup=False,

@@ -444,8 +444,14 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {
                             "plan": INT,
                             "file": PATH,
-                            "estimates": array(obj({"gamma": NUM, "p_hat": NUM})),
-                        }
+                            "estimates": array(
+                                obj(
+                                    {"gamma": NUM, "p_hat": NUM},
+                                    {"p_hat_low": NUM, "p_hat_high": NUM},
+                                )
+                            ),
+                        },
+                        {"stages_done": INT, "stages": INT},
                     )
                 ),
                 "commit_in_progress": BOOL,

@@ -189,10 +189,20 @@ def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     path = files[-1]
     doc = ws.read_estimate(int(path.stem[len("estimate-") :]))
     keys = ("gamma", "p_hat", "se", "ci_low", "ci_high", "confidence")
+    # Under --failed-as bounds p_hat is the all-failing end of a range (p_hat_low to
+    # p_hat_high), not a rate: the range goes with it. A staged estimate says how many of
+    # its stages it rests on.
+    ranged = ("p_hat_low", "p_hat_high")
+    staging = doc.get("staging") or {}
     return {
         "plan": doc.get("plan"),
         "file": str(path),
-        "estimates": [{k: e.get(k) for k in keys} for e in doc["estimates"]],
+        "stages_done": staging.get("stages_done", 1),
+        "stages": staging.get("stages", 1),
+        "estimates": [
+            {k: e.get(k) for k in keys} | {k: e[k] for k in ranged if e.get(k) is not None}
+            for e in doc["estimates"]
+        ],
     }
 
 

@@ -184,10 +184,20 @@ def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp
         assert row["n_sampled"] == lo["n_sampled"]  # never a smaller sample
         assert row["se"] is None and "abandoned" in row["variance_note"]
 
-    # The report shows the bounded estimate and the abandoned counts, without truth.
+    # status says the estimate is a range, not the all-failing end of it as a rate.
+    code, s = _status(runner, ws)
+    row = s["latest_estimate"]["estimates"][0]
+    assert row["p_hat_low"] == pytest.approx(bounded["estimates"][0]["p_hat_low"])
+    text = invoke(runner, "status", "-w", ws).stdout
+    assert "p_hat between " in text and "(abandoned segments passing, then failing)" in text
+
+    # The report shows the bounded estimate and the abandoned counts, without truth; its
+    # headline gives the range.
     ok(runner, "report", "-w", ws)
     md = (ws / "report" / "summary.md").read_text()
     assert "3 planned segments abandoned" in md
+    summary = json.loads((ws / "report" / "summary.json").read_text())
+    assert summary["headline"]["text"].startswith("failure rate between ")
     summary = json.loads((ws / "report" / "summary.json").read_text())
     assert summary["batches"][0]["abandoned"] == 3
 
