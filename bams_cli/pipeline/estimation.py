@@ -219,12 +219,17 @@ def estimate_plan(
             paper = 5 * max(gp_rate * n, seen + 1)
             samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
             if seen == 0:
+                k = min(samples, n_unknown)
+                why = (
+                    f"K = {k:g} is the default's floor (the paper's 5 p N gives {paper:.3g})"
+                    if paper < defaults.PLAN_MIN_SAMPLES
+                    else f"K = {k:g} rests on that rate"
+                )
                 warnings.append(
-                    f"no level-0 failure is known, so nothing has checked the model's rate "
-                    f"({gp_rate:.2g}); K = {min(samples, n_unknown):g} is the default's "
-                    f"floor (5 x the model's expected failures would be {paper:.3g}): pass "
-                    "--samples K sized for the smallest rate the estimate must rule out "
-                    "(no failure among K uniform samples bounds it at about 2.3/K, 90%)"
+                    "no level-0 failure is known, so nothing has checked the model's rate "
+                    f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
+                    "the estimate must rule out (no failure among K uniform samples bounds "
+                    "it at about 2.3/K, 90%)"
                 )
         if design == "with-replacement":
             samples = float(round(samples))
