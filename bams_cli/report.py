@@ -518,8 +518,10 @@ def _trends_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
         parts.append(
             "<p class='note'>Blue: the model's rate (mean p_n) after each batch, its band 2 "
             "Proposition-1 sd bounds either side (a loose bound: the band may run off the "
-            "top). Red: every estimate made, with its interval; unlike the model's rate it is "
-            "unbiased whatever the model.</p>"
+            "top). The band is the model's own uncertainty, which nothing outside the model "
+            "checks: it can lie wholly below the true rate, as it does when the model has seen "
+            "no failure at level 0. Red: every estimate made, with its interval; unlike the "
+            "model's rate it is unbiased whatever the model.</p>"
         )
     if "predicted" in figures:
         parts.append(_img(figures["predicted"], "failures found against the predicted count"))
@@ -974,10 +976,11 @@ def render_markdown(summary: dict[str, Any]) -> str:
             "|---|---|---|---|---|---|---|",
         ]
         for b in s["batches"]:
+            se = b["mean_f0_se"]  # None below two level-0 values: no SE, not "()"
             mf = (
                 ""
                 if b["mean_f0"] is None
-                else f"{b['mean_f0']:.3g} ({_maybe(b['mean_f0_se']) if b['mean_f0_se'] is None else format(b['mean_f0_se'], '.2g')})"
+                else f"{b['mean_f0']:.3g}" + ("" if se is None else f" ({se:.2g})")
             )
             lines.append(
                 f"| {b['batch']} | {b['strategy']} | {b['picks']} | {b['cost']:g} | {mf} "
