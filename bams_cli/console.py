@@ -407,6 +407,9 @@ def fit_summary(s: Mapping[str, Any]) -> None:
             return _num(xs[0])
         return f"{_num(min(xs))} .. {_num(max(xs))} over {len(xs)} dimensions"
 
+    failed = s.get("level0_failures") or {}
+    if failed and not any(failed.values()):
+        rate += " (the model's own mean p_n; no level-0 failure has checked it yet)"
     rows: dict[str, Any] = {
         "GP rate estimate": rate,
         "level 0": f"output sd {_num(hp['outputscale0'] ** 0.5)}, noise sd "

@@ -243,6 +243,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
             },
             {
                 "gp_rate_estimate": mapping(NUM, "gamma"),
+                "level0_failures": mapping(COUNT, "gamma"),
                 "conditioning": nullable(
                     obj(
                         {

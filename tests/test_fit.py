@@ -303,3 +303,18 @@ def test_fit_records_its_conditioning_and_select_uses_the_same_posterior(fitted_
     assert r.exit_code == 0, r.output
     r = invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2", "--force")
     assert r.exit_code == 0 and "conditioning" in r.output and "exact posterior" in r.output
+
+
+@pytest.mark.parametrize("values, failed", [([3.1, 2.9, 3.0, 3.2, 3.3], 0), ([0.3, 3.1, 2.9], 1)])
+def test_fit_says_when_no_level0_failure_has_checked_the_model_s_rate(
+    toy_ws, runner, tmp_path, values, failed
+):
+    # A trial study's model put its rate at 1.9e-6 against a true 0.0057 before any
+    # level-0 failure: the printed rate says it is the model's own and unchecked.
+    r, ids = _fit_with(toy_ws, runner, tmp_path, values, noise0=1e-4)
+    assert r.exit_code == 0, r.output
+    [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
+    assert ("no level-0 failure has checked it yet" in line) == (failed == 0)
+    saved = tmp_path / "hp.json"
+    r = invoke(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved, "--json", "--force")
+    assert json.loads(r.stdout)["level0_failures"] == {"0.56": failed}

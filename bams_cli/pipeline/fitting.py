@@ -319,6 +319,11 @@ def fit(
         "conditioning": doc["conditioning"],
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
+        # Segments seen failing at level 0, per gamma: without one, nothing outside the
+        # model has checked its rate (the printed summary says so).
+        "level0_failures": {
+            str(g): int(np.unique(idx[(lv == 0) & (y <= g)]).size) for g in settings.gammas
+        },
         "warnings": warnings,
     }
 
