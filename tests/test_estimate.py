@@ -392,3 +392,42 @@ def test_the_default_k_has_a_floor_and_says_when_no_level0_failure_checked_the_r
         assert "--samples" in w
     else:
         assert s["warnings"] == []
+
+
+def test_the_interval_s_allowance_trusts_p_n_as_little_as_the_evidence_allows(fitted_ws, tmp_path):
+    """The weight of the unseen failure the interval allows for is the mean (1 - pi)/pi
+    under the risk with lam at its RISK_MIX_UPPER posterior quantile, not its mean (which
+    put the allowance where the model is trusted and let intervals lie below the rate);
+    recomputed by hand from the scores and the stage-1 design."""
+    from typer.testing import CliRunner
+
+    from bams_cli.core import design as dz
+
+    src, _ = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    s = strict_json(
+        ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", "80", "--json").stdout
+    )
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    plan = pq.read_table(ws / "estimates" / "plan-0001.parquet")
+    known = set(pc.filter(plan["segment_id"], pc.equal(plan["stratum"], "known")).to_pylist())
+    scores = pq.read_table(ws / "scores.parquet")
+    unknown = np.array([sid not in known for sid in scores["segment_id"].to_pylist()])
+    p = scores["p_1"].to_numpy()[unknown]  # gamma 0.56, the plan's (the largest)
+    assert meta["plan_gamma"] == 0.56
+    post = dz.risk_posterior([])  # stage 1: the prior alone
+    pi = dz.choose_design(p, K=s["samples_K"], posterior=post).pi
+    lam_q = post.lam_quantile(defaults.RISK_MIX_UPPER)
+    assert lam_q > post.lam_mean + 0.2
+    w_tau = post.weights.sum(axis=1)
+    shaped = sum(
+        w * p**tau / np.mean(p**tau) for w, tau in zip(w_tau, post.taus, strict=True) if w > 0
+    )
+    r = lam_q + (1 - lam_q) * shaped
+    rand = (pi > 0) & (pi < 1)
+    by_hand = float((r[rand] * (1 - pi[rand]) / pi[rand]).sum() / r[rand].sum())
+    r_mean = post.risk(p)
+    at_mean = float((r_mean[rand] * (1 - pi[rand]) / pi[rand]).sum() / r_mean[rand].sum())
+    assert meta["w_model"][1] == pytest.approx(by_hand, rel=1e-9)
+    assert meta["w_model"][1] > 1.1 * at_mean  # the mean trust allowed for less

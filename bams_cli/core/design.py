@@ -34,6 +34,14 @@ its planning exactly and is unbiased given the past, so T = sum_s w_s T_s with w
 when stage 1 is planned (w_s = K_s / K) is unbiased, and its stages are uncorrelated
 (E[(T_1 - T)(T_2 - T)] = E[(T_1 - T) E[T_2 - T | stage 1]] = 0):
 Var(T) = sum_s w_s^2 Var(T_s), estimated by sum_s w_s^2 v_s (``combine_stages``).
+
+The interval's upper limit allows for a failure no stage sampled, of the mean weight
+(1 - pi)/pi that a failure placed as the risk says would carry (``unseen_failure_weight``).
+That risk is not the posterior mean the design uses but the least trust in p_n the evidence
+cannot rule out: lam at its ``defaults.RISK_MIX_UPPER`` (0.9) posterior quantile
+(``RiskPosterior.allowance_risk``). Failures the model puts where it is wrong sit at small
+pi, and the mean trust put too little weight there: a trial study's model expected 18
+failures in a region that held 113, and 2 of 9 intervals lay wholly below the rate.
 """
 
 from __future__ import annotations
@@ -166,11 +174,32 @@ class RiskPosterior:
                 r += trust[t] * u_tau / norm
         return r
 
+    def risk_at(self, p: ArrayLike, lam: float) -> FloatArray:
+        """Relative risk over U (mean 1) with the model trusted as little as ``lam`` says:
+        r = lam + (1 - lam) sum_tau w_tau u^tau / mean(u^tau), the shapes tau weighted as the
+        posterior weighs them. At lam = ``lam_quantile(defaults.RISK_MIX_UPPER)`` it is where
+        the interval's allowance puts an unseen failure (``unseen_failure_weight``): the
+        least trust in p_n that the evidence cannot rule out, not its mean.
+        """
+        u = relative_risk(p)
+        w_tau = self.weights.sum(axis=1)
+        shaped = np.zeros(u.size)
+        for t, tau in enumerate(self.taus):
+            if w_tau[t] > 0:
+                u_tau = u**tau
+                norm = float(np.mean(u_tau)) if u.size else 1.0
+                shaped += w_tau[t] * u_tau / norm
+        return float(lam) + (1.0 - float(lam)) * shaped
+
+    def allowance_risk(self, p: ArrayLike) -> FloatArray:
+        """``risk_at`` the lam quantile ``defaults.RISK_MIX_UPPER`` (module docstring)."""
+        return self.risk_at(p, self.lam_quantile(defaults.RISK_MIX_UPPER))
+
     def summary(self) -> dict[str, float | int]:
         """lam (mean, 90% upper), tau (mean) and the evidence's size, for the plan's record."""
         return {
             "lam": round(self.lam_mean, 6),
-            "lam_high": round(self.lam_quantile(0.9), 6),
+            "lam_high": round(self.lam_quantile(defaults.RISK_MIX_UPPER), 6),
             "tau": round(self.tau_mean, 6),
             "failures": self.failures,
             "sampled": self.sampled,

@@ -417,12 +417,13 @@ def _stage1(
     # One sort of U by p_n serves every trial: stage 2's U is U minus stage 1's sample, and
     # dropping segments from a sorted list leaves it sorted (``choose_design``'s order).
     order1 = np.argsort(-p1, kind="stable")
-    c1 = dz.choose_design(p1, K=K1, posterior=dz.risk_posterior([], prior=prior), order=order1)
+    post1 = dz.risk_posterior([], prior=prior)
+    c1 = dz.choose_design(p1, K=K1, posterior=post1, order=order1)
     pi1 = c1.pi
     return _Stage1(
         N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, K1=K1, K2=(1.0 - share) * K,
         weights=[share, 1.0 - share], p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
-        order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(c1.risk, pi1),
+        order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(post1.allowance_risk(p1), pi1),
         V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
     )  # fmt: skip
 
@@ -471,7 +472,7 @@ def _staged_trials(
         order2 = pos2[order1[rest[order1]]]
         c2 = dz.choose_design(p2, K=min(K2, float(p2.size)), posterior=post, order=order2)
         pi2 = c2.pi
-        wm2 = dz.unseen_failure_weight(c2.risk, pi2)
+        wm2 = dz.unseen_failure_weight(post.allowance_risk(p2), pi2)
         s2 = np.flatnonzero(rng.random(p2.size) < pi2)
         e2 = estimate_from_sample(
             pi2[s2], f2[s2], design="poisson", n_pool=N, n_unknown=p2.size,
@@ -699,7 +700,22 @@ def _staged_trials_fast(
                 pi_u = np.minimum(1.0, c * gg)
                 if thr < math.inf:
                     pi_u[gg >= thr] = 1.0
-            wm2 = pv[name] / mass if mass > 0 else math.nan
+            # The allowance's risk (``RiskPosterior.allowance_risk`` over U2): lam at its
+            # upper quantile, the shapes as the posterior weighs them; u^tau / mean(u^tau)
+            # is p^tau / mean(p^tau), and all ones where p_n is 0 over U2.
+            lam_q = post.lam_quantile(defaults.RISK_MIX_UPPER)
+            shaped = np.zeros(n1)
+            for i in range(taus.size):
+                if w_tau[i] > 0:
+                    shaped += w_tau[i] * (powers[i] / (sums[i] / n2) if positive else 1.0)
+            r_q = lam_q + (1.0 - lam_q) * shaped
+            rand = kept & (pi_u > 0.0) & (pi_u < 1.0)
+            mass_q = float(r_q[rand].sum())
+            wm2 = (
+                float(r_q[rand] @ ((1.0 - pi_u[rand]) / pi_u[rand])) / mass_q
+                if mass_q > 0
+                else math.nan
+            )
         pi2 = pi_u[kept]
         f2 = f1[kept]
         take2 = rng.random(n2) < pi2

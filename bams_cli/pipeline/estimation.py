@@ -273,7 +273,7 @@ def estimate_plan(
         # The interval's allowance for a failure no stage has seen, per gamma: where the
         # least-trusted calibrated model the evidence allows puts failures.
         w_model = [
-            dz.unseen_failure_weight(post.risk(p_all[unknown, g]), pi_u)
+            dz.unseen_failure_weight(post.allowance_risk(p_all[unknown, g]), pi_u)
             for g in range(len(settings.gammas))
         ]
     else:
