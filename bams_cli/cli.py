@@ -781,6 +781,9 @@ def select(
     fewer = (summary.get("selection_plan") or {}).get("workers_reason")
     if fewer:
         console.warning(fewer)
+    if not json_out:  # under --json, _json puts them on stderr
+        for text in summary.get("warnings") or []:
+            console.warning(text)
     _show(summary, json_out, console.select_summary, "select")
 
 
@@ -902,7 +905,7 @@ def estimate(
         bool,
         typer.Option(
             "--allow-pending",
-            help="With --plan: draw another plan although an earlier one awaits results.",
+            help="With --plan: draw a plan although an earlier plan or batch awaits results.",
         ),
     ] = False,
     failed_as: Annotated[

@@ -171,6 +171,10 @@ ALPHA = 0.75
 #: confidence costs a bounded, not an astronomical, variance (DESIGN.md, "Rate estimate").
 DEFENSIVE = 0.1
 
+#: ``select`` warns when the model expects fewer failures than this in the whole pool
+#: (N x J, J = mean p_n (1 - p_n)): its greedy then has nothing to aim at.
+SELECT_NEGLIGIBLE_FAILURES = 0.01
+
 #: ``estimate --plan``'s default K is 5 x the GP's expected failures (the paper's 5 p N),
 #: at least 5 x (the level-0 failures seen + 1) and at least this many simulations (or every
 #: segment without a level-0 result). A GP that has seen no level-0 failure put its rate at

@@ -283,6 +283,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
             {
                 "unchanged": BOOL,
                 "out": PATH,
+                "warnings": array(STR),
                 "selection_plan": obj(
                     {
                         "exact": BOOL,

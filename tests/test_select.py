@@ -143,6 +143,34 @@ def test_select_json_says_the_small_pool_ran_exactly(lead_ws, runner):
     summary, _ = _select(runner, lead_ws)
     assert summary["selection_plan"]["exact"] is True
     assert summary["selection_plan"]["clusters"] == 2
+    assert summary["warnings"] == []  # the model expects failures: nothing to warn about
+
+
+def test_select_warns_when_the_model_rules_failure_out_everywhere(toy_ws, runner, tmp_path):
+    # A trial's first fit after a random batch without a failure put J at 2.5e-30 and
+    # BAMS picked on rounding without a word. Here: level-0 values far above gamma 0.56
+    # and a model sure of them (sd 0.1 about 3).
+    import json as _json
+
+    ids = [f"t{i:06d}" for i in range(0, 400, 40)][:5]
+    write_batch(toy_ws, 1, ids, [0] * 5)
+    res = tmp_path / "r1.parquet"
+    values = [3.1, 2.9, 3.0, 3.2, 3.3]
+    pq.write_table(pa.table({"segment_id": ids, "fidelity": [0] * 5, "value": values}), res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    hp = {"mean": 3.0, "outputscale0": 0.01, "lengthscales0": [1.0, 1.0], "outputscales": [0.01],
+          "lengthscales": [[1.0, 1.0]], "noise": [1e-4, 1e-4]}  # fmt: skip
+    saved = tmp_path / "hp.json"
+    saved.write_text(_json.dumps(hp))
+    ok(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved)
+    r = ok(runner, "select", "-w", toy_ws, "--budget", "2", "--clusters", "1", "--workers", "1",
+           "--json")  # fmt: skip
+    summary = _json.loads(r.stdout)
+    expected = summary["j_before"] * 400
+    assert expected < defaults.SELECT_NEGLIGIBLE_FAILURES
+    [w] = summary["warnings"]
+    assert f"expects {expected:.2g} failures in the whole pool" in w and "--strategy random" in w
+    assert [_json.loads(line) for line in r.stderr.splitlines()] == [{"warning": w}]
 
 
 def test_select_greedy_forces_the_plan_and_a_batch_rerun_must_ask_for_the_same(lead_ws, runner):

@@ -62,7 +62,7 @@ def study(tmp_path_factory) -> Study:
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("fitted")
     s.run("select", "-w", ws, "--budget", "2", "--clusters", "1", "--workers", "1")
-    s.status("batch 2 pending")
+    s.status("batch 2 pending", keep=True)
     s.ingest(ws / "batches" / "batch-0002.parquet")
     s.status("batch 2 in")
     s.run("fit", "-w", ws, "--restarts", "1")
@@ -186,6 +186,8 @@ def test_status_reads_only(study, tmp_path):
         ("batch 1 pending", ["fit", "--restarts", "1"], "batch-0001.csv"),
         ("plan pending", ["select", "--budget", "2", "--clusters", "1"], "estimate plan 1"),
         ("plan pending", ["estimate"], "planned segments have no level-0 result"),
+        # A plan drawn beside a pending batch would miss its results, as select refuses.
+        ("batch 2 pending", ["estimate", "--plan", "--samples", "10"], "batch 2 awaits results"),
     ],
 )
 def test_commands_refusing_for_pending_results_exit_3(study, tmp_path, stage, args, needle):

@@ -111,7 +111,7 @@ def estimate_plan(
     handoff_internal : bool, default False
         Also put the internal columns in the CSV hand-off.
     allow_pending : bool, default False
-        Draw another plan although an earlier one awaits results.
+        Draw a plan although an earlier plan or a discovery batch awaits results.
     wait : bool, default False
         Wait for another command's workspace lock instead of failing at once
         (``WorkspaceLockedError``).
@@ -170,6 +170,16 @@ def estimate_plan(
             f"{int(pend['plan'].is_in(waiting).sum())} picks; simulate its hand-off list, "
             "ingest the results and run `bams-cli estimate`, or pass --allow-pending to "
             "draw another plan beside it"
+        )
+    batches = sorted(set(pend["batch"].drop_nulls().to_list())) if pend.height else []
+    if batches and not allow_pending:
+        # As select refuses: the plan would be drawn from a model that has not seen those
+        # results, and a pending pick that fails would not count as known.
+        raise PendingResultsError(
+            f"{ws.root}: batch {batches[-1]} awaits results for "
+            f"{int(pend['batch'].is_in(batches).sum())} picks; simulate its hand-off list, "
+            "ingest the results and refit before planning the estimate, or pass "
+            "--allow-pending to plan without them"
         )
     model = ws.require_fresh_model()
     ids, _, _, p_all = read_scores(ws, len(settings.gammas))

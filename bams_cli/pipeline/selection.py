@@ -584,6 +584,17 @@ def select(
             tx.write_with(out, lambda p: frame.write_csv(p))
     per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
     per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
+    warnings = []
+    if j_before is not None and j_before * len(ids) < defaults.SELECT_NEGLIGIBLE_FAILURES:
+        # J = mean p_n (1 - p_n) ~ mean p_n here: the model expects (nearly) no failure in
+        # the pool, and the greedy's decreases are rounding (a trial's first fit after a
+        # random batch without a failure put J at 2.5e-30).
+        warnings.append(
+            f"the model expects {j_before * len(ids):.2g} failures in the whole pool (J "
+            f"{j_before:.2g}): it rules failure out everywhere, so this batch's picks rest "
+            "on rounding, not on where failures may be; a random batch (--strategy random "
+            "--mixed-fidelity) or more level-0 runs test that belief"
+        )
     return {
         "batch": number,
         "handoff": str(path),
@@ -602,4 +613,5 @@ def select(
         "timings_s": timings,
         **({"selection_plan": selection_plan} if selection_plan is not None else {}),
         **({"out": str(out)} if out is not None else {}),
+        "warnings": warnings,
     }
