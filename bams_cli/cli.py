@@ -707,7 +707,9 @@ def select(
     include_observed: Annotated[
         bool,
         typer.Option(
-            "--include-observed", help="Let segments already observed at level 0 be picked again."
+            "--include-observed",
+            help="Let segments already observed at level 0 (and, for bams and bas, at a cheap "
+            "level) be picked again.",
         ),
     ] = False,
     workers: Workers = None,

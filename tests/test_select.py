@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -346,3 +347,28 @@ def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_
         new_pairs = {k for k in pairs if k not in known}
         assert set(zip(got["segment_id"], got["fidelity"], strict=True)) == new_pairs, n
     assert Workspace(lead_ws).pending().height == 0
+
+
+def test_bams_never_offers_a_cheap_run_the_log_already_holds(toy_ws, runner, toy_files, tmp_path):
+    # A trial's fourth BAMS batch repeated 11 cheap picks of earlier batches: wasted on a
+    # deterministic cheap simulator, refused as conflicts from a noisy one. 396 of 400
+    # segments have a level-1 result here, so the greedy would otherwise repeat them.
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(400)]
+    write_batch(toy_ws, 1, ids[:396] + ids[:4], [1] * 396 + [0] * 4)
+    res = tmp_path / "r1.parquet"
+    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    ok(runner, "fit", "-w", toy_ws, "--restarts", "1")
+    cheap_seen = set(ids[:396])
+
+    def picks(*extra):
+        copy = tmp_path / f"ws{len(extra)}"
+        shutil.copytree(toy_ws, copy)
+        ok(runner, "select", "-w", copy, "--budget", "1", "--clusters", "1", "--workers", "1",
+           *extra)  # fmt: skip
+        t = pq.read_table(copy / "batches" / "batch-0002.parquet")
+        return list(zip(t["segment_id"].to_pylist(), t["fidelity"].to_pylist(), strict=True))
+
+    assert not [s for s, lv in picks() if lv == 1 and s in cheap_seen]
+    assert [s for s, lv in picks("--include-observed") if lv == 1 and s in cheap_seen]

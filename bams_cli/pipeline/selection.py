@@ -220,6 +220,21 @@ def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
     return True
 
 
+def _observed_cheap(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray:
+    """[i, l] True where segment i already has a result at cheap level l >= 1.
+
+    The greedy never offers those again (level 0's are excluded with the segment): a
+    deterministic cheap simulator would return the logged value, and a noisy one a second
+    value that ``ingest-results`` refuses as a conflict; a trial's fourth BAMS batch had
+    repeated 11 cheap picks of batches 2-3.
+    """
+    seen = np.zeros((len(ids), n_levels), bool)
+    obs = ws.read_observations()
+    for lv in range(1, n_levels):
+        seen[:, lv] = np.isin(ids, obs.filter(pl.col("fidelity") == lv)[SID].to_numpy())
+    return seen
+
+
 @locked
 def select(
     root: Path,
@@ -294,7 +309,8 @@ def select(
     allow_pending : bool, default False
         Select although an earlier batch awaits results.
     include_observed : bool, default False
-        Let segments already observed at level 0 be picked again.
+        Let segments already observed at level 0, and (bams, bas) pairs already observed at a
+        cheap level, be picked again.
     workers : int, optional
         Local worker processes for clusters (default: all cores).
     scheduler : str, optional
@@ -452,7 +468,9 @@ def select(
                     progress=progress,
                     levels=[0] if strategy == "bas" else None,
                     reobserve_level0=include_observed,
-                    excluded_pairs=gone,
+                    excluded_pairs=gone | _observed_cheap(ws, ids, settings.n_levels)
+                    if not include_observed
+                    else gone,
                     pending_pairs=waiting if waiting.any() else None,
                     approximate=GREEDY_PLANS[greedy],
                     plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},
