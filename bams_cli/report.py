@@ -359,9 +359,9 @@ def headline(
     confirmed = sum(1 for f in failures if f["status"] == "confirmed" and gamma in f["fails_at"])
     leads = sum(1 for f in failures if f["status"] == "lead")
     runs = f"{n0} level-0" + (f" and {cheap} cheap" if cheap or len(per_level) > 1 else "")
-    found = f"{confirmed} failure{'s' if confirmed != 1 else ''} confirmed at level 0" + (
-        f" ({leads} more seen only at a cheap level)" if leads else ""
-    )
+    found = (
+        f"{confirmed} failure{'s' if confirmed != 1 else ''} confirmed at level 0 (gamma {gamma:g})"
+    ) + (f" ({leads} more seen only at a cheap level)" if leads else "")
     e = next((r for r in estimates if r["gamma"] == gamma), None)
     if e is not None:
         rate = e["p_hat"]
@@ -953,7 +953,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
     lines += [spend_line(s), ""]
     found = s["failures_found"]
     lines += [
-        f"Failures found: {found['count']} ({found['confirmed']} confirmed at level 0, "
+        f"Failures found: {found['count']} ({found['confirmed']} confirmed at level 0 at "
+        f"the largest gamma, {max(s['study']['gammas']):g}, "
         f"{found['leads']} lead{'s' if found['leads'] != 1 else ''} seen only at a cheap level), "
         "every one in report/failures.csv.",
         "",

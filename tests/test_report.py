@@ -361,6 +361,10 @@ def test_the_headline_and_failures_csv_say_what_the_log_says(study, stage):
     head = s["headline"]["text"]
     n_conf = sum(v <= gammas[0] for v in r["level0"].values())
     assert f"; {n_conf} failure{'s' if n_conf != 1 else ''} confirmed at level 0" in head
+    # Which gamma each count is at: the headline's the first, the found list's the largest.
+    assert f"confirmed at level 0 (gamma {gammas[0]:g})" in head
+    n_any = sum(v <= max(gammas) for v in r["level0"].values())
+    assert f"({n_any} confirmed at level 0 at the largest gamma, {max(gammas):g}," in r["md"]
     assert f"; {r['runs0']} level-0" in head
     if s["estimates"]:
         e = next(e for e in s["estimates"] if e["gamma"] == gammas[0])
