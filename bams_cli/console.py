@@ -419,7 +419,7 @@ def fit_summary(s: Mapping[str, Any]) -> None:
         rows[f"level {lv}"] = (
             f"discrepancy sd {_num(scale**0.5)}, noise sd {_num(hp['noise'][lv] ** 0.5)}, "
             f"lengthscales {ells(ell)}"
-        )
+        ) + (f" (no level-{lv} result yet: no data fitted these)" if not per_level[lv] else "")
     if s.get("conditioning"):
         rows["conditioning"] = s["conditioning"]["note"]
     rows["files"] = f"{s['model']}, {s['scores']}"

@@ -315,6 +315,9 @@ def test_fit_says_when_no_level0_failure_has_checked_the_model_s_rate(
     assert r.exit_code == 0, r.output
     [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
     assert ("no level-0 failure has checked it yet" in line) == (failed == 0)
+    # Level-0 results only: level 1's numbers were fitted by nothing, and say so.
+    [lv1] = [s for s in r.stdout.splitlines() if s.split()[:2] == ["level", "1"]]
+    assert lv1.endswith("(no level-1 result yet: no data fitted these)")
     saved = tmp_path / "hp.json"
     r = invoke(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved, "--json", "--force")
     assert json.loads(r.stdout)["level0_failures"] == {"0.56": failed}
