@@ -179,7 +179,8 @@ SELECT_NEGLIGIBLE_FAILURES = 0.01
 #: at least 5 x (the level-0 failures seen + 1) and at least this many simulations (or every
 #: segment without a level-0 result). A GP that has seen no level-0 failure put its rate at
 #: 1e-6 in a study with a true 0.0057 (15,000 segments, three batches), and K = 5 gave
-#: "0, 90% interval [0, 0.49]"; 100 uniform samples with no failure bound the rate at ~2.3%.
+#: "0, 90% interval [0, 0.49]"; with no failure among 100 uniform samples the 90% interval
+#: (two-sided) reaches about 3%.
 PLAN_MIN_SAMPLES = 100
 
 #: The rate estimate runs in stages (``estimate --plan`` once per stage): stage 1 spends

@@ -389,7 +389,7 @@ def test_the_default_k_has_a_floor_and_says_when_no_level0_failure_checked_the_r
     if warned:
         [w] = s["warnings"]
         assert "no level-0 failure is known" in w and f"{s['gp_rate_estimate']:.2g}" in w
-        assert "--samples" in w
+        assert "--samples" in w and "K = 100 is the default's floor" in w and "3.0/K" in w
     else:
         assert s["warnings"] == []
 

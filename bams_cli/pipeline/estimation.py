@@ -229,17 +229,22 @@ def estimate_plan(
             paper = 5 * max(gp_rate * n, seen + 1)
             samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
             if seen == 0:
-                k = min(samples, n_unknown)
-                why = (
-                    f"K = {k:g} is the default's floor (the paper's 5 p N gives {paper:.3g})"
-                    if paper < defaults.PLAN_MIN_SAMPLES
-                    else f"K = {k:g} rests on that rate"
-                )
+                # The K the plan spends (capped below by the unknown segments but for the
+                # with-replacement design), and what set it.
+                k = samples if design == "with-replacement" else min(samples, n_unknown)
+                if paper >= defaults.PLAN_MIN_SAMPLES:
+                    why = f"K = {k:g} rests on that rate"
+                elif k == defaults.PLAN_MIN_SAMPLES:
+                    why = f"K = {k:g} is the default's floor (the paper's 5 p N gives {paper:.3g})"
+                else:
+                    why = f"K = {k:g}, every segment without a level-0 result"
+                # The interval is two-sided: with no failure among K uniform samples its upper
+                # limit is the 1 - (1 - confidence)/2 quantile, -ln(0.05)/K = 3.0/K at 90%.
                 warnings.append(
                     "no level-0 failure is known, so nothing has checked the model's rate "
                     f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
-                    "the estimate must rule out (no failure among K uniform samples bounds "
-                    "it at about 2.3/K, 90%)"
+                    "the estimate must rule out (with no failure among K uniform samples the "
+                    "90% interval's upper limit is about 3.0/K)"
                 )
         if design == "with-replacement":
             samples = float(round(samples))
