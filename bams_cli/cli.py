@@ -783,9 +783,6 @@ def select(
     fewer = (summary.get("selection_plan") or {}).get("workers_reason")
     if fewer:
         console.warning(fewer)
-    if not json_out:  # under --json, _json puts them on stderr
-        for text in summary.get("warnings") or []:
-            console.warning(text)
     _show(summary, json_out, console.select_summary, "select")
 
 

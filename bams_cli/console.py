@@ -457,6 +457,8 @@ def select_summary(s: Mapping[str, Any]) -> None:
             "time": None if total is None else f"{total:.1f} s",
         },
     )
+    for text in s.get("warnings") or []:
+        warning(text)
 
 
 def plan_summary(s: Mapping[str, Any]) -> None:

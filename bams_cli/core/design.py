@@ -156,22 +156,27 @@ class RiskPosterior:
         cdf = np.cumsum(self.weights.sum(axis=0))
         return float(self.lams[min(int(np.searchsorted(cdf, q)), self.lams.size - 1)])
 
+    def _shapes(self, p: ArrayLike) -> list[tuple[int, FloatArray]]:
+        """(tau index, u^tau / mean(u^tau)) for every shape tau the posterior weighs."""
+        u = relative_risk(p)
+        w_tau = self.weights.sum(axis=1)
+        # u^tau once per tau, for its norm (``risk_norms``) and its term alike.
+        return [
+            (t, (u_tau := u**tau) / (float(np.mean(u_tau)) if u.size else 1.0))
+            for t, tau in enumerate(self.taus)
+            if w_tau[t] > 0
+        ]
+
     def risk(self, p: ArrayLike) -> FloatArray:
         """Posterior mean relative risk over U, mean 1: what the next design is built on.
 
         The predicted variance sum r (1 - pi)/pi is linear in r, so the posterior mean
         risk gives the posterior mean of every design's predicted variance.
         """
-        u = relative_risk(p)
-        w_tau = self.weights.sum(axis=1)
         trust = self.weights @ (1.0 - self.lams)  # sum_l w_tl (1 - lam_l), per tau
-        r = np.full(u.size, self.lam_mean)
-        for t, tau in enumerate(self.taus):
-            if w_tau[t] > 0:
-                # u^tau once, for its norm (``risk_norms``) and its term alike.
-                u_tau = u**tau
-                norm = float(np.mean(u_tau)) if u.size else 1.0
-                r += trust[t] * u_tau / norm
+        r = np.full(np.asarray(p).size, self.lam_mean)
+        for t, shaped in self._shapes(p):
+            r += trust[t] * shaped
         return r
 
     def risk_at(self, p: ArrayLike, lam: float) -> FloatArray:
@@ -181,14 +186,10 @@ class RiskPosterior:
         the interval's allowance puts an unseen failure (``unseen_failure_weight``): the
         least trust in p_n that the evidence cannot rule out, not its mean.
         """
-        u = relative_risk(p)
         w_tau = self.weights.sum(axis=1)
-        shaped = np.zeros(u.size)
-        for t, tau in enumerate(self.taus):
-            if w_tau[t] > 0:
-                u_tau = u**tau
-                norm = float(np.mean(u_tau)) if u.size else 1.0
-                shaped += w_tau[t] * u_tau / norm
+        shaped = np.zeros(np.asarray(p).size)
+        for t, term in self._shapes(p):
+            shaped += w_tau[t] * term
         return float(lam) + (1.0 - float(lam)) * shaped
 
     def allowance_risk(self, p: ArrayLike) -> FloatArray:

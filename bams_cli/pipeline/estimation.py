@@ -161,26 +161,23 @@ def estimate_plan(
     ws = Workspace(root)
     settings = ws.require_initialised()
     pend = ws.pending()
-    waiting = sorted(set(pend["plan"].drop_nulls().to_list())) if pend.height else []
-    if waiting and not allow_pending:
-        # A second plan while the first awaits results would be drawn from the same scores
-        # and double-count the rate's sample; Make re-running a target must not do that.
-        raise PendingResultsError(
-            f"{ws.root}: estimate plan {waiting[-1]} awaits results for "
-            f"{int(pend['plan'].is_in(waiting).sum())} picks; simulate its hand-off list, "
-            "ingest the results and run `bams-cli estimate`, or pass --allow-pending to "
-            "draw another plan beside it"
-        )
-    batches = sorted(set(pend["batch"].drop_nulls().to_list())) if pend.height else []
-    if batches and not allow_pending:
-        # As select refuses: the plan would be drawn from a model that has not seen those
-        # results, and a pending pick that fails would not count as known.
-        raise PendingResultsError(
-            f"{ws.root}: batch {batches[-1]} awaits results for "
-            f"{int(pend['batch'].is_in(batches).sum())} picks; simulate its hand-off list, "
-            "ingest the results and refit before planning the estimate, or pass "
-            "--allow-pending to plan without them"
-        )
+    # A second plan while the first awaits results would be drawn from the same scores
+    # and double-count the rate's sample; a plan beside a pending batch (select refuses the
+    # same) would come from a model that has not seen its results, and a pending pick that
+    # fails would not count as known. Make re-running a target must do neither.
+    for kind, then in (
+        ("plan", "run `bams-cli estimate`, or pass --allow-pending to draw another plan beside it"),
+        ("batch", "refit before planning the estimate, or pass --allow-pending to plan "
+         "without them"),
+    ):  # fmt: skip
+        waiting = sorted(set(pend[kind].drop_nulls().to_list())) if pend.height else []
+        if waiting and not allow_pending:
+            name = "estimate plan" if kind == "plan" else "batch"
+            raise PendingResultsError(
+                f"{ws.root}: {name} {waiting[-1]} awaits results for "
+                f"{int(pend[kind].is_in(waiting).sum())} picks; simulate its hand-off list, "
+                f"ingest the results and {then}"
+            )
     model = ws.require_fresh_model()
     ids, _, _, p_all = read_scores(ws, len(settings.gammas))
     # The largest gamma's p_n bounds every other gamma's (f <= g_small implies f <= g_large),
@@ -219,6 +216,7 @@ def estimate_plan(
         series_K, weights = prev.series_K, prev.weights
         K_stage = series_K * weights[stage - 1]
     else:
+        unchecked = None  # the default K's 5 p N when no level-0 failure has checked p
         if samples is None:
             # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
             # can put p N near 0, so the failures already seen at level 0 set a floor, and
@@ -228,28 +226,29 @@ def estimate_plan(
             seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
             paper = 5 * max(gp_rate * n, seen + 1)
             samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
-            if seen == 0:
-                # The K the plan spends (capped below by the unknown segments but for the
-                # with-replacement design), and what set it.
-                k = samples if design == "with-replacement" else min(samples, n_unknown)
-                if paper >= defaults.PLAN_MIN_SAMPLES:
-                    why = f"K = {k:g} rests on that rate"
-                elif k == defaults.PLAN_MIN_SAMPLES:
-                    why = f"K = {k:g} is the default's floor (the paper's 5 p N gives {paper:.3g})"
-                else:
-                    why = f"K = {k:g}, every segment without a level-0 result"
-                # The interval is two-sided: with no failure among K uniform samples its upper
-                # limit is the 1 - (1 - confidence)/2 quantile, -ln(0.05)/K = 3.0/K at 90%.
-                warnings.append(
-                    "no level-0 failure is known, so nothing has checked the model's rate "
-                    f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
-                    "the estimate must rule out (with no failure among K uniform samples the "
-                    "90% interval's upper limit is about 3.0/K)"
-                )
+            unchecked = paper if seen == 0 else None
         if design == "with-replacement":
             samples = float(round(samples))
         if design != "with-replacement":
             samples = min(samples, float(n_unknown))
+        if unchecked is not None:
+            if unchecked >= defaults.PLAN_MIN_SAMPLES:
+                why = f"K = {samples:g} rests on that rate"
+            elif samples == defaults.PLAN_MIN_SAMPLES:
+                why = (
+                    f"K = {samples:g} is the default's floor (the paper's 5 p N gives "
+                    f"{unchecked:.3g})"
+                )
+            else:
+                why = f"K = {samples:g}, every segment without a level-0 result"
+            # The interval is two-sided: with no failure among K uniform samples its upper
+            # limit is the 1 - (1 - confidence)/2 quantile, -ln(0.05)/K = 3.0/K at 90%.
+            warnings.append(
+                "no level-0 failure is known, so nothing has checked the model's rate "
+                f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
+                "the estimate must rule out (with no failure among K uniform samples the "
+                "90% interval's upper limit is about 3.0/K)"
+            )
         n_stages = stages if staged and samples >= 2 * stages else 1
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0

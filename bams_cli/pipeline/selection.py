@@ -23,7 +23,6 @@ from bams_cli.errors import (
 from bams_cli.pipeline._common import SID, Progress, locked, read_scores
 from bams_cli.pipeline._handoff import (
     BATCH_INTERNAL,
-    observed_level0,
     passthrough_columns,
     write_handoff,
 )
@@ -220,17 +219,17 @@ def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
     return True
 
 
-def _observed_cheap(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray:
-    """[i, l] True where segment i already has a result at cheap level l >= 1.
+def _observed_pairs(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray:
+    """[i, l] True where segment i already has a result at level l (one read of the log).
 
-    The greedy never offers those again (level 0's are excluded with the segment): a
-    deterministic cheap simulator would return the logged value, and a noisy one a second
-    value that ``ingest-results`` refuses as a conflict; a trial's fourth BAMS batch had
-    repeated 11 cheap picks of batches 2-3.
+    Column 0 excludes the segment from selection; the greedy (bams, bas) never offers the
+    cheap ones again either: a deterministic cheap simulator would return the logged value,
+    and a noisy one a second value that ``ingest-results`` refuses as a conflict; a trial's
+    fourth BAMS batch had repeated 11 cheap picks of batches 2-3.
     """
     seen = np.zeros((len(ids), n_levels), bool)
     obs = ws.read_observations()
-    for lv in range(1, n_levels):
+    for lv in range(n_levels):
         seen[:, lv] = np.isin(ids, obs.filter(pl.col("fidelity") == lv)[SID].to_numpy())
     return seen
 
@@ -417,7 +416,8 @@ def select(
     number = (ws.batch_numbers() or [0])[-1] + 1
     rng = np.random.default_rng([settings.seed, number])
     costs = np.asarray(settings.costs)
-    observed0 = observed_level0(ws, ids)
+    seen = _observed_pairs(ws, ids, settings.n_levels)
+    observed0 = seen[:, 0]
     exclude = np.zeros(len(ids), bool) if include_observed else observed0
     # Abandoned runs (bams_cli.abandon) are done: never offered again unless asked.
     gone = np.zeros((len(ids), settings.n_levels), bool)
@@ -468,9 +468,8 @@ def select(
                     progress=progress,
                     levels=[0] if strategy == "bas" else None,
                     reobserve_level0=include_observed,
-                    excluded_pairs=gone | _observed_cheap(ws, ids, settings.n_levels)
-                    if not include_observed
-                    else gone,
+                    # Cheap pairs already logged (level 0's go with the segment).
+                    excluded_pairs=gone if include_observed else gone | seen,
                     pending_pairs=waiting if waiting.any() else None,
                     approximate=GREEDY_PLANS[greedy],
                     plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},

@@ -103,18 +103,23 @@ def test_loo_check_flags_an_overconfident_level0_model():
     assert doc["loo_level0"]["n"] == 30 and doc["pairs"] == []
 
 
-def test_calibrated_model_has_loo_mean_square_near_one():
-    """Data drawn from the model itself: the standardised LOO residuals are N(0, 1)."""
+def _drawn_from_the_model(n: int):
+    """n level-0 points in 2-d and values drawn from the GP itself (noise variance 0.05)."""
+    from tests.core.test_gp import ref_matern52
+
     rng = np.random.default_rng(4)
-    X = rng.uniform(-2, 2, size=(150, 2))
+    X = rng.uniform(-2, 2, size=(n, 2))
     hp = Hyperparameters(
         mean=0.0, outputscale0=1.0, lengthscales0=np.full(2, 0.7), outputscales=np.zeros(0),
         lengthscales=np.zeros((0, 2)), noise=np.array([0.05]),
     )  # fmt: skip
-    from tests.core.test_gp import ref_matern52
+    K = ref_matern52(X, X, hp.lengthscales0, 1.0) + 0.05 * np.eye(n)
+    return X, hp, np.linalg.cholesky(K) @ rng.normal(size=n)
 
-    K = ref_matern52(X, X, hp.lengthscales0, 1.0) + 0.05 * np.eye(150)
-    y = np.linalg.cholesky(K) @ rng.normal(size=150)
+
+def test_calibrated_model_has_loo_mean_square_near_one():
+    """Data drawn from the model itself: the standardised LOO residuals are N(0, 1)."""
+    X, hp, y = _drawn_from_the_model(150)
     checks = check_model(MFGP(X, np.zeros(150, int), y, 1, hp), np.arange(150))
     assert 0.7 < checks.loo_mean_z2 < 1.35
     assert not checks.warnings
@@ -125,16 +130,7 @@ def test_one_level0_run_far_from_its_prediction_is_flagged_by_name():
     in a trial study): the largest |z| gets its own Bonferroni test, and the warning names
     the segment. Data drawn from the model itself, then one result moved by 1.3 (~5 sd
     of its leave-one-out prediction)."""
-    rng = np.random.default_rng(4)
-    X = rng.uniform(-2, 2, size=(300, 2))
-    hp = Hyperparameters(
-        mean=0.0, outputscale0=1.0, lengthscales0=np.full(2, 0.7), outputscales=np.zeros(0),
-        lengthscales=np.zeros((0, 2)), noise=np.array([0.05]),
-    )  # fmt: skip
-    from tests.core.test_gp import ref_matern52
-
-    K = ref_matern52(X, X, hp.lengthscales0, 1.0) + 0.05 * np.eye(300)
-    y = np.linalg.cholesky(K) @ rng.normal(size=300)
+    X, hp, y = _drawn_from_the_model(300)
     seg = np.arange(300) + 1000  # pool rows
     names = np.array([f"s{i:05d}" for i in range(1200)])
     calm = check_model(MFGP(X, np.zeros(300, int), y, 1, hp), seg, names=names)
