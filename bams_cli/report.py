@@ -401,7 +401,11 @@ def headline(
             f"{'s' if e['failures_sampled'] != 1 else ''} among {e['n_sampled']} segments "
             f"sampled by {by}"
             + (f" ({abandoned} of them abandoned)" if abandoned else "")
-            + (f", beside {e['failures_known']} known before it" if e.get("failures_known") else "")
+            + (
+                f", beside {e['failures_known']} known from other level-0 runs"
+                if e.get("failures_known")
+                else ""
+            )
             + "; "
             + INTERVAL_KINDS.get(e.get("interval", "gamma"), "")
             + "More samples (a larger `estimate --plan --samples K`) narrow it."

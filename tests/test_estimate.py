@@ -206,8 +206,8 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     for g, e in enumerate(out["estimates"]):
         assert e["p_hat"] == pytest.approx(w1 * one.p_hat[g] + w2 * two.p_hat[g], rel=1e-12)
         assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
-        # Failures are counted once: known before stage 1, then sampled by either stage
-        # (stage 2's known stratum holds stage 1's sampled failures).
+        # Failures are counted once: known from outside the samples (here: before stage 1),
+        # then sampled by either stage (stage 2's known stratum holds stage 1's).
         assert e["failures_known"] == one.n_known_failures[g]
         assert e["failures_sampled"] == one.n_failures_sampled[g] + two.n_failures_sampled[g]
         assert e["failures_known"] + e["failures_sampled"] == e["distinct_failures_found"]
@@ -217,6 +217,32 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
     assert (s3["stage"], s3["series"]) == (1, 3)
     assert s3["model_check"]["plans"] == [1, 2]
+
+
+def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted_ws, tmp_path):
+    # A team may run a discovery batch while an estimate is half done. Its level-0 failures
+    # are known at stage 2's planning: they must count among the known failures, so that
+    # known + sampled is every distinct failure found (they had counted in neither).
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80")
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "60")
+    res = tmp_path / "between.parquet"
+    ok(runner, "simulate", ws / "batches" / "batch-0002.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80")
+    _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    e = out["estimates"][1]  # gamma 0.56
+    assert e["failures_known"] + e["failures_sampled"] == e["distinct_failures_found"]
+    assert e["failures_known"] > one.n_known_failures[1]  # the batch found some
 
 
 def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):

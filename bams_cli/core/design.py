@@ -498,6 +498,7 @@ def combine_stages(
         rel_var = np.where(p_hat > 0, se**2 / p_hat**2, np.nan)
         n_eff = np.where(R > 0, np.where(v > 0, R**2 / np.where(v > 0, v, 1.0), np.inf), 0.0)
     basis = np.where(census, BASIS_CENSUS, np.where(floor, BASIS_NO_FAILURE, BASIS_HT))
+    sampled = np.sum([s.n_failures_sampled for s in stages], axis=0)
     return replace(
         last,
         p_hat=p_hat,
@@ -507,10 +508,11 @@ def combine_stages(
         ci_high=hi / N,
         rel_var=rel_var,
         n_sampled=np.sum([s.n_sampled for s in stages], axis=0),
-        n_failures_sampled=np.sum([s.n_failures_sampled for s in stages], axis=0),
-        # Known before the estimate began: a later stage's known stratum holds the earlier
-        # stages' sampled failures, already counted in n_failures_sampled.
-        n_known_failures=stages[0].n_known_failures,
+        n_failures_sampled=sampled,
+        # Known from level-0 runs outside the estimate's samples: the last stage's distinct
+        # failures less every stage's sampled ones (a later stage's known stratum holds the
+        # earlier stages' sampled failures, and a discovery batch's between the stages).
+        n_known_failures=(last.n_failures_found - sampled).astype(np.int64),
         n_eff=n_eff,
         variance_basis=basis.astype(np.int8),
         w_allow=w_next,
