@@ -72,9 +72,18 @@ if _display_type_rich is not None:
 _rich_format_error = getattr(typer.rich_utils, "rich_format_error", None)
 
 
+def _plain(exc: ClickException) -> ClickException:
+    """``exc`` without pydantic's "Value error, " prefix: typer checks a value through
+    pydantic, which prefixes the ValueError of its choice check ("Invalid value for
+    '--strategy': Value error, 'bmas' is not one of ..."); the user needs only the rest."""
+    exc.message = exc.message.removeprefix("Value error, ")
+    return exc
+
+
 def _usage_error(exc: ClickException) -> None:
     # A usage error in a log (not a terminal) is click's plain lines, "Usage: ...",
     # "Try ...", "Error: ...": typer's box would wrap the message at 80 columns.
+    _plain(exc)
     if console.err.is_terminal and _rich_format_error is not None:
         _rich_format_error(exc)
     elif type(exc).__name__ != "NoArgsIsHelpError":
@@ -212,7 +221,7 @@ def command(
                 raise typer.Exit(exc.exit_code) from None
             except UsageError as exc:
                 if console.mode.json:
-                    console.error(exc.format_message(), EXIT_USAGE)
+                    console.error(_plain(exc).format_message(), EXIT_USAGE)
                     raise typer.Exit(EXIT_USAGE) from None
                 raise
             except (typer.Exit, typer.Abort, ClickException):
@@ -1384,7 +1393,7 @@ def main() -> None:
         code = app(standalone_mode=False)
     except UsageError as exc:
         console.set_mode(quiet=False, json_out=True)
-        console.error(exc.format_message(), exc.exit_code)
+        console.error(_plain(exc).format_message(), exc.exit_code)
         code = exc.exit_code
     except typer.Abort:
         console.set_mode(quiet=False, json_out=True)

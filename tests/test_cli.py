@@ -101,6 +101,7 @@ def test_an_invalid_choice_is_a_usage_error_naming_the_valid_ones(runner, tmp_pa
     # Off a terminal (as here) click's plain lines, the error whole on one of them.
     [error] = [line for line in r.stderr.splitlines() if line.startswith("Error: ")]
     assert "is not one of" in error and valid in error, r.stderr
+    assert "Value error" not in error, error  # typer's pydantic prefix is not the tool's
     assert not list(tmp_path.iterdir())
 
 
@@ -243,6 +244,7 @@ def test_the_installed_command_prints_json_errors_even_for_usage(tmp_path, args,
     [line] = out.stderr.splitlines()
     doc = json.loads(line)
     assert doc["exit_code"] == code and needle in doc["error"]
+    assert "Value error" not in doc["error"]
 
 
 def test_json_warnings_are_json_lines(runner):
