@@ -1,8 +1,9 @@
 """The ``bams-cli`` command line: parse flags, call one pipeline function, print.
 
 The only module that imports typer. Every command runs inside one boundary (``command``):
-errors the user can fix (``BamsError``) print as one line with exit code 1 (3 when the
-command refuses because picks await results: ``PendingResultsError``); anything else
+errors the user can fix (``BamsError``) print as one line with exit code 1 (2 for an
+option's value out of range, ``OptionValueError``, a usage error like click's own; 3 when
+the command refuses because picks await results: ``PendingResultsError``); anything else
 (a damaged state file, a full disk, a bug) prints as one line too, with exit code 1, unless
 BAMS_DEBUG is set; warnings print as one line each. Under --json both are one JSON object
 per stderr line instead (``{"error": ..., "exit_code": ...}``). Transactions roll back on
@@ -200,8 +201,9 @@ def command(
     name: str | None = None, *, max_memory: bool = False
 ) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Register a subcommand whose BamsErrors become one stderr line and their exit code
-    (1; 3 for ``PendingResultsError``, waiting on results). ``max_memory``: the command
-    takes ``--max-memory`` and runs under that ceiling (``bams_cli.memory``)."""
+    (1; 2 for ``OptionValueError``; 3 for ``PendingResultsError``, waiting on results).
+    ``max_memory``: the command takes ``--max-memory`` and runs under that ceiling
+    (``bams_cli.memory``)."""
 
     def register(fn: Callable[..., None]) -> Callable[..., None]:
         label = f"bams-cli {name or fn.__name__.replace('_', '-')}"
@@ -763,8 +765,6 @@ def select(
 
     [bold]Example[/]: bams-cli select -w study --budget 5 --clusters 6
     """
-    if workers is not None and workers < 1:
-        raise OptionError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
     with console.progress(not json_out, "select") as bar:
         summary = pipeline.select(
             workspace,

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 #: Exit codes, documented in the README: 0 done, 1 error, 2 usage (click's own, for an
-#: unknown option or a malformed value), 3 waiting on results (``PendingResultsError``,
-#: and ``bams-cli status`` while picks await results).
+#: unknown option or a malformed value; ``OptionValueError`` for a value out of range),
+#: 3 waiting on results (``PendingResultsError``, and ``bams-cli status`` while picks await
+#: results).
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PENDING = 0, 1, 2, 3
 
 
@@ -79,3 +80,10 @@ class SettingsError(BamsError):
 
 class OptionError(BamsError):
     """A command-line option out of range or unknown."""
+
+
+class OptionValueError(OptionError):
+    """An option's value is out of range whatever the workspace holds (``--budget -5``):
+    a usage error, exit code 2, as click's own for a malformed value."""
+
+    exit_code = EXIT_USAGE

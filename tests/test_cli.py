@@ -234,6 +234,7 @@ def test_a_json_error_is_one_json_line_on_stderr(runner, tmp_path):
         (["select", "-w", "missing-ws", "--json"], 1, "no such workspace"),
         (["select", "--strategy", "nope", "--json"], 2, "'nope' is not one of 'bams'"),
         (["select", "--bogus", "--json"], 2, "No such option: --bogus"),
+        (["select", "--budget", "-5", "--json"], 2, "--budget -5: must be a finite number > 0"),
     ],
 )
 def test_the_installed_command_prints_json_errors_even_for_usage(tmp_path, args, code, needle):
