@@ -55,7 +55,7 @@ from bams_cli.defaults import (
     Transform,
     Weighting,
 )
-from bams_cli.errors import EXIT_USAGE, BamsError, OptionError
+from bams_cli.errors import EXIT_USAGE, BamsError, OptionError, OptionValueError
 from bams_cli.status import status as study_status
 
 _display_type_rich = getattr(typer.core.TyperOption, "display_type_rich", None)
@@ -266,7 +266,9 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     except ValueError:
         values = []
     if not values:
-        raise BamsError(f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1")
+        raise OptionValueError(
+            f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1"
+        )
     return values
 
 

@@ -77,6 +77,12 @@ class AbandonedRunsError(WorkspaceError):
 class SettingsError(BamsError):
     """The settings file or a flag holds an invalid value."""
 
+    def __init__(self, message: str, *, setting: str | None = None):
+        super().__init__(message)
+        #: The setting at fault (gammas, levels, seed, embedding_dim), when there is one:
+        #: ``init`` names the flag that gave it.
+        self.setting = setting
+
 
 class OptionError(BamsError):
     """A command-line option out of range or unknown."""

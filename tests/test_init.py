@@ -58,3 +58,56 @@ def test_force_and_exist_ok_contradict(runner, tmp_path):
     r = invoke(runner, "init", "-w", tmp_path / "ws", *FLAGS, "--force", "--exist-ok")
     assert r.exit_code == 1 and "pass one of them" in r.stderr
     assert not (tmp_path / "ws").exists()
+
+
+@pytest.mark.parametrize("gammas", ["0.5,0.5", "0.5,0.3,0.5", "0.5,0.50"])
+def test_a_repeated_gamma_is_a_usage_error_naming_it(runner, tmp_path, gammas):
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", gammas)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.splitlines() == [
+        f"error: --gamma {gammas.replace('0.50', '0.5')}: gamma 0.5 is given more than once; "
+        "give each failure threshold once"
+    ]
+    assert not (tmp_path / "ws").exists()
+
+
+def test_a_repeated_gamma_in_a_settings_file_names_the_file(runner, tmp_path):
+    source = tmp_path / "settings.toml"
+    source.write_text("[study]\ngammas = [0.5, 0.3, 0.3]\n")
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--settings-from", source)
+    assert r.exit_code == 1 and r.stderr.splitlines() == [
+        f"error: {source}: gamma 0.3 is given more than once; give each failure threshold once"
+    ]
+    assert not (tmp_path / "ws").exists()
+
+
+def test_gammas_keep_the_order_given(runner, tmp_path):
+    # Not sorted: the first drives selection, as the settings file's header says.
+    summary = json.loads(
+        ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.7,0.3", "--json").stdout
+    )
+    assert summary["gammas"] == [0.7, 0.3]
+    assert "gammas = [\n    0.7,\n    0.3,\n]" in (tmp_path / "ws" / "settings.toml").read_text()
+
+
+@pytest.mark.parametrize(
+    ("flags", "line"),
+    [
+        (["--costs", "1,0"], "--costs 1,0: level 1 cost must be a finite number > 0, got 0"),
+        (["--costs", "1,-0.1"], "--costs 1,-0.1: level 1 cost must be a finite number > 0"),
+        (["--costs", "1,nan"], "--costs 1,nan: level 1 cost must be a finite number > 0, got nan"),
+        (["--costs", "1,inf"], "--costs 1,inf: level 1 cost must be a finite number > 0, got inf"),
+        (["--costs", "2,1"], "--costs 2,1: level 0 must cost 1 (costs are in units of one"),
+        (["--gamma", "nan"], "--gamma nan: gammas must be finite numbers, got [nan]"),
+        (["--gamma", "abc"], "--gamma 'abc': expected comma-separated numbers"),
+        (["--seed", "-1"], "--seed -1: seed must be an integer >= 0, got -1"),
+        (["--dim", "0"], "--dim 0: embedding_dim must be >= 1, got 0"),
+        (["--costs", "1,0.1", "--level-names", "a"], "--level-names has 1 names for 2 costs"),
+    ],
+)  # fmt: skip
+def test_a_flag_out_of_range_is_a_usage_error_naming_it(runner, tmp_path, flags, line):
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", *flags)
+    assert r.exit_code == 2, r.output
+    [error] = r.stderr.splitlines()
+    assert error.startswith(f"error: {line}"), error
+    assert not (tmp_path / "ws").exists()

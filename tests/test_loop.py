@@ -330,7 +330,7 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
         (["estimate", "--plan", "--alpha", "nan"], 2, "--alpha nan: must be a finite number >= 0"),
         (["fit", "--chunk-size", "0"], 1, "--chunk-size 0 must be >= 1"),
         (["report", "--diverse", "-1"], 1, "--diverse -1: must be >= 0"),
-        (["init", "--gamma", ",", "--force"], 1, "--gamma ',': expected comma-separated numbers"),
+        (["init", "--gamma", ",", "--force"], 2, "--gamma ',': expected comma-separated numbers"),
     ],
 )
 def test_bad_options_fail_in_one_line(loop_ws, tmp_path, args, code, needle):

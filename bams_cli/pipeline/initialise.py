@@ -9,6 +9,7 @@ from typing import Any
 from bams_cli.errors import (
     InputError,
     OptionError,
+    OptionValueError,
     SettingsError,
     WorkspaceError,
 )
@@ -79,8 +80,13 @@ def init(
 
     Raises
     ------
+    OptionValueError
+        An argument holds an invalid value (a repeated gamma, a level-0 cost other than 1,
+        a cost not > 0, a negative seed ...), named by its flag; exit code 2.
     SettingsError
-        A setting (here or in ``settings_from``) is invalid, or no threshold is given.
+        A setting in ``settings_from`` is invalid.
+    OptionError
+        No threshold is given, or both ``force`` and ``exist_ok``.
     WorkspaceError
         The workspace exists already (without ``force``), or holds other settings
         (with ``exist_ok``).
@@ -105,9 +111,24 @@ def init(
             raise InputError(settings_from, "settings file not found")
         base = Settings.from_file(settings_from)
     levels = levels_from_costs(costs, level_names) if costs else None
-    settings = base.with_overrides(
-        gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
-    )
+    try:
+        settings = base.with_overrides(
+            gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
+        )
+    except SettingsError as exc:
+        # The base was checked when it was read, so a flag holds the bad value: a usage
+        # error naming the flag and its values.
+        flags = {
+            "gammas": ("--gamma", gammas),
+            "levels": ("--costs", costs),
+            "seed": ("--seed", seed),
+            "embedding_dim": ("--dim", dim),
+        }
+        flag, value = flags.get(exc.setting or "", ("", None))
+        if value is None:
+            raise
+        typed = ",".join(f"{v:g}" for v in value) if isinstance(value, list) else value
+        raise OptionValueError(f"{flag} {typed}: {str(exc).removeprefix('settings: ')}") from None
     with workspace_lock(root, wait=wait), transaction() as tx:
         if ws.settings_path.exists() and exist_ok:
             differences = _settings_differences(Settings.from_file(ws.settings_path), settings)
