@@ -163,7 +163,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "seed": INT,
                 "embedding_dim": INT,
             },
-            {"unchanged": BOOL},
+            {"unchanged": BOOL, "warnings": array(STR)},
         ),
     ),
     "embed-reduce": (

@@ -111,3 +111,39 @@ def test_a_flag_out_of_range_is_a_usage_error_naming_it(runner, tmp_path, flags,
     [error] = r.stderr.splitlines()
     assert error.startswith(f"error: {line}"), error
     assert not (tmp_path / "ws").exists()
+
+
+DEAR = (
+    "no less than a level-0 run (costs are in units of one level-0 run; a cheaper simulator "
+    "costs a fraction of 1): select will seldom pick it, while random mixed-fidelity batches "
+    "spend budget on it"
+)
+
+
+@pytest.mark.parametrize("costs", ["1,1", "1,1.5", "1,0.1,2"])
+def test_a_cheap_level_costing_as_much_as_level_0_is_warned_once(runner, tmp_path, costs):
+    # Legal (a run of it is still a run), but select's greedy all but never picks it.
+    level, cost = next((i, c) for i, c in enumerate(costs.split(",")) if i and float(c) >= 1)
+    expected = f"--costs {costs}: level {level} (low{level}) costs {cost}, {DEAR}"
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", costs)
+    assert r.stderr.splitlines() == [f"warning: {expected}"]
+    r = ok(runner, "init", "-w", tmp_path / "js", "--gamma", "0.5", "--costs", costs, "--json")
+    assert [json.loads(line) for line in r.stderr.splitlines()] == [{"warning": expected}]
+    assert json.loads(r.stdout)["warnings"] == [expected]
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", costs, "--exist-ok")
+    assert r.stderr == ""  # a no-op re-run does not repeat it
+
+
+def test_a_dear_cheap_level_from_a_settings_file_names_the_file(runner, tmp_path):
+    source = tmp_path / "settings.toml"
+    source.write_text(
+        "levels = [{name = 'high', cost = 1.0}, {name = 'sim2', cost = 1.0}]\n"
+        "[study]\ngammas = [0.5]\n"
+    )
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--settings-from", source)
+    assert r.stderr.splitlines() == [f"warning: {source}: level 1 (sim2) costs 1, {DEAR}"]
+
+
+def test_cheap_levels_below_level_0_are_not_warned(runner, tmp_path):
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", "1,0.99,0.1")
+    assert r.stderr == ""
