@@ -377,6 +377,8 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
             "pass-through": ", ".join(s.get("passthrough_columns") or []),
         },
     )
+    for text in s.get("warnings") or []:
+        warning(text)
 
 
 def ingest_summary(s: Mapping[str, Any]) -> None:

@@ -182,6 +182,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "reconstruction_error": {"type": "object"},
                 "unchanged": BOOL,
                 "note": STR,
+                "warnings": array(STR),
             },
         ),
     ),

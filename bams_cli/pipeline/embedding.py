@@ -90,7 +90,8 @@ def embed_reduce(
     dict
         The summary ``--json`` prints: ``segments`` (rows read), ``added``, ``pool_size``,
         ``method``, ``dim``, ``input_dim``, ``reconstruction_error``,
-        ``passthrough_columns``.
+        ``passthrough_columns``, ``warnings`` (embedding columns holding one value in
+        every row, when the reducer is fitted).
 
     Raises
     ------
@@ -265,6 +266,7 @@ def embed_reduce(
         "reconstruction_error": reducer.reconstruction_error,
         **({} if apply else request),
     }
+    warnings = [] if apply else _constant_columns(source, list_col, cols, reducer.constant, n)
     with transaction() as tx:
         if not apply:
             saved_layout = {
@@ -282,4 +284,34 @@ def embed_reduce(
         "input_dim": int(expected),
         "reconstruction_error": reducer.reconstruction_error,
         "passthrough_columns": passthrough,
+        "warnings": warnings,
     }
+
+
+def _constant_columns(
+    source: Path, list_col: str | None, cols: list[str], constant: np.ndarray, n: int
+) -> list[str]:
+    """A warning naming the embedding columns that hold one value in every row (none for
+    a single row, where every column does).
+
+    Legal, but a constant column carries no information: most likely a broken export or
+    a dead feature. With --method identity it reaches the model as a coordinate whose ARD
+    lengthscale no data can inform (only its prior sets it); PCA gives it no weight.
+    """
+    where = np.flatnonzero(constant)
+    if n < 2 or not len(where):
+        return []
+    first = ", ".join(str(j + 1) if list_col else shown(cols[j], 40) for j in where[:5]) + (
+        " ..." if len(where) > 5 else ""
+    )
+    if list_col:
+        what = (
+            f"column {shown(list_col)}: embedding position{'s' * (len(where) > 1)} {first} "
+            f"(of {len(constant)}) hold{'s' * (len(where) == 1)} one value in all "
+            f"{n} rows"
+        )
+    elif len(where) == 1:
+        what = f"column {first}: one value in all {n} rows"
+    else:
+        what = f"{len(where)} embedding columns hold one value each in all {n} rows ({first})"
+    return [f"{source}: {what}; a constant embedding dimension carries no information: drop it"]
