@@ -265,7 +265,7 @@ def _bad_results(ws: Path) -> Path:
 
 
 BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsError]]] = [
-    ("fit", ["fit", "--restarts", "0"], api.fit, {"restarts": 0}, WorkspaceError),
+    ("fit", ["fit", "--restarts", "0"], api.fit, {"restarts": 0}, api.OptionValueError),
     (
         "select",
         ["select", "--confirm-share", "1.5"],
@@ -287,7 +287,7 @@ BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsErr
         {"stages": 0},
         api.OptionValueError,
     ),
-    ("report", ["report", "--diverse", "-1"], api.report, {"n_diverse": -1}, WorkspaceError),
+    ("report", ["report", "--diverse", "-1"], api.report, {"n_diverse": -1}, api.OptionValueError),
     ("abandon", ["abandon"], api.abandon, {}, api.OptionError),
 ]
 

@@ -328,8 +328,10 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
         ),
         (["estimate", "--plan", "--samples", "nan"], 2, "--samples nan: must be a finite number"),
         (["estimate", "--plan", "--alpha", "nan"], 2, "--alpha nan: must be a finite number >= 0"),
-        (["fit", "--chunk-size", "0"], 1, "--chunk-size 0 must be >= 1"),
-        (["report", "--diverse", "-1"], 1, "--diverse -1: must be >= 0"),
+        (["fit", "--chunk-size", "0"], 2, "--chunk-size 0: must be >= 1"),
+        (["fit", "--restarts", "-2"], 2, "--restarts -2: must be >= 1"),
+        (["report", "--diverse", "-1"], 2, "--diverse -1: must be >= 0"),
+        (["embed-reduce", "x.parquet", "--batch-size", "0"], 2, "--batch-size 0: must be >= 1"),
         (["init", "--gamma", ",", "--force"], 2, "--gamma ',': expected comma-separated numbers"),
     ],
 )

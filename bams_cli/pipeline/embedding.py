@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 from bams_cli.errors import (
     DuplicateError,
     InputError,
+    OptionValueError,
     SchemaError,
     WorkspaceError,
     shown,
@@ -98,18 +99,23 @@ def embed_reduce(
     InputError
         The segments file has a bad value (``SchemaError``: a missing or mistyped column;
         ``DuplicateError``: a repeated segment id); the message names file, column and row.
+    OptionValueError
+        A size below 1; exit code 2.
     WorkspaceError
-        No workspace at ``root``, a size below 1, a pool exists already (without
-        ``force``), or there is no saved reducer to ``apply``.
+        No workspace at ``root``, a pool exists already (without ``force``), or there is no
+        saved reducer to ``apply``.
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
     from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
 
-    if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):
-        raise WorkspaceError(
-            f"--batch-size {batch_size}, --sample-size {sample_size} and --dim {dim} must be >= 1"
-        )
+    for flag, value in (
+        ("--batch-size", batch_size),
+        ("--sample-size", sample_size),
+        ("--dim", dim),
+    ):
+        if value is not None and value < 1:
+            raise OptionValueError(f"{flag} {value}: must be >= 1")
     ws = Workspace(root)
     settings = ws.require_initialised()
     id_column = id_column or settings.id_column
