@@ -1,8 +1,9 @@
 """The ``bams-cli`` command line: parse flags, call one pipeline function, print.
 
 The only module that imports typer. Every command runs inside one boundary (``command``):
-errors the user can fix (``BamsError``) print as one line with exit code 1 (3 when the
-command refuses because picks await results: ``PendingResultsError``); anything else
+errors the user can fix (``BamsError``) print as one line with exit code 1 (2 for an
+option's value out of range, ``OptionValueError``, a usage error like click's own; 3 when
+the command refuses because picks await results: ``PendingResultsError``); anything else
 (a damaged state file, a full disk, a bug) prints as one line too, with exit code 1, unless
 BAMS_DEBUG is set; warnings print as one line each. Under --json both are one JSON object
 per stderr line instead (``{"error": ..., "exit_code": ...}``). Transactions roll back on
@@ -54,7 +55,7 @@ from bams_cli.defaults import (
     Transform,
     Weighting,
 )
-from bams_cli.errors import EXIT_USAGE, BamsError, OptionError
+from bams_cli.errors import EXIT_USAGE, BamsError, OptionError, OptionValueError
 from bams_cli.status import status as study_status
 
 _display_type_rich = getattr(typer.core.TyperOption, "display_type_rich", None)
@@ -72,9 +73,18 @@ if _display_type_rich is not None:
 _rich_format_error = getattr(typer.rich_utils, "rich_format_error", None)
 
 
+def _plain(exc: ClickException) -> ClickException:
+    """``exc`` without pydantic's "Value error, " prefix: typer checks a value through
+    pydantic, which prefixes the ValueError of its choice check ("Invalid value for
+    '--strategy': Value error, 'bmas' is not one of ..."); the user needs only the rest."""
+    exc.message = exc.message.removeprefix("Value error, ")
+    return exc
+
+
 def _usage_error(exc: ClickException) -> None:
     # A usage error in a log (not a terminal) is click's plain lines, "Usage: ...",
     # "Try ...", "Error: ...": typer's box would wrap the message at 80 columns.
+    _plain(exc)
     if console.err.is_terminal and _rich_format_error is not None:
         _rich_format_error(exc)
     elif type(exc).__name__ != "NoArgsIsHelpError":
@@ -191,8 +201,9 @@ def command(
     name: str | None = None, *, max_memory: bool = False
 ) -> Callable[[Callable[..., None]], Callable[..., None]]:
     """Register a subcommand whose BamsErrors become one stderr line and their exit code
-    (1; 3 for ``PendingResultsError``, waiting on results). ``max_memory``: the command
-    takes ``--max-memory`` and runs under that ceiling (``bams_cli.memory``)."""
+    (1; 2 for ``OptionValueError``; 3 for ``PendingResultsError``, waiting on results).
+    ``max_memory``: the command takes ``--max-memory`` and runs under that ceiling
+    (``bams_cli.memory``)."""
 
     def register(fn: Callable[..., None]) -> Callable[..., None]:
         label = f"bams-cli {name or fn.__name__.replace('_', '-')}"
@@ -212,7 +223,7 @@ def command(
                 raise typer.Exit(exc.exit_code) from None
             except UsageError as exc:
                 if console.mode.json:
-                    console.error(exc.format_message(), EXIT_USAGE)
+                    console.error(_plain(exc).format_message(), EXIT_USAGE)
                     raise typer.Exit(EXIT_USAGE) from None
                 raise
             except (typer.Exit, typer.Abort, ClickException):
@@ -255,7 +266,9 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     except ValueError:
         values = []
     if not values:
-        raise BamsError(f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1")
+        raise OptionValueError(
+            f"{flag} {text!r}: expected comma-separated numbers, e.g. {flag} 1,0.1"
+        )
     return values
 
 
@@ -754,8 +767,6 @@ def select(
 
     [bold]Example[/]: bams-cli select -w study --budget 5 --clusters 6
     """
-    if workers is not None and workers < 1:
-        raise OptionError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
     with console.progress(not json_out, "select") as bar:
         summary = pipeline.select(
             workspace,
@@ -1384,7 +1395,7 @@ def main() -> None:
         code = app(standalone_mode=False)
     except UsageError as exc:
         console.set_mode(quiet=False, json_out=True)
-        console.error(exc.format_message(), exc.exit_code)
+        console.error(_plain(exc).format_message(), exc.exit_code)
         code = exc.exit_code
     except typer.Abort:
         console.set_mode(quiet=False, json_out=True)

@@ -360,6 +360,8 @@ def init_summary(s: Mapping[str, Any]) -> None:
             "dimension": s.get("embedding_dim"),
         },
     )
+    for text in s.get("warnings") or []:
+        warning(text)
 
 
 def embed_reduce_summary(s: Mapping[str, Any]) -> None:
@@ -375,6 +377,8 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
             "pass-through": ", ".join(s.get("passthrough_columns") or []),
         },
     )
+    for text in s.get("warnings") or []:
+        warning(text)
 
 
 def ingest_summary(s: Mapping[str, Any]) -> None:

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 #: Exit codes, documented in the README: 0 done, 1 error, 2 usage (click's own, for an
-#: unknown option or a malformed value), 3 waiting on results (``PendingResultsError``,
-#: and ``bams-cli status`` while picks await results).
+#: unknown option or a malformed value; ``OptionValueError`` for a value out of range),
+#: 3 waiting on results (``PendingResultsError``, and ``bams-cli status`` while picks await
+#: results).
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_PENDING = 0, 1, 2, 3
 
 
@@ -76,6 +77,19 @@ class AbandonedRunsError(WorkspaceError):
 class SettingsError(BamsError):
     """The settings file or a flag holds an invalid value."""
 
+    def __init__(self, message: str, *, setting: str | None = None):
+        super().__init__(message)
+        #: The setting at fault (gammas, levels, seed, embedding_dim), when there is one:
+        #: ``init`` names the flag that gave it.
+        self.setting = setting
+
 
 class OptionError(BamsError):
     """A command-line option out of range or unknown."""
+
+
+class OptionValueError(OptionError):
+    """An option's value is out of range whatever the workspace holds (``--budget -5``):
+    a usage error, exit code 2, as click's own for a malformed value."""
+
+    exit_code = EXIT_USAGE

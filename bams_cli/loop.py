@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any
 
 from bams_cli import abandon, defaults, pipeline
-from bams_cli.errors import BamsError, OptionError, WorkspaceError
+from bams_cli.errors import BamsError, OptionError, OptionValueError, WorkspaceError
+from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
 from bams_cli.state.workspace import Workspace
 from bams_cli.status import batch_handoff, plan_handoff
@@ -128,7 +129,10 @@ def loop(
     LoopError
         The simulator failed or wrote no results, or results are still missing after it.
     OptionError
-        ``simulator`` does not name ``{handoff}`` and ``{results}``, or ``batches`` below 1.
+        ``simulator`` does not name ``{handoff}`` and ``{results}``.
+    OptionValueError
+        ``batches``, a budget, ``samples``, ``clusters`` or ``workers`` out of range,
+        before any step; exit code 2.
     BamsError
         Any step's own error, as that command raises it.
     """
@@ -138,7 +142,15 @@ def loop(
             "and {results} (the results file to write), e.g. 'my-sim {handoff} -o {results}'"
         )
     if batches < 1:
-        raise OptionError(f"--batches {batches}: must be >= 1")
+        raise OptionValueError(f"--batches {batches}: must be >= 1")
+    # Checked before any step: the estimate's --samples would otherwise be refused only
+    # after every batch had been simulated.
+    check_budget(budget)
+    if first_budget is not None:
+        check_budget(first_budget, "--first-budget")
+    check_samples(samples)
+    check_clusters(clusters)
+    check_workers(workers)
     ws = Workspace(Path(root))
     ws.require_initialised()
     ws.require_segments()

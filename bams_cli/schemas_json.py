@@ -163,7 +163,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "seed": INT,
                 "embedding_dim": INT,
             },
-            {"unchanged": BOOL},
+            {"unchanged": BOOL, "warnings": array(STR)},
         ),
     ),
     "embed-reduce": (
@@ -182,6 +182,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "reconstruction_error": {"type": "object"},
                 "unchanged": BOOL,
                 "note": STR,
+                "warnings": array(STR),
             },
         ),
     ),

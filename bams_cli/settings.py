@@ -15,7 +15,7 @@ from typing import Any
 
 import tomli_w
 
-from bams_cli.errors import SettingsError
+from bams_cli.errors import OptionValueError, SettingsError
 
 SETTINGS_FILE = "settings.toml"
 
@@ -57,23 +57,48 @@ class Settings:
 
     def validate(self) -> Settings:
         if not self.gammas:
-            raise SettingsError("settings: gammas is empty; give at least one with --gamma")
+            raise SettingsError(
+                "settings: gammas is empty; give at least one with --gamma", setting="gammas"
+            )
         if any(not math.isfinite(g) for g in self.gammas):
-            raise SettingsError(f"settings: gammas must be finite numbers, got {list(self.gammas)}")
+            raise SettingsError(
+                f"settings: gammas must be finite numbers, got {list(self.gammas)}",
+                setting="gammas",
+            )
+        # Their order is kept (the first drives selection); a repeat is a slip, and would
+        # score, estimate and report the same threshold twice.
+        repeated = next((g for i, g in enumerate(self.gammas) if g in self.gammas[:i]), None)
+        if repeated is not None:
+            raise SettingsError(
+                f"settings: gamma {repeated:g} is given more than once; give each failure "
+                "threshold once",
+                setting="gammas",
+            )
         if not self.levels:
-            raise SettingsError("settings: no fidelity levels; give costs with --costs 1,0.1")
+            raise SettingsError(
+                "settings: no fidelity levels; give costs with --costs 1,0.1", setting="levels"
+            )
         if self.levels[0].cost != 1.0:
             raise SettingsError(
                 f"settings: level 0 must cost 1 (costs are in units of one level-0 run), "
-                f"got {self.levels[0].cost}"
+                f"got {self.levels[0].cost:g}",
+                setting="levels",
             )
         for i, level in enumerate(self.levels):
             if not (math.isfinite(level.cost) and level.cost > 0):
-                raise SettingsError(f"settings: level {i} cost must be > 0, got {level.cost}")
+                raise SettingsError(
+                    f"settings: level {i} cost must be a finite number > 0, got {level.cost:g}",
+                    setting="levels",
+                )
         if self.seed < 0:
-            raise SettingsError(f"settings: seed must be an integer >= 0, got {self.seed}")
+            raise SettingsError(
+                f"settings: seed must be an integer >= 0, got {self.seed}", setting="seed"
+            )
         if self.embedding_dim < 1:
-            raise SettingsError(f"settings: embedding_dim must be >= 1, got {self.embedding_dim}")
+            raise SettingsError(
+                f"settings: embedding_dim must be >= 1, got {self.embedding_dim}",
+                setting="embedding_dim",
+            )
         return self
 
     def to_toml(self) -> str:
@@ -123,7 +148,9 @@ class Settings:
         try:
             return settings.validate()
         except SettingsError as exc:  # name the file, not "settings"
-            raise SettingsError(str(exc).replace("settings:", f"{source}:", 1)) from None
+            raise SettingsError(
+                str(exc).replace("settings:", f"{source}:", 1), setting=exc.setting
+            ) from None
 
     @classmethod
     def from_file(cls, path: Path) -> Settings:
@@ -144,7 +171,7 @@ def levels_from_costs(costs: list[float], names: list[str] | None = None) -> tup
     if names is None:
         names = ["high"] + [f"low{i}" for i in range(1, len(costs))]
     if len(names) != len(costs):
-        raise SettingsError(f"--level-names has {len(names)} names for {len(costs)} costs")
+        raise OptionValueError(f"--level-names has {len(names)} names for {len(costs)} costs")
     return tuple(Level(n, float(c)) for n, c in zip(names, costs, strict=True))
 
 

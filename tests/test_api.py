@@ -265,29 +265,29 @@ def _bad_results(ws: Path) -> Path:
 
 
 BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsError]]] = [
-    ("fit", ["fit", "--restarts", "0"], api.fit, {"restarts": 0}, WorkspaceError),
+    ("fit", ["fit", "--restarts", "0"], api.fit, {"restarts": 0}, api.OptionValueError),
     (
         "select",
         ["select", "--confirm-share", "1.5"],
         api.select,
         {"confirm_share": 1.5},
-        WorkspaceError,
+        api.OptionValueError,
     ),
     (
         "estimate",
         ["estimate", "--confidence", "2.0"],
         api.estimate_compute,
         {"confidence": 2.0},
-        WorkspaceError,
+        api.OptionValueError,
     ),
     (
         "estimate-plan",
         ["estimate", "--plan", "--stages", "0"],
         api.estimate_plan,
         {"stages": 0},
-        WorkspaceError,
+        api.OptionValueError,
     ),
-    ("report", ["report", "--diverse", "-1"], api.report, {"n_diverse": -1}, WorkspaceError),
+    ("report", ["report", "--diverse", "-1"], api.report, {"n_diverse": -1}, api.OptionValueError),
     ("abandon", ["abandon"], api.abandon, {}, api.OptionError),
 ]
 

@@ -4,7 +4,7 @@ Each case starts from a copy of one study (a reduced toy2d pool, a batch ingeste
 fitted, an estimate computed, a second batch awaiting results), damages an input or a
 state file, runs one command through the CLI and asserts:
 
-* exit code 1 (2 for click's own usage errors, none of them here);
+* exit code 1, or 2 for an option out of range (a usage error, as click's own);
 * stderr is exactly one line, ``error: <file>: [column 'c'[, row r]: ]<what>``, with the
   file, column and row of the case and its expected text;
 * no traceback and no ``(unexpected`` catch-all text (kept for true bugs);
@@ -71,6 +71,7 @@ class Case:
     row: int | None = None
     fix: str | None = None
     marks: list = field(default_factory=list)
+    code: int = 1
 
     def where(self, ws: Path, tmp: Path) -> str:
         if not self.file:  # an option: the message starts with the flag
@@ -443,14 +444,52 @@ def _options(*args: object):
     return lambda ws, tmp: [args[0], "-w", ws, *args[1:]]
 
 
+PLAN = ("estimate", "--plan", "--allow-pending")
+#: Checked before the loop takes a step: the pending batch 2 would be simulated first.
+LOOP = ("loop", "--simulator", "true {handoff} {results}", "--batches", "3")
+BUDGET = "must be a finite number > 0 (cost units; one level-0 run costs 1)"
+
 OPTION_CASES = [
     Case("workers-negative", _options(*SELECT, "--workers", "-3"), "",
-         "--workers -3: must be >= 1"),
-    Case("workers-zero", _options(*SELECT, "--workers", "0"), "", "--workers 0: must be >= 1"),
-    Case("budget-negative", _options("select", "--budget", "-1", "--allow-pending"), "",
-         "--budget -1.0: must be > 0"),
+         "--workers -3: must be >= 1", code=2),
+    Case("workers-zero", _options(*SELECT, "--workers", "0"), "", "--workers 0: must be >= 1",
+         code=2),
+    Case("budget-negative", _options("select", "--budget", "-5", "--allow-pending"), "",
+         f"--budget -5: {BUDGET}", code=2),
+    Case("budget-zero", _options("select", "--budget", "0", "--allow-pending"), "",
+         f"--budget 0: {BUDGET}", code=2),
+    Case("budget-nan", _options("select", "--budget", "nan", "--allow-pending"), "",
+         f"--budget nan: {BUDGET}", code=2),
     Case("clusters-zero", _options("select", "--clusters", "0", "--allow-pending"), "",
-         "--clusters 0 must be >= 1"),
+         "--clusters 0: must be >= 1", code=2),
+    Case("overbudget-inf", _options("select", "--overbudget", "inf", "--allow-pending"), "",
+         "--overbudget inf: must be a finite number >= 1", code=2),
+    Case("level0-share-nan", _options("select", "--level0-share", "nan", "--allow-pending"), "",
+         "--level0-share nan: must lie in [0, 1]", code=2),
+    Case("samples-zero", _options(*PLAN, "--samples", "0"), "",
+         "--samples 0: must be a finite number >= 1 (simulations to plan)", code=2),
+    Case("samples-inf", _options(*PLAN, "--samples", "inf"), "", "--samples inf: must be a finite",
+         code=2),
+    Case("defensive-nan", _options(*PLAN, "--defensive", "nan"), "",
+         "--defensive nan: must lie in [0, 1]", code=2),
+    Case("alpha-negative", _options(*PLAN, "--alpha", "-1"), "",
+         "--alpha -1: must be a finite number >= 0", code=2),
+    Case("stage1-share-one", _options(*PLAN, "--stage1-share", "1"), "",
+         "--stage1-share 1: must lie in (0, 1)", code=2),
+    Case("plan-seed-negative", _options(*PLAN, "--seed", "-1"), "",
+         "--seed -1: must be an integer >= 0", code=2),
+    Case("confidence-nan", _options("estimate", "--confidence", "nan"), "",
+         "--confidence nan: must lie in (0, 1)", code=2),
+    Case("loop-budget-negative", _options(*LOOP, "--budget", "-5"), "", f"--budget -5: {BUDGET}",
+         code=2),
+    Case("loop-first-budget-zero", _options(*LOOP, "--first-budget", "0"), "",
+         f"--first-budget 0: {BUDGET}", code=2),
+    Case("loop-samples-negative", _options(*LOOP, "--then-estimate", "--samples", "-1"), "",
+         "--samples -1: must be a finite number >= 1", code=2),
+    Case("loop-clusters-zero", _options(*LOOP, "--clusters", "0"), "",
+         "--clusters 0: must be >= 1", code=2),
+    Case("loop-batches-zero", _options("loop", "--simulator", "true {handoff} {results}",
+         "--batches", "0"), "", "--batches 0: must be >= 1", code=2),
 ]  # fmt: skip
 
 CASES = [*ESTIMATE_CASES, *INGEST_CASES, *EMBED_CASES, *STATE_CASES, *OPTION_CASES]
@@ -469,7 +508,7 @@ def test_bad_input_is_one_line_naming_it_and_changes_nothing(case, template, tmp
     before = tree_hash(ws)
     r = invoke(CliRunner(), *args)
     lines = r.stderr.splitlines()
-    assert r.exit_code == 1, (r.exit_code, r.output)
+    assert r.exit_code == case.code, (r.exit_code, r.output)
     assert len(lines) == 1, r.stderr
     assert len(lines[0]) < 400 + len(str(tmp_path)) * 3, lines[0][:1000]  # nothing echoed whole
     assert "Traceback" not in r.output and "(unexpected" not in r.stderr

@@ -101,6 +101,7 @@ def test_an_invalid_choice_is_a_usage_error_naming_the_valid_ones(runner, tmp_pa
     # Off a terminal (as here) click's plain lines, the error whole on one of them.
     [error] = [line for line in r.stderr.splitlines() if line.startswith("Error: ")]
     assert "is not one of" in error and valid in error, r.stderr
+    assert "Value error" not in error, error  # typer's pydantic prefix is not the tool's
     assert not list(tmp_path.iterdir())
 
 
@@ -233,6 +234,7 @@ def test_a_json_error_is_one_json_line_on_stderr(runner, tmp_path):
         (["select", "-w", "missing-ws", "--json"], 1, "no such workspace"),
         (["select", "--strategy", "nope", "--json"], 2, "'nope' is not one of 'bams'"),
         (["select", "--bogus", "--json"], 2, "No such option: --bogus"),
+        (["select", "--budget", "-5", "--json"], 2, "--budget -5: must be a finite number > 0"),
     ],
 )
 def test_the_installed_command_prints_json_errors_even_for_usage(tmp_path, args, code, needle):
@@ -243,6 +245,7 @@ def test_the_installed_command_prints_json_errors_even_for_usage(tmp_path, args,
     [line] = out.stderr.splitlines()
     doc = json.loads(line)
     assert doc["exit_code"] == code and needle in doc["error"]
+    assert "Value error" not in doc["error"]
 
 
 def test_json_warnings_are_json_lines(runner):

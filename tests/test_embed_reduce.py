@@ -305,3 +305,51 @@ def test_embedding_column_must_be_a_list_column(toy_ws, runner, toy_files):
     assert r.exit_code == 1
     assert "column 'x0': --embedding-column must name a list column, got type double" in r.stderr
     assert tree_hash(toy_ws) == before
+
+
+DEAD = "a constant embedding dimension carries no information: drop it"
+
+
+@pytest.mark.parametrize(
+    ("layout", "dead", "where"),
+    [
+        ("columns", [7], "column 'emb_007': one value in all 600 rows"),
+        ("columns", [3, 30], "2 embedding columns hold one value each in all 600 rows "
+         "('emb_003', 'emb_030')"),
+        ("list", [7], "column 'emb': embedding position 8 (of 40) holds one value in all 600 rows"),
+        ("list", [0, 1, 2, 3, 4, 5], "column 'emb': embedding positions 1, 2, 3, 4, 5 ... "
+         "(of 40) hold one value in all 600 rows"),
+    ],
+)  # fmt: skip
+@pytest.mark.parametrize("method", ["pca", "identity"])
+def test_a_constant_embedding_column_is_one_warning_naming_it(
+    av_ws, runner, tmp_path, layout, dead, where, method
+):
+    seg = _av_files(tmp_path / "d", layout=layout)
+    table = pq.read_table(seg)
+    if layout == "columns":
+        for j in dead:
+            name = f"emb_{j:03d}"
+            table = table.set_column(table.column_names.index(name), name, pa.array([0.1] * 600))
+    else:
+        E = np.array(table.column("emb").to_pylist())
+        E[:, dead] = 0.1
+        emb = pa.FixedSizeListArray.from_arrays(pa.array(E.ravel()), E.shape[1])
+        table = table.set_column(table.column_names.index("emb"), "emb", emb)
+    pq.write_table(table, seg, row_group_size=128)
+    args = ["--columns", "emb_*"] if layout == "columns" else []
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--json", *args)
+    assert r.exit_code == 0, r.output
+    expected = f"{seg}: {where}; {DEAD}"
+    assert [json.loads(line) for line in r.stderr.splitlines()] == [{"warning": expected}]
+    assert json.loads(r.stdout)["warnings"] == [expected]
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--force", *args)
+    assert r.exit_code == 0 and f"warning: {expected}" in r.stderr.splitlines()
+    # a no-op re-run does not repeat it
+    assert invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, *args).stderr == ""
+
+
+def test_a_pool_without_a_constant_column_has_no_warning(av_ws, runner, tmp_path):
+    seg = _av_files(tmp_path / "d")
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--json")
+    assert r.exit_code == 0 and r.stderr == "" and json.loads(r.stdout)["warnings"] == []

@@ -6,7 +6,8 @@ other line endings and quoting) the command either
 
 * succeeds, and the state it wrote is consistent: readable, every value finite and within
   the range the model holds, no (segment, fidelity) pair active twice, no logged row lost,
-  the pool's ids unique with finite coordinates; or
+  the pool's ids unique with finite coordinates, and one warning line naming the embedding
+  columns that hold one value in every row, if any; or
 * fails with exit code 1 and exactly one line on stderr that names the input file, never
   the catch-all, and leaves every workspace file byte-for-byte as it was.
 
@@ -312,6 +313,25 @@ def _check_embed(template: Path, table: pa.Table, args: list[str]) -> None:
         assert ids.tolist() == [str(v) for v in table.column("segment_id").to_pylist()]
         with np.load(ws / "reducer.npz") as saved:
             assert all(np.isfinite(a).all() for a in saved.values() if a.dtype.kind == "f")
+        _constant_columns_are_warned(table, args, r.stderr, source)
+
+
+def _constant_columns_are_warned(table: pa.Table, args: list[str], stderr: str, source: Path):
+    if "--columns" in args:
+        names = [c for c in table.column_names if c.startswith("e")]
+        E = np.column_stack([np.asarray(table.column(c).to_pylist(), float) for c in names])
+        dims = [repr(c) for c in names]
+    else:
+        E = np.asarray(table.column("emb").to_pylist(), float)
+        dims = [str(j + 1) for j in range(E.shape[1])]
+    constant = [d for d, col in zip(dims, E.T, strict=True) if (col == col[0]).all()]
+    warned = [line for line in stderr.splitlines() if "constant embedding" in line]
+    if len(E) < 2 or not constant:  # one row: every column is constant, nothing to say
+        assert warned == []
+        return
+    event("constant column warned")
+    [line] = warned
+    assert line.startswith(f"warning: {source}: ") and all(d in line for d in constant), line
 
 
 @FAST

@@ -58,3 +58,92 @@ def test_force_and_exist_ok_contradict(runner, tmp_path):
     r = invoke(runner, "init", "-w", tmp_path / "ws", *FLAGS, "--force", "--exist-ok")
     assert r.exit_code == 1 and "pass one of them" in r.stderr
     assert not (tmp_path / "ws").exists()
+
+
+@pytest.mark.parametrize("gammas", ["0.5,0.5", "0.5,0.3,0.5", "0.5,0.50"])
+def test_a_repeated_gamma_is_a_usage_error_naming_it(runner, tmp_path, gammas):
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", gammas)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.splitlines() == [
+        f"error: --gamma {gammas.replace('0.50', '0.5')}: gamma 0.5 is given more than once; "
+        "give each failure threshold once"
+    ]
+    assert not (tmp_path / "ws").exists()
+
+
+def test_a_repeated_gamma_in_a_settings_file_names_the_file(runner, tmp_path):
+    source = tmp_path / "settings.toml"
+    source.write_text("[study]\ngammas = [0.5, 0.3, 0.3]\n")
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--settings-from", source)
+    assert r.exit_code == 1 and r.stderr.splitlines() == [
+        f"error: {source}: gamma 0.3 is given more than once; give each failure threshold once"
+    ]
+    assert not (tmp_path / "ws").exists()
+
+
+def test_gammas_keep_the_order_given(runner, tmp_path):
+    # Not sorted: the first drives selection, as the settings file's header says.
+    summary = json.loads(
+        ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.7,0.3", "--json").stdout
+    )
+    assert summary["gammas"] == [0.7, 0.3]
+    assert "gammas = [\n    0.7,\n    0.3,\n]" in (tmp_path / "ws" / "settings.toml").read_text()
+
+
+@pytest.mark.parametrize(
+    ("flags", "line"),
+    [
+        (["--costs", "1,0"], "--costs 1,0: level 1 cost must be a finite number > 0, got 0"),
+        (["--costs", "1,-0.1"], "--costs 1,-0.1: level 1 cost must be a finite number > 0"),
+        (["--costs", "1,nan"], "--costs 1,nan: level 1 cost must be a finite number > 0, got nan"),
+        (["--costs", "1,inf"], "--costs 1,inf: level 1 cost must be a finite number > 0, got inf"),
+        (["--costs", "2,1"], "--costs 2,1: level 0 must cost 1 (costs are in units of one"),
+        (["--gamma", "nan"], "--gamma nan: gammas must be finite numbers, got [nan]"),
+        (["--gamma", "abc"], "--gamma 'abc': expected comma-separated numbers"),
+        (["--seed", "-1"], "--seed -1: seed must be an integer >= 0, got -1"),
+        (["--dim", "0"], "--dim 0: embedding_dim must be >= 1, got 0"),
+        (["--costs", "1,0.1", "--level-names", "a"], "--level-names has 1 names for 2 costs"),
+    ],
+)  # fmt: skip
+def test_a_flag_out_of_range_is_a_usage_error_naming_it(runner, tmp_path, flags, line):
+    r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", *flags)
+    assert r.exit_code == 2, r.output
+    [error] = r.stderr.splitlines()
+    assert error.startswith(f"error: {line}"), error
+    assert not (tmp_path / "ws").exists()
+
+
+DEAR = (
+    "no less than a level-0 run (costs are in units of one level-0 run; a cheaper simulator "
+    "costs a fraction of 1): select will seldom pick it, while random mixed-fidelity batches "
+    "spend budget on it"
+)
+
+
+@pytest.mark.parametrize("costs", ["1,1", "1,1.5", "1,0.1,2"])
+def test_a_cheap_level_costing_as_much_as_level_0_is_warned_once(runner, tmp_path, costs):
+    # Legal (a run of it is still a run), but select's greedy all but never picks it.
+    level, cost = next((i, c) for i, c in enumerate(costs.split(",")) if i and float(c) >= 1)
+    expected = f"--costs {costs}: level {level} (low{level}) costs {cost}, {DEAR}"
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", costs)
+    assert r.stderr.splitlines() == [f"warning: {expected}"]
+    r = ok(runner, "init", "-w", tmp_path / "js", "--gamma", "0.5", "--costs", costs, "--json")
+    assert [json.loads(line) for line in r.stderr.splitlines()] == [{"warning": expected}]
+    assert json.loads(r.stdout)["warnings"] == [expected]
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", costs, "--exist-ok")
+    assert r.stderr == ""  # a no-op re-run does not repeat it
+
+
+def test_a_dear_cheap_level_from_a_settings_file_names_the_file(runner, tmp_path):
+    source = tmp_path / "settings.toml"
+    source.write_text(
+        "levels = [{name = 'high', cost = 1.0}, {name = 'sim2', cost = 1.0}]\n"
+        "[study]\ngammas = [0.5]\n"
+    )
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--settings-from", source)
+    assert r.stderr.splitlines() == [f"warning: {source}: level 1 (sim2) costs 1, {DEAR}"]
+
+
+def test_cheap_levels_below_level_0_are_not_warned(runner, tmp_path):
+    r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", "1,0.99,0.1")
+    assert r.stderr == ""

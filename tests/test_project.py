@@ -207,7 +207,7 @@ def test_warnings_print_as_one_line_each(toy_ws, runner):
 
 def test_a_negative_seed_is_refused(tmp_path, runner):
     r = invoke(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--seed", "-1")
-    assert r.exit_code == 1 and "seed must be an integer >= 0, got -1" in r.stderr
+    assert r.exit_code == 2 and "--seed -1: seed must be an integer >= 0, got -1" in r.stderr
     assert not (tmp_path / "ws" / "settings.toml").exists()
 
 

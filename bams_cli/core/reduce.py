@@ -47,6 +47,9 @@ class Reducer:
     reconstruction_error: dict[str, float] = field(default_factory=dict)
     # PCA only: variance along each component (ddof = 1, standardised units if standardised).
     explained_variance: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    # (D,) after a fit, empty once loaded: input columns with one value in every row. Not
+    # saved; embed-reduce warns about them.
+    constant: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
     def dim(self) -> int:
@@ -110,15 +113,18 @@ class Reducer:
         )
 
 
-def _moments(batches: BatchSource) -> tuple[NDArray, NDArray, int]:
-    """Streaming mean and standard deviation (Chan et al. parallel update), one pass."""
+def _moments(batches: BatchSource) -> tuple[NDArray, NDArray, int, NDArray[np.bool_]]:
+    """Streaming mean and standard deviation (Chan et al. parallel update), one pass; and
+    which columns are constant (see ``Scatter.constant``)."""
     n = 0
     mean = M2 = None
+    span = _Span()
     for B in batches():
         B = np.asarray(B, dtype=np.float64)
         nb = B.shape[0]
         if nb == 0:
             continue
+        span.update(B)
         mb = B.mean(axis=0)
         M2b = ((B - mb) ** 2).sum(axis=0)
         if mean is None:
@@ -132,13 +138,43 @@ def _moments(batches: BatchSource) -> tuple[NDArray, NDArray, int]:
     if mean is None or M2 is None:
         raise ValueError("no rows to fit the reducer on")
     std = np.sqrt(M2 / max(n - 1, 1))
-    # Constant columns carry no information; leave them unscaled rather than divide by 0.
-    std[std == 0] = 1.0
-    return mean, std, n
+    constant = span.constant()
+    # Constant columns carry no information; leave them unscaled rather than divide by 0
+    # or by their rounding noise.
+    std[constant | (std == 0)] = 1.0
+    return mean, std, n, constant
+
+
+class _Span:
+    """Running column minima and maxima of a stream of row batches."""
+
+    def __init__(self) -> None:
+        self.lo: NDArray[np.float64] | None = None
+        self.hi: NDArray[np.float64] | None = None
+
+    def update(self, B: NDArray[np.float64]) -> None:
+        lo, hi = B.min(axis=0), B.max(axis=0)
+        if self.lo is None or self.hi is None:
+            self.lo, self.hi = lo, hi
+            return
+        np.minimum(self.lo, lo, out=self.lo)
+        np.maximum(self.hi, hi, out=self.hi)
+
+    def constant(self) -> NDArray[np.bool_]:
+        """Columns holding one value in every row (min == max), shape (D,).
+
+        Exact, where the variance is not: a column of 0.1s averages to 0.10000000000000002
+        and leaves a standard deviation of 7e-17, which standardising divided by and blew
+        up to a unit-variance column (PCA then kept it as a component in place of a real
+        direction)."""
+        if self.lo is None or self.hi is None:
+            raise ValueError("no rows to fit the reducer on")
+        return self.lo == self.hi
 
 
 class Scatter:
-    """Running mean and scatter matrix of a stream of row batches.
+    """Running mean and scatter matrix of a stream of row batches (and the columns' span,
+    which says exactly which are constant).
 
     After rows ``x_1 .. x_n``: ``mean = sum x_i / n`` and
     ``M2 = sum (x_i - mean)(x_i - mean)^T``, so the sample covariance is ``M2 / (n - 1)``.
@@ -161,6 +197,7 @@ class Scatter:
         self.n = 0
         self.mean: NDArray[np.float64] | None = None  # (D,)
         self.M2: NDArray[np.float64] | None = None  # (D, D)
+        self.span = _Span()
 
     def update(self, B: NDArray) -> None:
         """Add a batch.
@@ -173,6 +210,7 @@ class Scatter:
         nb = B.shape[0]
         if nb == 0:
             return
+        self.span.update(B)
         mb = B.mean(axis=0)
         Bc = B - mb
         # numpy computes Bc.T @ Bc with one symmetric rank-k update (BLAS syrk): half a gemm.
@@ -259,18 +297,20 @@ def fit_reducer(
         if sample is None or len(sample) < 2 * dim:
             raise ValueError("the autoencoder needs a training sample of at least 2 * dim rows")
         Zs = (np.asarray(sample, dtype=np.float64) - pca.mean) / pca.scale
-        return _fit_autoencoder(
+        auto = _fit_autoencoder(
             Zs, pca.mean, pca.scale, dim, hidden, max_iter, rng, pca.reconstruction_error
         )
+        auto.constant = pca.constant
+        return auto
 
-    mean, scale, n = _moments(batches)
+    mean, scale, n, constant = _moments(batches)
     if progress:
         progress("statistics", n, n)
     if not standardize:
         scale = np.ones_like(scale)
     D = mean.shape[0]
     if method == "identity":
-        return Reducer("identity", mean if standardize else np.zeros(D), scale)
+        return Reducer("identity", mean if standardize else np.zeros(D), scale, constant=constant)
     if dim > D:
         raise ValueError(f"--dim {dim} exceeds the embedding's {D} columns")
 
@@ -299,6 +339,7 @@ def fit_reducer(
         weights=[ipca.components_.T.copy()],
         biases=[np.zeros(dim)],
         explained_variance=np.asarray(ipca.explained_variance_, dtype=np.float64),
+        constant=constant,
     )
     if sample is not None and len(sample):
         Zs = (np.asarray(sample, dtype=np.float64) - mean) / scale
@@ -325,8 +366,10 @@ def _fit_exact_pca(
     if dim > D:
         raise ValueError(f"--dim {dim} exceeds the embedding's {D} columns")
     std = np.sqrt(np.diag(C))
-    # Constant columns carry no information; leave them unscaled rather than divide by 0.
-    std[std == 0] = 1.0
+    constant = acc.span.constant()
+    # Constant columns carry no information; leave them unscaled rather than divide by 0
+    # or by their rounding noise.
+    std[constant | (std == 0)] = 1.0
     scale = std if standardize else np.ones(D)
     # Covariance of the standardised columns S = (X - mean) / scale: C_ij / (s_i s_j).
     C = C / np.outer(scale, scale)
@@ -344,6 +387,7 @@ def _fit_exact_pca(
         biases=[np.zeros(dim)],
         reconstruction_error={"pca": error},
         explained_variance=lam,
+        constant=constant,
     )
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import polars as pl
 
 from bams_cli import stages as stages_mod
+from bams_cli.errors import OptionValueError
 from bams_cli.settings import SETTINGS_FILE
 from bams_cli.state import schemas
 from bams_cli.state.io import (
@@ -122,3 +123,31 @@ def finite_or_none(x: float) -> float | None:
     """x as a JSON number, or None (JSON null) when it is NaN or infinite."""
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+# Options select, estimate --plan and loop share, checked before anything is read: a value
+# out of range is a usage error (exit code 2) naming the option, whichever command got it.
+def check_budget(budget: float, flag: str = "--budget") -> None:
+    """A batch budget: a finite number of cost units > 0."""
+    if not (budget > 0 and math.isfinite(budget)):
+        raise OptionValueError(
+            f"{flag} {budget:g}: must be a finite number > 0 (cost units; one level-0 run costs 1)"
+        )
+
+
+def check_clusters(clusters: int) -> None:
+    if clusters < 1:
+        raise OptionValueError(f"--clusters {clusters}: must be >= 1 (1: no clustering)")
+
+
+def check_workers(workers: int | None) -> None:
+    if workers is not None and workers < 1:
+        raise OptionValueError(f"--workers {workers}: must be >= 1 (leave it out for one per core)")
+
+
+def check_samples(samples: float | None) -> None:
+    """An estimate's budget K, when given: a finite number of simulations >= 1."""
+    if samples is not None and not 1 <= samples < math.inf:
+        raise OptionValueError(
+            f"--samples {samples:g}: must be a finite number >= 1 (simulations to plan)"
+        )

@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 from bams_cli.errors import (
     DuplicateError,
     InputError,
+    OptionValueError,
     SchemaError,
     WorkspaceError,
     shown,
@@ -90,25 +91,31 @@ def embed_reduce(
     dict
         The summary ``--json`` prints: ``segments`` (rows read), ``added``, ``pool_size``,
         ``method``, ``dim``, ``input_dim``, ``reconstruction_error``,
-        ``passthrough_columns``.
+        ``passthrough_columns``, ``warnings`` (embedding columns holding one value in
+        every row, when the reducer is fitted).
 
     Raises
     ------
     InputError
         The segments file has a bad value (``SchemaError``: a missing or mistyped column;
         ``DuplicateError``: a repeated segment id); the message names file, column and row.
+    OptionValueError
+        A size below 1; exit code 2.
     WorkspaceError
-        No workspace at ``root``, a size below 1, a pool exists already (without
-        ``force``), or there is no saved reducer to ``apply``.
+        No workspace at ``root``, a pool exists already (without ``force``), or there is no
+        saved reducer to ``apply``.
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
     from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
 
-    if batch_size < 1 or sample_size < 1 or (dim is not None and dim < 1):
-        raise WorkspaceError(
-            f"--batch-size {batch_size}, --sample-size {sample_size} and --dim {dim} must be >= 1"
-        )
+    for flag, value in (
+        ("--batch-size", batch_size),
+        ("--sample-size", sample_size),
+        ("--dim", dim),
+    ):
+        if value is not None and value < 1:
+            raise OptionValueError(f"{flag} {value}: must be >= 1")
     ws = Workspace(root)
     settings = ws.require_initialised()
     id_column = id_column or settings.id_column
@@ -265,6 +272,7 @@ def embed_reduce(
         "reconstruction_error": reducer.reconstruction_error,
         **({} if apply else request),
     }
+    warnings = [] if apply else _constant_columns(source, list_col, cols, reducer.constant, n)
     with transaction() as tx:
         if not apply:
             saved_layout = {
@@ -282,4 +290,34 @@ def embed_reduce(
         "input_dim": int(expected),
         "reconstruction_error": reducer.reconstruction_error,
         "passthrough_columns": passthrough,
+        "warnings": warnings,
     }
+
+
+def _constant_columns(
+    source: Path, list_col: str | None, cols: list[str], constant: np.ndarray, n: int
+) -> list[str]:
+    """A warning naming the embedding columns that hold one value in every row (none for
+    a single row, where every column does).
+
+    Legal, but a constant column carries no information: most likely a broken export or
+    a dead feature. With --method identity it reaches the model as a coordinate whose ARD
+    lengthscale no data can inform (only its prior sets it); PCA gives it no weight.
+    """
+    where = np.flatnonzero(constant)
+    if n < 2 or not len(where):
+        return []
+    first = ", ".join(str(j + 1) if list_col else shown(cols[j], 40) for j in where[:5]) + (
+        " ..." if len(where) > 5 else ""
+    )
+    if list_col:
+        what = (
+            f"column {shown(list_col)}: embedding position{'s' * (len(where) > 1)} {first} "
+            f"(of {len(constant)}) hold{'s' * (len(where) == 1)} one value in all "
+            f"{n} rows"
+        )
+    elif len(where) == 1:
+        what = f"column {first}: one value in all {n} rows"
+    else:
+        what = f"{len(where)} embedding columns hold one value each in all {n} rows ({first})"
+    return [f"{source}: {what}; a constant embedding dimension carries no information: drop it"]

@@ -17,6 +17,7 @@ from bams_cli import defaults
 from bams_cli import stages as stages_mod
 from bams_cli.errors import (
     OptionError,
+    OptionValueError,
     PendingResultsError,
     StaleStateError,
     WorkspaceError,
@@ -24,6 +25,7 @@ from bams_cli.errors import (
 from bams_cli.pipeline._common import (
     SID,
     Progress,
+    check_samples,
     finite_or_none,
     locked,
     plan_numbers,
@@ -128,8 +130,10 @@ def estimate_plan(
     ------
     PendingResultsError
         An earlier plan awaits results (exit code 3; ``allow_pending`` draws anyway).
+    OptionValueError
+        An option out of range or unknown; exit code 2.
     WorkspaceError
-        No workspace or no fitted model, or an option out of range or unknown.
+        No workspace or no fitted model.
     StaleStateError
         The model is older than the observation log.
     WorkspaceLockedError
@@ -147,17 +151,20 @@ def estimate_plan(
     )
 
     if design not in DESIGNS:
-        raise WorkspaceError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
+        raise OptionValueError(f"--design {design!r}: choose one of {', '.join(DESIGNS)}")
     if weighting not in WEIGHTINGS:
-        raise WorkspaceError(f"--weighting {weighting!r}: choose one of {', '.join(WEIGHTINGS)}")
-    if not (0 <= alpha < np.inf) or not 0 <= defensive <= 1:
-        raise WorkspaceError(f"--alpha {alpha} must be >= 0 and --defensive {defensive} in [0, 1]")
-    if samples is not None and not (1 <= samples < np.inf):
-        raise WorkspaceError(f"--samples {samples}: must be a number >= 1 (simulations to plan)")
+        raise OptionValueError(f"--weighting {weighting!r}: choose one of {', '.join(WEIGHTINGS)}")
+    check_samples(samples)
+    if not 0 <= alpha < np.inf:
+        raise OptionValueError(f"--alpha {alpha:g}: must be a finite number >= 0")
+    if not 0 <= defensive <= 1:
+        raise OptionValueError(f"--defensive {defensive:g}: must lie in [0, 1]")
     if not 1 <= stages <= 10:
-        raise WorkspaceError(f"--stages {stages}: must be between 1 and 10")
+        raise OptionValueError(f"--stages {stages}: must be between 1 and 10")
     if not 0 < stage1_share < 1:
-        raise WorkspaceError(f"--stage1-share {stage1_share}: must lie in (0, 1), e.g. 0.5")
+        raise OptionValueError(f"--stage1-share {stage1_share:g}: must lie in (0, 1), e.g. 0.5")
+    if seed is not None and seed < 0:
+        raise OptionValueError(f"--seed {seed}: must be an integer >= 0")
     ws = Workspace(root)
     settings = ws.require_initialised()
     pend = ws.pending()
@@ -561,8 +568,10 @@ def estimate_compute(
         Planned segments have no level-0 result yet (exit code 3).
     AbandonedRunsError
         Planned segments were abandoned and ``failed_as`` is not given.
+    OptionValueError
+        A ``confidence`` outside (0, 1); exit code 2.
     WorkspaceError
-        No workspace, no such plan, or an option out of range.
+        No workspace, or no such plan.
     StaleStateError
         ``exact_variance`` needs a model fitted on the current log.
     OptionError
@@ -575,7 +584,7 @@ def estimate_compute(
     from bams_cli.core.estimate import gp_estimate
 
     if not 0 < confidence < 1:
-        raise WorkspaceError(f"--confidence {confidence}: must lie in (0, 1), e.g. 0.9")
+        raise OptionValueError(f"--confidence {confidence:g}: must lie in (0, 1), e.g. 0.9")
     ws = Workspace(root)
     settings = ws.require_initialised()
     plans = plan_numbers(ws)

@@ -16,6 +16,7 @@ import pyarrow as pa
 from bams_cli import defaults, memory
 from bams_cli.errors import (
     InputError,
+    OptionValueError,
     PendingResultsError,
     SchemaError,
     StaleStateError,
@@ -176,9 +177,10 @@ def fit(
     ------
     PendingResultsError
         No observations yet while picks await results (exit code 3).
+    OptionValueError
+        An option out of range (``restarts``, ``chunk_size``, ``transform``); exit code 2.
     WorkspaceError
-        No workspace or no observations, an observed segment missing from the pool, or
-        an option out of range (``restarts``, ``chunk_size``, ``transform``).
+        No workspace or no observations, or an observed segment missing from the pool.
     InputError
         ``fixed_hyperparameters`` (or the saved model) is missing or does not fit the study.
     WorkspaceLockedError
@@ -187,10 +189,12 @@ def fit(
     from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
     from bams_cli.core.gp.checks import check_model
 
-    if restarts < 1 or chunk_size < 1:
-        raise WorkspaceError(f"--restarts {restarts} and --chunk-size {chunk_size} must be >= 1")
+    if restarts < 1:
+        raise OptionValueError(f"--restarts {restarts}: must be >= 1")
+    if chunk_size < 1:
+        raise OptionValueError(f"--chunk-size {chunk_size}: must be >= 1")
     if transform not in TRANSFORMS:
-        raise WorkspaceError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
+        raise OptionValueError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
     chosen = None if transform == "auto" else OutputTransform()
     ws = Workspace(root)
     settings = ws.require_initialised()

@@ -9,6 +9,7 @@ from typing import Any
 from bams_cli.errors import (
     InputError,
     OptionError,
+    OptionValueError,
     SettingsError,
     WorkspaceError,
 )
@@ -75,12 +76,18 @@ def init(
     dict
         The summary ``--json`` prints: ``workspace``, ``settings`` (the file), ``gammas``,
         ``levels`` (``name``, ``cost`` each), ``seed``, ``embedding_dim``; ``unchanged``
-        when ``exist_ok`` kept the file.
+        when ``exist_ok`` kept the file, else ``warnings`` (a cheap level that costs as
+        much as level 0 or more).
 
     Raises
     ------
+    OptionValueError
+        An argument holds an invalid value (a repeated gamma, a level-0 cost other than 1,
+        a cost not > 0, a negative seed ...), named by its flag; exit code 2.
     SettingsError
-        A setting (here or in ``settings_from``) is invalid, or no threshold is given.
+        A setting in ``settings_from`` is invalid.
+    OptionError
+        No threshold is given, or both ``force`` and ``exist_ok``.
     WorkspaceError
         The workspace exists already (without ``force``), or holds other settings
         (with ``exist_ok``).
@@ -105,9 +112,24 @@ def init(
             raise InputError(settings_from, "settings file not found")
         base = Settings.from_file(settings_from)
     levels = levels_from_costs(costs, level_names) if costs else None
-    settings = base.with_overrides(
-        gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
-    )
+    try:
+        settings = base.with_overrides(
+            gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
+        )
+    except SettingsError as exc:
+        # The base was checked when it was read, so a flag holds the bad value: a usage
+        # error naming the flag and its values.
+        flags = {
+            "gammas": ("--gamma", gammas),
+            "levels": ("--costs", costs),
+            "seed": ("--seed", seed),
+            "embedding_dim": ("--dim", dim),
+        }
+        flag, value = flags.get(exc.setting or "", ("", None))
+        if value is None:
+            raise
+        typed = ",".join(f"{v:g}" for v in value) if isinstance(value, list) else value
+        raise OptionValueError(f"{flag} {typed}: {str(exc).removeprefix('settings: ')}") from None
     with workspace_lock(root, wait=wait), transaction() as tx:
         if ws.settings_path.exists() and exist_ok:
             differences = _settings_differences(Settings.from_file(ws.settings_path), settings)
@@ -129,11 +151,32 @@ def init(
                 "or --exist-ok to keep it when it holds these settings"
             )
         tx.write_text(ws.settings_path, settings.to_toml())
+    source = "--costs " + ",".join(f"{c:g}" for c in costs) if costs else str(settings_from)
     return {
         "workspace": str(root),
         "settings": str(ws.settings_path),
         **settings_summary(settings),
+        "warnings": _dear_cheap_levels(settings, source),
     }
+
+
+def _dear_cheap_levels(settings: Settings, source: str) -> list[str]:
+    """One warning per cheap level that costs as much as a level-0 run or more.
+
+    Legal, and nothing breaks, but almost surely a slip (1,1.5 for 1,0.15, or costs not in
+    units of one level-0 run): select scores a candidate by the variance of the level-0
+    metric it removes per unit cost, and a cheap run, carrying its level's discrepancy,
+    removes less than a level-0 run of the same segment, so at the same cost or more the
+    greedy all but never picks it, while a random mixed-fidelity batch still spends its
+    share of the budget on it.
+    """
+    return [
+        f"{source}: level {i} ({level.name}) costs {level.cost:g}, no less than a level-0 run "
+        "(costs are in units of one level-0 run; a cheaper simulator costs a fraction of 1): "
+        "select will seldom pick it, while random mixed-fidelity batches spend budget on it"
+        for i, level in enumerate(settings.levels)
+        if i and level.cost >= 1
+    ]
 
 
 def _settings_differences(existing: Settings, requested: Settings) -> list[str]:

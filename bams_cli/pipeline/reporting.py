@@ -16,8 +16,8 @@ from bams_cli import defaults, schemas_json
 from bams_cli.errors import (
     InputError,
     OptionError,
+    OptionValueError,
     StaleStateError,
-    WorkspaceError,
 )
 from bams_cli.pipeline._common import SID, locked, plan_numbers, read_scores
 from bams_cli.pipeline.estimation import design_note
@@ -80,7 +80,9 @@ def report(
     InputError
         ``truth`` lacks a pool segment or has a bad value.
     WorkspaceError
-        No workspace, ``n_diverse`` below 0 or ``max_points`` below 1.
+        No workspace.
+    OptionValueError
+        ``n_diverse`` below 0 or ``max_points`` below 1; exit code 2.
     OptionError
         ``by`` is not a pass-through column of the pool.
     WorkspaceLockedError
@@ -229,7 +231,7 @@ def report(
     rng = np.random.default_rng(settings.seed)
     diverse = []
     if n_diverse < 0 or max_points < 1:
-        raise WorkspaceError(f"--diverse {n_diverse}: must be >= 0")
+        raise OptionValueError(f"--diverse {n_diverse}: must be >= 0")
     if by is not None:
         _passthrough_names(ws, by)  # an unknown column fails before anything is computed
     if scores is not None:

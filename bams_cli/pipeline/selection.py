@@ -17,10 +17,19 @@ from bams_cli import defaults, memory
 from bams_cli.errors import (
     InputError,
     OptionError,
+    OptionValueError,
     PendingResultsError,
     WorkspaceError,
 )
-from bams_cli.pipeline._common import SID, Progress, locked, read_scores
+from bams_cli.pipeline._common import (
+    SID,
+    Progress,
+    check_budget,
+    check_clusters,
+    check_workers,
+    locked,
+    read_scores,
+)
 from bams_cli.pipeline._handoff import (
     BATCH_INTERNAL,
     passthrough_columns,
@@ -348,13 +357,15 @@ def select(
     ------
     PendingResultsError
         An earlier batch awaits results (exit code 3; ``allow_pending`` selects anyway).
+    OptionValueError
+        An option out of range or unknown (strategy, pooling, greedy, budget, clusters,
+        overbudget, shares, workers); exit code 2.
     WorkspaceError
         No workspace or pool, no model (or one older than the log) for a model-based
-        strategy, nothing that fits the budget, or an option out of range or unknown
-        (strategy, pooling, greedy, budget, shares).
+        strategy, nothing that fits the budget, or a budget that buys more than the pool.
     OptionError
-        A ``batch`` that is not the next one or exists with other options, an ``out``
-        that is a folder, or bad clusters.
+        A ``batch`` that is not the next one or exists with other options, or an ``out``
+        that is a folder.
     InputError
         The pool's difficulty column holds a value that is not finite (ds, ds-gp).
     WorkspaceLockedError
@@ -366,23 +377,23 @@ def select(
     from bams_cli.parallel import executor
 
     if strategy not in STRATEGIES:
-        raise WorkspaceError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
+        raise OptionValueError(f"--strategy {strategy!r}: choose one of {', '.join(STRATEGIES)}")
     if pooling not in ("global", "raw"):
-        raise WorkspaceError(f"--pooling {pooling!r}: choose global or raw")
+        raise OptionValueError(f"--pooling {pooling!r}: choose global or raw")
     if greedy not in GREEDY_PLANS:
-        raise WorkspaceError(f"--greedy {greedy!r}: choose one of {', '.join(GREEDY_PLANS)}")
-    if clusters < 1 or not overbudget >= 1:
-        raise WorkspaceError(
-            f"--clusters {clusters} must be >= 1 and --overbudget {overbudget} >= 1"
+        raise OptionValueError(f"--greedy {greedy!r}: choose one of {', '.join(GREEDY_PLANS)}")
+    check_budget(budget)
+    check_clusters(clusters)
+    if not 1 <= overbudget < math.inf:
+        raise OptionValueError(
+            f"--overbudget {overbudget:g}: must be a finite number >= 1 (each cluster plans "
+            "ceil(eta m N_s / N))"
         )
     if not 0 <= level0_share <= 1:
-        raise WorkspaceError(f"--level0-share {level0_share}: must lie in [0, 1]")
+        raise OptionValueError(f"--level0-share {level0_share:g}: must lie in [0, 1]")
     if not 0 <= confirm_share <= 1:
-        raise WorkspaceError(f"--confirm-share {confirm_share}: must lie in [0, 1]")
-    if not (budget > 0 and np.isfinite(budget)):
-        raise WorkspaceError(
-            f"--budget {budget}: must be > 0 (cost units; one level-0 run costs 1)"
-        )
+        raise OptionValueError(f"--confirm-share {confirm_share:g}: must lie in [0, 1]")
+    check_workers(workers)
     ws = Workspace(root)
     settings = ws.require_initialised()
     ids, X = ws.read_pool()

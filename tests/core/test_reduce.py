@@ -138,6 +138,24 @@ def test_constant_columns_and_full_dim_are_safe():
     assert r.reconstruction_error["pca"] == pytest.approx(0.0, abs=1e-12)
 
 
+@pytest.mark.parametrize("method", ["pca", "ipca", "identity"])
+@pytest.mark.parametrize("value", [0.1, 1e4 + 0.3, -7.0])
+def test_a_constant_column_is_found_exactly_and_left_unscaled(method, value):
+    # 0.1 averages to 0.10000000000000002: the column's rounding noise (sd ~ 1e-17) was
+    # taken for its scale, standardising made it a unit-variance column, and PCA kept it
+    # as a component in place of a real direction (reconstruction error 1/6, not 0).
+    X = _data(seed=4)[:200, :6]
+    X[:, 2] = value
+    r = fit_reducer(_chunks(X, 7), method=method, dim=5, rng=None)  # type: ignore[arg-type]
+    assert r.constant.tolist() == [False, False, True, False, False, False]
+    assert r.scale[2] == 1.0 and np.all(np.isfinite(r.transform(X)))
+    if method == "identity":
+        np.testing.assert_allclose(r.transform(X)[:, 2], 0.0, atol=1e-9)
+    else:  # the five real directions, and nothing lost
+        assert r.explained_variance.min() > 1e-3
+        np.testing.assert_allclose(np.abs(r.weights[0][2]), 0.0, atol=1e-9)
+
+
 def test_no_rows_and_too_many_dims_are_value_errors():
     with pytest.raises(ValueError, match="no rows"):
         fit_reducer(lambda: iter([]), method="pca", dim=2, rng=None)  # type: ignore[arg-type]

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from bams_cli import __version__
 from bams_cli.core.reduce import Reducer
-from bams_cli.errors import SchemaError
+from bams_cli.errors import SchemaError, SettingsError
 from bams_cli.settings import Level, Settings
 from bams_cli.state import io, schemas
 from bams_cli.state.io import read_metadata, transaction
@@ -83,7 +83,7 @@ def test_failed_transaction_leaves_no_file_and_keeps_the_old_one(tmp_path):
 
 @settings(max_examples=50, deadline=None)
 @given(
-    gammas=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=1, max_size=4),
+    gammas=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=1, max_size=4, unique=True),
     costs=st.lists(st.floats(1e-4, 10, allow_nan=False), min_size=0, max_size=3),
     seed=st.integers(0, 2**31),
     dim=st.integers(1, 64),
@@ -94,6 +94,23 @@ def test_settings_round_trip(gammas, costs, seed, dim):
     back = Settings.from_toml(s.to_toml())
     assert back == s
     assert all(math.isfinite(g) for g in back.gammas)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    gammas=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=1, max_size=4, unique=True),
+    data=st.data(),
+)
+def test_settings_refuse_a_repeated_gamma_by_its_value(gammas, data):
+    again = data.draw(st.sampled_from(gammas))
+    at = data.draw(st.integers(0, len(gammas)))
+    text = Settings(gammas=(*gammas[:at], again, *gammas[at:])).to_toml()
+    with pytest.raises(SettingsError) as info:
+        Settings.from_toml(text, source="ws/settings.toml")
+    assert str(info.value) == (
+        f"ws/settings.toml: gamma {again:g} is given more than once; give each failure "
+        "threshold once"
+    )
 
 
 @settings(max_examples=20, deadline=None)
