@@ -49,7 +49,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -1290,7 +1290,7 @@ def _cluster_job(
     n_init_clusters: int | None,
     rng: np.random.Generator,
     fit_max: int | None,
-) -> tuple[IntArray, dict[str, Any]]:
+) -> tuple[IntArray, Mapping[str, Any]]:
     """``cluster_pool`` as a task: the labels and the state ``rng`` is left in."""
     labels = cluster_pool(
         X, lengthscales, n_clusters, n_init_clusters=n_init_clusters, rng=rng, fit_max=fit_max

@@ -413,10 +413,10 @@ def read_results(
     if bad.any():
         row = int(df.filter(bad)["_row"][0])
         got = df.filter(bad)["value"][0]
-        missing = got is None or str(got).strip() == ""
+        blank = got is None or str(got).strip() == ""
         hint = (
             "; fill it in, or say why there is none in the status column (e.g. crashed)"
-            if missing or str(got).strip().lower() in ("nan", "-nan", "+nan")
+            if blank or str(got).strip().lower() in ("nan", "-nan", "+nan")
             else ""
         )
         raise InputError(
