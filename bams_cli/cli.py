@@ -217,9 +217,11 @@ def command(
                 raise
             except (typer.Exit, typer.Abort, ClickException):
                 raise
-            except KeyboardInterrupt:
-                console.error("interrupted; files being written were discarded", 130)
-                raise typer.Exit(130) from None
+            except KeyboardInterrupt as exc:
+                # A stopped loop (``loop.LoopStopped``) says what it stopped, with its code.
+                code = getattr(exc, "exit_code", 130)
+                console.error(str(exc) or "interrupted; files being written were discarded", code)
+                raise typer.Exit(code) from None
             except Exception as exc:  # a damaged state file, a full disk, or a bug
                 if os.environ.get("BAMS_DEBUG"):
                     raise
