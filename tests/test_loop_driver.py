@@ -17,6 +17,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
+from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
 from tests.conftest import tree_hash, write_toy
 
@@ -177,6 +178,32 @@ def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_p
     assert waiting.returncode == 0, err
     assert json.loads(out)["unchanged"] is True
     assert _final(study) == _final(ws)
+
+
+def test_a_loop_killed_inside_a_step_is_noted_once_by_the_next(data, tmp_path):
+    """Killed while a step held the command lock, a loop leaves both its locks to the next
+    loop, which takes them over saying so in one note, not one per lock."""
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    args = _loop_args(ws, truth)
+    proc = subprocess.Popen(
+        args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    holder = None
+    deadline = time.monotonic() + 120
+    while holder != proc.pid and proc.poll() is None and time.monotonic() < deadline:
+        try:  # a step (select, fit) holds the command lock: its record names the loop
+            holder = json.loads((ws / LOCK_FILE).read_text() or "{}").get("pid")
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.01)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert holder == proc.pid
+    again = subprocess.run(args, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    notes = [line for line in again.stderr.splitlines() if "died holding the lock" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"note: {ws}: pid {proc.pid} on ")
 
 
 # A simulator that hands its work to a child process and waits, as a wrapper script does;
