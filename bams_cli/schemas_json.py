@@ -458,8 +458,15 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 ),
                 "commit_in_progress": BOOL,
                 "waiting_on_results": BOOL,
+                "phase": {"enum": ["setup", "discovery", "estimate", "done"]},
                 "next": obj(
-                    {"step": STR, "command": nullable(STR), "text": STR}, {"handoffs": array(PATH)}
+                    {
+                        "step": STR,
+                        "command": nullable(STR),
+                        "text": STR,
+                        "alternatives": array(obj({"step": STR, "command": STR})),
+                    },
+                    {"handoffs": array(PATH)},
                 ),
                 "exit_code": {"enum": [0, 3]},
             }
