@@ -1014,6 +1014,16 @@ def estimate(
         console.note(
             "the GP's estimate is the model's as of the plan; `bams-cli fit` adds its results"
         )
+    # Where it went, and where the estimate it replaced went: nothing is overwritten.
+    written = f"estimate written to {summary['estimate_file']}"
+    earlier = summary.get("earlier_estimate")
+    if earlier:
+        was = ""
+        if earlier["confidence"] is not None:  # None: a damaged file, kept as it was
+            was_kind = INTERVAL_NAMES.get(earlier["interval"], (f"{earlier['interval']} interval",))
+            was = f" ({100 * earlier['confidence']:g}% {was_kind[0]})"
+        written += f"; plan {summary['plan']}'s earlier estimate{was} is kept as {earlier['file']}"
+    console.out.print(written, markup=False, highlight=False, soft_wrap=True)
 
 
 @command()

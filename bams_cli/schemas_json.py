@@ -369,6 +369,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "gp_model": STR,
                 "notes": array(STR),
                 "estimate_file": PATH,
+                "earlier_estimate": nullable(
+                    obj({"file": PATH}, {"confidence": nullable(NUM), "interval": nullable(STR)})
+                ),
             },
             {
                 "abandoned": obj(
