@@ -487,6 +487,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {
                             "kind": {
                                 "enum": [
+                                    "stale_estimate",
                                     "stale_model",
                                     "no_model",
                                     "pending_batches",
