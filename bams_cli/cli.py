@@ -228,9 +228,11 @@ def command(
                 raise
             except (typer.Exit, typer.Abort, ClickException):
                 raise
-            except KeyboardInterrupt:
-                console.error("interrupted; files being written were discarded", 130)
-                raise typer.Exit(130) from None
+            except KeyboardInterrupt as exc:
+                # A stopped loop (``loop.LoopStopped``) says what it stopped, with its code.
+                code = getattr(exc, "exit_code", 130)
+                console.error(str(exc) or "interrupted; files being written were discarded", code)
+                raise typer.Exit(code) from None
             except Exception as exc:  # a damaged state file, a full disk, or a bug
                 if os.environ.get("BAMS_DEBUG"):
                     raise
@@ -1023,6 +1025,16 @@ def estimate(
         console.note(
             "the GP's estimate is the model's as of the plan; `bams-cli fit` adds its results"
         )
+    # Where it went, and where the estimate it replaced went: nothing is overwritten.
+    written = f"estimate written to {summary['estimate_file']}"
+    earlier = summary.get("earlier_estimate")
+    if earlier:
+        was = ""
+        if earlier["confidence"] is not None:  # None: a damaged file, kept as it was
+            was_kind = INTERVAL_NAMES.get(earlier["interval"], (f"{earlier['interval']} interval",))
+            was = f" ({100 * earlier['confidence']:g}% {was_kind[0]})"
+        written += f"; plan {summary['plan']}'s earlier estimate{was} is kept as {earlier['file']}"
+    console.out.print(written, markup=False, highlight=False, soft_wrap=True)
 
 
 @command()

@@ -18,14 +18,24 @@ simulator's results files. One loop drives a workspace at a time: it holds a sec
 (``LOOP_LOCK_FILE``) for its whole run, so a second loop started beside it is refused
 naming the first (or waits for it with ``--wait``) instead of simulating the same list
 twice; a loop that was killed leaves no lock behind.
+
+The simulator runs in a session of its own (it may be a script that starts more
+processes). A loop stopped by SIGTERM, SIGINT (Ctrl-C) or SIGHUP ends that whole process
+group (SIGTERM, then SIGKILL after ``SIMULATOR_GRACE_S``), discards the partial results
+and exits 128 + the signal's number; the list stays pending, so the same loop run again
+resumes it. A SIGKILL cannot be caught: it leaves the simulator running.
 """
 
 from __future__ import annotations
 
 import os
 import shlex
+import signal
 import subprocess
-from collections.abc import Callable
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,9 +50,23 @@ from bams_cli.status import batch_handoff, plan_handoff
 #: ``on_step(description, done, total)``: what the loop is doing, for a progress display.
 OnStep = Callable[[str, int, int], None]
 
+#: Signals that stop a loop and its simulator: kill's default, Ctrl-C, a closed terminal.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+#: Seconds a stopped simulator's processes have to exit after SIGTERM before SIGKILL.
+SIMULATOR_GRACE_S = 5.0
+
 
 class LoopError(BamsError):
     """The loop cannot go on by itself (a simulator that failed, results still missing)."""
+
+
+class LoopStopped(KeyboardInterrupt):
+    """A signal stopped the loop; ``exit_code`` is 128 + its number, as a shell reports it."""
+
+    def __init__(self, signum: int, message: str = "") -> None:
+        super().__init__(message)
+        self.signum = signum
+        self.exit_code = 128 + signum
 
 
 @dataclass(frozen=True)
@@ -128,6 +152,9 @@ def loop(
     ------
     LoopError
         The simulator failed or wrote no results, or results are still missing after it.
+    LoopStopped
+        SIGTERM, SIGINT or SIGHUP stopped the loop (its simulator ended, the list still
+        pending); a ``KeyboardInterrupt``.
     OptionError
         ``simulator`` does not name ``{handoff}`` and ``{results}``.
     OptionValueError
@@ -170,17 +197,28 @@ def loop(
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
-    with workspace_lock(
-        ws.root, wait=wait, lock_file=LOOP_LOCK_FILE, refusal="another `bams-cli loop` runs here:"
+    with (
+        workspace_lock(
+            ws.root,
+            wait=wait,
+            lock_file=LOOP_LOCK_FILE,
+            refusal="another `bams-cli loop` runs here:",
+        ),
+        _stopped_by_signals(),
     ):
-        while True:
-            step = _next_step(ws, opts)
-            if step is None:
-                break
-            name, kind, number = step
-            if on_step is not None:
-                on_step(_describe(name, kind, number), _progress(ws, opts), total)
-            steps.append(_run(ws, opts, name, kind, number, ingested))
+        current: tuple[str, str | None, int | None] | None = None  # the step under way
+        try:
+            while True:
+                current = None
+                step = _next_step(ws, opts)
+                if step is None:
+                    break
+                current = name, kind, number = step
+                if on_step is not None:
+                    on_step(_describe(name, kind, number), _progress(ws, opts), total)
+                steps.append(_run(ws, opts, name, kind, number, ingested))
+        except LoopStopped as exc:
+            raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
         on_step("done", total, total)
     latest = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
@@ -193,6 +231,46 @@ def loop(
         "results_dir": str(opts.results_dir),
         "estimate_file": str(latest[-1]) if latest else None,
     }
+
+
+@contextmanager
+def _stopped_by_signals() -> Iterator[None]:
+    """Raise ``LoopStopped`` where the loop stands on any of ``STOP_SIGNALS``, once: a
+    second signal while the first unwinds (ending the simulator) changes nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+    stopping = False
+
+    def stop(signum: int, _frame: Any) -> None:
+        nonlocal stopping
+        if not stopping:
+            stopping = True
+            raise LoopStopped(signum)
+
+    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+def _stopped(ws: Workspace, signum: int, step: tuple[str, str | None, int | None] | None) -> str:
+    """The one line a stopped loop ends with: what it was doing, and how to resume."""
+    name = signal.Signals(signum).name
+    again = "run the same `bams-cli loop` again to resume"
+    if step is not None and step[0] == "simulate":
+        listed = f"{step[1]} {step[2]}"
+        return (
+            f"stopped by {name} while the simulator ran on {listed}: the simulator and every "
+            f"process it started were ended, and {listed} still awaits results; {again}"
+        )
+    where = f" during `{_describe(*step)}`" if step is not None else ""
+    return (
+        f"stopped by {name}{where}; {ws.root} is as the last finished step left it (writes "
+        f"are atomic): {again}"
+    )
 
 
 def _describe(name: str, kind: str | None, number: int | None) -> str:
@@ -326,10 +404,17 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     command = opts.simulator.format(
         handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
     )
-    done = subprocess.run(command, shell=True, check=False, stdout=subprocess.DEVNULL)
-    if done.returncode != 0:
+    # A session of its own: a stopped loop ends the simulator with everything it started.
+    proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL, start_new_session=True)
+    try:
+        returncode = proc.wait()
+    except BaseException:
+        _end_group(proc)
+        partial.unlink(missing_ok=True)
+        raise
+    if returncode != 0:
         raise LoopError(
-            f"--simulator: `{command}` exited with {done.returncode} on {handoff}; fix it and "
+            f"--simulator: `{command}` exited with {returncode} on {handoff}; fix it and "
             "run the same `bams-cli loop` again (it resumes here)"
         )
     if not partial.exists():
@@ -339,6 +424,29 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
         )
     os.replace(partial, results)
     return results
+
+
+def _end_group(proc: subprocess.Popen[bytes]) -> None:
+    """End the simulator's process group: SIGTERM, and SIGKILL for what is left of it
+    after ``SIMULATOR_GRACE_S``."""
+    group = proc.pid  # the session's leader: its pid is the group's id
+
+    def signal_group(signum: int) -> bool:
+        try:
+            os.killpg(group, signum)
+        except ProcessLookupError:
+            return False  # the group is empty
+        return True
+
+    if signal_group(signal.SIGTERM):
+        deadline = time.monotonic() + SIMULATOR_GRACE_S
+        while time.monotonic() < deadline:
+            if proc.poll() is not None and not signal_group(0):
+                break
+            time.sleep(0.05)
+        else:
+            signal_group(signal.SIGKILL)
+    proc.wait()
 
 
 def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) -> None:

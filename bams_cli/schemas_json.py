@@ -370,6 +370,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "gp_model": STR,
                 "notes": array(STR),
                 "estimate_file": PATH,
+                "earlier_estimate": nullable(
+                    obj({"file": PATH}, {"confidence": nullable(NUM), "interval": nullable(STR)})
+                ),
             },
             {
                 "abandoned": obj(
@@ -459,8 +462,15 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 ),
                 "commit_in_progress": BOOL,
                 "waiting_on_results": BOOL,
+                "phase": {"enum": ["setup", "discovery", "estimate", "done"]},
                 "next": obj(
-                    {"step": STR, "command": nullable(STR), "text": STR}, {"handoffs": array(PATH)}
+                    {
+                        "step": STR,
+                        "command": nullable(STR),
+                        "text": STR,
+                        "alternatives": array(obj({"step": STR, "command": STR})),
+                    },
+                    {"handoffs": array(PATH)},
                 ),
                 "exit_code": {"enum": [0, 3]},
             }
@@ -478,6 +488,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {
                             "kind": {
                                 "enum": [
+                                    "stale_estimate",
                                     "stale_model",
                                     "no_model",
                                     "pending_batches",

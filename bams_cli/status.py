@@ -68,8 +68,10 @@ def status(root: Path) -> dict[str, Any]:
     dict
         The summary ``--json`` prints: ``workspace``, ``gammas``, ``levels``,
         ``pool_size``, ``observations``, ``observations_per_level``, ``batches``,
-        ``plans``, ``pending``, ``model``, ``estimates``, ``next`` (``step``, ``command``,
-        ``text``) and ``exit_code``.
+        ``plans``, ``pending``, ``model``, ``estimates``, ``phase`` ("setup": no pool yet,
+        "discovery", "estimate": an estimate plan is newer than the newest batch, "done"),
+        ``next`` (``step``, ``command``, ``text``, ``alternatives``: the other commands the
+        text names, each ``step`` and ``command``) and ``exit_code``.
 
     Raises
     ------
@@ -85,8 +87,15 @@ def status(root: Path) -> dict[str, Any]:
     plans = _plans(ws, observed)
     model = _model(ws, obs) if has_pool else None
     latest = _latest_estimate(ws)
-    step = _next_step(ws, settings, has_pool, batches, plans, model)
+    estimating = _estimating(ws, plans)
+    step = _next_step(ws, settings, has_pool, batches, plans, model, estimating)
     waiting = step["step"] == "ingest-results"
+    if not has_pool:
+        phase = "setup"
+    elif step["step"] == "done":
+        phase = "done"
+    else:
+        phase = "estimate" if estimating else "discovery"
     return {
         "schema_version": STATUS_SCHEMA_VERSION,
         "workspace": str(ws.root),
@@ -105,6 +114,7 @@ def status(root: Path) -> dict[str, Any]:
         "latest_estimate": latest,
         "commit_in_progress": (ws.root / JOURNAL_NAME).exists(),
         "waiting_on_results": waiting,
+        "phase": phase,
         "next": step,
         "exit_code": EXIT_PENDING if waiting else EXIT_OK,
     }
@@ -206,6 +216,13 @@ def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     }
 
 
+def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
+    """Whether the study is estimating: an estimate plan is newer than the newest batch."""
+    if not plans:
+        return False
+    return _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet")
+
+
 def _next_step(
     ws: Workspace,
     settings: Settings,
@@ -213,13 +230,28 @@ def _next_step(
     batches: list[dict[str, Any]],
     plans: list[dict[str, Any]],
     model: dict[str, Any] | None,
+    estimating: bool,
 ) -> dict[str, Any]:
     """The step the loop needs next: ``step`` (a command name, or "done"), the exact
-    ``command``, and ``text`` saying why, for a person."""
+    ``command``, ``text`` saying why, for a person, and ``alternatives``, the other
+    commands that text names."""
     w = shlex.quote(str(ws.root))
+    new_plan = {"step": "estimate", "command": f"bams-cli estimate -w {w} --plan"}
 
-    def step(name: str, command: str | None, text: str, **extra: Any) -> dict[str, Any]:
-        return {"step": name, "command": command, "text": text, **extra}
+    def step(
+        name: str,
+        command: str | None,
+        text: str,
+        alternatives: tuple[dict[str, str], ...] = (),
+        **extra: Any,
+    ) -> dict[str, Any]:
+        return {
+            "step": name,
+            "command": command,
+            "text": text,
+            "alternatives": list(alternatives),
+            **extra,
+        }
 
     if not has_pool:
         cmd = f"bams-cli embed-reduce -w {w} SEGMENTS.parquet"
@@ -243,7 +275,7 @@ def _next_step(
         mixed = " --mixed-fidelity" if settings.n_levels > 1 else ""
         cmd = f"bams-cli select -w {w} --strategy random{mixed} --budget {defaults.BUDGET:g}"
         return step("select", cmd, f"no batch yet: run `{cmd}` for a random first batch")
-    if plans and _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet"):
+    if estimating:
         k = plans[-1]["plan"]
         if plans[-1]["estimate"] is None and plans[-1]["abandoned"]:
             cmd = f"bams-cli estimate -w {w} --failed-as bounds"
@@ -284,6 +316,7 @@ def _next_step(
             f"nothing to do: plan {k}'s estimate is computed and reported; for more, "
             f"`bams-cli select -w {w}` (discovery) or `bams-cli estimate -w {w} --plan` "
             "(a new sample)",
+            ({"step": "select", "command": f"bams-cli select -w {w}"}, new_plan),
         )
     if stale:
         return step("fit", fit, f"{why_fit}; run `{fit}`")
@@ -294,6 +327,7 @@ def _next_step(
         cmd,
         f"the model is up to date: run `{cmd}` for the next batch, or, when discovery is "
         f"done, `bams-cli estimate -w {w} --plan`",
+        (new_plan,),
     )
 
 

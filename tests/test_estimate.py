@@ -324,6 +324,42 @@ def test_the_fay_feuer_interval_is_a_choice_and_never_narrower(fitted_ws, tmp_pa
                                           "fay-feuer").stdout  # fmt: skip
 
 
+def test_another_confidence_keeps_the_earlier_estimate_and_says_where_each_is(fitted_ws, tmp_path):
+    # `estimate --confidence 0.95` after the default's estimate replaced its file in silence.
+    from typer.testing import CliRunner
+
+    src, truth = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    path = ws / "estimates" / "estimate-0001.json"
+    assert f"estimate written to {path}\n" in ok(runner, "estimate", "-w", ws).stdout
+    at_90 = path.read_text()
+    # The same estimate again: nothing to keep, nothing else written.
+    assert f"estimate written to {path}\n" in ok(runner, "estimate", "-w", ws).stdout
+    assert [p.name for p in (ws / "estimates").glob("estimate-*")] == [path.name]
+    wider = ok(runner, "estimate", "-w", ws, "--confidence", "0.95").stdout
+    kept = path.with_name("estimate-0001.1.json")
+    assert (
+        f"estimate written to {path}; plan 1's earlier estimate (90% gamma interval) is kept "
+        f"as {kept}\n"
+    ) in wider
+    assert kept.read_text() == at_90
+    assert json.loads(path.read_text())["estimates"][0]["confidence"] == 0.95
+    back = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert back["estimate_file"] == str(path) and path.read_text() == at_90
+    assert back["earlier_estimate"] == {
+        "file": str(path.with_name("estimate-0001.2.json")),
+        "confidence": 0.95,
+        "interval": "gamma",
+    }
+    # status and the report read the plan's estimate, not the kept ones.
+    status = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)
+    assert status["latest_estimate"]["file"] == str(path)
+
+
 def test_fay_feuer_refuses_a_combined_staged_estimate(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import polars as pl
 import pytest
 
+from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
 from tests.conftest import tree_hash, write_toy
 
@@ -177,3 +178,100 @@ def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_p
     assert waiting.returncode == 0, err
     assert json.loads(out)["unchanged"] is True
     assert _final(study) == _final(ws)
+
+
+def test_a_loop_killed_inside_a_step_is_noted_once_by_the_next(data, tmp_path):
+    """Killed while a step held the command lock, a loop leaves both its locks to the next
+    loop, which takes them over saying so in one note, not one per lock."""
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    args = _loop_args(ws, truth)
+    proc = subprocess.Popen(
+        args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    holder = None
+    deadline = time.monotonic() + 120
+    while holder != proc.pid and proc.poll() is None and time.monotonic() < deadline:
+        try:  # a step (select, fit) holds the command lock: its record names the loop
+            holder = json.loads((ws / LOCK_FILE).read_text() or "{}").get("pid")
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.01)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert holder == proc.pid
+    again = subprocess.run(args, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    notes = [line for line in again.stderr.splitlines() if "died holding the lock" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"note: {ws}: pid {proc.pid} on ")
+
+
+# A simulator that hands its work to a child process and waits, as a wrapper script does;
+# it records both pids next to the file named by its first argument.
+SLEEPER = """#!/bin/sh
+echo $$ > "$1.shell"
+sleep 300 &
+echo $! > "$1.child"
+wait
+"""
+
+
+def _gone(pid: int) -> bool:
+    """Exited (reaped, or a zombie waiting for init to reap it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
+def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
+    """`kill -TERM` (or -INT) of a loop waiting on its simulator ends the simulator and what
+    it started, exits 128 + the signal, and leaves the batch pending: run again, the loop
+    simulates it and goes on."""
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "sleeper.sh"
+    sim.write_text(SLEEPER)
+    sim.chmod(0o755)
+    pids = tmp_path / "sim"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", f"{sim} {pids} {{handoff}} {{results}}",
+            "--batches", "1", "--budget", "2"]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    child = pids.with_suffix(".child")
+    started: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while not child.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.2)  # the pid is written
+        started = [int(pids.with_suffix(s).read_text()) for s in (".shell", ".child")]
+        proc.send_signal(signum)
+        proc.wait(timeout=60)
+        assert [p for p in started if not _gone(p)] == []  # gone as the loop exits
+    finally:
+        for pid in started:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.kill()
+        err = proc.communicate()[1]
+    assert proc.returncode == 128 + signum
+    name = signal.Signals(signum).name
+    assert err.strip().splitlines()[-1] == (
+        f"error: stopped by {name} while the simulator ran on batch 1: the simulator and every "
+        "process it started were ended, and batch 1 still awaits results; run the same "
+        "`bams-cli loop` again to resume"
+    )
+    assert not list((ws / "loop-results").iterdir())  # no partial results left behind
+    status = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True,
+                            text=True)  # fmt: skip
+    s = json.loads(status.stdout)
+    assert status.returncode == 3 and s["batches"][0]["pending"] == s["batches"][0]["picks"]
+    real = _loop_args(ws, truth)
+    args[args.index("--simulator") + 1] = real[real.index("--simulator") + 1]
+    again = subprocess.run([*args, "--json"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert "died holding the lock" not in again.stderr  # the stopped loop let go of its lock
+    steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
+    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]

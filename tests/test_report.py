@@ -163,7 +163,7 @@ EXPECTED_NOTICES = {
     "plan 1 computed": ["stale_model"],
     "plan 2 pending": ["pending_plan"],
     "plan 2 computed": ["stale_model"],
-    "discovery after the estimate": ["stale_model"],
+    "discovery after the estimate": ["stale_estimate", "stale_model"],
 }
 
 
@@ -252,6 +252,38 @@ def test_the_estimate_shown_is_the_latest_computed_plan(study):
         assert "| gamma | p_hat |" in r["md"]
     text = study.reports["plan 2 pending"]["summary"]["notices"][0]["text"]
     assert "Estimate plan 2 awaits" in text and "the estimate shown is plan 1's" in text
+
+
+def test_an_estimate_older_than_the_latest_batch_says_so_under_the_headline(study):
+    # Batch 4 was selected and its results ingested after plan 2 was drawn: the headline's
+    # rate does not count them, and the sentence right under it says so, in both forms.
+    r = study.reports["discovery after the estimate"]
+    log = r["log"]
+    n = log.filter(pl.col("active") & (pl.col("batch") == 4)).height
+    text = (
+        f"The estimate shown predates the latest discovery: batch 4 was selected and {n} "
+        "discovery results were ingested after plan 2, on which it rests, was drawn, and its "
+        f"rate does not count them; `bams-cli estimate -w {study.ws} --plan` draws a new "
+        "sample that does."
+    )
+    assert r["summary"]["notices"][0] == {
+        "kind": "stale_estimate",
+        "severity": "warning",
+        "text": text,
+    }
+    headline, width = r["summary"]["headline"]["text"], r["summary"]["headline"]["width"]
+    assert r["md"].split("\n\n")[1:3] == [
+        f"**{headline[:1].upper()}{headline[1:]}.** {width}",
+        f"> [!WARNING]\n> {text}",
+    ]
+    html = r["html"]
+    start = html.index("<p id='headline'")
+    nxt = html.index("<p", start + 1)  # the width note, then the banner
+    banner = html.index("<div class='banner warning' role='alert' data-kind='stale_estimate'>")
+    assert start < nxt < banner and html.index("<", html.index("</p>", nxt) + 4) == banner
+    for stage in ("plan 1 computed", "plan 2 pending", "plan 2 computed"):
+        kinds = [x["kind"] for x in study.reports[stage]["summary"]["notices"]]
+        assert "stale_estimate" not in kinds
 
 
 @pytest.mark.parametrize("stage", list(EXPECTED_NOTICES))
@@ -868,7 +900,9 @@ def test_estimate_and_the_report_name_the_interval_s_kind(tmp_path):
     head = s.report("gamma")["summary"]["headline"]["width"]
     assert "it is a gamma interval" in head
     out = s.run("estimate", "-w", ws, "--interval", "fay-feuer", "--confidence", "0.8").stdout
-    assert "80% fay-feuer interval)" in out and "gamma interval" not in out
+    # (the last line may name the gamma interval of the estimate this one replaced)
+    table = out.split("\nestimate written to ")[0]
+    assert "80% fay-feuer interval)" in table and "gamma interval" not in table
     assert "interval: 80% fay-feuer interval, Fay and Feuer's, allowing for one missed" in out
     r = s.report("fay-feuer")
     assert "it is Fay and Feuer's interval" in r["summary"]["headline"]["width"]

@@ -123,6 +123,40 @@ def test_status_names_the_next_command_at_every_stage(study, stage):
         assert command.format(ws=study.ws) in got["text"].replace("\n", " ")
 
 
+# stage -> the phase `status --json` names, and the other commands its text offers
+PHASES = {
+    "initialised": ("setup", []),
+    "pool": ("discovery", []),
+    "batch 1 pending": ("discovery", []),
+    "batch 1 in": ("discovery", []),
+    "fitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
+    "batch 2 pending": ("discovery", []),
+    "batch 2 in": ("discovery", []),
+    "refitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
+    "plan pending": ("estimate", []),
+    "plan in": ("estimate", []),
+    "stage 1 in, fitted": ("estimate", []),
+    "stage 2 pending": ("estimate", []),
+    "stage 2 in": ("estimate", []),
+    "estimated": ("estimate", []),
+    "estimated, fitted": ("estimate", []),
+    "done": ("done", ["bams-cli select -w {ws}", "bams-cli estimate -w {ws} --plan"]),
+}
+
+
+@pytest.mark.parametrize("stage", list(PHASES))
+def test_status_json_names_the_phase_and_every_command_its_text_offers(study, stage):
+    # A Makefile reads where the study is (discovery over: "estimate"; nothing left:
+    # "done") and the commands a person reads in `next:`, without parsing the text.
+    phase, alternatives = PHASES[stage]
+    got = study.stages[stage]
+    assert got["json"]["phase"] == phase
+    commands = [a["command"] for a in got["json"]["next"]["alternatives"]]
+    assert commands == [c.format(ws=study.ws) for c in alternatives]
+    for command in commands:
+        assert command in got["text"].replace("\n", " ")
+
+
 @pytest.mark.parametrize(
     ("stage", "handoff"),
     [

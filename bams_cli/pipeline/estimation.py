@@ -530,7 +530,8 @@ def estimate_compute(
     (``bams_cli.abandon``).
 
     This is ``bams-cli estimate`` (without ``--plan``); it writes
-    ``estimates/estimate-NNNN.json``.
+    ``estimates/estimate-NNNN.json``, keeping an earlier, different estimate of the plan
+    as ``estimate-NNNN.1.json`` (``.2`` ...).
 
     Parameters
     ----------
@@ -560,7 +561,9 @@ def estimate_compute(
         The summary ``--json`` prints: ``plan``, ``design``, ``samples_K``, ``staging``,
         ``estimates`` (per gamma: ``gamma``, ``p_hat``, ``se``, ``ci_low``, ``ci_high``,
         ``rel_var``, ``distinct_failures_found``, ...), ``gp`` (the GP's own estimate per
-        gamma), ``gp_model``, ``notes``, ``estimate_file``.
+        gamma), ``gp_model``, ``notes``, ``estimate_file``, ``earlier_estimate`` (null, or
+        where this plan's earlier, different estimate was kept and its ``confidence`` and
+        ``interval``: it is moved to ``estimate-NNNN.1.json``, ``.2`` ..., never lost).
 
     Raises
     ------
@@ -698,11 +701,35 @@ def estimate_compute(
         summary, lost=lost, sampled_ids=np.concatenate([x.sampled_ids for x in samples]),
         fails=fails, estimate_with=estimate_with,
     )  # fmt: skip
-    out = ws.estimates_dir / f"estimate-{number:04d}.json"
+    out = ws.estimate_path(number)
+    text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
+    earlier = _earlier_estimate(out, text)
     with transaction() as tx:
-        tx.write_text(out, json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        if earlier is not None:  # another estimate of this plan: kept, never overwritten
+            tx.write_text(Path(earlier["file"]), out.read_text())
+        tx.write_text(out, text)
     summary["estimate_file"] = str(out)
+    summary["earlier_estimate"] = earlier
     return summary
+
+
+def _earlier_estimate(out: Path, text: str) -> dict[str, Any] | None:
+    """Where the plan's earlier estimate goes when ``text`` would replace a different one
+    (another --confidence, --interval, model or log), and what it was: ``file``
+    (``estimate-NNNN.1.json``, ``.2`` ...), ``confidence``, ``interval``. None when there
+    is none, or it is the same."""
+    if not out.exists() or out.read_text() == text:
+        return None
+    n = 1
+    while (kept := out.with_name(f"{out.stem}.{n}{out.suffix}")).exists():
+        n += 1
+    try:
+        doc = json.loads(out.read_text())
+        confidence = doc["estimates"][0].get("confidence")
+        interval = doc.get("interval", "gamma")
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError):
+        confidence = interval = None  # damaged: kept as it is, described as nothing
+    return {"file": str(kept), "confidence": confidence, "interval": interval}
 
 
 def _gp_exact_variance(

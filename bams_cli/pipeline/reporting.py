@@ -220,6 +220,8 @@ def report(
             for e in doc["estimates"]
         ]
         gp_rows = doc["gp"]
+        # Next to the headline: discovery that went on after the estimate's sample was drawn.
+        notices[:0] = _report_estimate_age(ws, max(made_of), list(frames), active)
     elif scores is not None:
         from bams_cli.core.estimate import gp_estimate
 
@@ -491,6 +493,45 @@ def _report_plan_notices(
         if note:
             out.append({"kind": "design_like_uniform", "severity": "info", "text": note + "."})
     return out
+
+
+def _report_estimate_age(
+    ws: Workspace, plan: int, batches: list[int], active: pl.DataFrame
+) -> list[dict[str, str]]:
+    """A notice when discovery went on after ``plan``, the last the estimate shown rests
+    on, was drawn (by the times the state files record): batches selected since, or
+    discovery results ingested since. The estimate's rate does not count them, however
+    recently it was computed: its known stratum is fixed when its plan is drawn."""
+    drawn = read_metadata(ws.estimates_dir / f"plan-{plan:04d}.parquet").get("written_at")
+    if not drawn:
+        return []  # a plan of an older version: when it was drawn is not known
+    later = [
+        b
+        for b in batches
+        if read_metadata(schemas.batch_path(ws.root, b)).get("written_at", "") > drawn
+    ]
+    results = active.filter(pl.col("batch").is_not_null() & (pl.col("ingested_at") > drawn))
+    parts = []
+    if later:
+        parts.append(
+            f"batch {later[0]} was selected"
+            if len(later) == 1
+            else f"batches {later[0]} {'and' if len(later) == 2 else 'to'} {later[-1]} were selected"
+        )
+    if results.height:
+        n = results.height
+        parts.append(f"{n} discovery result{'s were' if n != 1 else ' was'} ingested")
+    if not parts:
+        return []
+    return [
+        {
+            "kind": "stale_estimate",
+            "severity": "warning",
+            "text": f"The estimate shown predates the latest discovery: {' and '.join(parts)} "
+            f"after plan {plan}, on which it rests, was drawn, and its rate does not count "
+            f"them; `bams-cli estimate -w {ws.root} --plan` draws a new sample that does.",
+        }
+    ]
 
 
 def _passthrough_rows(ws: Workspace, rows: np.ndarray) -> list[dict[str, Any]]:

@@ -224,8 +224,17 @@ def _same_file(fd: int, path: Path) -> bool:
     return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
 
 
-def _note(message: str) -> None:
-    sys.stderr.write(f"note: {message}\n")
+#: Dead holders this process has noted taking over: a loop killed inside a step held both
+#: its own lock and the command lock, and the next loop takes over both.
+_noted: set[tuple[Any, ...]] = set()
+
+
+def _note_dead(holder: Holder, message: str) -> None:
+    """Say once per process that ``holder`` died holding a lock this process takes over."""
+    key = tuple(holder.info.get(k) for k in ("pid", "host", "boot_id", "pid_ns", "start"))
+    if key not in _noted:
+        _noted.add(key)
+        sys.stderr.write(f"note: {message}\n")
 
 
 #: What one attempt to take the lock can end in, besides success.
@@ -249,13 +258,14 @@ def _try_take(workspace: Path, fd: int, lock_file: str = LOCK_FILE) -> Holder | 
             # The holder is gone but its flock is not: a process it started kept the
             # descriptor. Nobody can lock this file again; a new one takes its place.
             os.unlink(path)
-            _note(
+            _note_dead(
+                found,
                 f"{workspace}: {found.describe()} died holding the lock (a process it "
-                f"started still has {lock_file} open); proceeding"
+                f"started still has {lock_file} open); proceeding",
             )
             return RETRY
         if found.held:
-            _note(f"{workspace}: {found.describe()} died holding the lock; proceeding")
+            _note_dead(found, f"{workspace}: {found.describe()} died holding the lock; proceeding")
         _write_record(
             fd,
             {
