@@ -19,21 +19,23 @@ simulator's results files. One loop drives a workspace at a time: it holds a sec
 naming the first (or waits for it with ``--wait``) instead of simulating the same list
 twice; a loop that was killed leaves no lock behind.
 
-The simulator runs in a session of its own (it may be a script that starts more
-processes). A loop stopped by SIGTERM, SIGINT (Ctrl-C) or SIGHUP ends that whole process
-group (SIGTERM, then SIGKILL after ``SIMULATOR_GRACE_S``), discards the partial results
-and exits 128 + the signal's number; the list stays pending, so the same loop run again
-resumes it. A SIGKILL cannot be caught: it leaves the simulator running.
+The simulator (it may be a script that starts more processes) stays in the loop's process
+group, so whatever stops the whole job (Ctrl-C in a terminal, ``kill -- -PGID``, a CI
+runner's timeout) reaches it too. A loop stopped alone by SIGTERM, SIGINT or SIGHUP ends
+the simulator and every process it started (SIGTERM, then SIGKILL after
+``SIMULATOR_GRACE_S``), discards the partial results and exits 128 + the signal's number;
+the list stays pending, so the same loop run again resumes it. A SIGKILL of the loop alone
+cannot be caught: it leaves the simulator running.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import signal
 import subprocess
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -404,12 +406,11 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     command = opts.simulator.format(
         handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
     )
-    # A session of its own: a stopped loop ends the simulator with everything it started.
-    proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL)
     try:
         returncode = proc.wait()
     except BaseException:
-        _end_group(proc)
+        _end_tree(proc)
         partial.unlink(missing_ok=True)
         raise
     if returncode != 0:
@@ -426,26 +427,24 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     return results
 
 
-def _end_group(proc: subprocess.Popen[bytes]) -> None:
-    """End the simulator's process group: SIGTERM, and SIGKILL for what is left of it
-    after ``SIMULATOR_GRACE_S``."""
-    group = proc.pid  # the session's leader: its pid is the group's id
+def _end_tree(proc: subprocess.Popen[bytes]) -> None:
+    """End the simulator and every process it started: SIGTERM to each, and SIGKILL for
+    what is left after ``SIMULATOR_GRACE_S``. The tree is listed before anything is
+    signalled: a shell's children, once it is gone, are no longer its descendants."""
+    import psutil
 
-    def signal_group(signum: int) -> bool:
-        try:
-            os.killpg(group, signum)
-        except ProcessLookupError:
-            return False  # the group is empty
-        return True
-
-    if signal_group(signal.SIGTERM):
-        deadline = time.monotonic() + SIMULATOR_GRACE_S
-        while time.monotonic() < deadline:
-            if proc.poll() is not None and not signal_group(0):
-                break
-            time.sleep(0.05)
-        else:
-            signal_group(signal.SIGKILL)
+    try:
+        root = psutil.Process(proc.pid)
+        tree = [root, *root.children(recursive=True)]
+    except psutil.NoSuchProcess:
+        tree = []
+    for p in tree:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            p.terminate()
+    _, alive = psutil.wait_procs(tree, timeout=SIMULATOR_GRACE_S)
+    for p in alive:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            p.kill()
     proc.wait()
 
 

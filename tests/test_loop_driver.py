@@ -225,12 +225,9 @@ def _gone(pid: int) -> bool:
         return True
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
-def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
-    """`kill -TERM` (or -INT) of a loop waiting on its simulator ends the simulator and what
-    it started, exits 128 + the signal, and leaves the batch pending: run again, the loop
-    simulates it and goes on."""
-    tmp, seg, truth, _, _ = data
+def _start_sleeper_loop(tmp_path, seg, **popen):
+    """A loop whose simulator is SLEEPER, started and waited for until the simulator's
+    shell and child have written their pids: (the loop's Popen, [shell pid, child pid])."""
     ws = _study(tmp_path, "ws", seg)
     sim = tmp_path / "sleeper.sh"
     sim.write_text(SLEEPER)
@@ -238,15 +235,45 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     pids = tmp_path / "sim"
     args = [*BAMS, "loop", "-w", str(ws), "--simulator", f"{sim} {pids} {{handoff}} {{results}}",
             "--batches", "1", "--budget", "2"]  # fmt: skip
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            **popen)  # fmt: skip
     child = pids.with_suffix(".child")
-    started: list[int] = []
+    deadline = time.monotonic() + 120
+    while not child.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.2)  # the pid is written
+    return proc, [int(pids.with_suffix(s).read_text()) for s in (".shell", ".child")]
+
+
+def test_killing_the_loop_s_whole_job_reaches_its_simulator(data, tmp_path):
+    # A CI runner's timeout or `kill -9 -- -PGID` ends a job's process group with SIGKILL,
+    # which the loop cannot catch: the simulator must be in that group to end with it (in
+    # a session of its own it kept running).
+    tmp, seg, truth, _, _ = data
+    proc, started = _start_sleeper_loop(tmp_path, seg, start_new_session=True)
     try:
-        deadline = time.monotonic() + 120
-        while not child.exists() and proc.poll() is None and time.monotonic() < deadline:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=60)
+        deadline = time.monotonic() + 10
+        while not all(_gone(p) for p in started) and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(0.2)  # the pid is written
-        started = [int(pids.with_suffix(s).read_text()) for s in (".shell", ".child")]
+        assert [p for p in started if not _gone(p)] == []
+    finally:
+        for pid in started:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
+def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
+    """`kill -TERM` (or -INT) of a loop waiting on its simulator ends the simulator and what
+    it started, exits 128 + the signal, and leaves the batch pending: run again, the loop
+    simulates it and goes on."""
+    tmp, seg, truth, _, _ = data
+    proc, started = _start_sleeper_loop(tmp_path, seg)
+    ws, args = tmp_path / "ws", proc.args
+    try:
         proc.send_signal(signum)
         proc.wait(timeout=60)
         assert [p for p in started if not _gone(p)] == []  # gone as the loop exits
