@@ -493,6 +493,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                                     "no_model",
                                     "pending_batches",
                                     "pending_plan",
+                                    "design_like_uniform",
                                 ]
                             },
                             "severity": {"enum": ["warning", "info"]},

@@ -126,3 +126,16 @@ def test_schema_command_prints_each_schema(runner):
     r = invoke(runner, "schema", "nope")
     unboxed = " ".join(r.stderr.replace("│", " ").split())  # click's usage box wraps
     assert r.exit_code == 2 and "'nope' is not one of 'init', 'embed-reduce'" in unboxed
+
+
+def test_every_notice_the_report_can_write_is_in_the_summary_schema():
+    # A notice kind written in one place and missing from the schema makes summary.json
+    # fail its own schema only in the study that meets that notice (design_like_uniform did).
+    import re
+
+    from bams_cli.pipeline import reporting
+
+    source = Path(reporting.__file__).read_text()
+    written = set(re.findall(r'"kind": "([a-z_]+)"', source))
+    kinds = schemas_json.schema("summary.json")["properties"]["notices"]["items"]
+    assert written and written <= set(kinds["properties"]["kind"]["enum"])
