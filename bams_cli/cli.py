@@ -1104,7 +1104,7 @@ def abandon(
     console.note(f"still pending: {pend}" if pend else "nothing pending")
 
 
-@command()
+@command(max_memory=True)
 def loop(
     simulator: Annotated[
         str,

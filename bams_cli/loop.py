@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bams_cli import abandon, defaults, pipeline
+from bams_cli import abandon, defaults, memory, pipeline
 from bams_cli.errors import BamsError, OptionError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
@@ -408,7 +408,8 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     )
     proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL)
     try:
-        returncode = proc.wait()
+        with memory.outside(proc.pid):  # the simulator's memory is not the loop's
+            returncode = proc.wait()
     except BaseException:
         _end_tree(proc)
         partial.unlink(missing_ok=True)

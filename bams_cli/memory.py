@@ -145,6 +145,37 @@ def tree_pss(
 
 _budget: int | None = None
 _watch: Watch | None = None
+#: Child processes that are not the command's memory, with everything they start: the
+#: user's simulator that ``loop`` runs (``outside``).
+_outside: set[int] = set()
+
+
+@contextmanager
+def outside(pid: int) -> Iterator[None]:
+    """While inside, the watchdog leaves process ``pid`` and its descendants out of the
+    command's memory: ``loop``'s simulator is the user's program, and a large one would
+    otherwise stop the loop under a ceiling meant for bams-cli's own steps."""
+    _outside.add(pid)
+    try:
+        yield
+    finally:
+        _outside.discard(pid)
+
+
+def _own_children(me: psutil.Process) -> list[psutil.Process]:
+    """``me``'s descendants, less those under ``outside``."""
+    children = me.children(recursive=True)
+    if not _outside:
+        return children
+    skip: set[int] = set()
+    for p in children:
+        if p.pid in _outside:
+            skip.add(p.pid)
+            try:
+                skip.update(c.pid for c in p.children(recursive=True))
+            except psutil.NoSuchProcess:
+                pass
+    return [p for p in children if p.pid not in skip]
 
 
 def budget() -> int:
@@ -185,7 +216,7 @@ class Watch:
         while not self._stop.wait(POLL_S):
             now = time.monotonic()
             if now - listed_at > LIST_S:  # listing scans all of /proc
-                children, listed_at = me.children(recursive=True), now
+                children, listed_at = _own_children(me), now
             used = tree_rss(me, children)  # never less than what the tree holds
             if used > self.limit:
                 if now - pss_at >= PSS_S:

@@ -302,3 +302,26 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     assert "died holding the lock" not in again.stderr  # the stopped loop let go of its lock
     steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
     assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
+
+
+def test_a_simulator_s_memory_is_not_held_against_the_loop(data, tmp_path):
+    # Every command runs under a memory ceiling (BAMS_MAX_MEMORY here), counted over the
+    # command's process tree; the loop's simulator is the user's program, and one that
+    # took more than the ceiling had the loop stopped (and the simulator killed).
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    hog = tmp_path / "hog.py"  # 600 MiB, every page touched, held for 2.5 s
+    hog.write_text("import time\nb = bytearray(600 * 2**20)\nb[::4096] = b'x' * (len(b) // 4096)\n"
+                   "time.sleep(2.5)\n")  # fmt: skip
+    big = tmp_path / "big-sim.sh"
+    big.write_text(
+        f"#!/bin/sh\n{shlex.quote(sys.executable)} {shlex.quote(str(hog))}\n"
+        f'exec {shlex.join(BAMS)} simulate "$1" --truth {shlex.quote(str(truth))} -o "$2"\n'
+    )
+    big.chmod(0o755)
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", f"{big} {{handoff}} {{results}}",
+            "--batches", "1", "--budget", "2", "--workers", "1"]  # fmt: skip
+    env = os.environ | {"BAMS_MAX_MEMORY": "500M"}
+    done = subprocess.run(args, capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert Workspace(ws).read_observations().height > 0
