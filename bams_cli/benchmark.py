@@ -80,7 +80,7 @@ from bams_cli import defaults, pipeline
 from bams_cli.core import suite, synthetic
 from bams_cli.core.estimate import plan_sample
 from bams_cli.core.evaluate import exact_variance, expected_is_recall, retention_recall
-from bams_cli.errors import OptionError
+from bams_cli.errors import OptionError, OptionValueError
 from bams_cli.settings import Settings, levels_from_costs
 
 Progress = Callable[[str, int, int], None]
@@ -249,7 +249,7 @@ def prepare_data(protocol: Protocol, n: int | None, scratch: Path) -> Path:
     try:
         pool = GENERATORS[protocol.name](n, 0)
     except ValueError as exc:  # e.g. digits has only 1,797 images
-        raise OptionError(f"--n {n}: {exc}") from None
+        raise OptionValueError(f"--n {n}: {exc}") from None
     folder.mkdir(parents=True, exist_ok=True)
     ids = pa.array(pool.ids, pa.string())
     cols: dict[str, Any] = {"segment_id": ids}
@@ -944,23 +944,23 @@ def run_benchmark(
         The content of results.json.
     """
     if protocol not in PROTOCOLS:
-        raise OptionError(
+        raise OptionValueError(
             f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}, or suite"
         )
     proto = PROTOCOLS[protocol]
     chosen = list(proto.strategies) if not strategies else list(strategies)
     unknown = [s for s in chosen if s not in proto.strategies]
     if unknown:
-        raise OptionError(
+        raise OptionValueError(
             f"--strategies {','.join(unknown)}: not part of the {protocol} protocol "
             f"({', '.join(proto.strategies)})"
         )
     if not 0.0 < level0_share < 1.0:
-        raise OptionError(f"--level0-share {level0_share}: must lie in (0, 1)")
+        raise OptionValueError(f"--level0-share {level0_share}: must lie in (0, 1)")
     if quick:
         seeds = min(seeds, QUICK_SEEDS)
     if seeds < 1:
-        raise OptionError(f"--seeds {seeds}: need at least 1")
+        raise OptionValueError(f"--seeds {seeds}: need at least 1")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OptionError(f"--out {out_dir}: is a file; give a folder for the results")
@@ -1132,10 +1132,10 @@ def run_suite(
     chosen = list(strategies) if strategies else list(SUITE_STRATEGIES)
     for problem in problems:
         if problem not in PROTOCOLS:
-            raise OptionError(f"suite problem {problem!r}: choose from {', '.join(PROTOCOLS)}")
+            raise OptionValueError(f"suite problem {problem!r}: choose from {', '.join(PROTOCOLS)}")
         unknown = [st for st in chosen if st not in PROTOCOLS[problem].strategies]
         if unknown:
-            raise OptionError(
+            raise OptionValueError(
                 f"--strategies {','.join(unknown)}: not part of the {problem} protocol "
                 f"({', '.join(PROTOCOLS[problem].strategies)}), which the suite runs"
             )

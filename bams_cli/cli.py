@@ -55,7 +55,7 @@ from bams_cli.defaults import (
     Transform,
     Weighting,
 )
-from bams_cli.errors import EXIT_USAGE, BamsError, OptionError, OptionValueError
+from bams_cli.errors import EXIT_USAGE, BamsError, OptionValueError
 from bams_cli.status import status as study_status
 
 _display_type_rich = getattr(typer.core.TyperOption, "display_type_rich", None)
@@ -948,7 +948,7 @@ def estimate(
     `bams-cli estimate -w study --plan` (stage 2), simulate, ingest, and: bams-cli estimate -w study
     """
     if seed is not None and not plan:
-        raise OptionError(
+        raise OptionValueError(
             f"--seed {seed} seeds the sample's draw: pass it with --plan (computing the "
             "estimate from a drawn plan involves no randomness)"
         )
@@ -1358,9 +1358,9 @@ def benchmark(
     from bams_cli.benchmark import PROTOCOLS, run_benchmark, run_suite, suite_rows
 
     if workers < 1:
-        raise OptionError(f"--workers {workers}: must be >= 1")
+        raise OptionValueError(f"--workers {workers}: must be >= 1")
     if protocol != Protocol.SUITE and protocol.value not in PROTOCOLS:  # kept in step by a test
-        raise OptionError(f"--protocol {protocol.value}: not a protocol of this version")
+        raise OptionValueError(f"--protocol {protocol.value}: not a protocol of this version")
     options: dict[str, Any] = {
         "seeds": seeds,
         "quick": quick,

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from bams_cli import abandon, defaults, memory, pipeline
-from bams_cli.errors import BamsError, OptionError, OptionValueError, WorkspaceError
+from bams_cli.errors import BamsError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
 from bams_cli.state.workspace import Workspace
@@ -157,16 +157,15 @@ def loop(
     LoopStopped
         SIGTERM, SIGINT or SIGHUP stopped the loop (its simulator ended, the list still
         pending); a ``KeyboardInterrupt``.
-    OptionError
-        ``simulator`` does not name ``{handoff}`` and ``{results}``.
     OptionValueError
-        ``batches``, a budget, ``samples``, ``clusters`` or ``workers`` out of range,
-        before any step; exit code 2.
+        ``simulator`` does not name ``{handoff}`` and ``{results}``, or ``batches``, a
+        budget, ``samples``, ``clusters`` or ``workers`` out of range, before any step;
+        exit code 2.
     BamsError
         Any step's own error, as that command raises it.
     """
     if "{handoff}" not in simulator or "{results}" not in simulator:
-        raise OptionError(
+        raise OptionValueError(
             f"--simulator {simulator!r}: must name {{handoff}} (the hand-off list to read) "
             "and {results} (the results file to write), e.g. 'my-sim {handoff} -o {results}'"
         )

@@ -183,11 +183,13 @@ def test_underflowing_scores_of_non_failures_leave_the_variance_finite():
         (["--seeds", "0"], "--seeds 0: need at least 1"),
         (["--strategies", "bams,foo"], "--strategies foo: not part of the toy2d protocol"),
         (["--level0-share", "2"], "--level0-share 2.0: must lie in (0, 1)"),
+        (["--workers", "0"], "--workers 0: must be >= 1"),
     ],
 )
 def test_bad_benchmark_options_are_one_line_errors(runner, tmp_path, args, message):
+    # A value out of range is a usage error (exit code 2), as for every other command.
     r = invoke(runner, "benchmark", "--out", tmp_path / "out", *args)
-    assert r.exit_code == 1 and r.stderr.startswith("error: " + message), r.stderr
+    assert r.exit_code == 2 and r.stderr.startswith("error: " + message), r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
 

@@ -146,7 +146,7 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     ]
     # --seed without --plan is a usage error that names the fix.
     r = invoke(runner, "estimate", "-w", ws, "--seed", "7")
-    assert r.exit_code != 0 and "pass it with --plan" in r.output + r.stderr
+    assert r.exit_code == 2 and "pass it with --plan" in r.output + r.stderr
 
 
 def _simulate_and_ingest(runner, ws, truth, number: int, tmp_path):

@@ -147,3 +147,17 @@ def test_a_dear_cheap_level_from_a_settings_file_names_the_file(runner, tmp_path
 def test_cheap_levels_below_level_0_are_not_warned(runner, tmp_path):
     r = ok(runner, "init", "-w", tmp_path / "ws", "--gamma", "0.5", "--costs", "1,0.99,0.1")
     assert r.stderr == ""
+
+
+def test_level_names_without_costs_name_the_levels_the_study_has(runner, tmp_path):
+    # --level-names alone was dropped without a word: it names the settings file's levels
+    # (or level 0 alone), and a count that does not match is refused naming both.
+    from bams_cli.settings import load_settings
+
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--settings-from", TOY, "--level-names", "sim,fast")
+    levels = load_settings(ws).levels
+    assert [(lv.name, lv.cost) for lv in levels] == [("sim", 1.0), ("fast", 0.1)]
+    r = invoke(runner, "init", "-w", tmp_path / "w2", "--gamma", "0.5", "--level-names", "a,b")
+    assert r.exit_code == 2 and "--level-names has 2 names for 1 costs" in r.stderr
+    assert not (tmp_path / "w2").exists()

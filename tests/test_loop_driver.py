@@ -138,7 +138,7 @@ def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     assert s.returncode == 3  # batch 1 drawn, waiting for its results: resumable
     r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
                        capture_output=True, text=True)  # fmt: skip
-    assert r.returncode == 1 and "must name {handoff}" in r.stderr
+    assert r.returncode == 2 and "must name {handoff}" in r.stderr
 
 
 def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_path):

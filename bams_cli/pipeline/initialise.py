@@ -112,6 +112,9 @@ def init(
             raise InputError(settings_from, "settings file not found")
         base = Settings.from_file(settings_from)
     levels = levels_from_costs(costs, level_names) if costs else None
+    if level_names and not costs:
+        # Names for the levels the study has already (the settings file's, or level 0 alone).
+        levels = levels_from_costs([lv.cost for lv in base.levels], level_names)
     try:
         settings = base.with_overrides(
             gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim
