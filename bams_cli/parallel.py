@@ -19,14 +19,13 @@ the lock closed its descriptor in forked children, kept the workspace locked.
 from __future__ import annotations
 
 import ctypes
-import importlib
 import multiprocessing
 import os
 import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any
@@ -121,17 +120,8 @@ def _watch_parent(parent: int, interval: float = 0.5) -> None:
     os._exit(1)
 
 
-def _start_worker(parent: int, preload: tuple[str, ...] = ()) -> None:
-    """Worker initializer: die with the command (``_die_with_parent``), then import
-    ``preload``, so that the first task needing those modules finds them loaded: the
-    workers import while the command still reads its inputs."""
-    _die_with_parent(parent)
-    for name in preload:
-        importlib.import_module(name)
-
-
 def _die_with_parent(parent: int) -> None:
-    """End this worker when ``parent`` (the command) dies.
+    """Worker initializer: end this worker when ``parent`` (the command) dies.
 
     On Linux the kernel sends SIGKILL at the parent's death (``PR_SET_PDEATHSIG``), even to
     a worker busy in C code; elsewhere a thread polls ``getppid``. Either way the parent
@@ -160,9 +150,7 @@ def _pool_context() -> multiprocessing.context.BaseContext:
 
 
 @contextmanager
-def executor(
-    workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()
-) -> Iterator[Executor]:
+def executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[Executor]:
     """Yield the executor a command should use.
 
     Parameters
@@ -171,9 +159,6 @@ def executor(
         Local worker processes (default: the machine's cores); 1 runs inline.
     scheduler : str, optional
         Address of a ``dask.distributed`` scheduler, e.g. ``tcp://10.0.0.5:8786``.
-    preload : sequence of str
-        Modules local workers import as soon as they start; the workers start at once,
-        not at the first task. Ignored inline and on dask.
     """
     if scheduler:
         try:
@@ -200,9 +185,7 @@ def executor(
     with ProcessPoolExecutor(
         max_workers=n,
         mp_context=_pool_context(),
-        initializer=_start_worker,
-        initargs=(os.getpid(), tuple(preload)),
+        initializer=_die_with_parent,
+        initargs=(os.getpid(),),
     ) as pool:
-        if preload:
-            pool.submit(int)  # starts the workers (a forked pool starts all at its first task)
         yield pool

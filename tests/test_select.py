@@ -207,7 +207,7 @@ def test_a_tight_memory_ceiling_runs_fewer_workers_and_says_so(lead_ws, runner, 
 
     # 500 MiB of room: two workers would start (200 MiB each) but leave each cluster less
     # than the full plan's 4,096 x 1,024 covariance (twice 32 MiB); one worker keeps it.
-    monkeypatch.setattr(memory, "tree_rss", lambda *_, **__: 100 * 2**20)
+    monkeypatch.setattr(memory, "tree_rss", lambda *_: 100 * 2**20)
     monkeypatch.setattr(selection.os, "cpu_count", lambda: 2)
     r = ok(runner, "select", "-w", lead_ws, "--budget", "5", "--clusters", "2", "--json",
            "--max-memory", "600M")  # fmt: skip

@@ -46,10 +46,9 @@ passes the first configured gamma (the others are scored by the same GP afterwar
 
 from __future__ import annotations
 
-import copy
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -1283,21 +1282,6 @@ def plan_selection(
 # --------------------------------------------------------------------------------------
 
 
-def _cluster_job(
-    X: FloatArray,
-    lengthscales: FloatArray,
-    n_clusters: int,
-    n_init_clusters: int | None,
-    rng: np.random.Generator,
-    fit_max: int | None,
-) -> tuple[IntArray, Mapping[str, Any]]:
-    """``cluster_pool`` as a task: the labels and the state ``rng`` is left in."""
-    labels = cluster_pool(
-        X, lengthscales, n_clusters, n_init_clusters=n_init_clusters, rng=rng, fit_max=fit_max
-    )
-    return labels, rng.bit_generator.state
-
-
 def select_batch(
     posterior: Posterior,
     X: FloatArray,
@@ -1352,8 +1336,7 @@ def select_batch(
         ``reobserve_level0``.
     pooling : {"global", "raw"}
     executor : concurrent.futures.Executor, optional
-        Runs the clustering (while this process computes the posterior at the pool) and
-        the per-cluster greedies; None runs them inline. Same answer either way.
+        Runs the per-cluster greedies; None runs them inline. Same answer either way.
     rng : numpy.random.Generator
         Seeds K-means; nothing else is random.
     progress : callable(phase, done, total), optional
@@ -1438,22 +1421,8 @@ def select_batch(
         if progress is not None:
             progress(phase, done, total)
 
-    plan = plan_selection(N, n_levels, n_clusters, approximate=approximate, **(plan_options or {}))
-
-    # Algorithm 2 needs only X and the lengthscales: with an executor it runs in a worker
-    # while this process computes the posterior at the pool (K-means and the posterior
-    # each take ~0.4 s at 45,000 points, and importing scikit-learn ~0.8 s more).
-    t = time.perf_counter()
-    report("cluster", 0, 1)
-    cluster_args = (X, posterior.lengthscales0, plan.n_clusters, n_init_clusters)
-    clustering = None
-    if executor is not None and plan.n_clusters > 1 and N > 1:
-        clustering = executor.submit(
-            _cluster_job, *cluster_args, copy.deepcopy(rng), plan.cluster_fit_max
-        )
-
     # Posterior at the pool.
-    t_predict = time.perf_counter()
+    t = time.perf_counter()
     report("predict", 0, 1)
     with threadpool_limits(limits=1, user_api="blas"):  # see greedy_cluster
         mu, sigma2 = _predict(posterior, X)
@@ -1462,17 +1431,25 @@ def select_batch(
     if len(p_idx):
         j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev)
     report("predict", 1, 1)
-    timings["predict"] = time.perf_counter() - t_predict
+    timings["predict"] = time.perf_counter() - t
 
-    if clustering is None:
-        labels, _ = _cluster_job(*cluster_args, rng, plan.cluster_fit_max)
-    else:
-        # The worker drew from a copy of rng: carry its state on, as if drawn here.
-        labels, rng.bit_generator.state = clustering.result()
+    plan = plan_selection(N, n_levels, n_clusters, approximate=approximate, **(plan_options or {}))
+
+    # Algorithm 2.
+    t = time.perf_counter()
+    report("cluster", 0, 1)
+    labels = cluster_pool(
+        X,
+        posterior.lengthscales0,
+        plan.n_clusters,
+        n_init_clusters=n_init_clusters,
+        rng=rng,
+        fit_max=plan.cluster_fit_max,
+    )
     n_cl = int(labels.max()) + 1 if N else 0
     members = [np.flatnonzero(labels == k) for k in range(n_cl)]
     report("cluster", 1, 1)
-    timings["cluster"] = time.perf_counter() - t  # with an executor, overlaps "predict"
+    timings["cluster"] = time.perf_counter() - t
 
     biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
     limit = (plan_options or {}).get("max_cluster_bytes")

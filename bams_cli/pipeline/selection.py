@@ -58,22 +58,20 @@ GREEDY_PLANS: dict[str, Literal["auto", "never", "always"]] = {
 }
 
 
-def cluster_bytes(workers: int | None, scheduler: str | None, *, own: bool = False) -> int:
+def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
     """Bytes one cluster's rows x candidates covariance may take under ``--max-memory``.
 
     What the command holds already stays; the rest is shared by the worker processes,
     each of which holds one cluster's covariance and about as much again in the greedy's
     temporaries and its own start-up (``bench/bench_memory.py``). With ``--scheduler``
     the workers run elsewhere and only the local limit of ``core.select`` applies.
-    ``own``: the workers run already; what the command holds is its own process's
-    (their start-up is counted per worker, and their shared pages would count twice).
     """
     from bams_cli.core.select import MAX_CLUSTER_BYTES
 
     if scheduler:
         return MAX_CLUSTER_BYTES
     n = workers or os.cpu_count() or 1
-    held = memory.tree_rss(children=[]) if own else memory.tree_rss()
+    held = memory.tree_rss()
     per_worker = (memory.budget() - held) / n - memory.WORKER_BASE_BYTES
     if per_worker <= 0:
         raise OptionError(
@@ -86,9 +84,7 @@ def cluster_bytes(workers: int | None, scheduler: str | None, *, own: bool = Fal
     return int(min(per_worker / 2, MAX_CLUSTER_BYTES))
 
 
-def workers_within_memory(
-    workers: int | None, scheduler: str | None, *, will_hold: int = 0
-) -> tuple[int | None, str]:
+def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:
     """``--workers`` left out: one worker process per core, or as many as ``--max-memory``
     leaves room for at the full approximate plan, down to 1 (the greedies run in the
     command); where not even one fits, one per core as asked (``cluster_bytes`` decides).
@@ -100,16 +96,13 @@ def workers_within_memory(
     decrease without a word (at 1,000,000 segments under 1G two workers kept 202 rows of J
     per cluster, one worker the full 4,096).
 
-    ``will_hold``: bytes the command will hold beside what it holds now (the model, when
-    the workers start before it is loaded).
-
     Returns the workers to use (``workers`` itself when given, None with ``--scheduler``)
     and, when fewer than the cores, why in one sentence (else "").
     """
     if workers is not None or scheduler:
         return workers, ""
     cores = os.cpu_count() or 1
-    room = memory.budget() - memory.tree_rss() - will_hold
+    room = memory.budget() - memory.tree_rss()
     need = (
         memory.WORKER_BASE_BYTES + 2 * 8 * defaults.SELECT_MAX_ROWS * defaults.SELECT_MAX_CANDIDATES
     )
@@ -453,136 +446,117 @@ def select(
     selection_plan: dict[str, Any] | None = None  # core.select.plan_selection, as taken
 
     purpose: np.ndarray | None = None
-    # Worker processes, when the strategy needs them, end with this block.
-    with contextlib.ExitStack() as stack:
-        if strategy in MODEL_STRATEGIES:
-            # The worker processes start before the model is loaded and import scikit-learn
-            # meanwhile, for the clustering select_batch hands them (``core.select``); the
-            # model's conditioning factor is counted before it is there.
-            from bams_cli.core.gp.fit import BYTES_PER_ENTRY
-
-            record = ws.read_model().get("conditioning") or {}
-            n_cond = int(record.get("conditioned_on") or 0)
-            workers, fewer_workers = workers_within_memory(
-                workers, scheduler, will_hold=BYTES_PER_ENTRY * n_cond**2
-            )
-            pool = stack.enter_context(executor(workers, scheduler, preload=("sklearn.cluster",)))
-            posterior, model = load_posterior(ws, settings, ids, X)
-            model_hash = model["observations_hash"]
-            confirm, is_lead = np.zeros(0, np.int64), np.zeros(0, bool)
-            if strategy == "bams" and settings.n_levels > 1:
-                k = n_confirmations(budget, float(costs[0]), confirm_share)
-                if k:
-                    _, _, _, p_all = read_scores(ws, len(settings.gammas))
-                    confirm, is_lead = confirmation_picks(
-                        p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
-                    )
-            rest = budget - float(costs[0]) * len(confirm)
-            taken0 = observed0.copy()
-            taken0[confirm] = True
-            result = None
-            if rest >= costs.min() - 1e-12:
-                with _memory_limit_is_an_option(greedy):
-                    result = select_batch(
-                        posterior,
-                        X,
-                        gamma=settings.gammas[0],
-                        costs=list(settings.costs),
-                        budget=rest,
-                        n_clusters=clusters,
-                        overbudget=overbudget,
-                        observed_level0_mask=taken0,
-                        pooling=pooling,  # type: ignore[arg-type]
-                        executor=pool,
-                        rng=rng,
-                        progress=progress,
-                        levels=[0] if strategy == "bas" else None,
-                        reobserve_level0=include_observed,
-                        # Cheap pairs already logged (level 0's go with the segment).
-                        excluded_pairs=gone if include_observed else gone | seen,
-                        pending_pairs=waiting if waiting.any() else None,
-                        approximate=GREEDY_PLANS[greedy],
-                        plan_options={
-                            "max_cluster_bytes": cluster_bytes(workers, scheduler, own=True)
-                        },
-                    )
-            n_greedy = 0 if result is None else len(result.index)
-            picks = {
-                "index": np.concatenate([confirm, result.index if result else []]).astype(np.int64),
-                "level": np.concatenate(
-                    [np.zeros(len(confirm)), result.level if result else []]
-                ).astype(np.int64),
-                "delta_j": np.concatenate(
-                    [np.full(len(confirm), np.nan), result.delta_j if result else []]
-                ),
-                "cluster": np.concatenate(
-                    [np.full(len(confirm), -1), result.cluster if result else []]
-                ).astype(np.int64),
-            }
-            purpose = np.array(
-                [("confirm lead" if lead else "confirm likely") for lead in is_lead]
-                + ["discover"] * n_greedy,
-                dtype=object,
-            )
-            if result is not None:
-                j_before, j_after = float(result.j_before), float(result.j_after)
-                timings = {k: round(float(v), 3) for k, v in result.timings.items()}
-                selection_plan = dict(result.plan)
-                selection_plan["workers"] = None if scheduler else (workers or os.cpu_count() or 1)
-                if fewer_workers:
-                    selection_plan["workers_reason"] = fewer_workers
-        else:
-            multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
-            n_rest = settings.n_levels - 1
-            shares = [level0_share] + [(1 - level0_share) / n_rest] * n_rest if n_rest else None
-            difficulty = observed_index = observed_value = None
-            if strategy in ("ds", "ds-gp"):
-                table = ws.read_segments()
-                if difficulty_column not in table.column_names:
-                    raise WorkspaceError(
-                        f"{ws.segments_path}: --strategy {strategy} needs a difficulty column "
-                        f"{difficulty_column!r} (pass it through embed-reduce, or name it with --difficulty-column)"
-                    )
-                difficulty = (
-                    table.column(difficulty_column)
-                    .to_numpy(zero_copy_only=False)
-                    .astype(np.float64)
+    if strategy in MODEL_STRATEGIES:
+        posterior, model = load_posterior(ws, settings, ids, X)
+        model_hash = model["observations_hash"]
+        confirm, is_lead = np.zeros(0, np.int64), np.zeros(0, bool)
+        if strategy == "bams" and settings.n_levels > 1:
+            k = n_confirmations(budget, float(costs[0]), confirm_share)
+            if k:
+                _, _, _, p_all = read_scores(ws, len(settings.gammas))
+                confirm, is_lead = confirmation_picks(
+                    p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
                 )
-                if not np.isfinite(difficulty).all():
-                    row = int(np.flatnonzero(~np.isfinite(difficulty))[0]) + 1
-                    raise InputError(
-                        ws.segments_path,
-                        "difficulty must be finite",
-                        column=difficulty_column,
-                        row=row,
-                    )
-            elif strategy == "ce":
-                obs = ws.read_observations().filter(pl.col("fidelity") == 0)
-                pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
-                o = obs.join(pos, on=SID).select("_i", "value")
-                observed_index, observed_value = o["_i"].to_numpy(), o["value"].to_numpy()
-            index, level = baselines.pick_baseline(
-                strategy,  # type: ignore[arg-type]  # checked against STRATEGIES above
-                n_pool=len(ids),
-                costs=list(settings.costs),
-                budget=budget,
-                rng=rng,
-                observed_level0_mask=exclude,
-                difficulty=difficulty,
-                X=X,
-                observed_index=observed_index,
-                observed_value=observed_value,
-                mixed=multi and n_rest > 0,
-                level_shares=shares,
+        rest = budget - float(costs[0]) * len(confirm)
+        taken0 = observed0.copy()
+        taken0[confirm] = True
+        result = None
+        if rest >= costs.min() - 1e-12:
+            workers, fewer_workers = workers_within_memory(workers, scheduler)
+            with executor(workers, scheduler) as pool, _memory_limit_is_an_option(greedy):
+                result = select_batch(
+                    posterior,
+                    X,
+                    gamma=settings.gammas[0],
+                    costs=list(settings.costs),
+                    budget=rest,
+                    n_clusters=clusters,
+                    overbudget=overbudget,
+                    observed_level0_mask=taken0,
+                    pooling=pooling,  # type: ignore[arg-type]
+                    executor=pool,
+                    rng=rng,
+                    progress=progress,
+                    levels=[0] if strategy == "bas" else None,
+                    reobserve_level0=include_observed,
+                    # Cheap pairs already logged (level 0's go with the segment).
+                    excluded_pairs=gone if include_observed else gone | seen,
+                    pending_pairs=waiting if waiting.any() else None,
+                    approximate=GREEDY_PLANS[greedy],
+                    plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},
+                )
+        n_greedy = 0 if result is None else len(result.index)
+        picks = {
+            "index": np.concatenate([confirm, result.index if result else []]).astype(np.int64),
+            "level": np.concatenate(
+                [np.zeros(len(confirm)), result.level if result else []]
+            ).astype(np.int64),
+            "delta_j": np.concatenate(
+                [np.full(len(confirm), np.nan), result.delta_j if result else []]
+            ),
+            "cluster": np.concatenate(
+                [np.full(len(confirm), -1), result.cluster if result else []]
+            ).astype(np.int64),
+        }
+        purpose = np.array(
+            [("confirm lead" if lead else "confirm likely") for lead in is_lead]
+            + ["discover"] * n_greedy,
+            dtype=object,
+        )
+        if result is not None:
+            j_before, j_after = float(result.j_before), float(result.j_after)
+            timings = {k: round(float(v), 3) for k, v in result.timings.items()}
+            selection_plan = dict(result.plan)
+            selection_plan["workers"] = None if scheduler else (workers or os.cpu_count() or 1)
+            if fewer_workers:
+                selection_plan["workers_reason"] = fewer_workers
+    else:
+        multi = strategy == "mcm-gp" or (strategy == "random" and mixed_fidelity)
+        n_rest = settings.n_levels - 1
+        shares = [level0_share] + [(1 - level0_share) / n_rest] * n_rest if n_rest else None
+        difficulty = observed_index = observed_value = None
+        if strategy in ("ds", "ds-gp"):
+            table = ws.read_segments()
+            if difficulty_column not in table.column_names:
+                raise WorkspaceError(
+                    f"{ws.segments_path}: --strategy {strategy} needs a difficulty column "
+                    f"{difficulty_column!r} (pass it through embed-reduce, or name it with --difficulty-column)"
+                )
+            difficulty = (
+                table.column(difficulty_column).to_numpy(zero_copy_only=False).astype(np.float64)
             )
-            keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
-            index, level = np.asarray(index)[keep], np.asarray(level)[keep]
-            picks = {
-                "index": np.asarray(index, np.int64),
-                "level": np.asarray(level, np.int64),
-                "delta_j": np.full(len(index), np.nan),
-                "cluster": np.zeros(len(index), np.int64),
-            }
+            if not np.isfinite(difficulty).all():
+                row = int(np.flatnonzero(~np.isfinite(difficulty))[0]) + 1
+                raise InputError(
+                    ws.segments_path, "difficulty must be finite", column=difficulty_column, row=row
+                )
+        elif strategy == "ce":
+            obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+            pos = pl.DataFrame({SID: ids, "_i": np.arange(len(ids))})
+            o = obs.join(pos, on=SID).select("_i", "value")
+            observed_index, observed_value = o["_i"].to_numpy(), o["value"].to_numpy()
+        index, level = baselines.pick_baseline(
+            strategy,  # type: ignore[arg-type]  # checked against STRATEGIES above
+            n_pool=len(ids),
+            costs=list(settings.costs),
+            budget=budget,
+            rng=rng,
+            observed_level0_mask=exclude,
+            difficulty=difficulty,
+            X=X,
+            observed_index=observed_index,
+            observed_value=observed_value,
+            mixed=multi and n_rest > 0,
+            level_shares=shares,
+        )
+        keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
+        index, level = np.asarray(index)[keep], np.asarray(level)[keep]
+        picks = {
+            "index": np.asarray(index, np.int64),
+            "level": np.asarray(level, np.int64),
+            "delta_j": np.full(len(index), np.nan),
+            "cluster": np.zeros(len(index), np.int64),
+        }
 
     k = len(picks["index"])
     if k == 0:
