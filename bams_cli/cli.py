@@ -1191,6 +1191,7 @@ def loop(
             workers=workers,
             wait=wait,
             on_step=bar,
+            on_warning=console.warning,
         )
     if json_out:
         _json("loop", summary)

@@ -101,6 +101,7 @@ def loop(
     workers: int | None = None,
     wait: bool = False,
     on_step: OnStep | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run the discovery loop against a simulator: fit, select, simulate, ingest.
 
@@ -142,6 +143,10 @@ def loop(
     on_step : callable ``(description, done, total) -> None``, optional
         Called before each step with what the loop is doing (the CLI draws its progress
         with it).
+    on_warning : callable ``(text) -> None``, optional
+        Called with each warning a step gives (fit's self-checks, select's, the estimate
+        plan's), prefixed with the step, as the step ends: run by hand, each command
+        prints its own.
 
     Returns
     -------
@@ -217,7 +222,7 @@ def loop(
                 current = name, kind, number = step
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
-                steps.append(_run(ws, opts, name, kind, number, ingested))
+                steps.append(_run(ws, opts, name, kind, number, ingested, on_warning))
         except LoopStopped as exc:
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
@@ -347,9 +352,11 @@ def _run(
     kind: str | None,
     number: int | None,
     ingested: set[Path],
+    on_warning: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     root, wait = ws.root, opts.wait
     record: dict[str, Any] = {"step": name, "list": None if kind is None else f"{kind} {number}"}
+    out: dict[str, Any] = {}
     if name == "fit":
         out = pipeline.fit(root, wait=wait)
         record["up_to_date"] = bool(out.get("up_to_date", False))
@@ -391,6 +398,9 @@ def _run(
             wait=wait,
         )  # fmt: skip
         record["estimate_file"] = out["estimate_file"]
+    if on_warning is not None and not out.get("up_to_date"):
+        for text in out.get("warnings") or []:
+            on_warning(f"{_describe(name, kind, number)}: {text}")
     return record
 
 

@@ -24,15 +24,19 @@ from tests.conftest import tree_hash, write_toy
 BAMS = [sys.executable, "-m", "bams_cli"]
 
 
-def _study(tmp: Path, name: str, seg: Path) -> Path:
+def _study(tmp: Path, name: str, seg: Path, gamma: str = "0.56") -> Path:
     ws = tmp / name
-    for args in (
-        ["init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2", "--seed", "4"],
-        ["embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-         "--no-standardize"],
-    ):  # fmt: skip
+    for args in _study_args(ws, seg, gamma):
         subprocess.run([*BAMS, *map(str, args)], check=True, capture_output=True)
     return ws
+
+
+def _study_args(ws: Path, seg: Path, gamma: str = "0.56") -> list[list[object]]:
+    return [
+        ["init", "-w", ws, "--gamma", gamma, "--costs", "1,0.1", "--dim", "2", "--seed", "4"],
+        ["embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+         "--no-standardize"],
+    ]  # fmt: skip
 
 
 def _loop_args(ws: Path, truth: Path) -> list[str]:
@@ -325,3 +329,18 @@ def test_a_simulator_s_memory_is_not_held_against_the_loop(data, tmp_path):
     done = subprocess.run(args, capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr
     assert Workspace(ws).read_observations().height > 0
+
+
+def test_the_loop_shows_the_warnings_its_steps_give(data, tmp_path):
+    # Run by hand, fit, select and estimate --plan each print their warnings; the loop ran
+    # the same steps and printed none (a trial's fit warned twice that the model was
+    # overconfident, and its loop logs held no warning at all).
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg, gamma="0.05")  # no segment fails: nothing checks p_n
+    args = _loop_args(ws, truth)
+    args[args.index("--batches") + 1] = "1"
+    del args[args.index("--samples") : args.index("--samples") + 2]  # the default K warns
+    done = subprocess.run(args, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    plan = [line for line in done.stderr.splitlines() if line.startswith("warning: plan 1: ")]
+    assert len(plan) == 1 and "estimate --plan: no level-0 failure is known" in plan[0]
