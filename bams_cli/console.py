@@ -476,7 +476,9 @@ def plan_summary(s: Mapping[str, Any]) -> None:
             "budget": f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate",
             "design": f"{s['design']}, weighting {s['weighting']}",
             "known stratum": f"{_plural(s['known_stratum'], 'segment')} with a level-0 result",
-            "GP rate estimate": _num(s.get("gp_rate_estimate")),
+            # The plan is drawn for the largest gamma, whose failures hold every other's.
+            "GP rate estimate": f"{_num(s.get('gp_rate_estimate'))} at gamma "
+            f"{_num(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
             "hand-off": s["handoff"],
             "results template": s.get("results_template"),
         },

@@ -322,6 +322,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "known_stratum": COUNT,
                 "simulations_saved_by_known_stratum": NUM,
                 "gp_rate_estimate": NUM,
+                "plan_gamma": NUM,
                 "alpha": NUM,
                 "defensive": NUM,
                 "seed": INT,

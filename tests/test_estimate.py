@@ -493,3 +493,16 @@ def test_the_interval_s_allowance_trusts_p_n_as_little_as_the_evidence_allows(fi
     at_mean = float((r_mean[rand] * (1 - pi[rand]) / pi[rand]).sum() / r_mean[rand].sum())
     assert meta["w_model"][1] == pytest.approx(by_hand, rel=1e-9)
     assert meta["w_model"][1] > 1.1 * at_mean  # the mean trust allowed for less
+
+
+def test_the_plan_names_the_gamma_its_gp_rate_and_design_are_for(fitted_ws, tmp_path):
+    # A two-gamma study's plan is drawn for the largest gamma; its summary printed the GP's
+    # rate at that gamma without naming it, which a trial read as the first gamma's.
+    from typer.testing import CliRunner
+
+    src, _ = fitted_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(src, ws)
+    r = ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", "40")
+    [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
+    assert line.rstrip().endswith("at gamma 0.56, the largest, which the plan is drawn for")

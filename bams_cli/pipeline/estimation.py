@@ -409,6 +409,7 @@ def estimate_plan(
         "known_stratum": int(len(known_idx)),
         "simulations_saved_by_known_stratum": round(saved, 3),
         "gp_rate_estimate": gp_rate,
+        "plan_gamma": settings.gammas[g_plan],
         "alpha": alpha,
         "defensive": defensive,
         "seed": stream[0],
