@@ -217,6 +217,9 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
     assert (s3["stage"], s3["series"]) == (1, 3)
     assert s3["model_check"]["plans"] == [1, 2]
+    # ... and says so: the report's headline will move to it.
+    assert not any("new estimate" in n for n in s1["notes"] + s2["notes"])
+    assert s3["notes"][0].startswith("plan 3 starts a new estimate; the earlier one (plans 1, 2)")
 
 
 def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted_ws, tmp_path):

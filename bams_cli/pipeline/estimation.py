@@ -198,6 +198,7 @@ def estimate_plan(
     number = (plan_numbers(ws) or [0])[-1] + 1
 
     warnings: list[str] = []
+    new_estimate = None  # the note that this plan starts a new estimate beside an earlier one
     # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
     staged = design == "poisson"
     prev = st.plan_info(ws, number - 1) if number > 1 else None
@@ -223,6 +224,16 @@ def estimate_plan(
         series_K, weights = prev.series_K, prev.weights
         K_stage = series_K * weights[stage - 1]
     else:
+        if prev is not None:
+            # Said, since the report and status then show this newest estimate: a trial
+            # re-ran `estimate --plan` on a finished study and its headline moved to the
+            # new, smaller sample without a word.
+            earlier = [k.number for k in st.series_plans(ws, prev.number)]
+            new_estimate = (
+                f"plan {number} starts a new estimate; the earlier one (plan"
+                f"{'s' if len(earlier) > 1 else ''} {', '.join(map(str, earlier))}) stays in "
+                "its files, and the report and status show this one once its results are in"
+            )
         unchecked = None  # the default K's 5 p N when no level-0 failure has checked p
         if samples is None:
             # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
@@ -392,7 +403,7 @@ def estimate_plan(
         _, template = write_handoff(
             tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
         )
-    notes = [n for n in [design_note(meta)] if n]
+    notes = [n for n in [new_estimate, design_note(meta)] if n]
     return {
         "plan": number,
         "plan_file": str(path),
