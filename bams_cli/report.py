@@ -673,6 +673,7 @@ def _where_section(s: dict[str, Any], figures: dict[str, str]) -> list[str]:
             parts.append(_img(figures["groups"], f"failures and runs per {g['by']}"))
         parts.append(
             "<p class='note'>"
+            + (f"<strong>{html.escape(g['caveat'])}.</strong> " if g.get("caveat") else "")
             + _code(
                 f"Groups: {g['how']}. Confirmed: level-0 failures at the first gamma; leads: "
                 "cheap-level failures not yet run at level 0. A group whose expected failures "
@@ -1129,6 +1130,7 @@ def group_lines(groups: dict[str, Any] | None) -> list[str]:
     levels = sorted(groups["rows"][0]["runs_per_level"], key=int)
     lines = [
         f"By {groups['by']}: {groups['how']}.",
+        *([f"**{groups['caveat']}.**"] if groups.get("caveat") else []),
         "",
         f"| {groups['by']} | segments | expected failures | "
         + " | ".join(f"level {lv} runs" for lv in levels)

@@ -959,3 +959,29 @@ def test_a_headline_over_abandoned_segments_is_a_range_and_says_a_stage_remains(
     h = rep.headline([_estimate_row(p_hat=0.002, failures_sampled=2)], [], [], SPENT, 0.0)
     assert h["text"].startswith("failure rate 0.002 per segment (about 1 in 500); 90% interval")
     assert "stage" not in h["text"]
+
+
+def test_a_breakdown_whose_model_disagrees_with_the_estimate_says_so():
+    # A trial's --by breakdown put 0.6 unconfirmed failures in a group that held 54, beside
+    # a headline estimate that was right: the model's per-group numbers carry a caveat when
+    # its total lies outside the estimate's interval, and none when inside.
+    from bams_cli.pipeline.reporting import _model_against_estimate
+    from bams_cli.report import group_lines
+
+    def groups(*expected):
+        rows = [{"group": f"g{i}", "size": 100, "expected_failures": x,
+                 "expected_unconfirmed": x, "runs_per_level": {"0": 1}, "confirmed": 0,
+                 "leads": 0} for i, x in enumerate(expected)]  # fmt: skip
+        return {"by": "kind", "how": "each value of kind", "rows": rows}
+
+    est = [{"gamma": -0.5, "p_hat": 0.012, "ci_low": 0.008, "ci_high": 0.018}]
+    low = groups(8.6, 7.4)  # 16 in the pool against 144 [96, 216]
+    _model_against_estimate(low, est, -0.5, 12_000)
+    assert low["caveat"].startswith("The model expects 16 failures in the pool, below the ")
+    assert any(line == f"**{low['caveat']}.**" for line in group_lines(low))
+    inside = groups(80.0, 70.0)
+    _model_against_estimate(inside, est, -0.5, 12_000)
+    assert "caveat" not in inside and not any(line.startswith("**") for line in group_lines(inside))
+    other = groups(8.6, 7.4)  # an estimate at another gamma says nothing about this one
+    _model_against_estimate(other, est, 0.0, 12_000)
+    assert "caveat" not in other

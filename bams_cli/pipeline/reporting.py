@@ -324,6 +324,7 @@ def report(
         gammas[0],
         settings.n_levels,
     )
+    _model_against_estimate(groups, estimates, gammas[0], len(known0))
     if any(t["gp_rate"] is not None for t in trends) or history:
         figures["rate_band"] = rep.rate_band_plot(trends, history)
     if predicted is not None:
@@ -712,6 +713,32 @@ def _groups(
             }
         )
     return {"by": by if by is not None else "cluster", "kind": kind, "how": how, "rows": rows}
+
+
+def _model_against_estimate(
+    groups: dict[str, Any] | None, estimates: list[dict[str, Any]], gamma: float, n: int
+) -> None:
+    """Set ``groups["caveat"]`` when the model's expected failures, summed over the pool,
+    lie outside the estimate's interval: the breakdown's numbers are the model's alone, and
+    a trial's breakdown put 0.6 unconfirmed failures in a group that held 54 while the
+    estimate beside it was right."""
+    if groups is None or not groups["rows"]:
+        return
+    if any(r["expected_failures"] is None for r in groups["rows"]):
+        return
+    e = next((e for e in estimates if e.get("gamma") == gamma), None)
+    if e is None or e.get("ci_low") is None or e.get("ci_high") is None or e.get("p_hat") is None:
+        return
+    model = sum(r["expected_failures"] for r in groups["rows"])
+    lo, hi, est = e["ci_low"] * n, e["ci_high"] * n, e["p_hat"] * n
+    if lo <= model <= hi:
+        return
+    side = "below" if model < lo else "above"
+    groups["caveat"] = (
+        f"The model expects {model:.3g} failures in the pool, {side} the estimate's "
+        f"{est:.3g} ({lo:.3g} to {hi:.3g}): its expected failures per group are the model's "
+        "alone and miss that difference; read them as where the model looks, not as counts"
+    )
 
 
 def _uniform_rows(rows: list[dict[str, Any]], blank: Any = "") -> list[dict[str, Any]]:
