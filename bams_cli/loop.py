@@ -46,6 +46,7 @@ from bams_cli import abandon, defaults, memory, pipeline
 from bams_cli.errors import BamsError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
+from bams_cli.state.schemas import SEGMENT_ID as SID
 from bams_cli.state.workspace import Workspace
 from bams_cli.status import batch_handoff, plan_handoff
 
@@ -410,6 +411,7 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     handoff = batch_handoff(ws, number) if kind == "batch" else plan_handoff(ws, number)
     results = _results_file(opts, kind, number)
     results.parent.mkdir(parents=True, exist_ok=True)
+    handoff = _still_pending(ws, kind, number, handoff, results.parent)
     partial = results.with_name(f".partial-{results.name}")
     partial.unlink(missing_ok=True)
     command = opts.simulator.format(
@@ -435,6 +437,28 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
         )
     os.replace(partial, results)
     return results
+
+
+def _still_pending(ws: Workspace, kind: str, number: int, handoff: Path, folder: Path) -> Path:
+    """The hand-off list to simulate: ``handoff`` itself, or, when some of its requests
+    have results already (a run that crashed, whose results file was deleted to run the
+    simulator again), a list of the others in ``folder``. Simulated again, the requests
+    with results would come back with other values from a simulator with run-to-run noise,
+    and ingesting them would be refused as conflicts."""
+    import polars as pl
+
+    pend = ws.pending()
+    pend = pend.filter(pl.col(kind) == number)
+    rows = pl.read_csv(handoff, infer_schema=False)
+    keys = pend.select(pl.col(SID).cast(pl.String), pl.col("fidelity").cast(pl.String))
+    left = rows.join(keys, on=[SID, "fidelity"], how="semi")
+    if left.height == rows.height:
+        return handoff
+    subset = folder / f"{handoff.stem}.pending.csv"
+    partial = subset.with_name(f".partial-{subset.name}")
+    left.write_csv(partial)
+    os.replace(partial, subset)
+    return subset
 
 
 def _end_tree(proc: subprocess.Popen[bytes]) -> None:
@@ -466,5 +490,6 @@ def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) 
         f"{results}: ingested, but {left.height} requests of {kind} {number} still have no "
         f"result (failed runs, or rows missing); rerun them and ingest the results, record "
         f"them as lost with `bams-cli abandon -w {shlex.quote(str(ws.root))} {flag}` (or run "
-        "the loop with --abandon-failed), or delete the file to run the simulator again"
+        "the loop with --abandon-failed), or delete the file to run the simulator again "
+        "on those requests alone"
     )

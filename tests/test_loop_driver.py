@@ -344,3 +344,50 @@ def test_the_loop_shows_the_warnings_its_steps_give(data, tmp_path):
     assert done.returncode == 0, done.stderr
     plan = [line for line in done.stderr.splitlines() if line.startswith("warning: plan 1: ")]
     assert len(plan) == 1 and "estimate --plan: no level-0 failure is known" in plan[0]
+
+
+# A simulator with run-to-run noise (every call answers a little differently) whose first
+# call crashes on the first two requests: argv = flag file, truth, hand-off, results.
+NOISY = """
+import csv, random, subprocess, sys
+from pathlib import Path
+flag, truth, handoff, results = sys.argv[1:5]
+raw = results + ".raw.csv"
+subprocess.run([*BAMS, "simulate", handoff, "--truth", truth, "-o", raw], check=True)
+rows = list(csv.DictReader(open(raw)))
+first = not Path(flag).exists()
+Path(flag).touch()
+for i, r in enumerate(rows):
+    r["value"], r["status"] = str(float(r["value"]) + random.uniform(-0.01, 0.01)), "ok"
+    if first and i < 2:
+        r["value"], r["status"] = "", "crashed"
+with open(results, "w", newline="") as fh:
+    w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+"""
+
+
+def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_path):
+    # The loop stops when runs crashed and says: delete the results file to run the
+    # simulator again. It then handed the whole list to the simulator once more, and a
+    # simulator with run-to-run noise answered the runs already logged with other values,
+    # which ingesting refused as conflicts, again on every rerun.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "noisy.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + NOISY)
+    flag = tmp_path / "crashed-once"
+    command = f"{sys.executable} {sim} {flag} {truth} {{handoff}} {{results}}"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3"]  # fmt: skip
+    first = subprocess.run(args, capture_output=True, text=True)
+    assert first.returncode == 1 and "2 requests of batch 1 still have no result" in first.stderr
+    assert "run the simulator again on those requests alone" in first.stderr
+    results = ws / "loop-results" / "batch-0001.csv"
+    results.unlink()  # as the message says
+    again = subprocess.run([*args, "--json"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    subset = ws / "loop-results" / "batch-0001.pending.csv"
+    assert len(pl.read_csv(subset)) == 2  # the two crashed requests, no more
+    assert Workspace(ws).pending().height == 0
