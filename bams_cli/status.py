@@ -15,6 +15,7 @@ then nothing is left to do.
 from __future__ import annotations
 
 import json
+import math
 import shlex
 from pathlib import Path
 from typing import Any
@@ -133,7 +134,7 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "batch": n,
                 "strategy": df["strategy"][0] if df.height else None,
                 "picks": df.height,
-                "cost": float(df["cost"].sum()),
+                "cost": math.fsum(df["cost"].to_list()),  # 200 x 0.1 is 20, not 19.999999999999986
                 "budget": options.get("budget") if isinstance(options, dict) else None,
                 "pending": pending,
                 "abandoned": gone.height,

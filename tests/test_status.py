@@ -256,3 +256,18 @@ def test_a_damaged_model_makes_fit_the_next_step(study, tmp_path):
     got = json.loads(r.stdout)
     assert r.exit_code == 0 and got["next"]["step"] == "fit"
     assert got["model"]["fresh"] is False and "damaged" in got["model"]["reason"]
+
+
+def test_a_batch_s_cost_is_summed_without_rounding_error(tmp_path):
+    # 200 cheap runs at cost 0.1 cost 20: a float sum said 19.999999999999986.
+    seg, _ = write_toy(tmp_path / "data", n=300, seed=3)
+    ws = tmp_path / "ws"
+    runner = CliRunner()
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity",
+       "--level0-share", "0", "--budget", "20")  # fmt: skip
+    r = invoke(runner, "status", "-w", ws, "--json")
+    [batch] = json.loads(r.stdout)["batches"]
+    assert (batch["picks"], batch["cost"]) == (200, 20.0)
