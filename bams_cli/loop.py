@@ -35,6 +35,7 @@ import os
 import shlex
 import signal
 import subprocess
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -243,10 +244,15 @@ def loop(
 @contextmanager
 def _stopped_by_signals() -> Iterator[None]:
     """Raise ``LoopStopped`` where the loop stands on any of ``STOP_SIGNALS``, once: a
-    second signal while the first unwinds (ending the simulator) changes nothing."""
+    second signal while the first unwinds (ending the simulator) changes nothing. A signal
+    ignored when the loop started stays ignored: ``nohup bams-cli loop ...`` outlives its
+    terminal. The loop becomes its descendants' subreaper (Linux), so that a simulator's
+    children whose shell died first (Ctrl-C reaches the whole group at once) stay its
+    descendants, for ``_end_tree`` to find."""
     if threading.current_thread() is not threading.main_thread():
         yield  # signal handlers can only be set from the main thread
         return
+    _become_subreaper()
     stopping = False
 
     def stop(signum: int, _frame: Any) -> None:
@@ -255,12 +261,27 @@ def _stopped_by_signals() -> Iterator[None]:
             stopping = True
             raise LoopStopped(signum)
 
-    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    caught = [s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
+    previous = {s: signal.signal(s, stop) for s in caught}
     try:
         yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+PR_SET_CHILD_SUBREAPER = 36  # <linux/prctl.h>
+
+
+def _become_subreaper() -> None:
+    """Orphaned descendants of this process are re-parented to it, not to init (Linux;
+    elsewhere nothing)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)
 
 
 def _stopped(ws: Workspace, signum: int, step: tuple[str, str | None, int | None] | None) -> str:
@@ -417,12 +438,15 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     command = opts.simulator.format(
         handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
     )
+    import psutil
+
+    before = {p.pid for p in psutil.Process().children()}  # not the simulator's
     proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL)
     try:
         with memory.outside(proc.pid):  # the simulator's memory is not the loop's
             returncode = proc.wait()
     except BaseException:
-        _end_tree(proc)
+        _end_tree(proc, before)
         partial.unlink(missing_ok=True)
         raise
     if returncode != 0:
@@ -461,7 +485,7 @@ def _still_pending(ws: Workspace, kind: str, number: int, handoff: Path, folder:
     return subset
 
 
-def _end_tree(proc: subprocess.Popen[bytes]) -> None:
+def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> None:
     """End the simulator and every process it started: SIGTERM to each, and SIGKILL for
     what is left after ``SIMULATOR_GRACE_S``. The tree is listed before anything is
     signalled: a shell's children, once it is gone, are no longer its descendants."""
@@ -472,6 +496,15 @@ def _end_tree(proc: subprocess.Popen[bytes]) -> None:
         tree = [root, *root.children(recursive=True)]
     except psutil.NoSuchProcess:
         tree = []
+    # Orphans of a shell that died first are this process's own children now (the loop is
+    # their subreaper): every child that was not there before the simulator started
+    # (``before``: e.g. multiprocessing's resource tracker).
+    with contextlib.suppress(psutil.NoSuchProcess):
+        known = {p.pid for p in tree} | (before or set())
+        for child in psutil.Process().children():
+            if child.pid not in known:
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    tree += [child, *child.children(recursive=True)]
     for p in tree:
         with contextlib.suppress(psutil.NoSuchProcess):
             p.terminate()

@@ -182,10 +182,19 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     if n <= 1:
         yield InlineExecutor()
         return
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         max_workers=n,
         mp_context=_pool_context(),
         initializer=_die_with_parent,
         initargs=(os.getpid(),),
-    ) as pool:
+    )
+    try:
         yield pool
+    except BaseException:
+        # Stopped (Ctrl-C, a loop's SIGTERM, an error): the queued clusters are not waited
+        # for (a select's greedies can run for minutes), and the workers end now.
+        pool.shutdown(wait=False, cancel_futures=True)
+        for worker in multiprocessing.active_children():
+            worker.terminate()
+        raise
+    pool.shutdown(wait=True)

@@ -242,11 +242,55 @@ def _start_sleeper_loop(tmp_path, seg, **popen):
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             **popen)  # fmt: skip
     child = pids.with_suffix(".child")
+
+    def written() -> bool:  # the pid and its newline, not a file just created
+        return child.exists() and child.read_text().endswith("\n")
+
     deadline = time.monotonic() + 120
-    while not child.exists() and proc.poll() is None and time.monotonic() < deadline:
+    while not written() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
-    time.sleep(0.2)  # the pid is written
     return proc, [int(pids.with_suffix(s).read_text()) for s in (".shell", ".child")]
+
+
+def test_ctrl_c_to_the_whole_job_ends_the_simulator_s_children_too(data, tmp_path):
+    # Ctrl-C in a terminal reaches the loop's whole process group at once: the simulator's
+    # shell dies with it, and its background child (which a non-interactive shell starts
+    # with SIGINT ignored) was re-parented to init before the loop listed the tree, and
+    # kept running while the loop said every process was ended.
+    tmp, seg, truth, _, _ = data
+    proc, started = _start_sleeper_loop(tmp_path, seg, start_new_session=True)
+    try:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.wait(timeout=60)
+        assert [p for p in started if not _gone(p)] == []
+    finally:
+        for pid in started:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+        err = proc.communicate()[1]
+    assert proc.returncode == 128 + signal.SIGINT, err
+
+
+def test_a_loop_started_under_nohup_outlives_its_terminal(data, tmp_path):
+    # nohup ignores SIGHUP for the command; the loop's own handler had replaced that, so a
+    # closed terminal or SSH session stopped a loop that was meant to outlive it.
+    tmp, seg, truth, _, _ = data
+    proc, started = _start_sleeper_loop(
+        tmp_path, seg, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    )
+    try:
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        assert proc.poll() is None and not any(_gone(p) for p in started)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    finally:
+        for pid in started:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.kill()
+        proc.communicate()
+    assert proc.returncode == 128 + signal.SIGTERM
 
 
 def test_killing_the_loop_s_whole_job_reaches_its_simulator(data, tmp_path):
