@@ -159,5 +159,9 @@ def test_level_names_without_costs_name_the_levels_the_study_has(runner, tmp_pat
     levels = load_settings(ws).levels
     assert [(lv.name, lv.cost) for lv in levels] == [("sim", 1.0), ("fast", 0.1)]
     r = invoke(runner, "init", "-w", tmp_path / "w2", "--gamma", "0.5", "--level-names", "a,b")
-    assert r.exit_code == 2 and "--level-names has 2 names for 1 costs" in r.stderr
+    assert (
+        r.exit_code == 2
+        and "--level-names has 2 names for the study's 1 level (level 0 alone); pass --costs"
+        in r.stderr
+    )
     assert not (tmp_path / "w2").exists()

@@ -115,7 +115,7 @@ class Reducer:
 
 def _moments(batches: BatchSource) -> tuple[NDArray, NDArray, int, NDArray[np.bool_]]:
     """Streaming mean and standard deviation (Chan et al. parallel update), one pass; and
-    which columns are constant (see ``Scatter.constant``)."""
+    which columns are constant (``_Span.constant``)."""
     n = 0
     mean = M2 = None
     span = _Span()

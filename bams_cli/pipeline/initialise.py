@@ -114,7 +114,15 @@ def init(
     levels = levels_from_costs(costs, level_names) if costs else None
     if level_names and not costs:
         # Names for the levels the study has already (the settings file's, or level 0 alone).
-        levels = levels_from_costs([lv.cost for lv in base.levels], level_names)
+        have = base.levels
+        if len(level_names) != len(have):
+            raise OptionValueError(
+                f"--level-names has {len(level_names)} names for the study's {len(have)} "
+                f"level{'s' if len(have) > 1 else ''}"
+                + (" (level 0 alone)" if len(have) == 1 else "")
+                + "; pass --costs to set the levels"
+            )
+        levels = levels_from_costs([lv.cost for lv in have], level_names)
     try:
         settings = base.with_overrides(
             gammas=tuple(gammas) if gammas else None, levels=levels, seed=seed, embedding_dim=dim

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import shlex
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -232,8 +233,10 @@ def report(
     figures: dict[str, str] = {}
     rng = np.random.default_rng(settings.seed)
     diverse = []
-    if n_diverse < 0 or max_points < 1:
+    if n_diverse < 0:
         raise OptionValueError(f"--diverse {n_diverse}: must be >= 0")
+    if max_points < 1:
+        raise OptionValueError(f"max_points {max_points}: must be >= 1")
     if by is not None:
         _passthrough_names(ws, by)  # an unknown column fails before anything is computed
     if scores is not None:
@@ -530,7 +533,8 @@ def _report_estimate_age(
             "severity": "warning",
             "text": f"The estimate shown predates the latest discovery: {' and '.join(parts)} "
             f"after plan {plan}, on which it rests, was drawn, and its rate does not count "
-            f"them; `bams-cli estimate -w {ws.root} --plan` draws a new sample that does.",
+            f"them; `bams-cli estimate -w {shlex.quote(str(ws.root))} --plan` draws a new sample "
+            "that does.",
         }
     ]
 
