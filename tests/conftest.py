@@ -40,6 +40,15 @@ def simulate_and_ingest(runner: CliRunner, ws: Path, handoff: Path, truth: Path,
     return ok(runner, "ingest-results", "-w", ws, results)
 
 
+def process_gone(pid: int) -> bool:
+    """Exited: reaped, or a zombie (it has closed its files and waits to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
 def tree_hash(root: Path) -> dict[str, str]:
     """Content hash of every file under root, to prove a failing command changed nothing.
 

@@ -6,6 +6,7 @@ import inspect
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pyarrow.compute as pc
@@ -76,9 +77,7 @@ def fitted_ws(tmp_path_factory):
 def test_estimate_outputs_are_strict_json_with_null_and_reason(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--samples", "30", "--json").stdout)
     res = tmp_path / "plan.parquet"
@@ -109,6 +108,13 @@ def test_estimate_outputs_are_strict_json_with_null_and_reason(fitted_ws, tmp_pa
                 pass  # plain strings (command line, tool version) are not JSON documents
 
 
+def _copy(fitted_ws, tmp_path) -> tuple[Path, Path]:
+    """A fresh copy of the fitted study for one test to change: (workspace, truth)."""
+    src, truth = fitted_ws
+    shutil.copytree(src, tmp_path / "ws")
+    return tmp_path / "ws", truth
+
+
 def _plan_ids(ws, number: int) -> list[str]:
     t = pq.read_table(ws / "estimates" / f"plan-{number:04d}.parquet")
     return sorted(t.filter(pc.equal(t["stratum"], "sampled"))["segment_id"].to_pylist())
@@ -117,9 +123,7 @@ def _plan_ids(ws, number: int) -> list[str]:
 def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    src, _ = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, _ = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
 
     def plan(*extra):
@@ -161,9 +165,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     # from the model checked on stage 1's outcomes, its results, the combined estimate.
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     s1 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80", "--json").stdout)
     assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, 2, 1, 80)
@@ -228,9 +230,7 @@ def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted
     # known + sampled is every distinct failure found (they had counted in neither).
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
@@ -251,9 +251,7 @@ def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted
 def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     args = ("estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1", "--json")
     s1 = strict_json(ok(runner, *args).stdout)
@@ -308,9 +306,7 @@ def test_a_pool_known_at_level_0_everywhere_plans_nothing_and_is_exact(tmp_path)
 def test_the_fay_feuer_interval_is_a_choice_and_never_narrower(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
@@ -331,9 +327,7 @@ def test_another_confidence_keeps_the_earlier_estimate_and_says_where_each_is(fi
     # `estimate --confidence 0.95` after the default's estimate replaced its file in silence.
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
@@ -366,9 +360,7 @@ def test_another_confidence_keeps_the_earlier_estimate_and_says_where_each_is(fi
 def test_fay_feuer_refuses_a_combined_staged_estimate(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
@@ -386,9 +378,7 @@ def test_a_plan_stores_pi_and_q_and_no_separate_prob(fitted_ws, tmp_path, design
     # copy of one of them ("prob") was dead weight.
     from typer.testing import CliRunner
 
-    src, truth = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     args = ("estimate", "-w", ws, "--plan", "--samples", "30", "--design", design)
     ok(runner, *args, "--stages", "1")
@@ -468,9 +458,7 @@ def test_the_interval_s_allowance_trusts_p_n_as_little_as_the_evidence_allows(fi
 
     from bams_cli.core import design as dz
 
-    src, _ = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, _ = _copy(fitted_ws, tmp_path)
     s = strict_json(
         ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", "80", "--json").stdout
     )
@@ -503,9 +491,7 @@ def test_the_plan_names_the_gamma_its_gp_rate_and_design_are_for(fitted_ws, tmp_
     # rate at that gamma without naming it, which a trial read as the first gamma's.
     from typer.testing import CliRunner
 
-    src, _ = fitted_ws
-    ws = tmp_path / "ws"
-    shutil.copytree(src, ws)
+    ws, _ = _copy(fitted_ws, tmp_path)
     r = ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", "40")
     [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
     assert line.rstrip().endswith("at gamma 0.56, the largest, which the plan is drawn for")

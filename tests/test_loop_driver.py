@@ -19,7 +19,7 @@ import pytest
 
 from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
-from tests.conftest import tree_hash, write_toy
+from tests.conftest import process_gone, tree_hash, write_toy
 
 BAMS = [sys.executable, "-m", "bams_cli"]
 
@@ -220,15 +220,6 @@ wait
 """
 
 
-def _gone(pid: int) -> bool:
-    """Exited (reaped, or a zombie waiting for init to reap it)."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
-
-
 def _start_sleeper_loop(tmp_path, seg, **popen):
     """A loop whose simulator is SLEEPER, started and waited for until the simulator's
     shell and child have written their pids: (the loop's Popen, [shell pid, child pid])."""
@@ -252,23 +243,41 @@ def _start_sleeper_loop(tmp_path, seg, **popen):
     return proc, [int(pids.with_suffix(s).read_text()) for s in (".shell", ".child")]
 
 
-def test_ctrl_c_to_the_whole_job_ends_the_simulator_s_children_too(data, tmp_path):
-    # Ctrl-C in a terminal reaches the loop's whole process group at once: the simulator's
-    # shell dies with it, and its background child (which a non-interactive shell starts
-    # with SIGINT ignored) was re-parented to init before the loop listed the tree, and
-    # kept running while the loop said every process was ended.
+def _end_leftovers(started: list[int]) -> None:
+    """SIGKILL whatever of the simulator a failing test left running."""
+    for pid in started:
+        if not process_gone(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize(
+    "signum, code", [(signal.SIGINT, 128 + signal.SIGINT), (signal.SIGKILL, -signal.SIGKILL)],
+    ids=["INT", "KILL"],
+)  # fmt: skip
+def test_a_signal_to_the_loop_s_whole_job_ends_the_simulator_and_its_children(
+    data, tmp_path, signum, code
+):
+    # The whole job's process group gets the signal: Ctrl-C in a terminal (SIGINT), a CI
+    # runner's timeout or `kill -9 -- -PGID` (SIGKILL, which the loop cannot catch).
+    # - INT: the simulator's shell dies with the loop's handler running, and its background
+    #   child (started with SIGINT ignored by a non-interactive shell) was re-parented to
+    #   init before the loop listed the tree, and kept running while the loop said every
+    #   process was ended.
+    # - KILL: the simulator must be in the group to end with it (in a session of its own
+    #   it kept running).
     tmp, seg, truth, _, _ = data
     proc, started = _start_sleeper_loop(tmp_path, seg, start_new_session=True)
     try:
-        os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, signum)
         proc.wait(timeout=60)
-        assert [p for p in started if not _gone(p)] == []
+        deadline = time.monotonic() + 10
+        while not all(process_gone(p) for p in started) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert [p for p in started if not process_gone(p)] == []
     finally:
-        for pid in started:
-            if not _gone(pid):
-                os.kill(pid, signal.SIGKILL)
+        _end_leftovers(started)
         err = proc.communicate()[1]
-    assert proc.returncode == 128 + signal.SIGINT, err
+    assert proc.returncode == code, err
 
 
 def test_a_loop_started_under_nohup_outlives_its_terminal(data, tmp_path):
@@ -281,36 +290,14 @@ def test_a_loop_started_under_nohup_outlives_its_terminal(data, tmp_path):
     try:
         proc.send_signal(signal.SIGHUP)
         time.sleep(1.0)
-        assert proc.poll() is None and not any(_gone(p) for p in started)
+        assert proc.poll() is None and not any(process_gone(p) for p in started)
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=60)
     finally:
-        for pid in started:
-            if not _gone(pid):
-                os.kill(pid, signal.SIGKILL)
+        _end_leftovers(started)
         proc.kill()
         proc.communicate()
     assert proc.returncode == 128 + signal.SIGTERM
-
-
-def test_killing_the_loop_s_whole_job_reaches_its_simulator(data, tmp_path):
-    # A CI runner's timeout or `kill -9 -- -PGID` ends a job's process group with SIGKILL,
-    # which the loop cannot catch: the simulator must be in that group to end with it (in
-    # a session of its own it kept running).
-    tmp, seg, truth, _, _ = data
-    proc, started = _start_sleeper_loop(tmp_path, seg, start_new_session=True)
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=60)
-        deadline = time.monotonic() + 10
-        while not all(_gone(p) for p in started) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert [p for p in started if not _gone(p)] == []
-    finally:
-        for pid in started:
-            if not _gone(pid):
-                os.kill(pid, signal.SIGKILL)
-        proc.communicate()
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
@@ -324,11 +311,9 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     try:
         proc.send_signal(signum)
         proc.wait(timeout=60)
-        assert [p for p in started if not _gone(p)] == []  # gone as the loop exits
+        assert [p for p in started if not process_gone(p)] == []  # gone as the loop exits
     finally:
-        for pid in started:
-            if not _gone(pid):
-                os.kill(pid, signal.SIGKILL)
+        _end_leftovers(started)
         proc.kill()
         err = proc.communicate()[1]
     assert proc.returncode == 128 + signum

@@ -18,6 +18,7 @@ import pytest
 from bams_cli.errors import WorkspaceLockedError
 from bams_cli.state import lock
 from bams_cli.state.lock import LOCK_FILE, workspace_lock
+from tests.conftest import process_gone
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
@@ -37,15 +38,6 @@ def _hold(ws, seconds):
     )
     assert proc.stdout is not None and proc.stdout.readline().strip() == "held"
     return proc
-
-
-def _gone(pid: int) -> bool:
-    """Exited (reaped, or a zombie that has closed its files)."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
 
 
 def _lock_files_open(pid: int | str = "self") -> list[str]:
@@ -151,9 +143,9 @@ def test_killed_command_leaves_no_lock_and_no_workers(tmp_path):
         assert time.monotonic() - start < 3
     proc.wait()
     deadline = time.monotonic() + 3
-    while not all(map(_gone, pids)) and time.monotonic() < deadline:
+    while not all(map(process_gone, pids)) and time.monotonic() < deadline:
         time.sleep(0.05)
-    survivors = [pid for pid in pids if not _gone(pid)]
+    survivors = [pid for pid in pids if not process_gone(pid)]
     for pid in survivors:  # do not leave them behind when the test fails
         os.kill(pid, signal.SIGKILL)
     assert survivors == []
@@ -180,9 +172,9 @@ time.sleep(60)
     proc.kill()
     proc.wait()
     deadline = time.monotonic() + 3
-    while not _gone(child) and time.monotonic() < deadline:
+    while not process_gone(child) and time.monotonic() < deadline:
         time.sleep(0.05)
-    if not _gone(child):
+    if not process_gone(child):
         os.kill(child, signal.SIGKILL)
         pytest.fail("the worker outlived its parent")
 
