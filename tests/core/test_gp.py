@@ -181,6 +181,70 @@ def test_multifidelity_posterior_equals_dense(n_levels, d):
     )
 
 
+@pytest.mark.parametrize("n_levels", [2, 3])
+def test_a_localised_posterior_answers_as_the_dense_reference(n_levels, monkeypatch):
+    # Selection's per-cluster view (MFGP.localised) solves each (point, level) factor once
+    # and looks it up afterwards: every answer equals the dense reference, for points of
+    # its set, points outside it, a mix, repeats and the same query twice; each factor is
+    # solved once; the original is untouched; too little memory means no view.
+    from bams_cli.core.gp import model as gp_model
+
+    monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)  # a view even for 24 observations
+    rng = np.random.default_rng(40 + n_levels)
+    d = 2
+    X, levels, y = mf_data(rng, d, n_levels)
+    hp = random_hp(rng, d, n_levels)
+    model = fit_mfgp(X, levels, y, n_levels, rng=rng, fixed=hp)
+    K = ref_kaug(X, levels, X, levels, hp) + np.diag(hp.noise[levels])
+    solve = lambda B: np.linalg.solve(K, B)  # noqa: E731
+
+    pts = np.vstack([rng.normal(size=(30, d)), X[:3]])  # the view's set, observed points too
+    view = model.localised(pts, 2**30)
+    assert view is not model and getattr(model, "_local", None) is None
+    assert model.localised(pts, 8 * len(X) * len(pts) * n_levels - 1) is model
+
+    solved = []
+    real = gp_model.MFGP._solve_L
+    monkeypatch.setattr(
+        gp_model.MFGP, "_solve_L", lambda self, B: solved.append(B.shape[1]) or real(self, B)
+    )
+    outside = rng.normal(size=(4, d))
+    Xp = np.vstack([pts[[0, 5, 5, 31]], outside[:2]])  # repeats and two points outside
+    Xc = np.vstack([pts[[1, 1, 2, 7, 32]], outside[2:]])
+    lc = np.r_[0, n_levels - 1, rng.integers(0, n_levels, 3), 1, 0]
+    for _ in range(2):  # the second round finds every factor of the set solved
+        k0_p = ref_matern52(Xp, X, hp.lengthscales0, hp.outputscale0)
+        kc = ref_kaug(X, levels, Xc, lc, hp)
+        cov_pc = ref_matern52(Xp, Xc, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(kc)
+        cov_pp = ref_matern52(Xp, Xp, hp.lengthscales0, hp.outputscale0) - k0_p @ solve(k0_p.T)
+        same = ref_same(Xc, lc, Xc, lc)
+        cov_cc = ref_kaug(Xc, lc, Xc, lc, hp) + same * hp.noise[lc][:, None] - kc.T @ solve(kc)
+        cov_own = ref_matern52(Xc, Xc, hp.lengthscales0, hp.outputscale0) - ref_matern52(
+            Xc, X, hp.lengthscales0, hp.outputscale0
+        ) @ solve(kc)
+        tol = dict(rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(view.cov_theta0_obs(Xp, Xc, lc), cov_pc, **tol)
+        np.testing.assert_allclose(view.cov_theta0(Xp, Xp), cov_pp, **tol)
+        np.testing.assert_allclose(view.cov_obs_obs(Xc, lc, Xc, lc), cov_cc, **tol)
+        np.testing.assert_allclose(view.obs_var(Xc, lc), np.diag(cov_cc), **tol)
+        own_cov, own_var = view.own_point(Xc, lc)
+        np.testing.assert_allclose(own_cov, np.diag(cov_own), **tol)
+        np.testing.assert_allclose(own_var, np.diag(cov_cc), **tol)
+        if _ == 0:
+            first = sum(solved)
+    # Second round: only the points outside the set were solved again, 2 + 2 columns per
+    # query that holds them (cov_theta0_obs: 2 + 2, cov_theta0: 2 + 2, cov_obs_obs: 2 + 2,
+    # obs_var: 2, own_point: 2 + 2).
+    assert sum(solved) - first == 18
+    # First round: at most once per (point, level) of the set, plus the outside points.
+    n_set_pairs = len(
+        {(tuple(x), 0) for x in Xp[:4]}
+        | {(tuple(x), int(l)) for x, l in zip(Xc[:5], lc[:5], strict=True)}
+        | {(tuple(x), 0) for x in Xc[:5]}
+    )
+    assert first <= n_set_pairs + 18
+
+
 def test_noise_only_on_true_diagonal_of_training_covariance():
     # Two observations of the same (x, 0) are distinct: their covariance is s0, not s0 + tau^2.
     # A model that put noise on every identical pair would shrink toward the repeats' mean

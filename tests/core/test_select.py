@@ -515,13 +515,52 @@ def test_approximate_batch_keeps_99_percent_of_the_exact_j_decrease(name, seed):
     assert dec_approx / dec_exact >= 0.99
 
 
-def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch):
+def test_remembered_factors_give_the_same_batches_exact_and_approximate(monkeypatch):
+    # The clusters' views (MFGP.localised) forced on with 30 observations: the exact and
+    # the approximate plan pick what they pick with every factor solved when asked for.
+    from bams_cli.core.gp import model as gp_model
+
+    post, X, observed0, gamma, costs = _problem("av_like", 3000, 0)
+    kw = dict(gamma=gamma, costs=costs, budget=15.0, observed_level0_mask=observed0)
+    plans = [{}, dict(approximate="always", plan_options=dict(max_rows=200, max_candidates=300))]
+    solved = [select_batch(post, X, rng=np.random.default_rng(0), **kw, **p) for p in plans]
+    monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)
+    views = []
+    real_local = gp_model.MFGP.localised
+    monkeypatch.setattr(
+        gp_model.MFGP,
+        "localised",
+        lambda self, X, b: views.append(v := real_local(self, X, b)) or v,
+    )
+    kept = [select_batch(post, X, rng=np.random.default_rng(0), **kw, **p) for p in plans]
+    assert len(views) == 12 and all(v is not post for v in views)
+    for a, b in zip(solved, kept, strict=True):
+        np.testing.assert_array_equal(a.index, b.index)
+        np.testing.assert_array_equal(a.level, b.level)
+        np.testing.assert_allclose(a.delta_j, b.delta_j, rtol=1e-9)
+
+
+@pytest.mark.parametrize("factors", ["solved", "remembered"])
+def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch, factors):
     # The production posterior (core.gp.MFGP, whose cov_theta0_obs evaluates k0 once per
     # candidate point for all its levels) with the hyperparameters of the dense reference:
     # the same picks as the brute-force greedy on the dense reference model, also after
-    # the greedy has dropped the columns of candidates that can no longer be picked.
+    # the greedy has dropped the columns of candidates that can no longer be picked;
+    # whether each query solves its factors or the cluster's view (MFGP.localised, how
+    # select runs with hundreds of observations) remembers them.
     from bams_cli.core import select as select_mod
     from bams_cli.core.gp import Hyperparameters, fit_mfgp
+    from bams_cli.core.gp import model as gp_model
+
+    views = []
+    if factors == "remembered":
+        monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)
+        real_local = gp_model.MFGP.localised
+        monkeypatch.setattr(
+            gp_model.MFGP,
+            "localised",
+            lambda self, X, b: views.append(v := real_local(self, X, b)) or v,
+        )
 
     compactions = []
     real = select_mod._compact_columns
@@ -555,6 +594,7 @@ def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch):
     idx, lev, dj, _ = bf.greedy(rows, cand, costs, budget)
     assert len(idx) >= 5 and set(lev) == {0, 1}
     assert compactions  # level 0 stopped fitting the budget before the end
+    assert [v is not mf for v in views] == ([True] if factors == "remembered" else [])
     np.testing.assert_array_equal(q.index, idx)
     np.testing.assert_array_equal(q.level, lev)
     np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
