@@ -189,7 +189,6 @@ def test_a_localised_posterior_answers_as_the_dense_reference(n_levels, monkeypa
     # solved once; the original is untouched; too little memory means no view.
     from bams_cli.core.gp import model as gp_model
 
-    monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)  # a view even for 24 observations
     rng = np.random.default_rng(40 + n_levels)
     d = 2
     X, levels, y = mf_data(rng, d, n_levels)

@@ -516,17 +516,18 @@ def test_approximate_batch_keeps_99_percent_of_the_exact_j_decrease(name, seed):
 
 
 def test_remembered_factors_give_the_same_batches_exact_and_approximate(monkeypatch):
-    # The clusters' views (MFGP.localised) forced on with 30 observations: the exact and
-    # the approximate plan pick what they pick with every factor solved when asked for.
+    # The clusters' views (MFGP.localised, as select runs): the exact and the approximate
+    # plan pick what they pick with every factor solved when asked for (no view).
     from bams_cli.core.gp import model as gp_model
 
     post, X, observed0, gamma, costs = _problem("av_like", 3000, 0)
     kw = dict(gamma=gamma, costs=costs, budget=15.0, observed_level0_mask=observed0)
     plans = [{}, dict(approximate="always", plan_options=dict(max_rows=200, max_candidates=300))]
-    solved = [select_batch(post, X, rng=np.random.default_rng(0), **kw, **p) for p in plans]
-    monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)
-    views = []
     real_local = gp_model.MFGP.localised
+    with monkeypatch.context() as m:
+        m.setattr(gp_model.MFGP, "localised", lambda self, X, b: self)
+        solved = [select_batch(post, X, rng=np.random.default_rng(0), **kw, **p) for p in plans]
+    views = []
     monkeypatch.setattr(
         gp_model.MFGP,
         "localised",
@@ -553,8 +554,9 @@ def test_greedy_on_the_fitted_gp_matches_brute_force(monkeypatch, factors):
     from bams_cli.core.gp import model as gp_model
 
     views = []
-    if factors == "remembered":
-        monkeypatch.setattr(gp_model, "_LOCAL_MIN_OBS", 0)
+    if factors == "solved":
+        monkeypatch.setattr(gp_model.MFGP, "localised", lambda self, X, b: self)
+    else:
         real_local = gp_model.MFGP.localised
         monkeypatch.setattr(
             gp_model.MFGP,

@@ -36,8 +36,6 @@ _REUSE_MIN_COLUMNS = 1024  # _obs_factor_reused: smaller sets are cheap to recom
 _THREADED_FROM = 2000  # MFGP(): factorise with every BLAS thread from this many observations
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
 _OWN_BLOCK_ELEMENTS = 8 << 20  # own_point: n_obs x columns per block (64 MB)
-#: ``localised``: below this many observations a factor costs less to solve than to look up.
-_LOCAL_MIN_OBS = 0
 
 
 class _FactorCache:
@@ -294,11 +292,12 @@ class MFGP:
 
         Answers are those of ``self`` up to rounding (a factor solved with other columns
         beside it). Returns ``self`` when the factors of every level would exceed
-        ``max_bytes`` (n x len(X) x n_levels floats) or the observations are few enough
-        that a solve is cheaper than a look-up. The copy shares every array with ``self``.
+        ``max_bytes`` (n x len(X) x n_levels floats). Worth it at any number of
+        observations: with 30, the kernel evaluations it saves were 29% of the approximate
+        plan's CPU at 45,000 segments. The copy shares every array with ``self``.
         """
         n = self._Xt.shape[0]
-        if n < _LOCAL_MIN_OBS or 8 * n * len(X) * self.n_levels > max_bytes:
+        if 8 * n * len(X) * self.n_levels > max_bytes:
             return self
         view = copy.copy(self)
         view._obs_factor_cache = None
