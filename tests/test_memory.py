@@ -159,18 +159,18 @@ def test_a_cluster_gets_its_share_of_what_is_left(monkeypatch: pytest.MonkeyPatc
 
     uses(monkeypatch, 500 * MiB)
     monkeypatch.setattr(memory, "_budget", 2 * GiB)
-    # (2 GiB - 500 MiB) over 2 workers, less a worker's own start-up, 8/17 of it for C (as
-    # much again for the greedy's temporaries, an eighth for the posterior's factors).
+    # (2 GiB - 500 MiB) over 2 workers, less a worker's own start-up, 4/9 of it for C (as
+    # much again for the greedy's temporaries, a quarter for the posterior's factors).
     share = (2048 - 500) * MiB / 2 - memory.WORKER_BASE_BYTES
-    assert cluster_bytes(2, None) == int(share * 8 / 17)
-    assert cluster_bytes(1, None) == int(((2048 - 500) * MiB - memory.WORKER_BASE_BYTES) * 8 / 17)
+    assert cluster_bytes(2, None) == int(share * 4 / 9)
+    assert cluster_bytes(1, None) == int(((2048 - 500) * MiB - memory.WORKER_BASE_BYTES) * 4 / 9)
     assert cluster_bytes(2, "tcp://elsewhere:8786") == MAX_CLUSTER_BYTES  # not our memory
     monkeypatch.setattr(memory, "_budget", 64 * GiB)
     assert cluster_bytes(2, None) == MAX_CLUSTER_BYTES  # never above select's own limit
     monkeypatch.setattr(memory, "_budget", 800 * MiB)  # 150 MiB a worker: not enough
     with pytest.raises(OptionError, match=r"holds 500.0 MiB already .* --workers 1$"):
         cluster_bytes(2, None)
-    assert cluster_bytes(1, None) == int((300 * MiB - memory.WORKER_BASE_BYTES) * 8 / 17)
+    assert cluster_bytes(1, None) == int((300 * MiB - memory.WORKER_BASE_BYTES) * 4 / 9)
 
 
 def test_select_starts_the_workers_the_ceiling_leaves_room_for(

@@ -78,7 +78,7 @@ V_TINY_REL = 1e-12
 MAX_CLUSTER_BYTES = 4 * 2**30
 #: Per cluster, the most the posterior may keep of its points' whitened factors
 #: (``MFGP.localised``): with thousands of observations they are most of select's work.
-FACTOR_CACHE_BYTES = 512 * 2**20
+FACTOR_CACHE_BYTES = 2 * 2**30
 #: ``_pool_blas_threads``: from this many observations the whole-pool steps use every core.
 POOL_THREADED_FROM = 500
 _EPS = float(np.finfo(np.float64).eps)
@@ -1500,6 +1500,12 @@ def select_batch(
     # Algorithm 1, first loop: one greedy per cluster.
     t = time.perf_counter()
     plan_seed = int(rng.integers(2**31 - 1)) if not plan.exact else 0
+    # A worker's share is 9/4 of the covariance limit (``pipeline.selection.cluster_bytes``):
+    # the covariance, as much again in temporaries, a quarter for the posterior's factors.
+    # The approximate plan's covariance is its rows x candidates only, and the factors
+    # (a cluster's every point, at thousands of observations) may take the rest.
+    held = limit if plan.exact else 8 * (plan.max_rows or 0) * (plan.max_candidates or 0)
+    factor_bytes = int(min(FACTOR_CACHE_BYTES, 9 * limit / 4 - 2 * held))
     jobs = []
     for k, r in enumerate(members):
         # ceil(eta m N_s / N); the 1e-9 stops float error from lifting an exact integer
@@ -1513,7 +1519,7 @@ def select_batch(
             cluster=k,
             row_drop_rtol=row_drop_rtol,
             forced_mask=pending[r] if len(p_idx) else None,
-            factor_bytes=min(FACTOR_CACHE_BYTES, limit // 8),
+            factor_bytes=factor_bytes,
         )
         if not plan.exact:
             kwargs |= dict(

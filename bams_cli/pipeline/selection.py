@@ -63,9 +63,9 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
 
     What the command holds already stays; the rest is shared by the worker processes,
     each of which holds one cluster's covariance, about as much again in the greedy's
-    temporaries and its own start-up (``bench/bench_memory.py``), and up to an eighth of
+    temporaries and its own start-up (``bench/bench_memory.py``), and up to a quarter of
     it in the posterior's remembered factors (``core.select`` gives ``MFGP.localised``
-    ``limit // 8``): 17/8 of the covariance in all. With ``--scheduler`` the workers run
+    ``limit // 4``): 9/4 of the covariance in all. With ``--scheduler`` the workers run
     elsewhere and only the local limit of ``core.select`` applies.
     """
     from bams_cli.core.select import MAX_CLUSTER_BYTES
@@ -83,7 +83,7 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
             f"{memory.format_size(memory.WORKER_BASE_BYTES)} to start; raise --max-memory"
             + (" or pass --workers 1" if n > 1 else "")
         )
-    return int(min(per_worker * 8 / 17, MAX_CLUSTER_BYTES))
+    return int(min(per_worker * 4 / 9, MAX_CLUSTER_BYTES))
 
 
 def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:

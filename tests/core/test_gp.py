@@ -161,6 +161,10 @@ def test_multifidelity_posterior_equals_dense(n_levels, d):
     np.testing.assert_allclose(sigma2, np.diag(cov_pp), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.cov_theta0(Xp, Xp), cov_pp, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(model.cov_theta0_obs(Xp, Xc, lc), cov_pc, rtol=1e-8, atol=1e-10)
+    # More than twice as many rows as columns: the data term through K^-1 k_aug(Y_n, c).
+    np.testing.assert_allclose(
+        model.cov_theta0_obs(Xp, Xc[:3], lc[:3]), cov_pc[:, :3], rtol=1e-8, atol=1e-10
+    )
     # Each candidate at its own point: the dense diagonal (select's first screen).
     cov_own = ref_matern52(Xc, Xc, hp.lengthscales0, hp.outputscale0) - ref_matern52(
         Xc, X, hp.lengthscales0, hp.outputscale0

@@ -393,14 +393,22 @@ class MFGP:
         """
         A, B = self._centre(X), self._centre(Xc, "Xc")
         lc = self._levels(levels, B.shape[0])
-        V = self._theta0_factor(A)
         W = self._obs_factor(B, lc)
+        if self._local is None and 2 * B.shape[0] < A.shape[0]:
+            # Many rows, few columns (J after a batch over the whole pool): the data term
+            # as k0(x, X_n) (K^-1 k_aug(Y_n, c)), n^2 per column, instead of a solve of
+            # n^2 per row. At 45,000 segments and 3,700 observations, 18 s -> about 2 s.
+            Z = solve_triangular(
+                self._L, W, lower=True, trans="T", overwrite_b=True, check_finite=False
+            )
+            P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
+        else:
+            P = np.ascontiguousarray(self._theta0_factor(A).T @ W)
         # k0 depends on the coordinates only, and selection lists a point once per level in
         # consecutive columns: evaluate it once per run of identical rows.
         new = np.ones(B.shape[0], dtype=bool)
         new[1:] = np.any(B[1:] != B[:-1], axis=1)
         group = np.cumsum(new) - 1
-        P = np.ascontiguousarray(V.T @ W)
         return matern52_cross_minus(A, B[new], group, self._ell[0], self._s[0], P)
 
     def own_point(self, Xc: FloatArray, levels: IntArray) -> tuple[FloatArray, FloatArray]:
