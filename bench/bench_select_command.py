@@ -3,10 +3,12 @@
     .venv/bin/python bench/bench_select_command.py                     # 45,000 av_like segments
     .venv/bin/python bench/bench_select_command.py --keep /tmp/sel45   # keep the fitted study
     .venv/bin/python bench/bench_select_command.py --study /tmp/sel45/ws --runs 5
+    .venv/bin/python bench/bench_select_command.py --n 12000 --first-budget 1000 --runs 1
+                                        # a study with ~3,700 observations
 
 The study is what ``select`` meets after a first batch: the benchmark's av_like pool
-(``benchmark.prepare_data``), init, embed-reduce (PCA to d = 12, as the protocol), a random mixed-fidelity batch of
-budget 20, its results, fit. Each run copies that workspace afresh and times
+(``benchmark.prepare_data``), init, embed-reduce (PCA to d = 12, as the protocol), a
+random mixed-fidelity batch of budget 20 (``--first-budget``), its results, fit. Each run copies that workspace afresh and times
 ``bams-cli select --budget 15`` twice, alternating: the default plan (approximate at this
 size) and ``--greedy exact``. Prints every run, the medians and the largest resident set of
 any process of the command (the command and the workers it waited for). The machine is shared: compare
