@@ -559,6 +559,7 @@ def ingest_results(
         console.rows_table(
             f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
         )
+        console.pending_lists(summary.get("pending_lists") or [])
     elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
         console.note("nothing pending: every selected segment has a result or is abandoned")
     else:
@@ -1102,6 +1103,7 @@ def abandon(
         )
     pend = summary["pending"]["count"]
     console.note(f"still pending: {pend}" if pend else "nothing pending")
+    console.pending_lists(summary.get("pending_lists") or [])
 
 
 @command(max_memory=True)

@@ -394,6 +394,21 @@ def ingest_summary(s: Mapping[str, Any]) -> None:
     )
 
 
+def pending_lists(lists: list[Mapping[str, Any]]) -> None:
+    """One line per batch or plan partly answered: the list of its pending requests alone,
+    the one to simulate (``state.pending``)."""
+    for e in lists:
+        if e.get("pending_handoff"):
+            out.print(
+                f"{e['list']}: {e['pending']} of its {e['requests']} requests still await "
+                f"results; simulate {e['pending_handoff']}, which lists them alone (the others "
+                "have results)",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
+
+
 def simulate_summary(s: Mapping[str, Any]) -> None:
     facts(f"wrote {s['results']}: {_plural(s['rows'], 'result')}; {s['note']}")
 

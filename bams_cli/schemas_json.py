@@ -143,6 +143,20 @@ ESTIMATE_ROW: Schema = obj(
         "abandoned": COUNT,
     },
 )
+#: ``ingest-results`` and ``abandon``: the batches and plans partly answered, and the list
+#: of each one's pending requests alone (``state.pending``; null when not current).
+PENDING_LISTS: Schema = array(
+    obj(
+        {
+            "list": STR,
+            "pending": COUNT,
+            "requests": COUNT,
+            "handoff": PATH,
+            "pending_handoff": nullable(PATH),
+        }
+    )
+)
+
 REQUEST: Schema = obj(
     {"request_id": STR, "segment_id": STR, "fidelity": INT},
     {"batch": nullable(INT), "plan": nullable(INT)},
@@ -193,6 +207,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "ingested": COUNT,
                 "already_ingested": BOOL,
                 "pending": PENDING,
+                "pending_lists": PENDING_LISTS,
                 "not_run": obj(
                     {
                         "count": COUNT,
@@ -423,6 +438,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "pending": COUNT,
                             "abandoned": COUNT,
                             "handoff": PATH,
+                            "pending_handoff": nullable(PATH),
                         }
                     )
                 ),
@@ -434,6 +450,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "pending": COUNT,
                             "abandoned": COUNT,
                             "handoff": PATH,
+                            "pending_handoff": nullable(PATH),
                             "estimate": nullable(PATH),
                         }
                     )
@@ -585,6 +602,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "log": PATH,
                 "log_rows": COUNT,
                 "pending": PENDING,
+                "pending_lists": PENDING_LISTS,
             },
             {"message": STR},
         ),
