@@ -1200,6 +1200,8 @@ def loop(
         return
     if summary["unchanged"]:
         console.note(f"loop: nothing to do; {summary['batches']} batches are in")
+        if summary["estimate"]:
+            console.estimate_lines(summary["estimate"])
         return
     console.loop_summary(summary)
 

@@ -51,6 +51,7 @@ from bams_cli.state.handoff import Kind, handoff_path, pending_path
 from bams_cli.state.io import transaction
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
 from bams_cli.state.workspace import Workspace
+from bams_cli.status import latest_estimate
 
 #: ``on_step(description, done, total)``: what the loop is doing, for a progress display.
 OnStep = Callable[[str, int, int], None]
@@ -155,8 +156,9 @@ def loop(
     -------
     dict
         The summary ``--json`` prints: ``workspace``, ``batches``, ``plans``, ``steps``
-        (each step taken), ``unchanged``, ``results_dir``; ``estimate_file`` with
-        ``then_estimate``.
+        (each step taken), ``unchanged``, ``results_dir``, ``estimate_file`` and
+        ``estimate`` (the latest estimate's headline, as ``status`` gives it: per gamma
+        p_hat and its interval), null before any estimate.
 
     Raises
     ------
@@ -230,7 +232,7 @@ def loop(
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
         on_step("done", total, total)
-    latest = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
+    latest = latest_estimate(ws)
     return {
         "workspace": str(ws.root),
         "batches": len(ws.batch_numbers()),
@@ -238,7 +240,8 @@ def loop(
         "steps": steps,
         "unchanged": not steps,
         "results_dir": str(opts.results_dir),
-        "estimate_file": str(latest[-1]) if latest else None,
+        "estimate_file": None if latest is None else latest["file"],
+        "estimate": latest,
     }
 
 

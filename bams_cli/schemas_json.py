@@ -143,6 +143,21 @@ ESTIMATE_ROW: Schema = obj(
         "abandoned": COUNT,
     },
 )
+#: ``status`` ``latest_estimate`` and ``loop`` ``estimate``: the newest estimate's headline.
+LATEST_ESTIMATE: Schema = obj(
+    {
+        "plan": INT,
+        "file": PATH,
+        "estimates": array(
+            obj(
+                {"gamma": NUM, "p_hat": NUM, "ci_low": NUM, "ci_high": NUM, "confidence": NUM},
+                {"se": nullable(NUM), "p_hat_low": NUM, "p_hat_high": NUM},
+            )
+        ),
+    },
+    {"stages_done": INT, "stages": INT},
+)
+
 #: ``ingest-results`` and ``abandon``: the batches and plans partly answered, and the list
 #: of each one's pending requests alone (``state.pending``; null when not current).
 PENDING_LISTS: Schema = array(
@@ -463,21 +478,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {"fitted_on": COUNT, "fitted_at": STR, "reason": nullable(STR)},
                     )
                 ),
-                "latest_estimate": nullable(
-                    obj(
-                        {
-                            "plan": INT,
-                            "file": PATH,
-                            "estimates": array(
-                                obj(
-                                    {"gamma": NUM, "p_hat": NUM},
-                                    {"p_hat_low": NUM, "p_hat_high": NUM},
-                                )
-                            ),
-                        },
-                        {"stages_done": INT, "stages": INT},
-                    )
-                ),
+                "latest_estimate": nullable(LATEST_ESTIMATE),
                 "commit_in_progress": BOOL,
                 "waiting_on_results": BOOL,
                 "phase": {"enum": ["setup", "discovery", "estimate", "done"]},
@@ -618,6 +619,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "unchanged": BOOL,
                 "results_dir": PATH,
                 "estimate_file": nullable(PATH),
+                "estimate": nullable(LATEST_ESTIMATE),
             }
         ),
     ),

@@ -93,7 +93,7 @@ def status(root: Path) -> dict[str, Any]:
     batches = _batches(ws, observed)
     plans = _plans(ws, observed)
     model = _model(ws, obs) if has_pool else None
-    latest = _latest_estimate(ws)
+    latest = latest_estimate(ws)
     estimating = _estimating(ws, plans)
     step = _next_step(ws, settings, has_pool, batches, plans, model, estimating)
     waiting = step["step"] == "ingest-results"
@@ -208,7 +208,11 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     }
 
 
-def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
+def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
+    """The newest estimate file's headline (``status --json`` ``latest_estimate``, ``loop
+    --json`` ``estimate``): ``plan``, ``file``, ``stages_done``, ``stages`` and per gamma
+    ``gamma``, ``p_hat``, ``se``, ``ci_low``, ``ci_high``, ``confidence`` (and
+    ``p_hat_low``, ``p_hat_high`` under ``--failed-as bounds``); None before any."""
     files = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
     if not files:
         return None
