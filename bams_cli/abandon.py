@@ -479,7 +479,8 @@ def bound_estimates(
             ci_low=lo.ci_low,
             ci_high=hi.ci_high,
             rel_var=None,
-            rel_var_note="undefined: p_hat is a range over the abandoned segments",
+            rel_var_note=f"undefined: p_hat is a range, {lo.p_hat:.4g} (the {k} abandoned "
+            f"segments all passing) to {hi.p_hat:.4g} (all failing)",
             failures_sampled=lo.n_failures_sampled,
             abandoned=k,
         )

@@ -1013,10 +1013,10 @@ def estimate(
     for note in [summary["staging"]["note"], *summary["notes"]]:
         if note:
             console.note(note)
-    for e in summary["estimates"]:  # what se rests on, why a number is n/a
-        for key in ("variance_note", "rel_var_note"):
+    for e in summary["estimates"]:  # what se rests on, why a number is n/a (as the report)
+        for key, what in (("variance_note", "se"), ("rel_var_note", "relative variance")):
             if e.get(key):
-                console.note(f"gamma {e['gamma']:g}: {e[key]}")
+                console.note(f"gamma {e['gamma']:g}, {what}: {e[key]}")
     gp = [
         [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
         for g in summary["gp"]
