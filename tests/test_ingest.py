@@ -495,3 +495,26 @@ def test_an_estimate_plan_partly_answered_is_named_by_status_and_estimate(
     ok(runner, "ingest-results", "-w", ws, rest)
     assert not pending.exists()
     ok(runner, "estimate", "-w", ws)
+
+
+def test_the_by_level_counts_are_in_level_order(tmp_path, runner):
+    # A trial's ingest printed "by level  level 1: 1, level 0: 2": the counts came in the
+    # order of a hash grouping, which changes from run to run. Ten files of three levels
+    # each: in level order every time.
+    seg, _ = write_toy(tmp_path / "data", n=100, seed=2)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.3,0.1", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ids = [f"t{i:06d}" for i in range(30)]
+    write_batch(ws, 1, ids * 3, [2] * 30 + [1] * 30 + [0] * 30)
+    for k in range(10):
+        part = ids[3 * k : 3 * k + 3]
+        rows = [(sid, lv, 1.0 + lv) for lv in (2, 1, 0) for sid in part[: 3 - lv]]
+        res = _results(tmp_path / f"r{k}.csv", rows)
+        if k % 2:
+            out = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--json").stdout)
+            assert list(out["by_fidelity"].items()) == [("0", 3), ("1", 2), ("2", 1)]
+        else:
+            r = ok(runner, "ingest-results", "-w", ws, res)
+            assert "  by level  level 0: 3, level 1: 2, level 2: 1" in r.stdout.splitlines()

@@ -209,7 +209,9 @@ def ingest_results(
         "already_ingested": False,
         "observations": str(ws.observations_path),
         "log_rows": combined.height,
-        "by_fidelity": {int(k): int(v) for k, v in new.group_by("fidelity").len().iter_rows()},
+        "by_fidelity": {
+            int(k): int(v) for k, v in new.group_by("fidelity").len().sort("fidelity").iter_rows()
+        },
         "pending": pending_summary(ws),
         "pending_lists": pending.summary(ws),
         "not_run": not_run_summary(not_run),
