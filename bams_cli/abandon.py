@@ -32,7 +32,7 @@ from bams_cli import pipeline
 from bams_cli.errors import AbandonedRunsError, InputError, OptionError
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
-from bams_cli.state import schemas
+from bams_cli.state import pending, schemas
 from bams_cli.state.inputs import read_results
 from bams_cli.state.io import read_table, transaction
 from bams_cli.state.workspace import Workspace
@@ -90,8 +90,8 @@ def abandon(
     -------
     dict
         The summary ``--json`` prints: ``abandoned``, ``already_abandoned``,
-        ``unchanged``, ``by_source``, ``first``, ``log``, ``log_rows``, ``pending``;
-        ``message`` when nothing changed.
+        ``unchanged``, ``by_source``, ``first``, ``log``, ``log_rows``, ``pending``,
+        ``pending_lists`` (as ``ingest_results``'); ``message`` when nothing changed.
 
     Raises
     ------
@@ -134,6 +134,7 @@ def abandon(
     why = reason or "abandoned by hand"
     summary = _commit(ws, new, already.height, why, "bams-cli abandon")
     summary["pending"] = pipeline.pending_summary(ws)
+    summary["pending_lists"] = pending.summary(ws)
     return summary
 
 
@@ -208,9 +209,17 @@ def _listed(
 
 
 def _commit(
-    ws: Workspace, new: pl.DataFrame, already: int, reason: str | pl.Expr, source: str
+    ws: Workspace,
+    new: pl.DataFrame,
+    already: int,
+    reason: str | pl.Expr,
+    source: str,
+    observed: pl.DataFrame | None = None,
 ) -> dict[str, Any]:
-    """Append ``new`` requests (request_id, segment_id, fidelity, batch, plan) to the log."""
+    """Append ``new`` requests (request_id, segment_id, fidelity, batch, plan) to the log,
+    and bring the pending-only lists (``state.pending``) in line with it in the same
+    commit. ``observed``: the (segment_id, fidelity) pairs with a result once the
+    transaction commits (default: the log's)."""
     log = ws.read_abandoned()
     new = new.sort(RID)
     if new.height:
@@ -229,6 +238,7 @@ def _commit(
         log = pl.concat([log, rows], how="vertical_relaxed")
         with transaction() as tx:
             tx.write_parquet(ws.abandoned_path, schemas.ABANDONED.conform(log.to_arrow()))
+            pending.stage(ws, tx, observed=observed, abandoned=log)
     labels = [
         contract.source_label("batch", int(b)) if b is not None else f"plan {int(p)}"
         for b, p in zip(new["batch"].to_list(), new["plan"].to_list(), strict=True)
@@ -303,12 +313,18 @@ def ingest_results_abandoning_failed(
     with transaction():
         summary = ingest(root, source, replace=replace, allow_unselected=allow_unselected)
         targets, already = _failed_requests(ws, settings, not_run, results, source)
+        # What has a result once this commits: the log's pairs and the file's (the
+        # ingest above is staged, not yet on disk).
+        observed = pl.concat(
+            [ws.read_observations().select(*KEYS), results.select(*KEYS)], how="vertical_relaxed"
+        )
         gone = _commit(
             ws,
             targets,
             already,
             pl.format("status '{}' in {}", pl.col("_status"), pl.lit(source.name)),
             f"ingest-results --abandon-failed {source.name}",
+            observed=observed,
         )
     summary["abandoned"] = {k: gone[k] for k in ("abandoned", "already_abandoned", "first")}
     if "message" in summary and gone["abandoned"]:
@@ -316,6 +332,7 @@ def ingest_results_abandoning_failed(
             "nothing changed", f"{gone['abandoned']} failed requests abandoned"
         )
     summary["pending"] = pipeline.pending_summary(ws)  # after the commit
+    summary["pending_lists"] = pending.summary(ws)
     return summary
 
 
@@ -462,7 +479,8 @@ def bound_estimates(
             ci_low=lo.ci_low,
             ci_high=hi.ci_high,
             rel_var=None,
-            rel_var_note="undefined: p_hat is a range over the abandoned segments",
+            rel_var_note=f"undefined: p_hat is a range, {lo.p_hat:.4g} (the {k} abandoned "
+            f"segments all passing) to {hi.p_hat:.4g} (all failing)",
             failures_sampled=lo.n_failures_sampled,
             abandoned=k,
         )

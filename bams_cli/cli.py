@@ -559,6 +559,7 @@ def ingest_results(
         console.rows_table(
             f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
         )
+        console.pending_lists(summary.get("pending_lists") or [])
     elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
         console.note("nothing pending: every selected segment has a result or is abandoned")
     else:
@@ -1012,10 +1013,10 @@ def estimate(
     for note in [summary["staging"]["note"], *summary["notes"]]:
         if note:
             console.note(note)
-    for e in summary["estimates"]:  # what se rests on, why a number is n/a
-        for key in ("variance_note", "rel_var_note"):
+    for e in summary["estimates"]:  # what se rests on, why a number is n/a (as the report)
+        for key, what in (("variance_note", "se"), ("rel_var_note", "relative variance")):
             if e.get(key):
-                console.note(f"gamma {e['gamma']:g}: {e[key]}")
+                console.note(f"gamma {e['gamma']:g}, {what}: {e[key]}")
     gp = [
         [g["gamma"], g["gp_p_hat"], g["gp_var_bound"], g.get("gp_var_exact", "")]
         for g in summary["gp"]
@@ -1102,6 +1103,7 @@ def abandon(
         )
     pend = summary["pending"]["count"]
     console.note(f"still pending: {pend}" if pend else "nothing pending")
+    console.pending_lists(summary.get("pending_lists") or [])
 
 
 @command(max_memory=True)
@@ -1198,6 +1200,8 @@ def loop(
         return
     if summary["unchanged"]:
         console.note(f"loop: nothing to do; {summary['batches']} batches are in")
+        if summary["estimate"]:
+            console.estimate_lines(summary["estimate"])
         return
     console.loop_summary(summary)
 

@@ -187,30 +187,35 @@ def study_status(s: Mapping[str, Any]) -> None:
     else:
         text = f"stale: {m['reason']}"
     out.print(f"model: {text}", markup=False, highlight=False, soft_wrap=True)
-    e = s["latest_estimate"]
-    if e is not None:
-        done, planned = e.get("stages_done", 1), e.get("stages", 1)
-        of = f", stage {done} of {planned} only" if done < planned else ""
-        for row in e["estimates"]:
-            rate = (
-                f"p_hat between {row['p_hat_low']:.4g} and {row['p_hat_high']:.4g} (abandoned "
-                "segments passing, then failing)"
-                if "p_hat_high" in row
-                else f"p_hat {row['p_hat']:.4g}"
-            )
-            out.print(
-                f"estimate (plan {e['plan']}{of}): gamma {row['gamma']:g}: {rate}, "
-                f"{round(100 * row['confidence'])}% interval [{row['ci_low']:.4g}, "
-                f"{row['ci_high']:.4g}]",
-                markup=False,
-                highlight=False,
-                soft_wrap=True,
-            )
+    if s["latest_estimate"] is not None:
+        estimate_lines(s["latest_estimate"])
     if s["commit_in_progress"]:
         note(
             "note: a command's commit is in progress or was interrupted; the next command completes it"
         )
     out.print(Text.assemble(("next: ", "bold"), s["next"]["text"]), soft_wrap=True)
+
+
+def estimate_lines(e: Mapping[str, Any]) -> None:
+    """The latest estimate's headline, one line per gamma (``status``, ``loop``):
+    ``estimate (plan 2): gamma 0.56: p_hat 0.012, 90% interval [0.0009, 0.074]``."""
+    done, planned = e.get("stages_done", 1), e.get("stages", 1)
+    of = f", stage {done} of {planned} only" if done < planned else ""
+    for row in e["estimates"]:
+        rate = (
+            f"p_hat between {row['p_hat_low']:.4g} and {row['p_hat_high']:.4g} (abandoned "
+            "segments passing, then failing)"
+            if "p_hat_high" in row
+            else f"p_hat {row['p_hat']:.4g}"
+        )
+        out.print(
+            f"estimate (plan {e['plan']}{of}): gamma {row['gamma']:g}: {rate}, "
+            f"{round(100 * row['confidence'])}% interval [{row['ci_low']:.4g}, "
+            f"{row['ci_high']:.4g}]",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 #: A command quicker than this prints no progress lines in a log (seconds).
@@ -394,6 +399,21 @@ def ingest_summary(s: Mapping[str, Any]) -> None:
     )
 
 
+def pending_lists(lists: list[Mapping[str, Any]]) -> None:
+    """One line per batch or plan partly answered: the list of its pending requests alone,
+    the one to simulate (``state.pending``)."""
+    for e in lists:
+        if e.get("pending_handoff"):
+            out.print(
+                f"{e['list']}: {e['pending']} of its {e['requests']} requests still await "
+                f"results; simulate {e['pending_handoff']}, which lists them alone (the others "
+                "have results)",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
+
+
 def simulate_summary(s: Mapping[str, Any]) -> None:
     facts(f"wrote {s['results']}: {_plural(s['rows'], 'result')}; {s['note']}")
 
@@ -512,3 +532,5 @@ def loop_summary(s: Mapping[str, Any]) -> None:
         f"{_plural(s['batches'], 'batch', 'batches')} and {_plural(s['plans'], 'estimate plan')}",
         {"results": s["results_dir"], "estimate": s.get("estimate_file")},
     )
+    if s.get("estimate"):
+        estimate_lines(s["estimate"])

@@ -46,10 +46,12 @@ from typing import Any
 from bams_cli import abandon, defaults, memory, pipeline
 from bams_cli.errors import BamsError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
+from bams_cli.state import pending
+from bams_cli.state.handoff import Kind, handoff_path, pending_path
+from bams_cli.state.io import transaction
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
-from bams_cli.state.schemas import SEGMENT_ID as SID
 from bams_cli.state.workspace import Workspace
-from bams_cli.status import batch_handoff, plan_handoff
+from bams_cli.status import latest_estimate
 
 #: ``on_step(description, done, total)``: what the loop is doing, for a progress display.
 OnStep = Callable[[str, int, int], None]
@@ -154,8 +156,9 @@ def loop(
     -------
     dict
         The summary ``--json`` prints: ``workspace``, ``batches``, ``plans``, ``steps``
-        (each step taken), ``unchanged``, ``results_dir``; ``estimate_file`` with
-        ``then_estimate``.
+        (each step taken), ``unchanged``, ``results_dir``, ``estimate_file`` and
+        ``estimate`` (the latest estimate's headline, as ``status`` gives it: per gamma
+        p_hat and its interval), null before any estimate.
 
     Raises
     ------
@@ -229,7 +232,7 @@ def loop(
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
         on_step("done", total, total)
-    latest = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
+    latest = latest_estimate(ws)
     return {
         "workspace": str(ws.root),
         "batches": len(ws.batch_numbers()),
@@ -237,7 +240,8 @@ def loop(
         "steps": steps,
         "unchanged": not steps,
         "results_dir": str(opts.results_dir),
-        "estimate_file": str(latest[-1]) if latest else None,
+        "estimate_file": None if latest is None else latest["file"],
+        "estimate": latest,
     }
 
 
@@ -429,10 +433,11 @@ def _run(
 def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     """Run the user's simulator on a hand-off list; its results land under their final
     name only when it exits 0."""
-    handoff = batch_handoff(ws, number) if kind == "batch" else plan_handoff(ws, number)
+    which: Kind = "batch" if kind == "batch" else "plan"
+    handoff = handoff_path(ws.root, which, number)
     results = _results_file(opts, kind, number)
     results.parent.mkdir(parents=True, exist_ok=True)
-    handoff = _still_pending(ws, kind, number, handoff, results.parent)
+    handoff = _still_pending(ws, which, number, handoff, results.parent)
     partial = results.with_name(f".partial-{results.name}")
     partial.unlink(missing_ok=True)
     command = opts.simulator.format(
@@ -463,25 +468,19 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     return results
 
 
-def _still_pending(ws: Workspace, kind: str, number: int, handoff: Path, folder: Path) -> Path:
+def _still_pending(ws: Workspace, kind: Kind, number: int, handoff: Path, folder: Path) -> Path:
     """The hand-off list to simulate: ``handoff`` itself, or, when some of its requests
     have results already (a run that crashed, whose results file was deleted to run the
-    simulator again), a list of the others in ``folder``. Simulated again, the requests
-    with results would come back with other values from a simulator with run-to-run noise,
-    and ingesting them would be refused as conflicts."""
-    import polars as pl
-
-    pend = ws.pending()
-    pend = pend.filter(pl.col(kind) == number)
-    rows = pl.read_csv(handoff, infer_schema=False)
-    keys = pend.select(pl.col(SID).cast(pl.String), pl.col("fidelity").cast(pl.String))
-    left = rows.join(keys, on=[SID, "fidelity"], how="semi")
-    if left.height == rows.height:
+    simulator again), a list of the others in ``folder`` (``state.pending``, whose list
+    beside the hand-off list ``ingest-results`` keeps as well). Simulated again, the
+    requests with results would come back with other values from a simulator with
+    run-to-run noise, and ingesting them would be refused as conflicts."""
+    rows = pending.pending_rows(ws, kind, number)
+    if rows is None:
         return handoff
-    subset = folder / f"{handoff.stem}.pending.csv"
-    partial = subset.with_name(f".partial-{subset.name}")
-    left.write_csv(partial)
-    os.replace(partial, subset)
+    subset = folder / pending_path(handoff).name
+    with transaction() as tx:
+        tx.write_text(subset, rows.write_csv())
     return subset
 
 

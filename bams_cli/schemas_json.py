@@ -143,6 +143,35 @@ ESTIMATE_ROW: Schema = obj(
         "abandoned": COUNT,
     },
 )
+#: ``status`` ``latest_estimate`` and ``loop`` ``estimate``: the newest estimate's headline.
+LATEST_ESTIMATE: Schema = obj(
+    {
+        "plan": INT,
+        "file": PATH,
+        "estimates": array(
+            obj(
+                {"gamma": NUM, "p_hat": NUM, "ci_low": NUM, "ci_high": NUM, "confidence": NUM},
+                {"se": nullable(NUM), "p_hat_low": NUM, "p_hat_high": NUM},
+            )
+        ),
+    },
+    {"stages_done": INT, "stages": INT},
+)
+
+#: ``ingest-results`` and ``abandon``: the batches and plans partly answered, and the list
+#: of each one's pending requests alone (``state.pending``; null when not current).
+PENDING_LISTS: Schema = array(
+    obj(
+        {
+            "list": STR,
+            "pending": COUNT,
+            "requests": COUNT,
+            "handoff": PATH,
+            "pending_handoff": nullable(PATH),
+        }
+    )
+)
+
 REQUEST: Schema = obj(
     {"request_id": STR, "segment_id": STR, "fidelity": INT},
     {"batch": nullable(INT), "plan": nullable(INT)},
@@ -193,6 +222,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "ingested": COUNT,
                 "already_ingested": BOOL,
                 "pending": PENDING,
+                "pending_lists": PENDING_LISTS,
                 "not_run": obj(
                     {
                         "count": COUNT,
@@ -423,6 +453,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "pending": COUNT,
                             "abandoned": COUNT,
                             "handoff": PATH,
+                            "pending_handoff": nullable(PATH),
                         }
                     )
                 ),
@@ -434,6 +465,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "pending": COUNT,
                             "abandoned": COUNT,
                             "handoff": PATH,
+                            "pending_handoff": nullable(PATH),
                             "estimate": nullable(PATH),
                         }
                     )
@@ -446,21 +478,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {"fitted_on": COUNT, "fitted_at": STR, "reason": nullable(STR)},
                     )
                 ),
-                "latest_estimate": nullable(
-                    obj(
-                        {
-                            "plan": INT,
-                            "file": PATH,
-                            "estimates": array(
-                                obj(
-                                    {"gamma": NUM, "p_hat": NUM},
-                                    {"p_hat_low": NUM, "p_hat_high": NUM},
-                                )
-                            ),
-                        },
-                        {"stages_done": INT, "stages": INT},
-                    )
-                ),
+                "latest_estimate": nullable(LATEST_ESTIMATE),
                 "commit_in_progress": BOOL,
                 "waiting_on_results": BOOL,
                 "phase": {"enum": ["setup", "discovery", "estimate", "done"]},
@@ -585,6 +603,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "log": PATH,
                 "log_rows": COUNT,
                 "pending": PENDING,
+                "pending_lists": PENDING_LISTS,
             },
             {"message": STR},
         ),
@@ -600,6 +619,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "unchanged": BOOL,
                 "results_dir": PATH,
                 "estimate_file": nullable(PATH),
+                "estimate": nullable(LATEST_ESTIMATE),
             }
         ),
     ),

@@ -27,7 +27,9 @@ from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
 from bams_cli.settings import Settings
 from bams_cli.stages import plan_numbers
 from bams_cli.state import schemas
+from bams_cli.state.handoff import handoff_path
 from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json
+from bams_cli.state.pending import to_simulate
 from bams_cli.state.workspace import Workspace
 
 #: Version of the ``status --json`` object; bump it when a key changes meaning or goes away.
@@ -38,19 +40,23 @@ SID = schemas.SEGMENT_ID
 
 def batch_handoff(ws: Workspace, n: int) -> Path:
     """The CSV hand-off list of batch ``n``."""
-    return schemas.batch_path(ws.root, n).with_suffix(".csv")
+    return handoff_path(ws.root, "batch", n)
 
 
 def plan_handoff(ws: Workspace, k: int) -> Path:
     """The CSV hand-off list of estimate plan ``k``."""
-    return ws.estimates_dir / f"plan-{k:04d}-handoff.csv"
+    return handoff_path(ws.root, "plan", k)
 
 
 def pending_handoffs(ws: Workspace, pending: pl.DataFrame) -> list[str]:
-    """The hand-off lists that ``Workspace.pending()`` picks came from, batches first."""
+    """The lists to simulate for the picks ``Workspace.pending()`` lists, batches first:
+    each hand-off list, or the list of its pending requests alone where some have results
+    (``state.pending.to_simulate``)."""
     batches = sorted(set(pending["batch"].drop_nulls().to_list()))
     plans = sorted(set(pending["plan"].drop_nulls().to_list()))
-    return [str(batch_handoff(ws, b)) for b in batches] + [str(plan_handoff(ws, k)) for k in plans]
+    return [str(to_simulate(ws, "batch", b)) for b in batches] + [
+        str(to_simulate(ws, "plan", k)) for k in plans
+    ]
 
 
 def status(root: Path) -> dict[str, Any]:
@@ -87,7 +93,7 @@ def status(root: Path) -> dict[str, Any]:
     batches = _batches(ws, observed)
     plans = _plans(ws, observed)
     model = _model(ws, obs) if has_pool else None
-    latest = _latest_estimate(ws)
+    latest = latest_estimate(ws)
     estimating = _estimating(ws, plans)
     step = _next_step(ws, settings, has_pool, batches, plans, model, estimating)
     waiting = step["step"] == "ingest-results"
@@ -129,6 +135,8 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
         open_ = df.join(observed, on=[SID, "fidelity"], how="anti")
         pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
         options = _json(read_metadata(schemas.batch_path(ws.root, n)).get("options"))
+        # Partly answered: the list of the pending requests alone, while it is current.
+        simulate = to_simulate(ws, "batch", n) if 0 < pending < df.height else None
         out.append(
             {
                 "batch": n,
@@ -139,6 +147,7 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "pending": pending,
                 "abandoned": gone.height,
                 "handoff": str(batch_handoff(ws, n)),
+                "pending_handoff": _pending_list(simulate, batch_handoff(ws, n)),
             }
         )
     return out
@@ -156,21 +165,27 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
             meta = read_metadata_json(ws.estimates_dir / f"plan-{k:04d}.parquet")
         except (OSError, ValueError):  # status reads what it can: a damaged plan shows as 1 of 1
             meta = {}
+        pending = sampled.join(level0, on=SID, how="anti").join(gone, on=SID, how="anti").height
+        simulate = to_simulate(ws, "plan", k) if 0 < pending < sampled.height else None
         out.append(
             {
                 "plan": k,
                 "stage": int(meta.get("stage") or 1),
                 "stages": int(meta.get("stages") or 1),
                 "sampled": sampled.height,
-                "pending": sampled.join(level0, on=SID, how="anti")
-                .join(gone, on=SID, how="anti")
-                .height,
+                "pending": pending,
                 "abandoned": gone.height,
                 "handoff": str(plan_handoff(ws, k)),
+                "pending_handoff": _pending_list(simulate, plan_handoff(ws, k)),
                 "estimate": str(estimate) if estimate.exists() else None,
             }
         )
     return out
+
+
+def _pending_list(simulate: Path | None, handoff: Path) -> str | None:
+    """The pending-only list to name, or None: not partly answered, or no current list."""
+    return None if simulate is None or simulate == handoff else str(simulate)
 
 
 def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
@@ -193,7 +208,11 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     }
 
 
-def _latest_estimate(ws: Workspace) -> dict[str, Any] | None:
+def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
+    """The newest estimate file's headline (``status --json`` ``latest_estimate``, ``loop
+    --json`` ``estimate``): ``plan``, ``file``, ``stages_done``, ``stages`` and per gamma
+    ``gamma``, ``p_hat``, ``se``, ``ci_low``, ``ci_high``, ``confidence`` (and
+    ``p_hat_low``, ``p_hat_high`` under ``--failed-as bounds``); None before any."""
     files = sorted(ws.estimates_dir.glob("estimate-[0-9][0-9][0-9][0-9].json"))
     if not files:
         return None
@@ -257,16 +276,20 @@ def _next_step(
     if not has_pool:
         cmd = f"bams-cli embed-reduce -w {w} SEGMENTS.parquet"
         return step("embed-reduce", cmd, f"no segment pool yet: run `{cmd}`")
-    waiting = [b["handoff"] for b in batches if b["pending"]]
-    waiting += [p["handoff"] for p in plans if p["pending"]]
-    if waiting:
+    lists = [b for b in batches if b["pending"]] + [p for p in plans if p["pending"]]
+    if lists:
+        # A list partly answered is simulated from its pending requests alone: the whole
+        # list again would ask a noisy simulator for values the log holds, and ingesting
+        # those would be refused as conflicts.
+        waiting = [e["pending_handoff"] or e["handoff"] for e in lists]
         cmd = f"bams-cli ingest-results -w {w} RESULTS.parquet"
         n = sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans)
         return step(
             "ingest-results",
             cmd,
-            f"{n} {'pick awaits' if n == 1 else 'picks await'} results: simulate {' and '.join(waiting)} and run `{cmd}` "
-            "(RESULTS.parquet: the results file, Parquet or CSV)",
+            f"{n} {'pick awaits' if n == 1 else 'picks await'} results: simulate "
+            f"{' and '.join(map(_to_simulate, lists))} and run `{cmd}` (RESULTS.parquet: "
+            "the results file, Parquet or CSV)",
             handoffs=waiting,
         )
     fit = f"bams-cli fit -w {w}"
@@ -330,6 +353,20 @@ def _next_step(
         f"done, `bams-cli estimate -w {w} --plan`",
         (new_plan,),
     )
+
+
+def _to_simulate(entry: dict[str, Any]) -> str:
+    """What of a batch or plan awaiting results to simulate: its hand-off list, or, once
+    some of its requests have results, the others alone."""
+    total = entry["picks"] if "batch" in entry else entry["sampled"]
+    if entry["pending"] == total:
+        return str(entry["handoff"])
+    those = f"the {entry['pending']} of the {total} requests of"
+    if entry["pending_handoff"]:
+        name = Path(entry["handoff"]).name
+        return f"{entry['pending_handoff']} ({those} {name} without a result)"
+    # No current list of them (a workspace an older bams-cli wrote): say which.
+    return f"{those} {entry['handoff']} without a result"
 
 
 def _mtime(path: Path) -> int:

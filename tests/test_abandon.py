@@ -159,7 +159,14 @@ def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp
     assert ids[0] in r.stderr and "--failed-as bounds" in r.stderr
     assert tree_hash(ws) == before
 
+    # The printed note gives the range, not only that there is one.
+    printed = ok(runner, "estimate", "-w", ws, "--failed-as", "bounds").stderr.splitlines()
     bounded = json.loads(ok(runner, "estimate", "-w", ws, "--failed-as", "bounds", "--json").stdout)
+    row = bounded["estimates"][0]
+    assert (
+        f"gamma 0.56, relative variance: undefined: p_hat is a range, {row['p_hat_low']:.4g} "
+        f"(the 3 abandoned segments all passing) to {row['p_hat_high']:.4g} (all failing)"
+    ) in printed
     assert bounded["abandoned"]["count"] == 3 and sorted(
         bounded["abandoned"]["segments"]
     ) == sorted(ids)

@@ -34,6 +34,7 @@ imports before it; the child calls ``setsid`` as ``start_new_session=True`` woul
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import random
@@ -222,7 +223,7 @@ def prepare(base: Path, launcher) -> list[Case]:
     init = cli("--gamma", "0.56", "--costs", "1,0.1", "--dim", "2")
     embed = cli(seg, "--columns", "x*", "--method", "identity", "--no-standardize")
     pool = cli("--clusters", 3, "--workers", 2)  # a worker pool, for the kills of its pid alone
-    r1, p1 = base / "r1.parquet", base / "p1.parquet"
+    r1, p1, part = base / "r1.parquet", base / "p1.parquet", base / "r1-part.csv"
     _ok(launcher, cli("init", "-w", ws, *init), log)
     step("embed-reduce", cli("embed-reduce", "-w", ws, *embed))
     step("", cli("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", 10))
@@ -231,7 +232,19 @@ def prepare(base: Path, launcher) -> list[Case]:
         cli("simulate", ws / "batches/batch-0001.parquet", "--truth", truth, "-o", r1),
         log,
     )
-    step("ingest-results", cli("ingest-results", "-w", ws, r1))
+    # Results that leave runs pending: the commit also writes the pending-only list.
+    _ok(launcher, cli("simulate", ws / "batches/batch-0001.csv", "--truth", truth, "-o",
+                      part), log)  # fmt: skip
+    rows = list(csv.DictReader(part.open()))
+    for i, row in enumerate(rows):
+        row["value"], row["status"] = (row["value"], "ok") if i >= 2 else ("", "crashed")
+    with part.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    keep["ingest-results, part"] = keep["ingest-results"] = base / "before-ingest-results"
+    shutil.copytree(ws, keep["ingest-results"], symlinks=True)
+    _ok(launcher, cli("ingest-results", "-w", ws, r1), log)
     step("fit", cli("fit", "-w", ws))
     fitted = base / "fitted"
     shutil.copytree(ws, fitted, symlinks=True)
@@ -250,6 +263,7 @@ def prepare(base: Path, launcher) -> list[Case]:
         "init": lambda w: cli("init", "-w", w, *init),
         "embed-reduce": lambda w: cli("embed-reduce", "-w", w, *embed),
         "ingest-results": lambda w: cli("ingest-results", "-w", w, r1),
+        "ingest-results, part": lambda w: cli("ingest-results", "-w", w, part),
         "fit": lambda w: cli("fit", "-w", w),
         "select": lambda w: cli("select", "-w", w, "--strategy", "bams", "--budget", 5, *pool),
         "abandon": lambda w: cli("abandon", "-w", w, "--batch", 2, "--reason", "gone"),

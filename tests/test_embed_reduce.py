@@ -353,3 +353,42 @@ def test_a_pool_without_a_constant_column_has_no_warning(av_ws, runner, tmp_path
     seg = _av_files(tmp_path / "d")
     r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--json")
     assert r.exit_code == 0 and r.stderr == "" and json.loads(r.stdout)["warnings"] == []
+
+
+@pytest.mark.parametrize(
+    ("rank", "where"),
+    [
+        (3, "3 of the 6 principal components carry no variance (the embedding spans only 3 "
+         "dimensions), so z3..z5 are constant in every row and carry no information: "
+         "pass --dim 3"),
+        (5, "1 of the 6 principal components carries no variance (the embedding spans only 5 "
+         "dimensions), so z5 is constant in every row and carries no information: "
+         "pass --dim 5"),
+    ],
+)  # fmt: skip
+@pytest.mark.parametrize("method", ["pca", "ipca"])
+def test_more_components_than_the_embedding_s_rank_is_one_warning_saying_how_many(
+    av_ws, runner, tmp_path, rank, where, method
+):
+    # --dim 6 on an embedding of rank 3 gave constant coordinates z3..z5, without a word.
+    seg = _av_files(tmp_path / "d")
+    table = pq.read_table(seg)
+    E = np.array(table.column("emb").to_pylist())
+    rng = np.random.default_rng(0)
+    E = (E - E.mean(axis=0))[:, :rank] @ rng.normal(size=(rank, E.shape[1]))  # rank `rank`
+    emb = pa.FixedSizeListArray.from_arrays(pa.array(E.ravel()), E.shape[1])
+    pq.write_table(table.set_column(table.column_names.index("emb"), "emb", emb), seg,
+                   row_group_size=128)  # fmt: skip
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--json")
+    assert r.exit_code == 0, r.output
+    expected = f"{seg}: {where}"
+    assert [json.loads(line) for line in r.stderr.splitlines()] == [{"warning": expected}]
+    assert json.loads(r.stdout)["warnings"] == [expected]
+    _, Z = Workspace(av_ws).read_pool()
+    spread = Z.std(axis=0)
+    assert (spread[rank:] < 1e-6 * spread[0]).all() and (spread[:rank] > 1e-3 * spread[0]).all()
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--force")
+    assert r.exit_code == 0 and f"warning: {expected}" in r.stderr.splitlines()
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--force",
+               "--dim", rank, "--json")  # fmt: skip
+    assert r.exit_code == 0 and r.stderr == "" and json.loads(r.stdout)["warnings"] == []

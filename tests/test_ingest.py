@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import csv
+import json
+import random
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from bams_cli.state.io import JOURNAL_NAME
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, tree_hash, write_batch
+from tests.conftest import invoke, ok, tree_hash, write_batch, write_toy
 
 IDS = ["t000000", "t000001", "t000002", "t000003"]
 
@@ -327,3 +331,190 @@ def test_the_original_file_with_replace_undoes_a_replace(ws, runner, tmp_path):
     # Once restored, the original is a plain no-op again.
     r = invoke(runner, "ingest-results", "-w", ws, original, "--replace")
     assert r.exit_code == 0 and "already in the log; nothing changed" in r.stderr
+
+
+# ---- a batch or plan partly answered: the list of its pending requests alone ----------------
+def _answer(runner, handoff: Path, truth: Path, out: Path, crashed=(), noise: float = 0.0):
+    """The simulation team's results for a hand-off list, as CSV: rows whose request id is
+    in ``crashed`` come back without a value, status ``crashed``; ``noise`` > 0 plays a
+    simulator whose runs differ from run to run (the truth table plays the simulator)."""
+    raw = out.with_suffix(".raw.csv")
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", raw)
+    rows = list(csv.DictReader(raw.open()))
+    rng = random.Random(str(out))
+    for r in rows:
+        r["status"] = "ok"
+        if noise:
+            r["value"] = repr(float(r["value"]) + rng.uniform(-noise, noise))
+        if r["request_id"] in crashed:
+            r["value"], r["status"] = "", "crashed"
+    with out.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return out
+
+
+def _status(runner, ws: Path) -> tuple[int, dict, str]:
+    r = invoke(runner, "status", "-w", ws, "--json")
+    return r.exit_code, json.loads(r.stdout), invoke(runner, "status", "-w", ws).stdout
+
+
+CRASHED = ("b0001-0001", "b0001-0002", "b0001-0003")
+
+
+@pytest.fixture
+def crashed_study(tmp_path, runner):
+    """A 400-segment toy2d study with a random level-0 batch of 10 whose first three runs
+    crashed: the results file is returned, not yet ingested."""
+    seg, truth = write_toy(tmp_path / "data", n=400, seed=5)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.5", "--dim", "2", "--seed", "1")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "10")
+    handoff = ws / "batches" / "batch-0001.csv"
+    res = _answer(runner, handoff, truth, tmp_path / "r1.csv", CRASHED)
+    return ws, truth, handoff, res
+
+
+def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
+    crashed_study, runner, tmp_path
+):
+    # A trial's crashed runs stayed pending, and status said to simulate the whole of
+    # batches/batch-0001.csv again: a noisy simulator answered the 7 runs already logged
+    # with other values, and ingest-results refused them as conflicts.
+    ws, truth, handoff, res = crashed_study
+    pending = ws / "batches" / "batch-0001.pending.csv"
+    r = ok(runner, "ingest-results", "-w", ws, res)
+    assert (
+        f"batch 1: 3 of its 10 requests still await results; simulate {pending}, which "
+        "lists them alone" in r.stdout
+    )
+    listed = list(csv.DictReader(pending.open()))
+    assert [row["request_id"] for row in listed] == list(CRASHED)
+    assert pending.read_text().splitlines()[0] == handoff.read_text().splitlines()[0]
+    assert pending.read_text().splitlines()[1:] == handoff.read_text().splitlines()[1:4]
+    again = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--json").stdout)
+    assert again["pending_lists"] == [
+        {"list": "batch 1", "pending": 3, "requests": 10, "handoff": str(handoff),
+         "pending_handoff": str(pending)}
+    ]  # fmt: skip
+
+    code, s, text = _status(runner, ws)
+    assert code == 3 and s["next"]["handoffs"] == [str(pending)]
+    assert s["batches"][0]["pending_handoff"] == str(pending)
+    says = f"simulate {pending} (the 3 of the 10 requests of batch-0001.csv without a result)"
+    assert says in s["next"]["text"] and says in text.replace("\n", " ")
+
+    # The whole list from a noisy simulator is what the old advice led to ...
+    whole = _answer(runner, handoff, truth, tmp_path / "whole.csv", noise=0.01)
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, whole)
+    assert r.exit_code == 1 and "pass --replace" in r.stderr and tree_hash(ws) == before
+    # ... the pending list alone goes in, and, the batch answered, goes away.
+    rest = _answer(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
+    r = ok(runner, "ingest-results", "-w", ws, rest, "--json")
+    assert json.loads(r.stdout)["ingested"] == 3 and json.loads(r.stdout)["pending_lists"] == []
+    assert not pending.exists() and not list(ws.rglob(".tmp-*"))
+    code, s, _ = _status(runner, ws)
+    assert code == 0 and s["next"]["step"] == "fit" and s["batches"][0]["pending_handoff"] is None
+
+
+def test_the_pending_list_follows_later_results_and_abandonment_and_a_stale_one_is_not_named(
+    crashed_study, runner, tmp_path
+):
+    ws, _, handoff, res = crashed_study
+    pending = ws / "batches" / "batch-0001.pending.csv"
+    ok(runner, "ingest-results", "-w", ws, res)
+    three = pending.read_text()
+
+    def listed() -> list[str]:
+        return [row["request_id"] for row in csv.DictReader(pending.open())]
+
+    late = tmp_path / "late.csv"
+    late.write_text("request_id,value\nb0001-0001,1.5\n")
+    ok(runner, "ingest-results", "-w", ws, late)
+    assert listed() == ["b0001-0002", "b0001-0003"]
+    code, s, _ = _status(runner, ws)
+    assert code == 3 and s["next"]["handoffs"] == [str(pending)]
+    assert "the 2 of the 10 requests of batch-0001.csv" in s["next"]["text"]
+
+    # A list that no longer holds exactly what is pending is never named.
+    pending.write_text(three)
+    code, s, _ = _status(runner, ws)
+    assert s["next"]["handoffs"] == [str(handoff)] and s["batches"][0]["pending_handoff"] is None
+    assert str(pending) not in s["next"]["text"]
+    assert f"the 2 of the 10 requests of {handoff} without a result" in s["next"]["text"]
+
+    lost = tmp_path / "lost.csv"
+    lost.write_text("request_id\nb0001-0002\n")
+    r = ok(runner, "abandon", "-w", ws, "--segments", lost)
+    assert listed() == ["b0001-0003"] and f"simulate {pending}" in r.stdout
+    code, s, _ = _status(runner, ws)
+    assert s["next"]["handoffs"] == [str(pending)]
+    ok(runner, "abandon", "-w", ws, "--batch", "1")
+    assert not pending.exists()
+    code, s, _ = _status(runner, ws)
+    assert code == 0 and s["pending"] == 0
+
+
+@pytest.mark.parametrize("first", ["ingested", "not yet"])
+def test_abandoning_the_failed_rows_leaves_no_pending_list(crashed_study, runner, first):
+    # --abandon-failed stages the list with the results, then again with the abandonment:
+    # the second staging replaces the first in the one commit.
+    ws, _, _, res = crashed_study
+    if first == "ingested":
+        ok(runner, "ingest-results", "-w", ws, res)
+        assert (ws / "batches" / "batch-0001.pending.csv").exists()
+    out = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--abandon-failed",
+                        "--json").stdout)  # fmt: skip
+    assert out["abandoned"]["abandoned"] == 3 and out["pending_lists"] == []
+    assert not (ws / "batches" / "batch-0001.pending.csv").exists()
+    assert not list(ws.rglob(".tmp-*")) and not (ws / JOURNAL_NAME).exists()
+
+
+def test_an_estimate_plan_partly_answered_is_named_by_status_and_estimate(
+    crashed_study, runner, tmp_path
+):
+    ws, truth, handoff, _ = crashed_study
+    ok(runner, "ingest-results", "-w", ws, _answer(runner, handoff, truth, tmp_path / "r.csv"))
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
+    plan = ws / "estimates" / "plan-0001-handoff.csv"
+    rids = [row["request_id"] for row in csv.DictReader(plan.open())][:2]
+    ok(runner, "ingest-results", "-w", ws, _answer(runner, plan, truth, tmp_path / "p.csv", rids))
+    pending = ws / "estimates" / "plan-0001-handoff.pending.csv"
+    assert [row["request_id"] for row in csv.DictReader(pending.open())] == rids
+    code, s, _ = _status(runner, ws)
+    assert code == 3 and s["next"]["handoffs"] == [str(pending)]
+    assert s["plans"][0]["pending_handoff"] == str(pending)
+    r = invoke(runner, "estimate", "-w", ws)
+    assert r.exit_code == 3 and f"simulate {pending} and ingest" in r.stderr
+    rest = _answer(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
+    ok(runner, "ingest-results", "-w", ws, rest)
+    assert not pending.exists()
+    ok(runner, "estimate", "-w", ws)
+
+
+def test_the_by_level_counts_are_in_level_order(tmp_path, runner):
+    # A trial's ingest printed "by level  level 1: 1, level 0: 2": the counts came in the
+    # order of a hash grouping, which changes from run to run. Ten files of three levels
+    # each: in level order every time.
+    seg, _ = write_toy(tmp_path / "data", n=100, seed=2)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.3,0.1", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ids = [f"t{i:06d}" for i in range(30)]
+    write_batch(ws, 1, ids * 3, [2] * 30 + [1] * 30 + [0] * 30)
+    for k in range(10):
+        part = ids[3 * k : 3 * k + 3]
+        rows = [(sid, lv, 1.0 + lv) for lv in (2, 1, 0) for sid in part[: 3 - lv]]
+        res = _results(tmp_path / f"r{k}.csv", rows)
+        if k % 2:
+            out = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--json").stdout)
+            assert list(out["by_fidelity"].items()) == [("0", 3), ("1", 2), ("2", 1)]
+        else:
+            r = ok(runner, "ingest-results", "-w", ws, res)
+            assert "  by level  level 0: 3, level 1: 2, level 2: 1" in r.stdout.splitlines()

@@ -8,6 +8,7 @@ import json
 import os
 import random
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -101,6 +102,42 @@ def test_loop_runs_the_study_to_an_estimate(data):
     assert status.returncode == 0 and s["pending"] == 0 and s["model"]["fresh"]
     assert s["next"]["step"] == "report"
     assert s["batches"][1]["strategy"] == "bams"
+
+
+def _headline(ws: Path, plan: int) -> list[str]:
+    """The lines `status` gives the estimate of ``plan``, from its file."""
+    doc = json.loads((ws / "estimates" / f"estimate-{plan:04d}.json").read_text())
+    return [
+        f"estimate (plan {plan}): gamma {e['gamma']:g}: p_hat {e['p_hat']:.4g}, "
+        f"{round(100 * e['confidence'])}% interval [{e['ci_low']:.4g}, {e['ci_high']:.4g}]"
+        for e in doc["estimates"]
+    ]
+
+
+def test_a_loop_that_ends_with_the_estimate_prints_it(data, tmp_path):
+    # A loop whose last step was `estimate` ended on "estimate  .../estimate-0002.json":
+    # the rate itself took a `report` or `status`.
+    tmp, _, truth, ws, out = data
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    (copy / "estimates" / "estimate-0002.json").unlink()  # a loop stopped before its estimate
+    args = [*_loop_args(copy, truth)]
+    done = subprocess.run(args, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == ["loop [3/4]: plan 2: estimate"]  # its one step
+    lines = _headline(copy, 2)
+    assert len(lines) == 1 and lines[0] in done.stdout.splitlines()
+    # --json: the same headline, as `status --json` gives it (latest_estimate)
+    assert out["estimate"]["plan"] == 2 and out["estimate"]["file"] == out["estimate_file"]
+    got = out["estimate"]["estimates"][0]
+    doc = json.loads((ws / "estimates" / "estimate-0002.json").read_text())["estimates"][0]
+    assert {k: got[k] for k in ("gamma", "p_hat", "ci_low", "ci_high", "confidence")} == {
+        k: doc[k] for k in ("gamma", "p_hat", "ci_low", "ci_high", "confidence")
+    }
+    # Run again, it has nothing to do and says what the estimate is.
+    again = subprocess.run(args, capture_output=True, text=True)
+    assert again.returncode == 0 and "nothing to do" in again.stderr
+    assert lines[0] in again.stdout.splitlines()
 
 
 def test_a_finished_loop_does_nothing(data):

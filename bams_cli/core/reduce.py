@@ -264,6 +264,42 @@ def pca_from_covariance(
     return components, np.clip(lam, 0.0, None)
 
 
+#: A principal component whose variance is at most this share of the first's carries none:
+#: the data does not span its direction. Rounding leaves ~1e-16 of the first's variance
+#: along such directions (float64 or float32 embeddings of 16 to 512 columns, exact and
+#: incremental PCA alike), far below this; a direction the data did span with 1e-5 of the
+#: first's sd would inform no lengthscale either.
+NULL_VARIANCE_RTOL = 1e-10
+
+
+def null_components(
+    explained_variance: NDArray[np.float64], constant: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
+    """Which principal components carry no variance: more components asked for than the
+    embedding's rank, whose reduced coordinates are then constant.
+
+    Parameters
+    ----------
+    explained_variance : ndarray of shape (d,)
+        Variance along each component, decreasing (``Reducer.explained_variance``).
+    constant : ndarray of bool, shape (D,), optional
+        The input columns holding one value in every row (``Reducer.constant``).
+
+    Returns
+    -------
+    ndarray of bool, shape (d,)
+        True where the variance is at most ``NULL_VARIANCE_RTOL`` times the largest; every
+        component when every input column is constant (all rows one point: what variance
+        there is, is the rounding of the columns' means) or the largest is 0.
+    """
+    lam = np.asarray(explained_variance, dtype=np.float64)
+    if constant is not None and len(constant) and np.all(constant):
+        return np.ones(lam.shape, dtype=bool)
+    if lam.size == 0:
+        return np.zeros(0, dtype=bool)
+    return lam <= NULL_VARIANCE_RTOL * lam.max()
+
+
 def fit_reducer(
     batches: BatchSource,
     *,

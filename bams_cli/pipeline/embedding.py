@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -28,6 +28,9 @@ from bams_cli.state.io import (
     transaction,
 )
 from bams_cli.state.workspace import Workspace
+
+if TYPE_CHECKING:
+    from bams_cli.core.reduce import Reducer
 
 
 @locked
@@ -92,7 +95,8 @@ def embed_reduce(
         The summary ``--json`` prints: ``segments`` (rows read), ``added``, ``pool_size``,
         ``method``, ``dim``, ``input_dim``, ``reconstruction_error``,
         ``passthrough_columns``, ``warnings`` (embedding columns holding one value in
-        every row, when the reducer is fitted).
+        every row, and principal components carrying no variance, when the reducer is
+        fitted).
 
     Raises
     ------
@@ -272,7 +276,14 @@ def embed_reduce(
         "reconstruction_error": reducer.reconstruction_error,
         **({} if apply else request),
     }
-    warnings = [] if apply else _constant_columns(source, list_col, cols, reducer.constant, n)
+    warnings = (
+        []
+        if apply
+        else [
+            *_constant_columns(source, list_col, cols, reducer.constant, n),
+            *_null_components(source, reducer, n),
+        ]
+    )
     with transaction() as tx:
         if not apply:
             saved_layout = {
@@ -292,6 +303,38 @@ def embed_reduce(
         "passthrough_columns": passthrough,
         "warnings": warnings,
     }
+
+
+def _null_components(source: Path, reducer: Reducer, n: int) -> list[str]:
+    """A warning saying how many of the principal components carry no variance: a
+    ``--dim`` above the embedding's rank (none for the identity and the autoencoder, nor
+    for a single row, which spans nothing).
+
+    Legal, like a constant column, but the surplus coordinates are constant: the model
+    gets coordinates whose lengthscales no data can inform (only their prior sets them).
+    """
+    from bams_cli.core.reduce import null_components
+
+    if reducer.method not in ("pca", "ipca") or n < 2:
+        return []
+    null = null_components(reducer.explained_variance, reducer.constant)
+    k, dim = int(null.sum()), len(null)
+    if not k:
+        return []
+    rank = dim - k
+    coords = f"z{rank} is" if k == 1 else f"z{rank}..z{dim - 1} are"
+    spans = (
+        f"the embedding spans only {rank} dimension{'s' * (rank != 1)}"
+        if rank
+        else "every row is the same point"
+    )
+    fix = f": pass --dim {rank}" if rank else ""
+    return [
+        f"{source}: {k} of the {dim} principal components carr{'ies' if k == 1 else 'y'} no "
+        f"variance ({spans}), so "
+        f"{coords} constant in every row and carr{'ies' if k == 1 else 'y'} no "
+        f"information{fix}"
+    ]
 
 
 def _constant_columns(

@@ -40,7 +40,7 @@ from bams_cli.pipeline._handoff import (
 from bams_cli.pipeline.fitting import load_posterior, model_transform
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
-from bams_cli.state import schemas
+from bams_cli.state import pending, schemas
 from bams_cli.state.io import (
     read_metadata_json,
     read_state,
@@ -490,7 +490,7 @@ def _plan_sample(
         raise PendingResultsError(
             f"{path}: {missing.height} planned segments have no level-0 result ({names}"
             f"{', ...' if missing.height > 3 else ''}); simulate "
-            f"{ws.estimates_dir / f'plan-{number:04d}-handoff.csv'} and ingest the results"
+            f"{pending.to_simulate(ws, 'plan', number)} and ingest the results"
         )
     sampled = joined.filter(pl.col("stratum") == "sampled")
     known = joined.filter(pl.col("stratum") == "known")

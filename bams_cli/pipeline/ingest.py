@@ -14,7 +14,7 @@ from bams_cli.errors import (
     shown,
 )
 from bams_cli.pipeline._common import SID, locked, not_run_summary, pending_summary
-from bams_cli.state import schemas
+from bams_cli.state import pending, schemas
 from bams_cli.state.inputs import read_results
 from bams_cli.state.io import (
     file_sha256,
@@ -59,8 +59,11 @@ def ingest_results(
     dict
         The summary ``--json`` prints: ``ingested``, ``replaced``, ``already_known``,
         ``already_ingested``, ``observations``, ``log_rows``, ``by_fidelity``; ``pending``
-        (``count``, ``by_batch``, ``by_plan``, ``first``) and ``not_run`` (``count``,
-        ``first``); ``message`` when nothing was new.
+        (``count``, ``by_batch``, ``by_plan``, ``first``), ``pending_lists`` (the batches
+        and plans partly answered: ``list``, ``pending``, ``requests``, ``handoff``,
+        ``pending_handoff``, the list of their pending requests alone,
+        ``state.pending``) and ``not_run`` (``count``, ``first``); ``message`` when
+        nothing was new.
 
     Raises
     ------
@@ -99,6 +102,7 @@ def ingest_results(
             "message": f"{source} was already ingested (sha256 {digest[:12]}); nothing changed"
             + since,
             "pending": pending_summary(ws),
+            "pending_lists": pending.summary(ws),
             "not_run": not_run_summary(not_run),
         }
 
@@ -109,6 +113,7 @@ def ingest_results(
             "message": f"{source}: every row's status says it was not run; nothing ingested, "
             f"those requests stay pending",
             "pending": pending_summary(ws),
+            "pending_lists": pending.summary(ws),
             "not_run": not_run_summary(not_run),
         }
     pool_ids = pl.from_arrow(ws.read_segments([SID]).column(SID)).alias(SID)  # type: ignore[union-attr]
@@ -165,6 +170,7 @@ def ingest_results(
             "already_ingested": False,
             "message": f"{source}: every value is already in the log; nothing changed",
             "pending": pending_summary(ws),
+            "pending_lists": pending.summary(ws),
             "not_run": not_run_summary(not_run),
         }
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
@@ -192,6 +198,10 @@ def ingest_results(
             ws.observations_path,
             schemas.OBSERVATIONS.conform(combined.to_arrow(), {"last_source": source.name}),
         )
+        # A batch or plan left partly answered gets the list of its other requests beside
+        # its hand-off list, in the same commit: simulating the whole list again would ask
+        # for values the log now holds.
+        pending.stage(ws, tx, observed=combined.filter(pl.col("active")))
     return {
         "ingested": new.height,
         "replaced": conflicts.height,
@@ -199,7 +209,10 @@ def ingest_results(
         "already_ingested": False,
         "observations": str(ws.observations_path),
         "log_rows": combined.height,
-        "by_fidelity": {int(k): int(v) for k, v in new.group_by("fidelity").len().iter_rows()},
+        "by_fidelity": {
+            int(k): int(v) for k, v in new.group_by("fidelity").len().sort("fidelity").iter_rows()
+        },
         "pending": pending_summary(ws),
+        "pending_lists": pending.summary(ws),
         "not_run": not_run_summary(not_run),
     }

@@ -8,6 +8,10 @@ batches/batch-0003.csv                       estimates/plan-0001-handoff.csv
 batches/batch-0003.results-template.csv      estimates/plan-0001.results-template.csv
 ```
 
+Once some of a list's requests have results and others not, a list of the others alone
+lies beside it (``batch-0003.pending.csv``, ``plan-0001-handoff.pending.csv``; written by
+``state.pending``).
+
 A hand-off row is one request: simulate ``segment_id`` at level ``fidelity`` (its name in
 settings is ``fidelity_name``). Its ``request_id`` (``b0003-0007``: batch 3, row 7;
 ``p0001-0042``: plan 1, row 42) is unique within the study, so results keyed by it alone
@@ -35,7 +39,7 @@ import pyarrow as pa
 
 from bams_cli.errors import InputError, shown
 from bams_cli.settings import Settings
-from bams_cli.state.schemas import SEGMENT_ID
+from bams_cli.state.schemas import SEGMENT_ID, batch_path
 
 #: Version of the hand-off layout; bump it when a column changes meaning or goes away.
 HANDOFF_VERSION = 1
@@ -83,6 +87,20 @@ def parse_request_id(text: str) -> tuple[Kind, int, int] | None:
         return None
     kind: Kind = "batch" if m.group(1) == "b" else "plan"
     return kind, int(m.group(2)), int(m.group(3))
+
+
+def handoff_path(workspace: Path, kind: Kind, number: int) -> Path:
+    """The CSV hand-off list of batch or plan ``number``: ``batches/batch-0003.csv``,
+    ``estimates/plan-0001-handoff.csv``."""
+    if kind == "batch":
+        return batch_path(workspace, number).with_suffix(".csv")
+    return workspace / "estimates" / f"plan-{number:04d}-handoff.csv"
+
+
+def pending_path(handoff_csv: Path) -> Path:
+    """The list of a hand-off list's requests still without a result, beside it:
+    ``batch-0003.pending.csv``, ``plan-0001-handoff.pending.csv`` (``state.pending``)."""
+    return handoff_csv.with_name(f"{handoff_csv.stem}.pending.csv")
 
 
 def template_path(handoff_csv: Path) -> Path:

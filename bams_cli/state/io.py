@@ -131,9 +131,9 @@ def recover(workspace: Path) -> int:
 
     A commit renames its staged files one by one. If the process died among the renames,
     the journal it wrote first lists them all, and the staged files still waiting are
-    renamed now: the commit completes (roll forward). Staged files with no journal belong
-    to a transaction that never began to commit and are removed. Returns the number of
-    files rolled forward.
+    renamed now (and the files it removes, removed): the commit completes (roll forward).
+    Staged files with no journal belong to a transaction that never began to commit and
+    are removed. Returns the number of files rolled forward.
     """
     path = workspace / JOURNAL_NAME
     moved = 0
@@ -144,7 +144,11 @@ def recover(workspace: Path) -> int:
             pairs = []  # torn while being written: the commit had not started renaming
         folders = set()
         for tmp, target in pairs:
-            if Path(tmp).exists():
+            if tmp is None:  # a staged removal (``Transaction.remove``)
+                if Path(target).exists():
+                    Path(target).unlink()
+                    folders.add(Path(target).parent)
+            elif Path(tmp).exists():
                 os.replace(tmp, target)
                 folders.add(Path(target).parent)
                 moved += 1
@@ -191,17 +195,40 @@ class Transaction:
     """
 
     def __init__(self) -> None:
-        self._staged: list[tuple[Path, Path]] = []
+        # (staged file, target) in commit order; a staged file of None removes the target.
+        self._staged: list[tuple[Path | None, Path]] = []
+        self._made = 0
 
     def _temp_for(self, target: Path) -> Path:
         target.parent.mkdir(parents=True, exist_ok=True)
-        return target.parent / f".tmp-{target.name}-{os.getpid()}-{len(self._staged)}"
+        self._made += 1
+        return target.parent / f".tmp-{target.name}-{os.getpid()}-{self._made - 1}"
 
     def _finish(self, tmp: Path, target: Path) -> Path:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        self._unstage(target)
         self._staged.append((tmp, target))
         return target
+
+    def _unstage(self, target: Path) -> None:
+        """Drop what is staged for ``target``: a later write (or removal) of the same file
+        in one transaction replaces the earlier one (``ingest-results --abandon-failed``
+        stages the pending lists twice, the second time knowing what was abandoned)."""
+        for tmp, t in self._staged:
+            if t == target and tmp is not None:
+                tmp.unlink(missing_ok=True)
+        self._staged = [(tmp, t) for tmp, t in self._staged if t != target]
+
+    def staged(self, target: Path) -> bool:
+        """Whether this transaction writes or removes ``target`` on commit."""
+        return any(t == target for _, t in self._staged)
+
+    def remove(self, target: Path) -> None:
+        """Stage the removal of ``target``: on commit it goes with the renames (nothing if
+        it is not there), and a commit killed before it is completed by ``recover``."""
+        self._unstage(target)
+        self._staged.append((None, target))
 
     def write_parquet(self, target: Path, table: pa.Table) -> Path:
         tmp = self._temp_for(target)
@@ -225,7 +252,10 @@ class Transaction:
     def commit(self) -> list[Path]:
         journal = _journal.get()
         if journal is not None and len(self._staged) > 1:
-            pairs = [[str(tmp.resolve()), str(target.resolve())] for tmp, target in self._staged]
+            pairs = [
+                [None if tmp is None else str(tmp.resolve()), str(target.resolve())]
+                for tmp, target in self._staged
+            ]
             staged = journal.parent / f".tmp-{journal.name}-{os.getpid()}"
             with open(staged, "w") as fh:
                 json.dump({"renames": pairs}, fh)
@@ -235,7 +265,10 @@ class Transaction:
             _fsync_dir(journal.parent)
         folders = set()
         for tmp, target in self._staged:
-            os.replace(tmp, target)
+            if tmp is None:
+                target.unlink(missing_ok=True)
+            else:
+                os.replace(tmp, target)
             folders.add(target.parent)
         for folder in folders:
             _fsync_dir(folder)
@@ -248,7 +281,8 @@ class Transaction:
 
     def rollback(self) -> None:
         for tmp, _ in self._staged:
-            tmp.unlink(missing_ok=True)
+            if tmp is not None:
+                tmp.unlink(missing_ok=True)
         self._staged.clear()
 
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from sklearn.decomposition import PCA
 
-from bams_cli.core.reduce import Reducer, Scatter, fit_reducer, pca_from_covariance
+from bams_cli.core.reduce import (
+    Reducer,
+    Scatter,
+    fit_reducer,
+    null_components,
+    pca_from_covariance,
+)
 
 N, D, DIM = 5_000, 64, 12
 
@@ -173,3 +179,27 @@ def test_reducer_files_without_explained_variance_still_load():
     X = _data(seed=6)[:10]
     np.testing.assert_array_equal(old.transform(X), r.transform(X))
     assert old.explained_variance.shape == (0,)
+
+
+# sklearn's IncrementalPCA divides by the total variance for its explained_variance_ratio_,
+# which a pool of one point (rank 0) does not have.
+@pytest.mark.filterwarnings("ignore:invalid value encountered in divide:RuntimeWarning")
+@pytest.mark.parametrize("rank", [0, 1, 5, 12])
+@pytest.mark.parametrize("method", ["pca", "ipca"])
+@pytest.mark.parametrize("standardize", [True, False])
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_components_beyond_the_rank_and_only_those_carry_no_variance(
+    rank, method, standardize, offset
+):
+    # An embedding of rank r in D columns: of DIM components, the last DIM - r carry none,
+    # for any offset, scaling and reducer; the direction of smallest variance the data does
+    # span (1e-3 of the first, in _data) is not mistaken for none.
+    rng = np.random.default_rng(rank)
+    X = _data(seed=rank)[:, :rank] @ rng.normal(size=(rank, D)) if rank else np.zeros((N, D))
+    X = X + offset * rng.normal(size=D)
+    reducer = fit_reducer(_chunks(X, 1000), method=method, dim=DIM, standardize=standardize,
+                          rng=rng)  # fmt: skip
+    null = null_components(reducer.explained_variance, reducer.constant)
+    assert null.tolist() == [j >= rank for j in range(DIM)]
+    full = fit_reducer(_chunks(_data(), 1000), method=method, dim=D, rng=rng)
+    assert not null_components(full.explained_variance).any()

@@ -194,6 +194,36 @@ def test_recover_removes_files_staged_by_a_transaction_that_never_committed(tmp_
     assert not list(ws.rglob(".tmp-*"))
 
 
+def test_a_staged_removal_lands_with_the_writes_and_the_last_staging_of_a_file_wins(tmp_path):
+    for name in ("b", "c"):
+        (tmp_path / name).write_text("old")
+    with io.journal_in(tmp_path), transaction() as tx:
+        tx.write_text(tmp_path / "a", "first")
+        tx.write_text(tmp_path / "a", "second")
+        tx.write_text(tmp_path / "b", "new")
+        tx.remove(tmp_path / "b")
+        tx.remove(tmp_path / "c")
+        tx.write_text(tmp_path / "c", "new")
+        tx.remove(tmp_path / "nowhere")  # nothing to remove: nothing happens
+        assert tx.staged(tmp_path / "b") and not tx.staged(tmp_path / "d")
+        assert (tmp_path / "b").read_text() == "old"  # nothing lands before the commit
+    assert (tmp_path / "a").read_text() == "second" and (tmp_path / "c").read_text() == "new"
+    assert not (tmp_path / "b").exists() and not (tmp_path / "nowhere").exists()
+    assert not list(tmp_path.rglob(".tmp-*")) and not (tmp_path / io.JOURNAL_NAME).exists()
+
+
+def test_a_journaled_removal_is_completed_by_recover(tmp_path):
+    (tmp_path / "gone").write_text("old")
+    tx = io.Transaction()
+    tx.write_text(tmp_path / "a", "new")
+    tx.remove(tmp_path / "gone")
+    pairs = [[None if tmp is None else str(tmp), str(target)] for tmp, target in tx._staged]
+    (tmp_path / io.JOURNAL_NAME).write_text(json.dumps({"renames": pairs}))  # then: killed
+    assert io.recover(tmp_path) == 1
+    assert (tmp_path / "a").read_text() == "new" and not (tmp_path / "gone").exists()
+    assert not (tmp_path / io.JOURNAL_NAME).exists() and not list(tmp_path.rglob(".tmp-*"))
+
+
 def test_a_single_file_commit_needs_no_journal(tmp_path, monkeypatch):
     seen = []
     real = io.os.replace
