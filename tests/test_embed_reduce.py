@@ -392,3 +392,24 @@ def test_more_components_than_the_embedding_s_rank_is_one_warning_saying_how_man
     r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", method, "--force",
                "--dim", rank, "--json")  # fmt: skip
     assert r.exit_code == 0 and r.stderr == "" and json.loads(r.stdout)["warnings"] == []
+
+
+def test_an_ipca_that_fails_to_converge_is_one_line_pointing_to_pca(
+    av_ws, runner, tmp_path, monkeypatch
+):
+    # scikit-learn's IncrementalPCA can stop with "SVD did not converge" (seen on an
+    # embedding of rank 40 of 64 columns): one line that names the exact method, exit 1,
+    # and the workspace as it was.
+    from sklearn.decomposition import IncrementalPCA
+
+    def fails(self, X, y=None, check_input=True):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(IncrementalPCA, "partial_fit", fails)
+    seg = _av_files(tmp_path / "d")
+    before = sorted(p.name for p in Path(av_ws).iterdir())
+    r = invoke(runner, "embed-reduce", "-w", av_ws, seg, "--method", "ipca")
+    assert r.exit_code != 0
+    line = r.output.strip()
+    assert "\n" not in line and "SVD did not converge" in line and "--method pca" in line
+    assert sorted(p.name for p in Path(av_ws).iterdir()) == before

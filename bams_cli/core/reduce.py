@@ -351,6 +351,16 @@ def fit_reducer(
         raise ValueError(f"--dim {dim} exceeds the embedding's {D} columns")
 
     ipca = IncrementalPCA(n_components=dim)
+
+    def fit_part(Z: NDArray) -> None:
+        try:
+            ipca.partial_fit(Z)
+        except np.linalg.LinAlgError as exc:  # e.g. an embedding of rank below --dim
+            raise ValueError(
+                f"--method ipca: scikit-learn's IncrementalPCA failed ({exc}); the exact "
+                "--method pca (the default) reduces any embedding, one of rank below --dim too"
+            ) from None
+
     done = 0
     carry: NDArray | None = None
     for B in batches():
@@ -362,12 +372,12 @@ def fit_reducer(
         if Z.shape[0] < dim:
             carry = Z
             continue
-        ipca.partial_fit(Z)
+        fit_part(Z)
         done += Z.shape[0]
         if progress:
             progress("pca", done, n)
     if carry is not None:
-        ipca.partial_fit(carry)
+        fit_part(carry)
     reducer = Reducer(
         "ipca",
         mean,
