@@ -71,3 +71,59 @@ def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
     r = _make(tmp_path)
     assert "report -w" in r.stdout and "select -w" not in r.stdout
     assert "up to date" in r.stdout
+
+
+CRASHY = '''
+import subprocess, sys
+import polars as pl
+bams, handoff, out, truth, log = sys.argv[1:6]
+with open(log, "a") as fh:
+    fh.write(handoff + "\\n")
+raw = out + ".raw.parquet"
+subprocess.run([bams, "simulate", handoff, "--truth", truth, "-o", raw], check=True)
+df = pl.read_parquet(raw).with_columns(pl.lit("ok").alias("status"))
+if handoff.endswith("batch-0002.csv"):  # the whole list, the first time: two runs crash
+    first = pl.int_range(pl.len()) < 2
+    df = df.with_columns(
+        pl.when(first).then(pl.lit("crashed")).otherwise(pl.col("status")).alias("status"),
+        pl.when(first).then(None).otherwise(pl.col("value")).alias("value"),
+    )
+df.write_parquet(out)
+'''
+
+
+def test_runs_that_crash_are_simulated_again_alone_on_the_next_make(tmp_path):
+    # Two runs of batch 2 crash: ingest keeps their requests pending, make stops (exit 3)
+    # with the results set aside, status names the list of those two alone, and the next
+    # make simulates that list, not the whole batch again, and finishes the study.
+    write_toy(tmp_path / "data", n=400)
+    settings = Settings(
+        gammas=(0.56,), levels=levels_from_costs([1.0, 0.1]), seed=0, embedding_dim=2
+    )
+    (tmp_path / "data" / "settings.toml").write_text(settings.to_toml())
+    (tmp_path / "crashy.py").write_text(CRASHY)
+    log = tmp_path / "asked.txt"
+    sim = (
+        f"SIMULATE={sys.executable} {tmp_path / 'crashy.py'} {BAMS} $(1) $(2) "
+        f"$(DATA)/truth.parquet {log}"
+    )
+    r = _make(tmp_path, sim, check=False)
+    assert r.returncode != 0 and "partly answered" in r.stdout
+    study = tmp_path / "study"
+    pending = study / "batches" / "batch-0002.pending.csv"
+    assert len(pending.read_text().strip().splitlines()) == 1 + 2
+    assert list((tmp_path / "study-sim").glob("results-0002.part-*.parquet"))
+    assert not (tmp_path / "study-sim" / "ingested-0002").exists()
+    status = subprocess.run(
+        [BAMS, "status", "-w", str(study), "--json"], capture_output=True, text=True
+    )
+    assert status.returncode == 3
+    assert str(pending) in status.stdout
+
+    r = _make(tmp_path, sim)
+    asked = log.read_text().split()
+    assert asked.count(str(study / "batches" / "batch-0002.csv")) == 1
+    assert asked.count(str(pending)) == 1
+    assert not pending.exists()
+    assert (study / "report" / "summary.md").exists()
+    assert _make(tmp_path, sim, "-q", check=False).returncode == 0
