@@ -518,3 +518,30 @@ def test_the_by_level_counts_are_in_level_order(tmp_path, runner):
         else:
             r = ok(runner, "ingest-results", "-w", ws, res)
             assert "  by level  level 0: 3, level 1: 2, level 2: 1" in r.stdout.splitlines()
+
+
+@pytest.mark.parametrize("damage", ["a pending row gone", "unparseable"])
+def test_a_hand_edited_handoff_list_makes_no_pending_list_and_blocks_nothing(
+    crashed_study, runner, tmp_path, damage
+):
+    # The pending-only list is cut from the hand-off CSV. One that lost a pending row made
+    # a list that status named as all there was to simulate; one that no longer parsed
+    # made ingest-results and status fail with a bare polars error. Now neither makes a
+    # list: status names the hand-off list whole, and ingest goes on.
+    ws, truth, handoff, res = crashed_study
+    pending = ws / "batches" / "batch-0001.pending.csv"
+    ok(runner, "ingest-results", "-w", ws, res)
+    assert pending.exists()
+    lines = handoff.read_text().splitlines(keepends=True)
+    if damage == "a pending row gone":
+        handoff.write_text("".join(lines[:1] + lines[2:]))  # b0001-0001, pending, gone
+    else:
+        handoff.write_text("".join(lines) + '"unterminated\n')
+    one = _answer(runner, pending, truth, tmp_path / "one.csv")
+    rows = one.read_text().splitlines()
+    one.write_text("\n".join(rows[:1] + rows[-1:]) + "\n")  # one more result: b0001-0003
+    ok(runner, "ingest-results", "-w", ws, one)
+    assert not pending.exists()
+    code, s, _ = _status(runner, ws)
+    assert code == 3 and s["next"]["handoffs"] == [str(handoff)]
+    assert s["batches"][0]["pending_handoff"] is None

@@ -43,6 +43,20 @@ def lists(ws: Workspace) -> list[tuple[Kind, int]]:
     return batches + [("plan", int(k)) for k in plans]
 
 
+def in_play(ws: Workspace) -> list[tuple[Kind, int]]:
+    """The lists a pending-only list can concern: those with a request pending now, and
+    those with such a list on disk (it may have to go). Results and abandonment only ever
+    end requests, so no other list can become partly answered by a command's commit. Only
+    these are read again: every batch file twice per ingest took 3.6 s at 301 batches."""
+    pend = ws.pending()
+    live = {(kind, int(n)) for kind in ("batch", "plan") for n in pend[kind].drop_nulls().unique()}
+    return [
+        (kind, number)
+        for kind, number in lists(ws)
+        if (kind, number) in live or pending_path(handoff_path(ws.root, kind, number)).exists()
+    ]
+
+
 def open_requests(
     ws: Workspace,
     kind: Kind,
@@ -98,9 +112,15 @@ def pending_rows(
     handoff = handoff_path(ws.root, kind, number)
     if left.height in (0, total) or not handoff.exists():
         return None
-    rows = pl.read_csv(handoff, infer_schema=False).with_row_index("_order")
-    keys = left.select(pl.col(SID).cast(pl.String), pl.col("fidelity").cast(pl.String))
-    return rows.join(keys, on=KEYS, how="semi").sort("_order").drop("_order")
+    try:
+        rows = pl.read_csv(handoff, infer_schema=False).with_row_index("_order")
+        keys = left.select(pl.col(SID).cast(pl.String), pl.col("fidelity").cast(pl.String))
+        rows = rows.join(keys, on=KEYS, how="semi").sort("_order").drop("_order")
+    except (pl.exceptions.PolarsError, OSError, UnicodeDecodeError):
+        return None  # a damaged hand-off list: no list of its rows (status names it whole)
+    # A hand-off list that does not hold every pending request (edited by hand) makes no
+    # list either: one that lacked a request would be named as all there is to simulate.
+    return rows if rows.height == left.height else None
 
 
 def to_simulate(
@@ -138,7 +158,7 @@ def stage(
     if abandoned is None:
         abandoned = ws.read_abandoned()
     observed = observed.select(KEYS).unique()
-    for kind, number in lists(ws):
+    for kind, number in in_play(ws):
         want = pending_rows(ws, kind, number, observed=observed, abandoned=abandoned)
         path = pending_path(handoff_path(ws.root, kind, number))
         # Staged already in this transaction (ingest-results --abandon-failed stages the
@@ -160,7 +180,7 @@ def summary(ws: Workspace) -> list[dict[str, object]]:
     observed = ws.read_observations().select(KEYS).unique()
     abandoned = ws.read_abandoned()
     out: list[dict[str, object]] = []
-    for kind, number in lists(ws):
+    for kind, number in in_play(ws):
         left, total = open_requests(ws, kind, number, observed=observed, abandoned=abandoned)
         if left.height in (0, total):
             continue
