@@ -267,9 +267,11 @@ def pca_from_covariance(
 #: A principal component whose variance is at most this share of the first's carries none:
 #: the data does not span its direction. Rounding leaves ~1e-16 of the first's variance
 #: along such directions (float64 or float32 embeddings of 16 to 512 columns, exact and
-#: incremental PCA alike), far below this; a direction the data did span with 1e-5 of the
-#: first's sd would inform no lengthscale either.
-NULL_VARIANCE_RTOL = 1e-10
+#: incremental PCA alike), a thousandth of this. A direction the data does span can be far
+#: below the first under --no-standardize with mixed units (a column of range 0.1 beside
+#: one of range 1e5: 1e-12), and the GP scales each reduced coordinate to the unit cube,
+#: so it still informs the model: 1e-10 called that one constant.
+NULL_VARIANCE_RTOL = 1e-13
 
 
 def null_components(

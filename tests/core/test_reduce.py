@@ -203,3 +203,16 @@ def test_components_beyond_the_rank_and_only_those_carry_no_variance(
     assert null.tolist() == [j >= rank for j in range(DIM)]
     full = fit_reducer(_chunks(_data(), 1000), method=method, dim=D, rng=rng)
     assert not null_components(full.explained_variance).any()
+
+
+def test_a_spanned_direction_far_below_the_first_is_not_called_constant():
+    # Unstandardised columns of ranges 1e5 and 0.1: the second component has 1e-12 of the
+    # first's variance, and its coordinate follows the second column (the GP scales it to
+    # the unit cube). The 1e-10 cut called it constant; a third, unspanned one still is.
+    rng = np.random.default_rng(7)
+    x = np.c_[rng.uniform(0, 1e5, 5000), rng.uniform(0, 0.1, 5000)]
+    X = np.c_[x, x[:, 0] - 3.0 * x[:, 1]]  # rank 2 in 3 columns
+    reducer = fit_reducer(_chunks(X, 1000), method="pca", dim=3, standardize=False, rng=rng)
+    lam = reducer.explained_variance
+    assert 1e-13 < lam[1] / lam[0] < 1e-11
+    assert null_components(lam, reducer.constant).tolist() == [False, False, True]
