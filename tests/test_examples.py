@@ -94,6 +94,7 @@ df.write_parquet(out)
 """
 
 
+@pytest.mark.slow  # a whole study through make, with retries: about a minute
 def test_runs_that_crash_are_simulated_again_alone_and_make_goes_on_after_a_hand_fix(tmp_path):
     # Two runs of batch 2 crash: ingest keeps their requests pending and lists them alone;
     # make's ingest step simulates that list (they crash again) and stops, with status
