@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import random
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +41,35 @@ def simulate_and_ingest(runner: CliRunner, ws: Path, handoff: Path, truth: Path,
     """The sample simulator answers a hand-off list; its results are ingested."""
     ok(runner, "simulate", handoff, "--truth", truth, "-o", results)
     return ok(runner, "ingest-results", "-w", ws, results)
+
+
+def answer_handoff(
+    runner: CliRunner,
+    handoff: Path,
+    truth: Path,
+    out: Path,
+    crashed: Collection[str] = (),
+    noise: float = 0.0,
+) -> Path:
+    """The simulation team's results for a hand-off list, as CSV: rows whose request id is
+    in ``crashed`` come back without a value, status ``crashed``; ``noise`` > 0 plays a
+    simulator whose runs differ from run to run (the truth table plays the simulator; the
+    workspace never sees it)."""
+    raw = out.with_suffix(".raw.csv")
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", raw)
+    rows = list(csv.DictReader(raw.open()))
+    rng = random.Random(str(out))
+    for r in rows:
+        r["status"] = "ok"
+        if noise:
+            r["value"] = repr(float(r["value"]) + rng.uniform(-noise, noise))
+        if r["request_id"] in crashed:
+            r["value"], r["status"] = "", "crashed"
+    with out.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return out
 
 
 def process_gone(pid: int) -> bool:

@@ -22,25 +22,7 @@ from typer.testing import CliRunner
 from bams_cli.state.io import journal_in, recover
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_toy
-
-
-def _answer(runner, handoff: Path, truth: Path, out: Path, crashed: set[str]) -> Path:
-    """The simulation team's results for a hand-off list: rows whose request id is in
-    ``crashed`` come back with no value and status ``crashed`` (the truth table plays the
-    simulator; the workspace never sees it)."""
-    raw = out.with_suffix(".raw.csv")
-    ok(runner, "simulate", handoff, "--truth", truth, "-o", raw)
-    rows = list(csv.DictReader(raw.open()))
-    for r in rows:
-        r["status"] = "ok"
-        if r["request_id"] in crashed:
-            r["value"], r["status"] = "", "crashed"
-    with out.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    return out
+from tests.conftest import answer_handoff, invoke, ok, tree_hash, write_toy
 
 
 def _status(runner, ws):
@@ -60,7 +42,9 @@ def study(tmp_path):
        "--no-standardize")  # fmt: skip
     ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "10")
     crashed = {"b0001-0001", "b0001-0002", "b0001-0003"}
-    res = _answer(runner, ws / "batches" / "batch-0001.csv", truth, tmp_path / "r1.csv", crashed)
+    res = answer_handoff(
+        runner, ws / "batches" / "batch-0001.csv", truth, tmp_path / "r1.csv", crashed
+    )
     return runner, ws, truth, res, crashed
 
 
@@ -133,7 +117,7 @@ def _plan_study(runner, ws, truth, tmp: Path, n_lost: int = 3):
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40")
     handoff = ws / "estimates" / "plan-0001-handoff.csv"
     rids = [r["request_id"] for r in csv.DictReader(handoff.open())][:n_lost]
-    res = _answer(runner, handoff, truth, tmp / "p1.csv", set(rids))
+    res = answer_handoff(runner, handoff, truth, tmp / "p1.csv", set(rids))
     ok(runner, "ingest-results", "-w", ws, res)
     return rids, res
 

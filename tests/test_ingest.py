@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import random
 from pathlib import Path
 
 import pyarrow as pa
@@ -13,7 +12,7 @@ import pytest
 
 from bams_cli.state.io import JOURNAL_NAME
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_batch, write_toy
+from tests.conftest import answer_handoff, invoke, ok, tree_hash, write_batch, write_toy
 
 IDS = ["t000000", "t000001", "t000002", "t000003"]
 
@@ -334,27 +333,6 @@ def test_the_original_file_with_replace_undoes_a_replace(ws, runner, tmp_path):
 
 
 # ---- a batch or plan partly answered: the list of its pending requests alone ----------------
-def _answer(runner, handoff: Path, truth: Path, out: Path, crashed=(), noise: float = 0.0):
-    """The simulation team's results for a hand-off list, as CSV: rows whose request id is
-    in ``crashed`` come back without a value, status ``crashed``; ``noise`` > 0 plays a
-    simulator whose runs differ from run to run (the truth table plays the simulator)."""
-    raw = out.with_suffix(".raw.csv")
-    ok(runner, "simulate", handoff, "--truth", truth, "-o", raw)
-    rows = list(csv.DictReader(raw.open()))
-    rng = random.Random(str(out))
-    for r in rows:
-        r["status"] = "ok"
-        if noise:
-            r["value"] = repr(float(r["value"]) + rng.uniform(-noise, noise))
-        if r["request_id"] in crashed:
-            r["value"], r["status"] = "", "crashed"
-    with out.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    return out
-
-
 def _status(runner, ws: Path) -> tuple[int, dict, str]:
     r = invoke(runner, "status", "-w", ws, "--json")
     return r.exit_code, json.loads(r.stdout), invoke(runner, "status", "-w", ws).stdout
@@ -374,7 +352,7 @@ def crashed_study(tmp_path, runner):
        "--no-standardize")  # fmt: skip
     ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "10")
     handoff = ws / "batches" / "batch-0001.csv"
-    res = _answer(runner, handoff, truth, tmp_path / "r1.csv", CRASHED)
+    res = answer_handoff(runner, handoff, truth, tmp_path / "r1.csv", CRASHED)
     return ws, truth, handoff, res
 
 
@@ -408,12 +386,12 @@ def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
     assert says in s["next"]["text"] and says in text.replace("\n", " ")
 
     # The whole list from a noisy simulator is what the old advice led to ...
-    whole = _answer(runner, handoff, truth, tmp_path / "whole.csv", noise=0.01)
+    whole = answer_handoff(runner, handoff, truth, tmp_path / "whole.csv", noise=0.01)
     before = tree_hash(ws)
     r = invoke(runner, "ingest-results", "-w", ws, whole)
     assert r.exit_code == 1 and "pass --replace" in r.stderr and tree_hash(ws) == before
     # ... the pending list alone goes in, and, the batch answered, goes away.
-    rest = _answer(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
+    rest = answer_handoff(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
     r = ok(runner, "ingest-results", "-w", ws, rest, "--json")
     assert json.loads(r.stdout)["ingested"] == 3 and json.loads(r.stdout)["pending_lists"] == []
     assert not pending.exists() and not list(ws.rglob(".tmp-*"))
@@ -478,12 +456,24 @@ def test_an_estimate_plan_partly_answered_is_named_by_status_and_estimate(
     crashed_study, runner, tmp_path
 ):
     ws, truth, handoff, _ = crashed_study
-    ok(runner, "ingest-results", "-w", ws, _answer(runner, handoff, truth, tmp_path / "r.csv"))
+    ok(
+        runner,
+        "ingest-results",
+        "-w",
+        ws,
+        answer_handoff(runner, handoff, truth, tmp_path / "r.csv"),
+    )
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
     plan = ws / "estimates" / "plan-0001-handoff.csv"
     rids = [row["request_id"] for row in csv.DictReader(plan.open())][:2]
-    ok(runner, "ingest-results", "-w", ws, _answer(runner, plan, truth, tmp_path / "p.csv", rids))
+    ok(
+        runner,
+        "ingest-results",
+        "-w",
+        ws,
+        answer_handoff(runner, plan, truth, tmp_path / "p.csv", rids),
+    )
     pending = ws / "estimates" / "plan-0001-handoff.pending.csv"
     assert [row["request_id"] for row in csv.DictReader(pending.open())] == rids
     code, s, _ = _status(runner, ws)
@@ -491,7 +481,7 @@ def test_an_estimate_plan_partly_answered_is_named_by_status_and_estimate(
     assert s["plans"][0]["pending_handoff"] == str(pending)
     r = invoke(runner, "estimate", "-w", ws)
     assert r.exit_code == 3 and f"simulate {pending} and ingest" in r.stderr
-    rest = _answer(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
+    rest = answer_handoff(runner, pending, truth, tmp_path / "rest.csv", noise=0.01)
     ok(runner, "ingest-results", "-w", ws, rest)
     assert not pending.exists()
     ok(runner, "estimate", "-w", ws)
@@ -537,7 +527,7 @@ def test_a_hand_edited_handoff_list_makes_no_pending_list_and_blocks_nothing(
         handoff.write_text("".join(lines[:1] + lines[2:]))  # b0001-0001, pending, gone
     else:
         handoff.write_text("".join(lines) + '"unterminated\n')
-    one = _answer(runner, pending, truth, tmp_path / "one.csv")
+    one = answer_handoff(runner, pending, truth, tmp_path / "one.csv")
     rows = one.read_text().splitlines()
     one.write_text("\n".join(rows[:1] + rows[-1:]) + "\n")  # one more result: b0001-0003
     ok(runner, "ingest-results", "-w", ws, one)
