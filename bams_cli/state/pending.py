@@ -109,7 +109,11 @@ def pending_rows(
     itself is the one to simulate), none is, or the hand-off list is gone.
     ``observed`` and ``abandoned`` as ``open_requests``."""
     left, total = open_requests(ws, kind, number, observed=observed, abandoned=abandoned)
-    handoff = handoff_path(ws.root, kind, number)
+    return _rows_of(handoff_path(ws.root, kind, number), left, total)
+
+
+def _rows_of(handoff: Path, left: pl.DataFrame, total: int) -> pl.DataFrame | None:
+    """``pending_rows`` given the list's pending requests ``left`` of ``total``."""
     if left.height in (0, total) or not handoff.exists():
         return None
     try:
@@ -121,6 +125,14 @@ def pending_rows(
     # A hand-off list that does not hold every pending request (edited by hand) makes no
     # list either: one that lacked a request would be named as all there is to simulate.
     return rows if rows.height == left.height else None
+
+
+def _current(handoff: Path, want: pl.DataFrame | None) -> Path:
+    """The pending-only list beside ``handoff`` if it holds exactly ``want``, else ``handoff``."""
+    path = pending_path(handoff)
+    if want is not None and path.read_text() == want.write_csv():
+        return path
+    return handoff
 
 
 def to_simulate(
@@ -135,12 +147,9 @@ def to_simulate(
     list while that holds exactly the requests still pending, else the hand-off list.
     ``observed`` and ``abandoned`` as ``open_requests`` (read when left out)."""
     handoff = handoff_path(ws.root, kind, number)
-    path = pending_path(handoff)
-    if path.exists():
-        want = pending_rows(ws, kind, number, observed=observed, abandoned=abandoned)
-        if want is not None and path.read_text() == want.write_csv():
-            return path
-    return handoff
+    if not pending_path(handoff).exists():
+        return handoff
+    return _current(handoff, pending_rows(ws, kind, number, observed=observed, abandoned=abandoned))
 
 
 def stage(
@@ -185,7 +194,12 @@ def summary(ws: Workspace) -> list[dict[str, object]]:
         if left.height in (0, total):
             continue
         handoff = handoff_path(ws.root, kind, number)
-        current = to_simulate(ws, kind, number, observed=observed, abandoned=abandoned)
+        # The requests are read once: the list is checked against the rows they give.
+        current = (
+            _current(handoff, _rows_of(handoff, left, total))
+            if pending_path(handoff).exists()
+            else handoff
+        )
         out.append(
             {
                 "list": f"{kind} {number}",
