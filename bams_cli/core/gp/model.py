@@ -283,8 +283,6 @@ class MFGP:
 
     def _theta0_factor(self, A: FloatArray) -> FloatArray:
         """V = L^-1 k0(X_n, A), shape (n, m), for centred A: level 0's factor."""
-        if self._local is None:
-            return self._solve_L(self._k0(self._Xt, A))
         return self._obs_factor(A, np.zeros(len(A), dtype=np.int64))
 
     def localised(self, X: FloatArray, max_bytes: int) -> MFGP:
