@@ -143,14 +143,15 @@ def recover(workspace: Path) -> int:
         except (ValueError, KeyError, TypeError):
             pairs = []  # torn while being written: the commit had not started renaming
         folders = set()
-        for tmp, target in pairs:
-            if tmp is None:  # a staged removal (``Transaction.remove``)
-                if Path(target).exists():
-                    Path(target).unlink()
-                    folders.add(Path(target).parent)
-            elif Path(tmp).exists():
+        for tmp_name, target_name in pairs:
+            target = _journalled(workspace, target_name)
+            if tmp_name is None:  # a staged removal (``Transaction.remove``)
+                if target.exists():
+                    target.unlink()
+                    folders.add(target.parent)
+            elif (tmp := _journalled(workspace, tmp_name)).exists():
                 os.replace(tmp, target)
-                folders.add(Path(target).parent)
+                folders.add(target.parent)
                 moved += 1
         for folder in folders:
             _fsync_dir(folder)
@@ -160,6 +161,19 @@ def recover(workspace: Path) -> int:
         if stray.is_file():
             stray.unlink()
     return moved
+
+
+def _journal_name(workspace: Path, path: Path) -> str:
+    """How the journal names ``path``: relative to the workspace when inside it, so a
+    copied or moved workspace recovers its own files and never the original's; absolute
+    otherwise (``select --out`` beside the workspace)."""
+    path, root = path.resolve(), workspace.resolve()
+    return path.relative_to(root).as_posix() if path.is_relative_to(root) else str(path)
+
+
+def _journalled(workspace: Path, name: str) -> Path:
+    """The file a journal entry names (``_journal_name``); absolute entries as written."""
+    return Path(name) if Path(name).is_absolute() else workspace / name
 
 
 def remove_strays(target: Path) -> int:
@@ -252,8 +266,9 @@ class Transaction:
     def commit(self) -> list[Path]:
         journal = _journal.get()
         if journal is not None and len(self._staged) > 1:
+            ws = journal.parent
             pairs = [
-                [None if tmp is None else str(tmp.resolve()), str(target.resolve())]
+                [None if tmp is None else _journal_name(ws, tmp), _journal_name(ws, target)]
                 for tmp, target in self._staged
             ]
             staged = journal.parent / f".tmp-{journal.name}-{os.getpid()}"

@@ -6,6 +6,7 @@ import contextlib
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -179,6 +180,54 @@ def test_a_commit_killed_among_its_renames_is_completed_by_recover(tmp_path, cra
     assert not (ws / io.JOURNAL_NAME).exists()
     assert not list(ws.rglob(".tmp-*"))
     assert io.recover(ws) == 0  # idempotent
+
+
+@pytest.mark.parametrize("how", ["copied", "moved"])
+def test_a_killed_commit_in_a_copied_workspace_is_completed_in_the_copy_alone(tmp_path, how):
+    # A user copies (or moves) a workspace whose last command was killed mid-commit, then
+    # runs the next command in the copy: its own staged files land, and nothing outside it
+    # (the original's files, or files at the old path) is renamed or removed.
+    ws = tmp_path / "ws"
+    (ws / "sub").mkdir(parents=True)
+    for name in "abc":
+        (ws / "sub" / name).write_text("old " + name)
+    assert subprocess.run([sys.executable, "-c", CRASH, str(ws), "1"]).returncode == 9
+    copy = tmp_path / "copy"
+    shutil.copytree(ws, copy) if how == "copied" else ws.rename(copy)
+    before = {
+        p: p.read_text() for p in tmp_path.rglob("*") if p.is_file() and copy not in p.parents
+    }
+    assert io.recover(copy) == 2
+    assert [(copy / "sub" / n).read_text() for n in "abc"] == [f"new {n}" for n in "abc"]
+    assert not list(copy.rglob(".tmp-*")) and not (copy / io.JOURNAL_NAME).exists()
+    after = {p: p.read_text() for p in tmp_path.rglob("*") if p.is_file() and copy not in p.parents}
+    assert after == before  # the original (when copied) exactly as the crash left it
+
+
+def test_a_journaled_removal_in_a_copied_workspace_removes_the_copy_s_file(tmp_path, monkeypatch):
+    ws, copy = tmp_path / "ws", tmp_path / "copy"
+    ws.mkdir()
+    (ws / "gone").write_text("old")
+    real = io.os.replace
+
+    def killed(src, dst):  # the journal lands; the first rename of the commit is "killed"
+        if io.JOURNAL_NAME not in str(dst):
+            raise KeyboardInterrupt
+        real(src, dst)
+
+    with io.journal_in(ws):
+        tx = io.Transaction()
+        tx.write_text(ws / "a", "new")
+        tx.remove(ws / "gone")
+        monkeypatch.setattr(io.os, "replace", killed)
+        with pytest.raises(KeyboardInterrupt):
+            tx.commit()
+        monkeypatch.setattr(io.os, "replace", real)
+    shutil.copytree(ws, copy)
+    assert json.loads((copy / io.JOURNAL_NAME).read_text())["renames"][1] == [None, "gone"]
+    assert io.recover(copy) == 1
+    assert (copy / "a").read_text() == "new" and not (copy / "gone").exists()
+    assert (ws / "gone").read_text() == "old" and not (ws / "a").exists()
 
 
 def test_recover_removes_files_staged_by_a_transaction_that_never_committed(tmp_path):
