@@ -547,8 +547,9 @@ def ingest_results(
     elif not_run["count"]:
         first = not_run["first"][0]
         console.note(
-            f"{not_run['count']} rows were not run (status {first['status']!r} ...): "
-            "not ingested, their requests stay pending"
+            f"{console._plural(not_run['count'], 'row')} not run (status {first['status']!r} ...): "
+            "not ingested (a value beside such a status is not used), their requests stay "
+            "pending"
         )
     pend = summary["pending"]
     if pend["count"]:
@@ -1097,7 +1098,7 @@ def abandon(
             for r in summary["first"]
         ]
         console.rows_table(
-            f"abandoned: {summary['abandoned']} requests (log: {summary['log']})",
+            f"abandoned: {console._plural(summary['abandoned'], 'request')} (log: {summary['log']})",
             ["request_id", "segment_id", "fidelity", "batch", "plan"],
             rows,
         )

@@ -977,8 +977,11 @@ def render_markdown(summary: dict[str, Any]) -> str:
         lines.append("")
         lines += [f"{n}\n" for n in estimate_notes(s["estimates"])]
     if s["batches"]:
+        # With --truth the mean is of the true level-0 values of every pick, not of the
+        # level-0 runs: the column says so, as the page's does.
+        of = "mean level-0 f of picks (ground truth)" if s["truth"] else "mean level-0 f"
         lines += [
-            "| batch | strategy | picks | cost | mean level-0 f (SE) | pending | abandoned |",
+            f"| batch | strategy | picks | cost | {of} (SE) | pending | abandoned |",
             "|---|---|---|---|---|---|---|",
         ]
         for b in s["batches"]:

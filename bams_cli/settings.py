@@ -28,6 +28,45 @@ HEADER = """\
 """
 
 
+#: The keys settings.toml may hold; anything else is a slip that would be ignored.
+_TOP_KEYS = ("study", "levels", "extra")
+_STUDY_KEYS = ("gammas", "seed", "embedding_dim", "id_column")
+_LEVEL_KEYS = ("name", "cost")
+
+
+def _known_keys(source: str, doc: dict[str, Any], study: dict[str, Any]) -> None:
+    """Refuse a key settings.toml does not define (a misspelt ``seed`` would leave the seed
+    at its default without a word), and an integer setting given as another type."""
+    import difflib
+
+    def refuse(key: str, where: str, known: tuple[str, ...]) -> None:
+        near = difflib.get_close_matches(key, known, n=1)
+        hint = f"did you mean {near[0]!r}? " if near else ""
+        raise SettingsError(
+            f"{source}: unknown key {key!r} in {where}; {hint}known keys: {', '.join(known)}"
+        )
+
+    for key in doc:
+        if key not in _TOP_KEYS:
+            refuse(key, "the file", _TOP_KEYS)
+    for key in study:
+        if key not in _STUDY_KEYS:
+            refuse(key, "[study]", _STUDY_KEYS)
+    levels = doc.get("levels", [])
+    for i, lv in enumerate(levels):
+        if not isinstance(lv, dict):
+            raise SettingsError(f"{source}: levels entry {i} must be a {{name, cost}} table")
+        for key in lv:
+            if key not in _LEVEL_KEYS:
+                refuse(key, f"levels entry {i}", _LEVEL_KEYS)
+    for key in ("seed", "embedding_dim"):
+        value = study.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise SettingsError(
+                f"{source}: {key} must be a whole number, got {value!r}", setting=key
+            )
+
+
 @dataclass(frozen=True)
 class Level:
     """One fidelity level: a simulator and what one run of it costs."""
@@ -90,6 +129,23 @@ class Settings:
                     f"settings: level {i} cost must be a finite number > 0, got {level.cost:g}",
                     setting="levels",
                 )
+            # Results name their level by number or by name: a name must pick out one level.
+            name = level.name.strip()
+            if not name:
+                raise SettingsError(f"settings: level {i} has an empty name", setting="level_names")
+            if name in (other.name.strip() for other in self.levels[:i]):
+                raise SettingsError(
+                    f"settings: level name {name!r} is given to more than one level; results "
+                    "that name their level would land at the wrong one: give each level its "
+                    "own name",
+                    setting="level_names",
+                )
+            if name.lstrip("+-").isdigit() and int(name) != i:
+                raise SettingsError(
+                    f"settings: level {i} is named {name!r}, the number of another level; "
+                    "results that name their level would land at the wrong one",
+                    setting="level_names",
+                )
         if self.seed < 0:
             raise SettingsError(
                 f"settings: seed must be an integer >= 0, got {self.seed}", setting="seed"
@@ -131,6 +187,7 @@ class Settings:
                     f"{source}: '{name}' must be {kind}, got {type(doc[name]).__name__} "
                     f"{doc[name]!r}; fix it by hand or rewrite it with `bams-cli init --force`"
                 )
+        _known_keys(source, doc, study)
         try:
             levels = tuple(
                 Level(str(lv["name"]), float(lv["cost"])) for lv in doc.get("levels", [])

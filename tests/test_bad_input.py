@@ -14,6 +14,7 @@ state file, runs one command through the CLI and asserts:
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -372,6 +373,19 @@ def _edit_file(rel: str, data: bytes, *command: str):
     return setup
 
 
+def _edit_settings(pattern: str, replacement: str, *command: str):
+    """A hand edit of settings.toml: the first match of ``pattern`` replaced."""
+
+    def setup(ws: Path, tmp: Path) -> list[object]:
+        text = (ws / "settings.toml").read_text()
+        edited = re.sub(pattern, replacement, text, count=1, flags=re.M)
+        assert edited != text, pattern
+        (ws / "settings.toml").write_text(edited)
+        return [*command[:1], "-w", ws, *command[1:]]
+
+    return setup
+
+
 def _edit_model(edit: Callable[[dict], object], *command: str):
     def setup(ws: Path, tmp: Path) -> list[object]:
         doc = json.loads((ws / "model.json").read_text())
@@ -416,6 +430,20 @@ STATE_CASES = [
          "settings.toml", "'study' must be a [study] table, got int 5"),
     Case("settings-not-toml", _edit_file("settings.toml", b"[study\n", "report"),
          "settings.toml", "not valid TOML"),
+    # A typo or a stray type would be ignored: the study would run with the default seed.
+    Case("settings-misspelt-seed", _edit_settings(r"^seed = ", "sedd = ", "fit"),
+         "settings.toml", "unknown key 'sedd' in [study]; did you mean 'seed'?"),
+    Case("settings-seed-not-whole", _edit_settings(r"^seed = .*$", "seed = 7.5", "status"),
+         "settings.toml", "seed must be a whole number, got 7.5"),
+    Case("settings-level-key-misspelt", _edit_settings(r"cost = 0", "costt = 0", "fit"),
+         "settings.toml", "unknown key 'costt' in levels entry 1; did you mean 'cost'?"),
+    # Results that name their level by a name two levels share would land at the wrong one.
+    # A level deleted by hand while the log holds its results: fit names both files.
+    Case("settings-level-removed", _edit_settings(r'^\s*\{ name = "[^"]*", cost = 0\..*\n', "", "fit"),
+         "observations.parquet", "settings.toml declares 1 level(s); restore the levels"),
+    Case("settings-level-names-repeated",
+         _edit_settings(r'(name = )"[^"]*"(.*\n.*name = )"[^"]*"', r'\1"x"\2"x"', "fit"),
+         "settings.toml", "level name 'x' is given to more than one level"),
     Case("model-not-json", _edit_file("model.json", b"{oops", *SELECT), "model.json",
          "damaged (not a model written by fit)"),
     Case("model-mean-1e308", _edit_model(lambda hp: hp.update(mean=1e308), *SELECT), "model.json",

@@ -131,10 +131,12 @@ def test_fit_warns_when_the_model_explains_an_observed_failure_as_noise(toy_ws, 
     # p_n there is ndtr((0.56 - ~3) / ~0.5) ~ 1e-6 although the segment was seen failing.
     r, ids = _fit_with(toy_ws, runner, tmp_path, [0.3, 3.1, 2.9, 3.0, 3.2], noise0=100.0)
     assert r.exit_code == 0, r.output
-    [line] = [s for s in r.stderr.splitlines() if s.startswith("warning:")]
+    line, rate = [s for s in r.stderr.splitlines() if s.startswith("warning:")]
     assert "1 of 1 segments observed failing" in line and repr(ids[0]) in line
+    # The pool's p_n sum to less than the one failure seen: the model's own rate is wrong.
+    assert "is below the 1 failure already confirmed at level 0" in rate
     model = json.loads(Workspace(toy_ws).model_path.read_text())
-    assert len(model["warnings"]) == 1
+    assert len(model["warnings"]) == 2
     p = pq.read_table(Workspace(toy_ws).scores_path).column("p_0").to_numpy()
     assert p[0] < 0.01  # t000000 is row 0: the contradiction the warning names
     # The report carries it too.
@@ -321,3 +323,20 @@ def test_fit_says_when_no_level0_failure_has_checked_the_model_s_rate(
     saved = tmp_path / "hp.json"
     r = invoke(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved, "--json", "--force")
     assert json.loads(r.stdout)["level0_failures"] == {"0.56": failed}
+
+
+def test_a_model_rate_below_the_failures_already_confirmed_is_warned():
+    from bams_cli.pipeline.fitting import _contradicted_outcomes
+
+    ids = np.array([f"s{i}" for i in range(10)])
+    idx = np.array([0, 1, 2, 3])
+    lv = np.zeros(4, dtype=np.int64)
+    y = np.array([-1.0, -0.5, 0.8, -0.2])  # three level-0 failures at gamma 0
+    p = np.full((10, 1), 0.05)
+    p[[0, 1, 3], 0] = 0.5  # sure enough of each (no contradiction), 1.85 expected in all
+    [line] = _contradicted_outcomes(ids, idx, lv, y, p, [0.0])
+    assert "the model's own failure rate 0.185 (1.85 failures expected" in line
+    assert "below the 3 failures already confirmed at level 0 (0.3 of the pool)" in line
+    p[2, 0] = 0.02
+    p[4:, 0] = 0.3  # 3.32 expected: no longer below what was seen
+    assert _contradicted_outcomes(ids, idx, lv, y, p, [0.0]) == []

@@ -103,6 +103,10 @@ def test_gammas_keep_the_order_given(runner, tmp_path):
         (["--seed", "-1"], "--seed -1: seed must be an integer >= 0, got -1"),
         (["--dim", "0"], "--dim 0: embedding_dim must be >= 1, got 0"),
         (["--costs", "1,0.1", "--level-names", "a"], "--level-names has 1 names for 2 costs"),
+        (["--costs", "1,0.1", "--level-names", "lr,lr"],
+         "--level-names lr,lr: level name 'lr' is given to more than one level"),
+        (["--costs", "1,0.1", "--level-names", "1,0"],
+         "--level-names 1,0: level 0 is named '1', the number of another level"),
     ],
 )  # fmt: skip
 def test_a_flag_out_of_range_is_a_usage_error_naming_it(runner, tmp_path, flags, line):

@@ -847,6 +847,9 @@ def test_with_truth_its_section_is_marked_and_last(study, tmp_path):
     assert outside.lower().count("ground truth") == 2  # that column and its note
     md = (ws / "report" / "summary.md").read_text()
     assert "**Against ground truth (--truth; a real study has none):** true rate" in md
+    # summary.md's batch table says so too: its mean of the picks' true values is not the
+    # mean of the level-0 runs that the table holds without --truth.
+    assert "| mean level-0 f of picks (ground truth) (SE) |" in md
 
 
 BROWSER_SIZES = [(1280, 720), (1920, 1080), (390, 844)]

@@ -39,6 +39,17 @@ def _select(runner, ws, *extra):
     return summary, batch
 
 
+def test_bams_on_a_new_study_says_how_to_get_a_first_model(toy_ws, runner):
+    # No results yet: "run fit" would send the user to a fit that needs results first.
+    r = invoke(runner, "select", "-w", toy_ws, "--budget", "3")
+    assert r.exit_code == 1
+    assert r.stderr.splitlines() == [
+        f"error: {toy_ws / 'model.json'}: no fitted model; select a first batch "
+        f"(`bams-cli select -w {toy_ws} --strategy random`), simulate it and ingest the "
+        "results, then fit"
+    ]
+
+
 def test_bams_batch_confirms_leads_at_level0_first(lead_ws, runner):
     summary, batch = _select(runner, lead_ws, "--confirm-share", "0.4")
     assert summary["confirm_picks"] == 2 and summary["confirm_leads"] == 2

@@ -53,6 +53,16 @@ def _training_data(
             f"{ws.observations_path}: no observations yet; select a first batch "
             f"(`bams-cli select -w {ws.root} --strategy random`), simulate it and ingest the results"
         )
+    n_levels = ws.require_initialised().n_levels
+    beyond = obs.filter(pl.col("fidelity") >= n_levels)
+    if beyond.height:
+        # A level removed from settings.toml by hand: its results stay in the log.
+        raise WorkspaceError(
+            f"{ws.observations_path}: {beyond.height} observation(s) at level "
+            f"{int(beyond['fidelity'].max())} (segment {beyond[SID][0]!r}), but "  # type: ignore[arg-type]
+            f"{ws.settings_path} declares {n_levels} level(s); restore the levels in "
+            "settings.toml (the log keeps every result)"
+        )
     index = pl.DataFrame({SID: ids, "_idx": np.arange(len(ids))})
     joined = obs.join(index, on=SID, how="left")
     missing = joined.filter(pl.col("_idx").is_null())
@@ -439,11 +449,14 @@ def _contradicted_outcomes(
     p: np.ndarray,
     gammas: Sequence[float],
 ) -> list[str]:
-    """Observed level-0 outcomes the fitted model is nearly sure did not happen.
+    """Observed level-0 outcomes the fitted model is nearly sure did not happen, and a
+    model rate below the failures already seen.
 
     A fit that explains level-0 results as noise (large level-0 noise, or the data handed to
     the discrepancy) gives p_n ~ 0 at segments seen failing. The rate estimate then samples
-    the failures like them with tiny probability and its variance explodes, so say so.
+    the failures like them with tiny probability and its variance explodes, so say so. Its
+    own rate, sum p_n / N, can then fall below the count already confirmed at level 0 (a
+    trial study: 2.5 failures expected in the pool, 6 confirmed), which no pool can hold.
     """
     out = []
     level0 = lv == 0
@@ -465,5 +478,17 @@ def _contradicted_outcomes(
                 f"p_n {pn[worst]:.2g}); the model explains them as noise, so the estimate's "
                 "variance may be large. Check the level-0 noise in the hyperparameter table; "
                 "more level-0 runs near them help"
+            )
+        # The model's own rate, mean p_n over the pool, below the failures already seen at
+        # level 0: it cannot be right, whatever the rest of the pool holds.
+        seen = np.unique(idx[level0][val <= gamma]).size
+        expected = float(p[:, g].sum())
+        if seen and expected < seen:
+            out.append(
+                f"gamma {gamma:g}: the model's own failure rate {expected / p.shape[0]:.3g} "
+                f"({expected:.3g} failures expected in the pool) is below the {seen} "
+                f"failure{'s' if seen != 1 else ''} already confirmed at level 0 "
+                f"({seen / p.shape[0]:.3g} of the pool); trust `estimate`, not the model's "
+                "rate, and check the level-0 noise in the hyperparameter table"
             )
     return out

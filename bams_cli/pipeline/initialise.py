@@ -133,13 +133,18 @@ def init(
         flags = {
             "gammas": ("--gamma", gammas),
             "levels": ("--costs", costs),
+            "level_names": ("--level-names", level_names),
             "seed": ("--seed", seed),
             "embedding_dim": ("--dim", dim),
         }
         flag, value = flags.get(exc.setting or "", ("", None))
         if value is None:
             raise
-        typed = ",".join(f"{v:g}" for v in value) if isinstance(value, list) else value
+        typed = (
+            ",".join(v if isinstance(v, str) else f"{v:g}" for v in value)
+            if isinstance(value, list)
+            else value
+        )
         raise OptionValueError(f"{flag} {typed}: {str(exc).removeprefix('settings: ')}") from None
     with workspace_lock(root, wait=wait), transaction() as tx:
         if ws.settings_path.exists() and exist_ok:

@@ -337,9 +337,14 @@ class Workspace:
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:
         if not self.model_path.exists():
-            raise WorkspaceError(
-                f"{self.model_path}: no fitted model; run `bams-cli fit -w {self.root}`"
+            # fit needs results first: on a new study, say how to get them.
+            first = (
+                f"select a first batch (`bams-cli select -w {self.root} --strategy random`), "
+                "simulate it and ingest the results, then fit"
+                if not self.observations_path.exists()
+                else f"run `bams-cli fit -w {self.root}`"
             )
+            raise WorkspaceError(f"{self.model_path}: no fitted model; {first}")
         try:
             model = json.loads(self.model_path.read_text())
         except (ValueError, UnicodeDecodeError) as exc:
