@@ -284,12 +284,25 @@ def _next_step(
         waiting = [e["pending_handoff"] or e["handoff"] for e in lists]
         cmd = f"bams-cli ingest-results -w {w} RESULTS.parquet"
         n = sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans)
+        # Runs that will never come back (a simulator that fails for good) are abandoned
+        # instead, which lets the loop go on.
+        gone = tuple(
+            {
+                "step": "abandon",
+                "command": f"bams-cli abandon -w {w} "
+                + (f"--batch {e['batch']}" if "batch" in e else f"--plan {e['plan']}")
+                + " --reason WHY",
+            }
+            for e in lists
+        )
         return step(
             "ingest-results",
             cmd,
             f"{n} {'pick awaits' if n == 1 else 'picks await'} results: simulate "
             f"{' and '.join(map(_to_simulate, lists))} and run `{cmd}` (RESULTS.parquet: "
-            "the results file, Parquet or CSV)",
+            "the results file, Parquet or CSV); runs that can never be simulated: "
+            f"`{gone[0]['command']}`",
+            gone,
             handoffs=waiting,
         )
     fit = f"bams-cli fit -w {w}"

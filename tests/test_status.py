@@ -123,20 +123,21 @@ def test_status_names_the_next_command_at_every_stage(study, stage):
         assert command.format(ws=study.ws) in got["text"].replace("\n", " ")
 
 
-# stage -> the phase `status --json` names, and the other commands its text offers
+# stage -> the phase `status --json` names, and the other commands its text offers (while
+# picks await results: abandoning runs that can never be simulated)
 PHASES = {
     "initialised": ("setup", []),
     "pool": ("discovery", []),
-    "batch 1 pending": ("discovery", []),
+    "batch 1 pending": ("discovery", ["bams-cli abandon -w {ws} --batch 1 --reason WHY"]),
     "batch 1 in": ("discovery", []),
     "fitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
-    "batch 2 pending": ("discovery", []),
+    "batch 2 pending": ("discovery", ["bams-cli abandon -w {ws} --batch 2 --reason WHY"]),
     "batch 2 in": ("discovery", []),
     "refitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
-    "plan pending": ("estimate", []),
+    "plan pending": ("estimate", ["bams-cli abandon -w {ws} --plan 1 --reason WHY"]),
     "plan in": ("estimate", []),
     "stage 1 in, fitted": ("estimate", []),
-    "stage 2 pending": ("estimate", []),
+    "stage 2 pending": ("estimate", ["bams-cli abandon -w {ws} --plan 2 --reason WHY"]),
     "stage 2 in": ("estimate", []),
     "estimated": ("estimate", []),
     "estimated, fitted": ("estimate", []),
