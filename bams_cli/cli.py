@@ -554,11 +554,15 @@ def ingest_results(
     pend = summary["pending"]
     if pend["count"]:
         rows = [
-            [r["segment_id"], r["fidelity"], r["batch"] or f"plan {r.get('plan')}"]
+            [
+                r["segment_id"],
+                r["fidelity"],
+                f"batch {r['batch']}" if r["batch"] else f"plan {r.get('plan')}",
+            ]
             for r in pend["first"]
         ]
         console.rows_table(
-            f"still pending: {pend['count']}", ["segment_id", "fidelity", "batch"], rows
+            f"still pending: {pend['count']}", ["segment_id", "fidelity", "asked by"], rows
         )
         console.pending_lists(summary.get("pending_lists") or [])
     elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
