@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from bams_cli import abandon, defaults, memory, pipeline
-from bams_cli.errors import BamsError, OptionValueError, WorkspaceError
+from bams_cli.errors import BamsError, InputError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state import pending
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
@@ -225,6 +225,12 @@ def loop(
                 if step is None:
                     break
                 current = name, kind, number = step
+                if name == "ingest-results":
+                    # Ingested once and still pending: say so, without a second "ingest"
+                    # progress line for a step that is not run again.
+                    assert kind is not None and number is not None
+                    if (results := _results_file(opts, kind, number)) in ingested:
+                        _stuck(ws, opts, kind, number, results)
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
                 steps.append(_run(ws, opts, name, kind, number, ingested, on_warning))
@@ -409,11 +415,14 @@ def _run(
         if results in ingested:
             _stuck(ws, opts, kind, number, results)
         ingested.add(results)
-        if opts.abandon_failed:
-            out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
-            record["abandoned"] = out["abandoned"]["abandoned"]
-        else:
-            out = pipeline.ingest_results(root, results, wait=wait)
+        try:
+            if opts.abandon_failed:
+                out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
+                record["abandoned"] = out["abandoned"]["abandoned"]
+            else:
+                out = pipeline.ingest_results(root, results, wait=wait)
+        except InputError as exc:
+            raise LoopError(_rejected(results, exc, kind, number)) from None
         record["ingested"] = out["ingested"]
     elif name == "estimate --plan":
         out = pipeline.estimate_plan(root, samples=opts.samples, wait=wait)
@@ -512,6 +521,24 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
         with contextlib.suppress(psutil.NoSuchProcess):
             p.kill()
     proc.wait()
+
+
+def _rejected(results: Path, exc: InputError, kind: str, number: int) -> str:
+    """Move a results file ``ingest-results`` refused out of the loop's way, and say so.
+
+    Left in place, the next loop would ingest it again and fail the same way, whatever was
+    fixed in the simulator. It is kept (as ``rejected-<name>``, numbered if one is there
+    already) for the user to read, and the next loop simulates the list again."""
+    target = results.with_name(f"rejected-{results.name}")
+    k = 1
+    while target.exists():
+        k += 1
+        target = results.with_name(f"rejected-{k}-{results.name}")
+    os.replace(results, target)
+    return (
+        f"{exc} (the simulator's results for {kind} {number}: moved to {target}; fix the "
+        "simulator and run the same `bams-cli loop` again, which simulates the list again)"
+    )
 
 
 def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) -> None:

@@ -179,9 +179,19 @@ def test_error_text_is_printed_as_written(ws, runner, tmp_path):
     res = _results(tmp_path / "m.csv", [("[/a]", 0, 1.0)])
     r = invoke(runner, "ingest-results", "-w", ws, res)
     assert r.exit_code == 1 and "segment id '[/a]' is not in the pool" in r.stderr
-    res = _results(tmp_path / "f.parquet", [(IDS[0], 3, 1.0)])
-    r = invoke(runner, "ingest-results", "-w", ws, res)
-    assert "add it to settings.toml [[levels]]" in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("level", "hint"),
+    [(3, "if it is a simulator the study should have, add it to the levels list in settings.toml"),
+     (-1, "levels count up from 0")],
+)  # fmt: skip
+def test_a_level_outside_the_study_gets_the_fix_that_fits_it(ws, runner, tmp_path, level, hint):
+    for suffix in ("parquet", "csv"):
+        res = _results(tmp_path / f"f.{suffix}", [(IDS[0], level, 1.0)])
+        r = invoke(runner, "ingest-results", "-w", ws, res)
+        assert r.exit_code == 1 and r.stderr.rstrip().endswith(hint), r.stderr
+        assert f"fidelity {level} is not a configured level" in r.stderr
 
 
 def test_a_command_holds_the_lock_from_first_read(ws, runner, tmp_path):

@@ -450,6 +450,7 @@ def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 1 and "2 requests of batch 1 still have no result" in first.stderr
     assert "run the simulator again on those requests alone" in first.stderr
+    assert first.stderr.count("batch 1: ingest-results") == 1  # one step, one progress line
     results = ws / "loop-results" / "batch-0001.csv"
     results.unlink()  # as the message says
     again = subprocess.run([*args, "--json"], capture_output=True, text=True)
@@ -457,3 +458,43 @@ def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_
     subset = ws / "loop-results" / "batch-0001.pending.csv"
     assert len(pl.read_csv(subset)) == 2  # the two crashed requests, no more
     assert Workspace(ws).pending().height == 0
+
+
+BAD_LEVEL = """
+import subprocess, sys
+flag, truth, handoff, results = sys.argv[1:]
+subprocess.run([*BAMS, "simulate", handoff, "--truth", truth, "-o", results], check=True)
+if not __import__("os").path.exists(flag):  # the first time: a bug writes level 3
+    open(flag, "w").close()
+    lines = open(results).read().splitlines()
+    head = lines[0].split(",")
+    row = lines[1].split(",")
+    row[head.index("fidelity")] = "3"
+    open(results, "w").write("\\n".join([lines[0], ",".join(row), *lines[2:]]) + "\\n")
+"""
+
+
+def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_again(
+    data, tmp_path
+):
+    # A simulator that exits 0 with a file ingest-results refuses: the loop kept the file,
+    # and every rerun ingested it again and failed the same way, the simulator fixed or not.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "bad_level.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
+    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3"]  # fmt: skip
+    first = subprocess.run(args, capture_output=True, text=True)
+    results = ws / "loop-results" / "batch-0001.csv"
+    rejected = ws / "loop-results" / "rejected-batch-0001.csv"
+    assert first.returncode == 1
+    [line] = [x for x in first.stderr.splitlines() if x.startswith("error:")]
+    assert line.startswith(f"error: {results}: column 'fidelity', row 1: fidelity 3"), line
+    assert f"moved to {rejected}" in line and "simulates the list again" in line
+    assert rejected.exists() and not results.exists()  # kept for the user to read
+    assert len(Workspace(ws).read_observations()) == 0  # nothing of it ingested
+    again = subprocess.run(args, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert Workspace(ws).pending().height == 0 and len(Workspace(ws).read_observations()) > 0

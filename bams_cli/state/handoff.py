@@ -157,6 +157,16 @@ def template_frame(handoff: pl.DataFrame) -> pl.DataFrame:
     )
 
 
+def _add_level_hint(level: int) -> str:
+    """The fix a level outside the study's suggests: a level above them may be a simulator
+    the settings do not list yet; a negative one is a mistake in the file."""
+    if level < 0:
+        return "; levels count up from 0"
+    return (
+        "; if it is a simulator the study should have, add it to the levels list in settings.toml"
+    )
+
+
 def resolve_fidelity(
     values: pl.Series, rows: pl.Series, settings: Settings, path: Path
 ) -> pl.Series:
@@ -186,8 +196,8 @@ def resolve_fidelity(
             if not 0 <= level < len(names):  # before an Int64 column could overflow
                 raise InputError(
                     path,
-                    f"fidelity {shown(value)} is not a configured level (known levels: {known}); "
-                    "add it to settings.toml [[levels]]",
+                    f"fidelity {shown(value)} is not a configured level (known levels: {known})"
+                    + _add_level_hint(level),
                     column="fidelity",
                     row=int(row),
                 )
@@ -197,8 +207,8 @@ def resolve_fidelity(
         i = int(outside.arg_true()[0])
         raise InputError(
             path,
-            f"fidelity {levels[i]} is not a configured level (known levels: {known}); "
-            f"add it to settings.toml [[levels]]",
+            f"fidelity {levels[i]} is not a configured level (known levels: {known})"
+            + _add_level_hint(int(levels[i])),
             column="fidelity",
             row=int(rows[i]),
         )
