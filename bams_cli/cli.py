@@ -1166,6 +1166,15 @@ def loop(
             "estimate with --failed-as bounds).",
         ),
     ] = False,
+    retries: Annotated[
+        int,
+        typer.Option(
+            "--retries",
+            help="Run the simulator again on a list's requests still without a result (failed "
+            "or missing rows) up to N times before stopping (or, with --abandon-failed, "
+            "abandoning them).",
+        ),
+    ] = 0,
     clusters: Annotated[
         int, typer.Option("--clusters", "-S", envvar="BAMS_CLUSTERS", help="select: clusters S.")
     ] = defaults.CLUSTERS,
@@ -1194,6 +1203,7 @@ def loop(
             samples=samples,
             results_dir=results_dir,
             abandon_failed=abandon_failed,
+            retries=retries,
             clusters=clusters,
             workers=workers,
             wait=wait,

@@ -85,6 +85,7 @@ class Options:
     samples: float | None
     results_dir: Path
     abandon_failed: bool
+    retries: int
     clusters: int
     workers: int | None
     wait: bool
@@ -101,6 +102,7 @@ def loop(
     samples: float | None = None,
     results_dir: Path | None = None,
     abandon_failed: bool = False,
+    retries: int = 0,
     clusters: int = 6,
     workers: int | None = None,
     wait: bool = False,
@@ -137,7 +139,11 @@ def loop(
         Where the simulator's results files go (default: ``root / "loop-results"``).
     abandon_failed : bool, default False
         Record results rows with a failed status as abandoned and go on (and estimate
-        with ``failed_as="bounds"``).
+        with ``failed_as="bounds"``); with ``retries``, only once they are spent.
+    retries : int, default 0
+        Times the simulator is run again on a list's requests still without a result
+        (failed or missing rows) before the loop stops (or abandons them); the results file
+        of each try is kept as ``retried-K-NAME.csv``.
     clusters : int, default 6
         select's clusters S.
     workers : int, optional
@@ -181,6 +187,8 @@ def loop(
         )
     if batches < 1:
         raise OptionValueError(f"--batches {batches}: must be >= 1")
+    if retries < 0:
+        raise OptionValueError(f"--retries {retries}: must be >= 0")
     # Checked before any step: the estimate's --samples would otherwise be refused only
     # after every batch had been simulated.
     check_budget(budget)
@@ -201,6 +209,7 @@ def loop(
         samples=samples,
         results_dir=Path(results_dir) if results_dir else ws.root / "loop-results",
         abandon_failed=abandon_failed,
+        retries=retries,
         clusters=clusters,
         workers=workers,
         wait=wait,
@@ -208,6 +217,7 @@ def loop(
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
+    tries: dict[tuple[str | None, int | None], int] = {}  # retries spent per list
     with (
         workspace_lock(
             ws.root,
@@ -230,10 +240,25 @@ def loop(
                     # progress line for a step that is not run again.
                     assert kind is not None and number is not None
                     if (results := _results_file(opts, kind, number)) in ingested:
-                        _stuck(ws, opts, kind, number, results)
+                        if tries.get((kind, number), 0) >= opts.retries:
+                            _stuck(ws, opts, kind, number, results)
+                        t = tries[kind, number] = tries.get((kind, number), 0) + 1
+                        kept = _set_aside(results, f"retried-{t}")
+                        ingested.discard(results)
+                        if on_warning is not None:
+                            pend = ws.pending()
+                            left = pend.filter(pend[kind] == number).height
+                            on_warning(
+                                f"{_describe(name, kind, number)}: {left} request"
+                                f"{'s' if left != 1 else ''} still without a result: "
+                                f"simulating {'them' if left != 1 else 'it'} again (retry "
+                                f"{t} of {opts.retries}; the results are kept as {kept})"
+                            )
+                        continue
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
-                steps.append(_run(ws, opts, name, kind, number, ingested, on_warning))
+                last_try = tries.get((kind, number), 0) >= opts.retries
+                steps.append(_run(ws, opts, name, kind, number, ingested, on_warning, last_try))
         except LoopStopped as exc:
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
@@ -385,6 +410,7 @@ def _run(
     number: int | None,
     ingested: set[Path],
     on_warning: Callable[[str], None] | None = None,
+    last_try: bool = True,
 ) -> dict[str, Any]:
     root, wait = ws.root, opts.wait
     record: dict[str, Any] = {"step": name, "list": None if kind is None else f"{kind} {number}"}
@@ -416,7 +442,7 @@ def _run(
             _stuck(ws, opts, kind, number, results)
         ingested.add(results)
         try:
-            if opts.abandon_failed:
+            if opts.abandon_failed and last_try:  # retries spent: abandon what failed
                 out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
                 record["abandoned"] = out["abandoned"]["abandoned"]
             else:
@@ -523,18 +549,25 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
     proc.wait()
 
 
+def _set_aside(results: Path, prefix: str) -> Path:
+    """Rename ``results`` to ``PREFIX-NAME`` beside it (``PREFIX-K-NAME`` if that is taken):
+    kept, out of the loop's way."""
+    target = results.with_name(f"{prefix}-{results.name}")
+    k = 1
+    while target.exists():
+        k += 1
+        target = results.with_name(f"{prefix}-{k}-{results.name}")
+    os.replace(results, target)
+    return target
+
+
 def _rejected(results: Path, exc: InputError, kind: str, number: int) -> str:
     """Move a results file ``ingest-results`` refused out of the loop's way, and say so.
 
     Left in place, the next loop would ingest it again and fail the same way, whatever was
     fixed in the simulator. It is kept (as ``rejected-<name>``, numbered if one is there
     already) for the user to read, and the next loop simulates the list again."""
-    target = results.with_name(f"rejected-{results.name}")
-    k = 1
-    while target.exists():
-        k += 1
-        target = results.with_name(f"rejected-{k}-{results.name}")
-    os.replace(results, target)
+    target = _set_aside(results, "rejected")
     return (
         f"{exc} (the simulator's results for {kind} {number}: moved to {target}; fix the "
         "simulator and run the same `bams-cli loop` again, which simulates the list again)"
@@ -550,5 +583,5 @@ def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) 
         f"result (failed runs, or rows missing); rerun them and ingest the results, record "
         f"them as lost with `bams-cli abandon -w {shlex.quote(str(ws.root))} {flag}` (or run "
         "the loop with --abandon-failed), or delete the file to run the simulator again "
-        "on those requests alone"
+        "on those requests alone (--retries N does that N times by itself)"
     )

@@ -421,7 +421,7 @@ flag, truth, handoff, results = sys.argv[1:5]
 raw = results + ".raw.csv"
 subprocess.run([*BAMS, "simulate", handoff, "--truth", truth, "-o", raw], check=True)
 rows = list(csv.DictReader(open(raw)))
-first = not Path(flag).exists()
+first = not Path(flag).exists() or sys.argv[5:] == ["always"]  # crash once, or every time
 Path(flag).touch()
 for i, r in enumerate(rows):
     r["value"], r["status"] = str(float(r["value"]) + random.uniform(-0.01, 0.01)), "ok"
@@ -498,3 +498,41 @@ def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_
     again = subprocess.run(args, capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert Workspace(ws).pending().height == 0 and len(Workspace(ws).read_observations()) > 0
+
+
+@pytest.mark.parametrize("crashes", ["once", "always"])
+def test_retries_simulate_what_has_no_result_again_then_abandon_it(data, tmp_path, crashes):
+    # --retries N reruns the simulator on the requests still without a result by itself,
+    # keeping each try's results file; with --abandon-failed, what still fails after the
+    # last try is abandoned and the loop goes on.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "noisy.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + NOISY)
+    command = (
+        f"{sys.executable} {sim} {tmp_path / 'flag'} {truth} {{handoff}} {{results}} {crashes}"
+    )
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3", "--retries", "2"]  # fmt: skip
+    if crashes == "always":
+        stuck = subprocess.run(args, capture_output=True, text=True)
+        assert (
+            stuck.returncode == 1 and "2 requests of batch 1 still have no result" in stuck.stderr
+        )
+        assert stuck.stderr.count("simulating them again (retry") == 2  # then it stops
+        args.append("--abandon-failed")
+        shutil.rmtree(ws / "loop-results")
+    r = subprocess.run(args, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    tries = 1 if crashes == "once" else 2
+    folder = ws / "loop-results"
+    for t in range(1, tries + 1):
+        assert (
+            f"2 requests still without a result: simulating them again (retry {t} of 2" in r.stderr
+        )
+        assert (folder / f"retried-{t}-batch-0001.csv").exists()  # each try's results kept
+    assert not (folder / f"retried-{tries + 1}-batch-0001.csv").exists()
+    w = Workspace(ws)
+    assert w.pending().height == 0
+    assert len(pl.read_csv(folder / "batch-0001.pending.csv")) == 2  # the crashed two alone
+    assert w.read_abandoned().height == (0 if crashes == "once" else 2)
