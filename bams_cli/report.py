@@ -317,7 +317,7 @@ def _table(columns: list[str], rows: list[list[Any]], left: set[str] | None = No
     for row in rows:
         cells = []
         for c, v in zip(columns, row, strict=True):
-            text = f"{v:.4g}" if isinstance(v, float) else str(v)
+            text = f"{v:.4g}" if isinstance(v, float) else "" if v is None else str(v)
             cells.append(f'<td class="{"l" if c in left else ""}">{html.escape(text)}</td>')
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shlex
 from pathlib import Path
 from typing import Any
@@ -195,7 +196,9 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     try:
         model = ws.require_model(allow_newer_observations=True)
     except (StaleStateError, SchemaError) as exc:  # damaged, another pool, scores of another fit
-        return {"fresh": False, "fitted_on": None, "fitted_at": None, "reason": str(exc)}
+        # The error's own "run `bams-cli fit`" goes: ``next`` names the command once.
+        reason = re.sub(r"[;:] run `bams-cli fit -w [^`]*`$", "", str(exc))
+        return {"fresh": False, "fitted_on": None, "fitted_at": None, "reason": reason}
     fitted = int(sum(model.get("n_observations_per_level", [])))
     return {
         "fresh": bool(model["fresh"]),

@@ -103,6 +103,20 @@ def test_apply_maps_fitted_segments_identically(av_ws, runner, tmp_path):
     ids2, Z2 = ws.read_pool()
     assert len(ids2) == 1200
     np.testing.assert_array_equal(Z2[600:], Z)
+    # Make runs each step again: the same --apply, and the step that made the pool, are
+    # no-ops (the --apply one was refused: its ids are in the pool, by itself).
+    for args in ([again, "--apply"], [seg]):
+        before = tree_hash(av_ws)
+        r = invoke(runner, "embed-reduce", "-w", av_ws, *args, "--json")
+        assert r.exit_code == 0, r.output
+        out = json.loads(r.stdout)
+        assert out["unchanged"] is True and out["added"] == 0 and out["pool_size"] == 1200
+        assert tree_hash(av_ws) == before
+    # A different file whose ids are in the pool is still refused.
+    other = tmp_path / "other.parquet"
+    pq.write_table(pq.read_table(again).slice(0, 5), other)
+    r = invoke(runner, "embed-reduce", "-w", av_ws, other, "--apply")
+    assert r.exit_code == 1 and "is already in the pool" in r.stderr
 
 
 def test_apply_rejects_ids_already_in_pool(av_ws, runner, tmp_path):

@@ -293,6 +293,11 @@ def test_likely_failures_are_unknown_at_level_0_and_level_0_failures_are_confirm
     gamma = s["study"]["gammas"][0]
     likely = [row["segment_id"] for row in s["diverse_failures"]]
     assert not set(likely) & set(level0)
+    # A value a row lacks (no cheap run: observed_f1) is null, as in failures_found, not "".
+    for rows in (s["diverse_failures"], s["confirmed_failures"]):
+        assert all(v != "" for row in rows for v in row.values())
+    for b in s["batches"]:  # sums of run costs without float dust (0.1 x 200 is 20)
+        assert b["cost"] == float(f"{b['cost']:.12g}")
     if s["model"] is not None:
         assert len(likely) == 5 and "pool_map" in s["figures"]
     else:
@@ -988,3 +993,28 @@ def test_a_breakdown_whose_model_disagrees_with_the_estimate_says_so():
     other = groups(8.6, 7.4)  # an estimate at another gamma says nothing about this one
     _model_against_estimate(other, est, 0.0, 12_000)
     assert "caveat" not in other
+
+
+def test_a_stored_model_is_read_at_its_own_column_for_a_gamma(tmp_path):
+    # Snapshots keep the gammas of their fit; after settings.toml reorders them, the report
+    # read p_0 by position and showed another gamma's rate beside this one's failures.
+    from bams_cli.pipeline.reporting import _snapshot_p
+    from bams_cli.state import schemas
+    from bams_cli.state.io import stamp
+
+    table = pa.table({"p_0": [0.1, 0.2], "p_1": [0.7, 0.9]})
+    path = tmp_path / "scores-after-batch-0001.parquet"
+    pq.write_table(stamp(table, schemas.SCORES.version, {"gammas": [-0.5, 0.5]}), path)
+    np.testing.assert_array_equal(_snapshot_p(path, 0.5), [0.7, 0.9])
+    np.testing.assert_array_equal(_snapshot_p(path, -0.5), [0.1, 0.2])
+    assert _snapshot_p(path, 0.25) is None  # a gamma added since: that model never had it
+    old = tmp_path / "scores-after-batch-0002.parquet"  # written before gammas were recorded
+    pq.write_table(stamp(table, schemas.SCORES.version), old)
+    np.testing.assert_array_equal(_snapshot_p(old, 0.5), [0.1, 0.2])
+
+
+def test_run_costs_are_summed_without_float_dust():
+    from bams_cli.pipeline.reporting import _cost
+
+    assert sum([0.1] * 200) != 20.0 and _cost(sum([0.1] * 200)) == 20.0
+    assert _cost(sum([0.05] * 3)) == 0.15 and _cost(1e-7 / 3) == float(f"{1e-7 / 3:.12g}")

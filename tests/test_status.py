@@ -214,6 +214,17 @@ def test_status_reads_only(study, tmp_path):
     assert tree_hash(copy) == before and lock.stat().st_mtime_ns == lock_before
 
 
+def test_a_model_stale_after_a_gamma_edit_is_told_to_fit_once(study, tmp_path):
+    # The staleness error carries its own "run `bams-cli fit`", and next added another.
+    copy = tmp_path / "ws"
+    shutil.copytree(study.ws, copy)
+    settings = copy / "settings.toml"
+    settings.write_text(settings.read_text().replace("gammas = [", "gammas = [\n    9.5,", 1))
+    r = invoke(study.runner, "status", "-w", copy, "--json")
+    text = json.loads(r.stdout)["next"]["text"]
+    assert "fitted for gammas" in text and text.count("bams-cli fit") == 1, text
+
+
 @pytest.mark.parametrize(
     ("stage", "args", "needle"),
     [

@@ -142,11 +142,17 @@ def embed_reduce(
             "id_column": id_column,
         },
     }
-    if not apply and not force and ws.segments_path.exists():
-        # A re-run of the step that made the pool (a Makefile target, a CI retry) is a
-        # no-op; a different file or other options need --force or --apply.
-        made = read_metadata_json(ws.segments_path)
-        if all(made.get(k) == v for k, v in request.items()):
+    made = read_metadata_json(ws.segments_path) if ws.segments_path.exists() else {}
+    # A re-run of a step that made or grew the pool (a Makefile target, a CI retry) is a
+    # no-op: the same file with the same options, or the same file --apply'd already. A
+    # different file or other options need --force or --apply.
+    again = (
+        request["source_sha256"] in (made.get("applied_sha256") or [])
+        if apply
+        else all(made.get(k) == v for k, v in request.items())
+    )
+    if not force and ws.segments_path.exists():
+        if again:
             names = pq.read_schema(ws.segments_path).names
             return {
                 "segments": str(ws.segments_path),
@@ -158,7 +164,9 @@ def embed_reduce(
                     c for c in names if c != SID and not (c[:1] == "z" and c[1:].isdigit())
                 ],
                 "unchanged": True,
-                "note": "the pool was already reduced from this file with these options",
+                "note": "the pool already holds this file's segments, added by --apply"
+                if apply
+                else "the pool was already reduced from this file with these options",
             }
     layout: dict[str, Any] | None = None
     if apply:
@@ -274,7 +282,11 @@ def embed_reduce(
         "source": str(source),
         "seed": settings.seed,
         "reconstruction_error": reducer.reconstruction_error,
-        **({} if apply else request),
+        # --apply keeps what made the pool (its re-run stays a no-op) and adds its file.
+        **({k: made.get(k) for k in request} if apply else request),
+        "applied_sha256": [*(made.get("applied_sha256") or []), request["source_sha256"]]
+        if apply
+        else [],
     }
     warnings = (
         []

@@ -120,11 +120,11 @@ def report(
     per_level = {}
     for lv in range(settings.n_levels):
         count = int((log["fidelity"] == lv).sum())
-        per_level[str(lv)] = {"count": count, "cost": count * costs[lv]}
+        per_level[str(lv)] = {"count": count, "cost": _cost(count * costs[lv])}
     spent = {
         "per_level": per_level,
         "count": int(log.height),
-        "cost": float(sum(v["cost"] for v in per_level.values())),
+        "cost": _cost(sum(v["cost"] for v in per_level.values())),
     }
 
     model_doc = None
@@ -176,7 +176,7 @@ def report(
                     str(k): int(v)
                     for k, v in df.group_by("cluster").len().sort("cluster").iter_rows()
                 },
-                "cost": float(df["cost"].sum()),
+                "cost": _cost(df["cost"].sum()),
                 "n_f0": int(len(f0)),
                 "pending": pending,
                 "abandoned": gone.height,
@@ -279,7 +279,7 @@ def report(
             row.update(leads.get(str(ids[i]), {}))
             row.update(more)
             diverse.append(row)
-        diverse = _uniform_rows(diverse)
+        diverse = _uniform_rows(diverse, blank=None)  # JSON null where a row has no such value
 
     # Failures seen at level 0: findings, not guesses. Those the estimate plan sampled are
     # here too; the list holds every one (it is bounded by the level-0 runs).
@@ -293,7 +293,7 @@ def report(
             row["p_n"] = float(scores[2][pos[sid], 0])
         row.update(more)
         confirmed.append(row)
-    confirmed = _uniform_rows(confirmed)
+    confirmed = _uniform_rows(confirmed, blank=None)  # JSON null where a row has no such value
     failures = _failures_found(ws, active, gammas, pos)
     table = _failures_table(failures)  # failures.csv, and the page's table from its head
     head = rep.headline(estimates, gp_rows, failures, spent, gammas[0])
@@ -351,8 +351,8 @@ def report(
         if counts[0]:
             for snap in sorted(ws.history_dir.glob("scores-after-batch-*.parquet")):
                 batch = int(snap.stem.rsplit("-", 1)[1])
-                p_snap = read_state(snap, columns=["p_0"]).column("p_0").to_numpy()
-                if len(p_snap) == n:
+                p_snap = _snapshot_p(snap, gammas[0])
+                if p_snap is not None and len(p_snap) == n:
                     curves[batch] = retention_recall(p_snap, fails[:, 0], grid)
         if curves:
             figures["recall"] = rep.recall_plot(curves, grid)
@@ -824,6 +824,26 @@ def _failures_table(failures: list[dict[str, Any]]) -> pl.DataFrame:
     return table.select(order + [c for c in table.columns if c not in order])
 
 
+def _cost(total: Any) -> float:
+    """A sum of run costs to 12 significant digits: 0.1 added 200 times is 20, not
+    19.999999999999993, in summary.json as on the page."""
+    return float(f"{float(total):.12g}")
+
+
+def _snapshot_p(path: Path, gamma: float) -> np.ndarray | None:
+    """A stored model's failure probabilities at ``gamma``, from the column its metadata
+    gives that gamma (the p_<k> columns follow the gammas of its fit, which an edit of
+    settings.toml may have reordered since); None when it was fitted without it."""
+    gammas = read_metadata_json(path).get("gammas")
+    if not isinstance(gammas, list):  # written before snapshots recorded their gammas
+        col = "p_0"
+    elif float(gamma) in (known := [float(g) for g in gammas]):
+        col = f"p_{known.index(float(gamma))}"
+    else:
+        return None
+    return read_state(path, columns=[col]).column(col).to_numpy()
+
+
 class _Models:
     """The level-0 failure probabilities p_0 of every stored model (the snapshots in
     ``history/`` and the current scores), by the hash of the observation log each was
@@ -966,7 +986,7 @@ def _trends(
     for b, df in frames.items():
         meta = read_metadata_json(schemas.batch_path(ws.root, b))
         per_level = {
-            str(int(k)): float(v)
+            str(int(k)): _cost(v)
             for k, v in df.group_by("fidelity")
             .agg(pl.col("cost").sum())
             .sort("fidelity")
@@ -983,7 +1003,7 @@ def _trends(
         new = set(active0.filter(pl.col("batch") == b)[SID].to_list())
         seen |= new
         jb, ja = meta.get("j_before"), meta.get("j_after")
-        cost = float(df["cost"].sum())
+        cost = _cost(df["cost"].sum())
         results0 = [pos[s] for s in level0.filter(pl.col("batch") == b)[SID].unique().to_list()
                     if s in pos]  # fmt: skip
         row: dict[str, Any] = {
@@ -1012,8 +1032,9 @@ def _trends(
             row["predicted_sd"] = float(np.sqrt(np.sum(q * (1 - q))))
             row["predicted_by"] = by
         snap = ws.history_dir / f"scores-after-batch-{b:04d}.parquet"
-        if snap.exists():
-            m, bound = gp_estimate(read_state(snap, columns=["p_0"]).column("p_0").to_numpy())
+        p_snap = _snapshot_p(snap, gamma) if snap.exists() else None
+        if p_snap is not None:
+            m, bound = gp_estimate(p_snap)
             row["gp_rate"], row["gp_sd_bound"] = m, float(np.sqrt(bound))
         rows.append(row)
     return rows
@@ -1051,13 +1072,13 @@ def _spend(
     def per_level(rows: pl.DataFrame) -> dict[str, Any]:
         counts = dict(rows.group_by("fidelity").len().iter_rows())
         levels = {
-            str(lv): {"count": int(counts.get(lv, 0)), "cost": counts.get(lv, 0) * costs[lv]}
+            str(lv): {"count": int(counts.get(lv, 0)), "cost": _cost(counts.get(lv, 0) * costs[lv])}
             for lv in range(len(costs))
         }
         return {
             "per_level": levels,
             "count": rows.height,
-            "cost": float(sum(v["cost"] for v in levels.values())),
+            "cost": _cost(sum(v["cost"] for v in levels.values())),
         }
 
     plan_of = _plan_of(ws)
