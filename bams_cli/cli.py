@@ -1174,7 +1174,7 @@ def loop(
             "or missing rows) up to N times before stopping (or, with --abandon-failed, "
             "abandoning them).",
         ),
-    ] = 0,
+    ] = defaults.RETRIES,
     clusters: Annotated[
         int, typer.Option("--clusters", "-S", envvar="BAMS_CLUSTERS", help="select: clusters S.")
     ] = defaults.CLUSTERS,

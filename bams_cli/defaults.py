@@ -156,6 +156,10 @@ CONFIRM_SHARE = 0.2
 #: asinh compressions of it far from gamma (``core.gp.transform``); "none" keeps the metric.
 TRANSFORM = Transform.AUTO
 
+#: Times ``loop`` runs the simulator again on a list's requests still without a result
+#: before it stops: none, so a simulator that fails is seen at once (``--retries N``).
+RETRIES = 0
+
 #: Budget of ``select`` in cost units (a level-0 run costs 1), and of the first batch that
 #: ``status`` suggests.
 BUDGET = 5.0

@@ -102,7 +102,7 @@ def loop(
     samples: float | None = None,
     results_dir: Path | None = None,
     abandon_failed: bool = False,
-    retries: int = 0,
+    retries: int = defaults.RETRIES,
     clusters: int = 6,
     workers: int | None = None,
     wait: bool = False,
@@ -140,7 +140,7 @@ def loop(
     abandon_failed : bool, default False
         Record results rows with a failed status as abandoned and go on (and estimate
         with ``failed_as="bounds"``); with ``retries``, only once they are spent.
-    retries : int, default 0
+    retries : int, default ``defaults.RETRIES`` (0)
         Times the simulator is run again on a list's requests still without a result
         (failed or missing rows) before the loop stops (or abandons them); the results file
         of each try is kept as ``retried-K-NAME.csv``.
