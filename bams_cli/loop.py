@@ -217,7 +217,6 @@ def loop(
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
-    tries: dict[tuple[str | None, int | None], int] = {}  # retries spent per list
     with (
         workspace_lock(
             ws.root,
@@ -240,9 +239,9 @@ def loop(
                     # progress line for a step that is not run again.
                     assert kind is not None and number is not None
                     if (results := _results_file(opts, kind, number)) in ingested:
-                        if tries.get((kind, number), 0) >= opts.retries:
+                        if _retries_spent(results) >= opts.retries:
                             _stuck(ws, opts, kind, number, results)
-                        t = tries[kind, number] = tries.get((kind, number), 0) + 1
+                        t = _retries_spent(results) + 1
                         kept = _set_aside(results, f"retried-{t}")
                         ingested.discard(results)
                         if on_warning is not None:
@@ -257,7 +256,11 @@ def loop(
                         continue
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
-                last_try = tries.get((kind, number), 0) >= opts.retries
+                last_try = (
+                    kind is None
+                    or number is None
+                    or (_retries_spent(_results_file(opts, kind, number)) >= opts.retries)
+                )
                 steps.append(_run(ws, opts, name, kind, number, ingested, on_warning, last_try))
         except LoopStopped as exc:
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
@@ -448,6 +451,8 @@ def _run(
             else:
                 out = pipeline.ingest_results(root, results, wait=wait)
         except InputError as exc:
+            if Path(exc.file) != results:  # a damaged workspace file, not the simulator's
+                raise
             raise LoopError(_rejected(results, exc, kind, number)) from None
         record["ingested"] = out["ingested"]
     elif name == "estimate --plan":
@@ -549,6 +554,12 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
     proc.wait()
 
 
+def _retries_spent(results: Path) -> int:
+    """Retries already spent on ``results``' list: the tries kept beside it as
+    ``retried-K-NAME`` (on disk, so a loop stopped and run again counts them too)."""
+    return sum(1 for _ in results.parent.glob(f"retried-*-{results.name}"))
+
+
 def _set_aside(results: Path, prefix: str) -> Path:
     """Rename ``results`` to ``PREFIX-NAME`` beside it (``PREFIX-K-NAME`` if that is taken):
     kept, out of the loop's way."""
@@ -581,7 +592,12 @@ def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) 
     raise LoopError(
         f"{results}: ingested, but {left.height} requests of {kind} {number} still have no "
         f"result (failed runs, or rows missing); rerun them and ingest the results, record "
-        f"them as lost with `bams-cli abandon -w {shlex.quote(str(ws.root))} {flag}` (or run "
-        "the loop with --abandon-failed), or delete the file to run the simulator again "
-        "on those requests alone (--retries N does that N times by itself)"
+        f"them as lost with `bams-cli abandon -w {shlex.quote(str(ws.root))} {flag}`"
+        + (
+            " (--abandon-failed abandons rows with a failed status, not rows missing from the file)"
+            if opts.abandon_failed
+            else " (or run the loop with --abandon-failed)"
+        )
+        + ", or delete the file to run the simulator again on those requests alone "
+        "(--retries N does that N times by itself)"
     )

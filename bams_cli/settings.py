@@ -28,6 +28,16 @@ HEADER = """\
 """
 
 
+def _as_level_number(name: str) -> int | None:
+    """The level number a results file's fidelity text ``name`` would read as, had no
+    level that name (``state.handoff``: "1", "1.0", "1e0" are all level 1); None if none."""
+    try:
+        number = float(name)
+    except ValueError:
+        return None
+    return int(number) if math.isfinite(number) and number == round(number) else None
+
+
 #: The keys settings.toml may hold; anything else is a slip that would be ignored.
 _TOP_KEYS = ("study", "levels", "extra")
 _STUDY_KEYS = ("gammas", "seed", "embedding_dim", "id_column")
@@ -140,7 +150,7 @@ class Settings:
                     "own name",
                     setting="level_names",
                 )
-            if name.lstrip("+-").isdigit() and int(name) != i:
+            if _as_level_number(name) not in (None, i):
                 raise SettingsError(
                     f"settings: level {i} is named {name!r}, the number of another level; "
                     "results that name their level would land at the wrong one",
@@ -229,7 +239,8 @@ def levels_from_costs(costs: list[float], names: list[str] | None = None) -> tup
         names = ["high"] + [f"low{i}" for i in range(1, len(costs))]
     if len(names) != len(costs):
         raise OptionValueError(f"--level-names has {len(names)} names for {len(costs)} costs")
-    return tuple(Level(n, float(c)) for n, c in zip(names, costs, strict=True))
+    # "high, low1" names the second level "low1": results name it without the space.
+    return tuple(Level(n.strip(), float(c)) for n, c in zip(names, costs, strict=True))
 
 
 def load_settings(workspace: Path) -> Settings:

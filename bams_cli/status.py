@@ -287,8 +287,9 @@ def _next_step(
         waiting = [e["pending_handoff"] or e["handoff"] for e in lists]
         cmd = f"bams-cli ingest-results -w {w} RESULTS.parquet"
         n = sum(b["pending"] for b in batches) + sum(p["pending"] for p in plans)
-        # Runs that will never come back (a simulator that fails for good) are abandoned
-        # instead, which lets the loop go on.
+        # A list partly answered may hold runs that will never come back (a simulator that
+        # fails for good): abandoning them lets the study go on. A list with no result yet
+        # is simply waiting for its simulation.
         gone = tuple(
             {
                 "step": "abandon",
@@ -297,14 +298,15 @@ def _next_step(
                 + " --reason WHY",
             }
             for e in lists
+            if e["pending"] < (e["picks"] if "batch" in e else e["sampled"])
         )
         return step(
             "ingest-results",
             cmd,
             f"{n} {'pick awaits' if n == 1 else 'picks await'} results: simulate "
             f"{' and '.join(map(_to_simulate, lists))} and run `{cmd}` (RESULTS.parquet: "
-            "the results file, Parquet or CSV); runs that can never be simulated: "
-            f"`{gone[0]['command']}`",
+            "the results file, Parquet or CSV)"
+            + (f"; runs that can never be simulated: `{gone[0]['command']}`" if gone else ""),
             gone,
             handoffs=waiting,
         )

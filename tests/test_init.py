@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from bams_cli.settings import Settings
 from tests.conftest import invoke, ok, tree_hash
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -107,6 +108,8 @@ def test_gammas_keep_the_order_given(runner, tmp_path):
          "--level-names lr,lr: level name 'lr' is given to more than one level"),
         (["--costs", "1,0.1", "--level-names", "1,0"],
          "--level-names 1,0: level 0 is named '1', the number of another level"),
+        (["--costs", "1,0.1", "--level-names", "a,0.0"],  # results read "0.0" as level 0
+         "--level-names a,0.0: level 1 is named '0.0', the number of another level"),
     ],
 )  # fmt: skip
 def test_a_flag_out_of_range_is_a_usage_error_naming_it(runner, tmp_path, flags, line):
@@ -169,3 +172,12 @@ def test_level_names_without_costs_name_the_levels_the_study_has(runner, tmp_pat
         in r.stderr
     )
     assert not (tmp_path / "w2").exists()
+
+
+def test_level_names_are_stripped_and_a_name_no_number_reads_is_kept(runner, tmp_path):
+    # "high, low1": results say "low1"; "²" is not a number a results file would read.
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1,0.05",
+       "--level-names", "high, low1,²")  # fmt: skip
+    names = [lv.name for lv in Settings.from_file(ws / "settings.toml").levels]
+    assert names == ["high", "low1", "²"]

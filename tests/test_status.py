@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import polars as pl
 import pytest
 from typer.testing import CliRunner
 
@@ -123,21 +124,20 @@ def test_status_names_the_next_command_at_every_stage(study, stage):
         assert command.format(ws=study.ws) in got["text"].replace("\n", " ")
 
 
-# stage -> the phase `status --json` names, and the other commands its text offers (while
-# picks await results: abandoning runs that can never be simulated)
+# stage -> the phase `status --json` names, and the other commands its text offers
 PHASES = {
     "initialised": ("setup", []),
     "pool": ("discovery", []),
-    "batch 1 pending": ("discovery", ["bams-cli abandon -w {ws} --batch 1 --reason WHY"]),
+    "batch 1 pending": ("discovery", []),
     "batch 1 in": ("discovery", []),
     "fitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
-    "batch 2 pending": ("discovery", ["bams-cli abandon -w {ws} --batch 2 --reason WHY"]),
+    "batch 2 pending": ("discovery", []),
     "batch 2 in": ("discovery", []),
     "refitted": ("discovery", ["bams-cli estimate -w {ws} --plan"]),
-    "plan pending": ("estimate", ["bams-cli abandon -w {ws} --plan 1 --reason WHY"]),
+    "plan pending": ("estimate", []),
     "plan in": ("estimate", []),
     "stage 1 in, fitted": ("estimate", []),
-    "stage 2 pending": ("estimate", ["bams-cli abandon -w {ws} --plan 2 --reason WHY"]),
+    "stage 2 pending": ("estimate", []),
     "stage 2 in": ("estimate", []),
     "estimated": ("estimate", []),
     "estimated, fitted": ("estimate", []),
@@ -283,3 +283,20 @@ def test_a_batch_s_cost_is_summed_without_rounding_error(tmp_path):
     r = invoke(runner, "status", "-w", ws, "--json")
     [batch] = json.loads(r.stdout)["batches"]
     assert (batch["picks"], batch["cost"]) == (200, 20.0)
+
+
+def test_a_partly_answered_list_offers_abandon_for_runs_that_never_come_back(study, tmp_path):
+    # Runs that crashed for good stop the study until they are abandoned; a list with no
+    # result yet is only waiting, and abandoning it is not offered.
+    copy = tmp_path / "ws"
+    shutil.copytree(study.copies["batch 2 pending"], copy)
+    handoff = pl.read_csv(copy / "batches" / "batch-0002.csv")
+    part = tmp_path / "part.csv"
+    handoff.head(1).write_csv(part)
+    res = tmp_path / "res.parquet"
+    simulate_and_ingest(study.runner, copy, part, study.truth, res)
+    r = invoke(study.runner, "status", "-w", copy, "--json")
+    nxt = json.loads(r.stdout)["next"]
+    command = f"bams-cli abandon -w {copy} --batch 2 --reason WHY"
+    assert [a["command"] for a in nxt["alternatives"]] == [command]
+    assert f"runs that can never be simulated: `{command}`" in nxt["text"]

@@ -167,7 +167,9 @@ def _journal_name(workspace: Path, path: Path) -> str:
     """How the journal names ``path``: relative to the workspace when inside it, so a
     copied or moved workspace recovers its own files and never the original's; absolute
     otherwise (``select --out`` beside the workspace)."""
-    path, root = path.resolve(), workspace.resolve()
+    # abspath, not resolve: a subfolder that is a symlink to other storage is still the
+    # workspace's (a copy of the workspace recovers its own files there).
+    path, root = Path(os.path.abspath(path)), Path(os.path.abspath(workspace))
     return path.relative_to(root).as_posix() if path.is_relative_to(root) else str(path)
 
 
