@@ -383,3 +383,13 @@ def test_bams_never_offers_a_cheap_run_the_log_already_holds(toy_ws, runner, toy
 
     assert not [s for s, lv in picks() if lv == 1 and s in cheap_seen]
     assert [s for s, lv in picks("--include-observed") if lv == 1 and s in cheap_seen]
+
+
+def test_a_cheap_level_edited_dear_in_settings_is_warned_by_select(toy_ws, runner):
+    # init warns of a cheap level costing a level-0 run or more; a hand edit came unwarned.
+    settings = toy_ws / "settings.toml"
+    settings.write_text(settings.read_text().replace("cost = 0.1", "cost = 1.5"))
+    r = ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--mixed-fidelity",
+           "--budget", "4", "--json")  # fmt: skip
+    [warning] = json.loads(r.stdout)["warnings"]
+    assert warning.startswith(f"{settings}: level 1 (low1) costs 1.5, no less than a level-0 run")
