@@ -340,3 +340,23 @@ def test_a_model_rate_below_the_failures_already_confirmed_is_warned():
     p[2, 0] = 0.02
     p[4:, 0] = 0.3  # 3.32 expected: no longer below what was seen
     assert _contradicted_outcomes(ids, idx, lv, y, p, [0.0]) == []
+
+
+def test_values_at_the_accepted_limit_give_a_one_line_fit_error(toy_ws, runner, tmp_path):
+    # 0 and 1e150 are both accepted by ingest-results (|value| <= 1e150); the level-1
+    # offset the fit found lay just past the limit, and fit died with an "unexpected"
+    # ValueError (found by test_fuzz_inputs' slow test).
+    write_batch(toy_ws, 1, ["t000001", "t000003", "t000005"], [0, 1, 0])
+    res = tmp_path / "r.parquet"
+    pq.write_table(
+        pa.table({"segment_id": ["t000001", "t000003", "t000005"], "fidelity": [0, 1, 0],
+                  "value": [0.0, 1e150, 0.7]}),
+        res,
+    )  # fmt: skip
+    assert invoke(runner, "ingest-results", "-w", toy_ws, res).exit_code == 0
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "fit", "-w", toy_ws, "--restarts", "1")
+    assert r.exit_code == 1 and "(unexpected" not in r.stderr, r.stderr
+    [line] = r.stderr.splitlines()
+    assert "the observed values span 0 to 1e+150); rescale the metric" in line
+    assert tree_hash(toy_ws) == before

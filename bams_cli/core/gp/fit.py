@@ -149,7 +149,15 @@ def fit_mfgp(
     K, _, _ = objective.covariance(best_theta)
     L, _ = cholesky(K)
     beta, _ = objective.gls_mean(L)
-    hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
+    try:
+        hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
+    except ValueError as exc:
+        # Values near the accepted limit (1e150) give a level offset or mean just past it.
+        raise GPFitError(
+            f"{str(exc).removeprefix('Hyperparameters: ')} in natural units (the observed "
+            f"values span {float(np.min(y)):.3g} to {float(np.max(y)):.3g}); rescale the "
+            "metric, e.g. to units where failures are within a few units of gamma"
+        ) from None
     model = condition(X, levels, y, n_levels, hp, priors=priors, max_memory=max_memory)
     model.fitted_on = y.size if sub is None else sub.size
     if np.ptp(y) == 0.0:
