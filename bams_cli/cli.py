@@ -547,7 +547,7 @@ def ingest_results(
     elif not_run["count"]:
         first = not_run["first"][0]
         console.note(
-            f"{console._plural(not_run['count'], 'row')} not run (status {first['status']!r} ...): "
+            f"{console.plural(not_run['count'], 'row')} not run (status {first['status']!r} ...): "
             "not ingested (a value beside such a status is not used), their requests stay "
             "pending"
         )
@@ -1102,7 +1102,7 @@ def abandon(
             for r in summary["first"]
         ]
         console.rows_table(
-            f"abandoned: {console._plural(summary['abandoned'], 'request')} (log: {summary['log']})",
+            f"abandoned: {console.plural(summary['abandoned'], 'request')} (log: {summary['log']})",
             ["request_id", "segment_id", "fidelity", "batch", "plan"],
             rows,
         )

@@ -339,7 +339,8 @@ def _num(x: Any, digits: int = 3) -> str:
     return f"{float(x):.{digits}g}"
 
 
-def _plural(n: int, word: str, plural: str | None = None) -> str:
+def plural(n: int, word: str, plural: str | None = None) -> str:
+    """``n`` and ``word``, plural unless n is 1: "1 row", "2 rows"."""
     return f"{n} {word if n == 1 else plural or word + 's'}"
 
 
@@ -389,7 +390,7 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
 def ingest_summary(s: Mapping[str, Any]) -> None:
     by_level = ", ".join(f"level {lv}: {n}" for lv, n in (s.get("by_fidelity") or {}).items())
     facts(
-        f"ingested {_plural(s['ingested'], 'result')} into {s['observations']} "
+        f"ingested {plural(s['ingested'], 'result')} into {s['observations']} "
         f"({s['log_rows']} rows now)",
         {
             "by level": by_level,
@@ -415,7 +416,7 @@ def pending_lists(lists: list[Mapping[str, Any]]) -> None:
 
 
 def simulate_summary(s: Mapping[str, Any]) -> None:
-    facts(f"wrote {s['results']}: {_plural(s['rows'], 'result')}; {s['note']}")
+    facts(f"wrote {s['results']}: {plural(s['rows'], 'result')}; {s['note']}")
 
 
 def fit_summary(s: Mapping[str, Any]) -> None:
@@ -447,7 +448,7 @@ def fit_summary(s: Mapping[str, Any]) -> None:
     if s.get("conditioning"):
         rows["conditioning"] = s["conditioning"]["note"]
     rows["files"] = f"{s['model']}, {s['scores']}"
-    facts(f"model fitted on {_plural(s['observations'], 'result')} ({counts})", rows)
+    facts(f"model fitted on {plural(s['observations'], 'result')} ({counts})", rows)
     model_checks(s["checks"], s.get("transform"))
     for warning_text in s.get("warnings") or []:
         warning(warning_text)
@@ -458,7 +459,7 @@ def select_summary(s: Mapping[str, Any]) -> None:
     level0 = per_level.get(0, 0)
     cheap = sum(v for k, v in per_level.items() if k > 0)
     split = f"{level0} level-0, {cheap} cheap" if cheap else f"{level0} level-0"
-    head = f"batch {s['batch']}: {_plural(s['picks'], 'pick')} ({split}), strategy {s['strategy']}"
+    head = f"batch {s['batch']}: {plural(s['picks'], 'pick')} ({split}), strategy {s['strategy']}"
     if s.get("unchanged"):
         head += " (already made with these options; nothing changed)"
     j = None
@@ -488,14 +489,14 @@ def select_summary(s: Mapping[str, Any]) -> None:
 def plan_summary(s: Mapping[str, Any]) -> None:
     head = (
         f"estimate plan {s['plan']} (stage {s['stage']} of {s['stages']}): "
-        f"{_plural(s['to_simulate'], 'segment')} to simulate at level 0"
+        f"{plural(s['to_simulate'], 'segment')} to simulate at level 0"
     )
     facts(
         head,
         {
             "budget": f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate",
             "design": f"{s['design']}, weighting {s['weighting']}",
-            "known stratum": f"{_plural(s['known_stratum'], 'segment')} with a level-0 result",
+            "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",
             # The plan is drawn for the largest gamma, whose failures hold every other's.
             "GP rate estimate": f"{_num(s.get('gp_rate_estimate'))} at gamma "
             f"{_num(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
@@ -528,8 +529,8 @@ def report_summary(s: Mapping[str, Any]) -> None:
 
 def loop_summary(s: Mapping[str, Any]) -> None:
     facts(
-        f"loop: {_plural(len(s['steps']), 'step')}; the study has "
-        f"{_plural(s['batches'], 'batch', 'batches')} and {_plural(s['plans'], 'estimate plan')}",
+        f"loop: {plural(len(s['steps']), 'step')}; the study has "
+        f"{plural(s['batches'], 'batch', 'batches')} and {plural(s['plans'], 'estimate plan')}",
         {"results": s["results_dir"], "estimate": s.get("estimate_file")},
     )
     if s.get("estimate"):

@@ -239,9 +239,8 @@ def loop(
                     # progress line for a step that is not run again.
                     assert kind is not None and number is not None
                     if (results := _results_file(opts, kind, number)) in ingested:
-                        if _retries_spent(results) >= opts.retries:
+                        if (t := _retries_spent(results) + 1) > opts.retries:
                             _stuck(ws, opts, kind, number, results)
-                        t = _retries_spent(results) + 1
                         kept = _set_aside(results, f"retried-{t}")
                         ingested.discard(results)
                         if on_warning is not None:
@@ -256,12 +255,7 @@ def loop(
                         continue
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
-                last_try = (
-                    kind is None
-                    or number is None
-                    or (_retries_spent(_results_file(opts, kind, number)) >= opts.retries)
-                )
-                steps.append(_run(ws, opts, name, kind, number, ingested, on_warning, last_try))
+                steps.append(_run(ws, opts, name, kind, number, ingested, on_warning))
         except LoopStopped as exc:
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
@@ -413,7 +407,6 @@ def _run(
     number: int | None,
     ingested: set[Path],
     on_warning: Callable[[str], None] | None = None,
-    last_try: bool = True,
 ) -> dict[str, Any]:
     root, wait = ws.root, opts.wait
     record: dict[str, Any] = {"step": name, "list": None if kind is None else f"{kind} {number}"}
@@ -441,11 +434,10 @@ def _run(
     elif name == "ingest-results":
         assert kind is not None and number is not None
         results = _results_file(opts, kind, number)
-        if results in ingested:
-            _stuck(ws, opts, kind, number, results)
-        ingested.add(results)
+        ingested.add(results)  # ingested again only after a retry (``loop``)
         try:
-            if opts.abandon_failed and last_try:  # retries spent: abandon what failed
+            # With retries left, what failed is simulated again rather than abandoned.
+            if opts.abandon_failed and _retries_spent(results) >= opts.retries:
                 out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
                 record["abandoned"] = out["abandoned"]["abandoned"]
             else:

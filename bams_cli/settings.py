@@ -167,6 +167,25 @@ class Settings:
             )
         return self
 
+    def dear_levels(self, source: str) -> list[str]:
+        """One warning per cheap level that costs as much as a level-0 run or more.
+
+        Legal, and nothing breaks, but almost surely a slip (1,1.5 for 1,0.15, or costs not
+        in units of one level-0 run): select scores a candidate by the variance of the
+        level-0 metric it removes per unit cost, and a cheap run, carrying its level's
+        discrepancy, removes less than a level-0 run of the same segment, so at the same
+        cost or more the greedy all but never picks it, while a random mixed-fidelity batch
+        still spends its share of the budget on it. ``source`` names the settings.
+        """
+        return [
+            f"{source}: level {i} ({level.name}) costs {level.cost:g}, no less than a level-0 "
+            "run (costs are in units of one level-0 run; a cheaper simulator costs a fraction "
+            "of 1): select will seldom pick it, while random mixed-fidelity batches spend "
+            "budget on it"
+            for i, level in enumerate(self.levels)
+            if i and level.cost >= 1
+        ]
+
     def to_toml(self) -> str:
         doc: dict[str, Any] = {
             "study": {

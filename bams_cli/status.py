@@ -298,7 +298,7 @@ def _next_step(
                 + " --reason WHY",
             }
             for e in lists
-            if e["pending"] < (e["picks"] if "batch" in e else e["sampled"])
+            if e["pending"] < _requests(e)
         )
         return step(
             "ingest-results",
@@ -373,10 +373,15 @@ def _next_step(
     )
 
 
+def _requests(entry: dict[str, Any]) -> int:
+    """How many requests a batch (its picks) or plan (its sampled segments) made."""
+    return int(entry["picks"] if "batch" in entry else entry["sampled"])
+
+
 def _to_simulate(entry: dict[str, Any]) -> str:
     """What of a batch or plan awaiting results to simulate: its hand-off list, or, once
     some of its requests have results, the others alone."""
-    total = entry["picks"] if "batch" in entry else entry["sampled"]
+    total = _requests(entry)
     if entry["pending"] == total:
         return str(entry["handoff"])
     those = f"the {entry['pending']} of the {total} requests of"

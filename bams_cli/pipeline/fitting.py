@@ -37,9 +37,10 @@ from bams_cli.status import pending_handoffs
 # fit
 # ---------------------------------------------------------------------------------------
 def _training_data(
-    ws: Workspace, ids: np.ndarray, X: np.ndarray
+    ws: Workspace, ids: np.ndarray, X: np.ndarray, n_levels: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Active observations as (pool index, level, value) arrays."""
+    """Active observations as (pool index, level, value) arrays; an observation at a level
+    beyond the study's ``n_levels`` (one deleted from settings.toml) is refused."""
     obs = ws.read_observations()
     pend = ws.pending() if obs.height == 0 else None
     if pend is not None and pend.height:
@@ -53,7 +54,6 @@ def _training_data(
             f"{ws.observations_path}: no observations yet; select a first batch "
             f"(`bams-cli select -w {ws.root} --strategy random`), simulate it and ingest the results"
         )
-    n_levels = ws.require_initialised().n_levels
     beyond = obs.filter(pl.col("fidelity") >= n_levels)
     if beyond.height:
         # A level removed from settings.toml by hand: its results stay in the log.
@@ -87,7 +87,7 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
     from bams_cli.core.gp import Hyperparameters, fit_mfgp
 
     model = ws.require_fresh_model()
-    idx, lv, y = _training_data(ws, ids, X)
+    idx, lv, y = _training_data(ws, ids, X, settings.n_levels)
     try:
         hp = Hyperparameters.from_dict(model["hyperparameters"])
         if hp.n_levels != settings.n_levels or hp.d != X.shape[1]:
@@ -215,7 +215,7 @@ def fit(
         if kept is not None:
             return kept
     ids, X = ws.read_pool()
-    idx, lv, y = _training_data(ws, ids, X)
+    idx, lv, y = _training_data(ws, ids, X, settings.n_levels)
     fixed = None
     if fixed_hyperparameters is not None:
         try:

@@ -614,10 +614,8 @@ def select(
             tx.write_with(out, lambda p: frame.write_csv(p))
     per_level = {int(lv): int((picks["level"] == lv).sum()) for lv in range(settings.n_levels)}
     per_cluster = {int(c): int((picks["cluster"] == c).sum()) for c in np.unique(picks["cluster"])}
-    from bams_cli.pipeline.initialise import _dear_cheap_levels
-
     # A cost edited by hand in settings.toml: init warned of it when the study began.
-    warnings = _dear_cheap_levels(settings, str(ws.settings_path))
+    warnings = settings.dear_levels(str(ws.settings_path))
     if j_before is not None and j_before * len(ids) < defaults.SELECT_NEGLIGIBLE_FAILURES:
         # J = mean p_n (1 - p_n) ~ mean p_n here: the model expects (nearly) no failure in
         # the pool, and the greedy's decreases are rounding (a trial's first fit after a
