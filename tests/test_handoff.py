@@ -174,6 +174,10 @@ def _bad(tmp_path: Path, text: str) -> Path:
             "column 'request_id', row 2: request_id '{r0}' appears again (first at row 1)",
         ),
         (
+            "request_id,value\n{r0},1.0\n{r1},1.0\n{r2},1.0\n{r1},1.0\n{r0},1.0\n",
+            "column 'request_id', row 4: request_id '{r1}' appears again (first at row 2)",
+        ),
+        (
             "request_id,segment_id,value\n{r0},{s1},1.0\n",
             "column 'segment_id', row 1: request_id '{r0}' is segment '{s0}', but this row names '{s1}'",
         ),
@@ -193,7 +197,7 @@ def test_bad_keys_fail_in_one_line_and_change_nothing(named_ws, runner, tmp_path
     batch = _select(runner, ws)
     h = _csv(Path(batch["handoff_csv"]))
     keys = {"r0": h["request_id"][0], "s0": h["segment_id"][0], "f0": h["fidelity"][0],
-            "s1": h["segment_id"][2]}  # fmt: skip
+            "s1": h["segment_id"][2], "r1": h["request_id"][1], "r2": h["request_id"][2]}  # fmt: skip
     before = tree_hash(ws)
     r = invoke(runner, "ingest-results", "-w", ws, _bad(tmp_path, rows.format(**keys)))
     assert r.exit_code == 1

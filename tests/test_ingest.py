@@ -109,6 +109,18 @@ def test_conflict_needs_replace_and_keeps_history(ws, runner, tmp_path):
             [(IDS[0], 0, 1.0), (IDS[1], 0, 1.0), (IDS[0], 0, 1.0)],
             "column 'segment_id', row 3: ('t000000', fidelity 0) appears again",
         ),
+        (
+            # Two repeated pairs, the later one's copy first: the row named is the first
+            # that repeats an earlier one, and "first at" is that pair's own first row.
+            [
+                (IDS[0], 0, 1.0),
+                (IDS[1], 0, 1.0),
+                (IDS[2], 0, 1.0),
+                (IDS[1], 0, 1.0),
+                (IDS[0], 0, 1.0),
+            ],
+            "column 'segment_id', row 4: ('t000001', fidelity 0) appears again (first at row 2)",
+        ),
         ([(IDS[0], 0.5, 1.0)], "column 'fidelity', row 1: fidelity must be an integer level"),
         (
             [("t000009", 0, 1.0)],

@@ -234,6 +234,18 @@ def check_unique(ids: pa.Array, source: object, column: str, what: str = "segmen
         )
 
 
+def _first_repeat(df: pl.DataFrame, key: list[str]) -> tuple[dict, int] | None:
+    """The first row (in file order, ``_row``) whose ``key`` an earlier row already has, and
+    that earlier row's number; None when every key is distinct."""
+    df = df.sort("_row")
+    again = df.filter(~pl.struct(key).is_first_distinct())
+    if not again.height:
+        return None
+    row = again.row(0, named=True)
+    first = df.filter(pl.all_horizontal([pl.col(c) == row[c] for c in key]))["_row"][0]
+    return row, int(first)
+
+
 def sample_rows(stream: EmbeddingStream, take: np.ndarray) -> np.ndarray:
     """Rows ``take`` (sorted) of a stream, without holding the whole stream in memory."""
     out, offset = [], 0
@@ -349,14 +361,14 @@ def read_results(
             column=rid_col,
             row=int(first["_row"]),
         )
-    if df.filter(pl.col(rid_col).is_not_null()).select(rid_col).is_duplicated().any():
-        rows = df.filter(pl.col(rid_col).is_not_null())
-        twice = rows.filter(rows.select(rid_col).is_duplicated())
+    repeat = _first_repeat(df.filter(pl.col(rid_col).is_not_null()), [rid_col])
+    if repeat is not None:
+        again, first = repeat
         raise DuplicateError(
             path,
-            f"request_id {shown(twice[rid_col][0])} appears again (first at row {twice['_row'][0]})",
+            f"request_id {shown(again[rid_col])} appears again (first at row {first})",
             column=rid_col,
-            row=int(twice["_row"][1]),
+            row=int(again["_row"]),
         )
 
     given_sid = df[SID].cast(pl.String)
@@ -438,16 +450,14 @@ def read_results(
         )
     df = df.with_columns(val.alias("value"))
 
-    dup = df.select(SID, "fidelity").is_duplicated()
-    if dup.any():
-        rows = df.filter(dup)
-        first = rows.row(0, named=True)
-        again = int(rows["_row"][1])
+    repeat = _first_repeat(df, [SID, "fidelity"])
+    if repeat is not None:
+        again, first = repeat
         raise DuplicateError(
             path,
-            f"({shown(first[SID])}, fidelity {first['fidelity']}) appears again (first at row {first['_row']})",
+            f"({shown(again[SID])}, fidelity {again['fidelity']}) appears again (first at row {first})",
             column=SID,
-            row=again,
+            row=int(again["_row"]),
         )
     if extra_cols:
         extra = df.select(extra_cols).to_dicts()
