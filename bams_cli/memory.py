@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import psutil
 
 from bams_cli import defaults
-from bams_cli.errors import BamsError
+from bams_cli.errors import BamsError, OptionValueError
 
 #: Seconds between two reads of the process tree's resident memory.
 POLL_S = 0.05
@@ -75,21 +75,24 @@ def parse_size(text: str, flag: str = "--max-memory") -> int:
     """Bytes from ``12G``, ``12GiB``, ``12GB``, ``800M``, ``512k``, ``1000000`` or ``40%``.
 
     Units are binary (``G`` = ``GB`` = ``GiB`` = 2**30 bytes); a percentage is of the
-    machine's RAM. Anything else, zero, or a size under 64 MiB is a one-line error.
+    machine's RAM. Anything else, zero, or a size under 256 MiB is a one-line usage error
+    (exit code 2, as for any malformed option value).
     """
     percent = _PERCENT.match(text)
     if percent:
         share = float(percent.group(1)) / 100.0
         if not 0.0 < share <= 1.0:
-            raise BamsError(f"{flag} {text!r}: a percentage of RAM must be in (0%, 100%]")
+            raise OptionValueError(f"{flag} {text!r}: a percentage of RAM must be in (0%, 100%]")
         size = int(share * total_ram())
     else:
         match = _SIZE.match(text)
         if not match:
-            raise BamsError(f"{flag} {text!r}: expected a size such as 12G, 800M or 40% (of RAM)")
+            raise OptionValueError(
+                f"{flag} {text!r}: expected a size such as 12G, 800M or 40% (of RAM)"
+            )
         size = int(float(match.group(1)) * _UNITS[match.group(2).lower()])
     if size < 256 * 2**20:
-        raise BamsError(
+        raise OptionValueError(
             f"{flag} {text!r}: below 256M, less than a command needs to start (Python, numpy, numba)"
         )
     return size

@@ -48,6 +48,7 @@ def test_bad_sizes_are_one_line_errors_naming_the_flag(text: str) -> None:
     with pytest.raises(BamsError) as err:
         memory.parse_size(text)
     assert "--max-memory" in str(err.value) and "\n" not in str(err.value)
+    assert err.value.exit_code == 2  # a malformed option value: usage, as --budget -5
 
 
 @given(st.integers(min_value=256 * MiB, max_value=2**44))
@@ -181,11 +182,16 @@ def test_select_starts_the_workers_the_ceiling_leaves_room_for(
     need = memory.WORKER_BASE_BYTES + 2 * 8 * 4096 * 1024  # start-up, twice the full plan's C
     monkeypatch.setattr(selection.os, "cpu_count", lambda: 4)
     uses(monkeypatch, 500 * MiB)
-    for room, expected in [(4 * need, None), (3 * need + MiB, 3), (need, 1), (need - MiB, None)]:
+    for room, expected in [(4 * need, None), (3 * need + MiB, 3), (need, 1)]:
         monkeypatch.setattr(memory, "_budget", 500 * MiB + room)
         n, why = selection.workers_within_memory(None, None)
         assert n == expected, (room, n)
         assert (f"room for {n} of 4 worker processes" in why) if n else why == ""
+    # Not even one at the full plan: one, in the command, on a smaller plan, and said so
+    # (one per core had been kept, and refused where --workers 1 ran).
+    monkeypatch.setattr(memory, "_budget", 500 * MiB + need - MiB)
+    n, why = selection.workers_within_memory(None, None)
+    assert n == 1 and "leaves no room for a worker process at the full plan" in why
     assert selection.workers_within_memory(3, None) == (3, "")  # asked for: kept
     assert selection.workers_within_memory(None, "tcp://elsewhere:8786") == (None, "")
 
@@ -229,7 +235,7 @@ def test_the_ceiling_comes_from_the_environment_too(
     fitted(runner, toy_ws, toy_files[1])
     monkeypatch.setenv("BAMS_MAX_MEMORY", "12X")
     r = invoke(runner, "fit", "-w", toy_ws, "--force")
-    assert r.exit_code == 1 and "--max-memory '12X'" in r.stderr
+    assert r.exit_code == 2 and "--max-memory '12X'" in r.stderr  # a usage error, as --budget -5
     monkeypatch.setenv("BAMS_MAX_MEMORY", "4G")
     ok(runner, "fit", "-w", toy_ws, "--force")
 

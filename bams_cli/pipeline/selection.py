@@ -89,7 +89,7 @@ def cluster_bytes(workers: int | None, scheduler: str | None) -> int:
 def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[int | None, str]:
     """``--workers`` left out: one worker process per core, or as many as ``--max-memory``
     leaves room for at the full approximate plan, down to 1 (the greedies run in the
-    command); where not even one fits, one per core as asked (``cluster_bytes`` decides).
+    command); where not even one fits, 1, whose plan ``cluster_bytes`` shrinks to fit.
 
     A worker needs ``memory.WORKER_BASE_BYTES`` to start and, by ``cluster_bytes``' rule,
     twice its cluster's rows x candidates covariance; below the default plan's
@@ -109,10 +109,17 @@ def workers_within_memory(workers: int | None, scheduler: str | None) -> tuple[i
         memory.WORKER_BASE_BYTES + 2 * 8 * defaults.SELECT_MAX_ROWS * defaults.SELECT_MAX_CANDIDATES
     )
     fits = [n for n in range(cores, 0, -1) if room / n >= need]
-    if not fits or fits[0] == cores:
-        # All cores fit, or not even one worker: cluster_bytes then shrinks the plan or
-        # refuses in one line before any work.
+    if fits and fits[0] == cores:
         return None, ""
+    if not fits:
+        # Not even one worker at the full plan: the greedies run in the command, whose plan
+        # cluster_bytes shrinks to fit (or refuses in one line before any work). One per
+        # core had been kept here, and refused where --workers 1 ran (a trial at 700MB).
+        return 1, (
+            f"--max-memory {memory.format_size(memory.budget())} leaves no room for a worker "
+            f"process at the full plan (one needs about {memory.format_size(need)} beside "
+            "what the command holds): the greedies run in the command, on fewer rows of J"
+        )
     n = fits[0]
     return n, (
         f"--max-memory {memory.format_size(memory.budget())} leaves room for {n} of "
@@ -392,10 +399,14 @@ def select(
     ws = Workspace(root)
     settings = ws.require_initialised()
     ids, X = ws.read_pool()
-    if budget / min(settings.costs) > len(ids) * settings.n_levels:
+    # Every segment at every level costs len(ids) * sum(costs): a budget beyond it cannot be
+    # spent. (The bound was budget / the cheapest cost, which refused a level-0 batch of 100
+    # on 400 segments with a cheap level of cost 0.1.)
+    if budget > len(ids) * sum(settings.costs):
         raise WorkspaceError(
             f"--budget {budget}: buys more simulations than the pool has "
-            f"({len(ids)} segments x {settings.n_levels} levels)"
+            f"({len(ids)} segments x {settings.n_levels} levels cost "
+            f"{len(ids) * sum(settings.costs):g})"
         )
     # The options that decide the picks: recorded in the batch, compared by --batch.
     asked = {
