@@ -2,12 +2,13 @@
 uniform and coverage of the default two-stage estimate design under other priors.
 
     .venv/bin/python docs/suite/risk_prior.py "1,1;1,3;0.5,3" 0.5 30 [workers] \
-        [--strategies bams,mcm-gp] [--anchor-sd 1.0]
+        [--strategies bams,mcm-gp] [--anchor-sd 1.0] [--taus 0.5,1] [--arrays FOLDER]
     .venv/bin/python docs/suite/risk_prior.py --fixed-lam 0,0.1,0.25,0.5 [--strategies ...]
 
 Arguments: priors (a,b pairs separated by ';'), stage-1 shares, draws per run, workers;
-the strategies whose runs to draw on (default bams) and the posterior's anchor sd (default
-``defaults.RISK_ANCHOR_SD``). Reads the suite's saved runs (``bams-cli benchmark --protocol
+the strategies whose runs to draw on (default bams), the posterior's anchor sd (default
+``defaults.RISK_ANCHOR_SD``), the calibration shapes tau it weighs (default
+``core.design.TAUS``) and the folder of saved runs (default /tmp/suite-arrays). Reads the suite's saved runs (``bams-cli benchmark --protocol
 suite --save-arrays --out /tmp/suite-arrays``, as docs/suite/estimate_design.py) and draws
 the design for the runs of every problem, seeds 0-9, with ``core.evaluate.staged_trials``.
 Prints a table per prior and share; docs/suite/risk_prior.md holds the runs that chose the
@@ -27,10 +28,24 @@ F = Path("/tmp/suite-arrays")
 PROBLEMS = ("toy2d", "av_like", "weak_cheap", "digits", "rare_regions", "gap_sim")
 
 
+def _use_taus(taus):
+    """Make ``taus`` the calibration shapes every design function weighs (this process)."""
+    from bams_cli.core import design as dz
+
+    if taus is None:
+        return
+    dz.TAUS = tuple(taus)
+    dz.risk_posterior.__kwdefaults__["taus"] = dz.TAUS
+    dz.risk_norms.__defaults__ = (dz.TAUS,)
+
+
 def one(args):
-    problem, strategy, seed, prior, share, anchor_sd, trials = args
+    problem, strategy, seed, prior, share, anchor_sd, trials, taus, folder = args
     warnings.simplefilter("ignore")
     from bams_cli.core.evaluate import staged_trials
+
+    _use_taus(taus)
+    F = Path(folder)
 
     z = np.load(F / problem / "runs.npz")
     fail = z["f0"] <= float(z["gamma"])
@@ -84,9 +99,14 @@ def fixed_lam(lams: list[float], strategies: list[str]) -> None:
 
 
 def main(argv):
+    global F
     from bams_cli import defaults
 
     strategies, anchor_sd = ["bams"], defaults.RISK_ANCHOR_SD
+    if "--arrays" in argv:
+        i = argv.index("--arrays")
+        F = Path(argv[i + 1])
+        del argv[i : i + 2]
     if "--fixed-lam" in argv:
         i = argv.index("--fixed-lam")
         lams = [float(x) for x in argv[i + 1].split(",")]
@@ -94,13 +114,16 @@ def main(argv):
             strategies = argv[argv.index("--strategies") + 1].split(",")
         fixed_lam(lams, strategies)
         return
-    for flag in ("--strategies", "--anchor-sd"):
+    taus, folder = None, str(F)
+    for flag in ("--strategies", "--anchor-sd", "--taus"):
         if flag in argv:
             i = argv.index(flag)
             value = argv[i + 1]
             del argv[i : i + 2]
             if flag == "--strategies":
                 strategies = value.split(",")
+            elif flag == "--taus":
+                taus = tuple(float(t) for t in value.split(","))
             else:
                 anchor_sd = None if value == "none" else float(value)
     priors = [tuple(map(float, s.split(","))) for s in argv[0].split(";")]
@@ -108,7 +131,7 @@ def main(argv):
     trials = int(argv[2])
     workers = int(argv[3]) if len(argv) > 3 else 1
     jobs = [
-        (pb, st, s, pr, sh, anchor_sd, trials)
+        (pb, st, s, pr, sh, anchor_sd, trials, taus, folder)
         for pr in priors
         for sh in shares
         for pb in PROBLEMS
@@ -120,7 +143,7 @@ def main(argv):
         rows = list(ex.map(one, jobs))
     for pr in priors:
         for sh in shares:
-            print(f"prior {pr} share {sh} anchor sd {anchor_sd}")
+            print(f"prior {pr} share {sh} anchor sd {anchor_sd} taus {taus or 'default'}")
             for pb in PROBLEMS:
                 for st in strategies:
                     rs = [

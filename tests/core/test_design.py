@@ -265,10 +265,12 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     fail = rng.random(N) < p
     if model == "useless":
         p = rng.permutation(p)
-    res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=400, rng=rng)
+    # 2,000 draws: a useless model puts failures at small pi, whose weights make p_hat's
+    # spread heavy-tailed, and 400 draws put the mean 3.2 SE off once (20,000: 1.1 SE).
+    res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=2000, rng=rng)
     se = res.p_hat.std(ddof=1) / np.sqrt(res.p_hat.size)
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
-    assert res.p_hat.var(ddof=1) == pytest.approx(res.var, rel=0.2)
+    assert res.p_hat.var(ddof=1) == pytest.approx(res.var, rel=0.15)
     assert res.coverage >= 0.85
 
 
