@@ -85,6 +85,10 @@ def plan_complete(ws: Workspace, number: int) -> bool:
     return not bool((pend["plan"] == number).any())
 
 
+#: The calibration shapes a plan's ``risk_norms`` follow when it does not record them.
+_OLD_TAUS = (0.5, 1.0, 1.5, 2.0)
+
+
 def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list[int]]:
     """What finished estimate plans say about how far p_n can be trusted at ``gamma``.
 
@@ -107,8 +111,15 @@ def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list
         mean, norms = meta.get("p_mean_unknown"), meta.get("risk_norms")
         if not mean or not norms or meta.get("plan_gamma") != gamma or k in waiting:
             continue
-        if len(norms) != len(TAUS):
+        # Each norm belongs to a shape tau: the plan records which (``risk_taus``); plans
+        # from before that record weighed tau 0.5, 1, 1.5 and 2, in that order.
+        taus = meta.get("risk_taus") or (_OLD_TAUS if len(norms) == len(_OLD_TAUS) else None)
+        if taus is None or len(taus) != len(norms):
             continue
+        by_tau = dict(zip((float(t) for t in taus), norms, strict=True))
+        if any(float(t) not in by_tau for t in TAUS):
+            continue
+        norms = [by_tau[float(t)] for t in TAUS]
         t = pl.from_arrow(read_state(path, columns=[SID, "stratum", "p_n"]))
         assert isinstance(t, pl.DataFrame)
         t = t.filter(pl.col("stratum") == "sampled").join(obs, on=SID, how="inner")

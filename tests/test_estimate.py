@@ -508,3 +508,37 @@ def test_the_plan_names_the_gamma_its_gp_rate_and_design_are_for(fitted_ws, tmp_
     r = ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", "40")
     [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
     assert line.rstrip().endswith("at gamma 0.56, the largest, which the plan is drawn for")
+
+
+def test_a_stage_planned_by_an_older_version_still_checks_the_model(fitted_ws, tmp_path):
+    # Plans record which calibration shape each risk norm belongs to (risk_taus). A plan
+    # from before that record weighed tau 0.5, 1, 1.5 and 2 in that order: its evidence is
+    # read by shape, not dropped, so a study upgraded between its stages keeps stage 1's.
+    from typer.testing import CliRunner
+
+    from bams_cli import stages
+    from bams_cli.core import design as dz
+
+    ws, truth = _copy(fitted_ws, tmp_path)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "80")
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    now, used = stages.mix_evidence(pipeline.Workspace(ws), 0.56)
+    assert used == [1] and now[0].failed.any()
+    path = ws / "estimates" / "plan-0001.parquet"
+    t = pq.read_table(path)
+    meta = dict(t.schema.metadata)
+    assert json.loads(meta.pop(b"bams.risk_taus")) == list(dz.TAUS)
+    norms = dict(zip(dz.TAUS, json.loads(meta[b"bams.risk_norms"]), strict=True))
+    old = [norms[0.5], norms[1.0], 7.0, 9.0]  # tau 1.5 and 2's norms: not read
+    meta[b"bams.risk_norms"] = json.dumps(old).encode()
+    pq.write_table(t.replace_schema_metadata(meta), path)
+    then, used = stages.mix_evidence(pipeline.Workspace(ws), 0.56)
+    assert used == [1]
+    np.testing.assert_array_equal(then[0].u, now[0].u)
+    np.testing.assert_array_equal(then[0].failed, now[0].failed)
+    np.testing.assert_array_equal(then[0].norms, now[0].norms)
+    # A record the shapes cannot be read from (three norms, no taus) is skipped, not misread.
+    meta[b"bams.risk_norms"] = json.dumps(old[:3]).encode()
+    pq.write_table(t.replace_schema_metadata(meta), path)
+    assert stages.mix_evidence(pipeline.Workspace(ws), 0.56) == ([], [])

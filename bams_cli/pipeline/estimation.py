@@ -382,6 +382,7 @@ def estimate_plan(
         "n_unknown": n_unknown,
         "p_mean_unknown": float(pu.mean()) if pu.size else None,
         "risk_norms": dz.risk_norms(dz.relative_risk(pu)).tolist(),
+        "risk_taus": list(dz.TAUS),
         # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
         # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
         "w_max": finite_or_none(max_failure_weight(plan)),
