@@ -172,6 +172,16 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
         except OSError as exc:
             raise BamsError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         try:
+            # A scheduler with no worker would leave every task queued; dask's own
+            # "No valid workers found" surfaced as an unexpected TimeoutError.
+            client.wait_for_workers(1, timeout=30)
+        except (TimeoutError, OSError):
+            client.close()
+            raise BamsError(
+                f"--scheduler {scheduler}: the scheduler has no worker after 30 s; start some "
+                f"with `dask worker {scheduler}`"
+            ) from None
+        try:
             yield DaskExecutor(client)
         finally:
             client.close()

@@ -366,12 +366,40 @@ def test_dask_scheduler_gives_the_same_batch_as_local_processes(loop_ws, tmp_pat
             r = ok(
                 runner, "select", "-w", copy, "--budget", "3", "--clusters", "2", *extra, "--json"
             )
-            batch = Workspace(copy).read_batch(json.loads(r.stdout)["batch"])
+            summary = json.loads(r.stdout)
+            batch = Workspace(copy).read_batch(summary["batch"])
+            if name == "dask":  # --json says where the greedies ran
+                assert summary["selection_plan"]["scheduler"] == cluster.scheduler_address
             # confirmation picks carry delta_j NaN, which never equals itself
             picks[name] = batch.select(
                 "segment_id", "fidelity", pl.col("delta_j").fill_nan(None)
             ).rows()
     assert picks["local"] == picks["dask"] and len(picks["local"]) > 0
+
+
+def test_a_scheduler_without_workers_is_a_one_line_error(loop_ws, tmp_path, monkeypatch):
+    distributed = pytest.importorskip("dask.distributed")
+    from typer.testing import CliRunner
+
+    ws, _ = loop_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws, copy)
+    ok(CliRunner(), "fit", "-w", copy, "--restarts", "1")
+    before = tree_hash(copy)
+    real = distributed.Client.wait_for_workers
+
+    def brief(self, n_workers=1, timeout=None):  # the 30 s the command waits, in 1 s
+        return real(self, n_workers, timeout=1)
+
+    monkeypatch.setattr(distributed.Client, "wait_for_workers", brief)
+    with distributed.LocalCluster(n_workers=0, processes=False) as cluster:
+        r = invoke(
+            CliRunner(), "select", "-w", copy, "--budget", "3", "--scheduler",
+            cluster.scheduler_address,
+        )  # fmt: skip
+    assert r.exit_code == 1
+    assert r.stderr.count("\n") == 1 and "the scheduler has no worker" in r.stderr, r.stderr
+    assert tree_hash(copy) == before
 
 
 def test_the_next_command_completes_a_commit_a_crash_interrupted(toy_ws, runner):

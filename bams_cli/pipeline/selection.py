@@ -521,6 +521,10 @@ def select(
             timings = {k: round(float(v), 3) for k, v in result.timings.items()}
             selection_plan = dict(result.plan)
             selection_plan["workers"] = None if scheduler else (workers or os.cpu_count() or 1)
+            if scheduler:
+                # Where the greedies ran: --json said workers null and nothing else.
+                selection_plan["scheduler"] = scheduler
+                selection_plan["workers_reason"] = "the greedies ran on the dask cluster"
             if fewer_workers:
                 selection_plan["workers_reason"] = fewer_workers
     else:
