@@ -139,7 +139,9 @@ def table() -> None:
         "`estimate --plan` does. var / uniform: the design's variance over a uniform Poisson "
         "design's of the same expected size, mean [max] over seeds; fixed p: the same runs "
         "under `estimate_design.py`'s evaluation, which keeps stage 1's p_n for stage 2. lam: "
-        "the posterior mean share of failure mass stage 2 leaves to uniform risk.",
+        "the posterior mean share of failure mass stage 2 leaves to uniform risk. One JSON "
+        "line per seed in docs/suite/estimate_refit/PROBLEM.jsonl (measured 2026-11-24, "
+        "defaults of that day: Beta(0.5, 1) prior on lam, shapes tau 0.5 and 1).",
         "",
         "| problem | seeds | stage-1 draws per seed | var / uniform, refit | var / uniform, fixed p | lam |",
         "| --- | --- | --- | --- | --- | --- |",
