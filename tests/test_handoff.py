@@ -222,6 +222,18 @@ def test_rows_marked_not_run_stay_pending(named_ws, runner, tmp_path):
     assert summary["not_run"]["first"][0]["request_id"] == t["request_id"][0]
     assert summary["not_run"]["first"][0]["status"] == "crashed"
     assert summary["pending"]["count"] == 1
+    # The same file again is a no-op that still names the run as not run, while it is...
+    again = json.loads(ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout)
+    assert again["already_ingested"] and again["not_run"]["count"] == 1
+    # ... but not once its retry has a result: nothing of it stays pending.
+    retry = tmp_path / "retry.csv"
+    t.head(1).select("request_id", "value").write_csv(retry)
+    ok(runner, "ingest-results", "-w", ws, retry)
+    r = ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv")
+    again = json.loads(ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout)
+    assert again["already_ingested"] and again["pending"]["count"] == 0
+    assert again["not_run"]["count"] == 0
+    assert "not run" not in r.stdout + r.stderr
 
 
 def test_batches_written_before_request_ids_get_them_from_their_rows(toy_ws, runner, tmp_path):

@@ -15,6 +15,7 @@ from bams_cli.errors import (
 )
 from bams_cli.pipeline._common import SID, locked, not_run_summary, pending_summary
 from bams_cli.state import pending, schemas
+from bams_cli.state.handoff import REQUEST_ID
 from bams_cli.state.inputs import read_results
 from bams_cli.state.io import (
     file_sha256,
@@ -96,6 +97,19 @@ def ingest_results(
             if changed.height
             else ""
         )
+        # Its rows marked not run: only those still without a result stay pending (a
+        # re-ingest after their retry said "12 rows not run ... stay pending" beside
+        # "nothing pending").
+        if not_run.height:
+            # A row names its segment by request_id or by segment_id (its fidelity may be a
+            # level name): the segment is what is compared with the pending requests'.
+            req = ws.requests().select(REQUEST_ID, pl.col(SID).alias("_req_sid"))
+            waiting = ws.pending()[SID].unique().implode()
+            not_run = (
+                not_run.join(req, on=REQUEST_ID, how="left", maintain_order="left")
+                .filter(pl.coalesce("_req_sid", SID).is_in(waiting))
+                .drop("_req_sid")
+            )
         return {
             "ingested": 0,
             "already_ingested": True,
