@@ -263,8 +263,11 @@ def command(
 def _floats(text: str | None, flag: str) -> list[float] | None:
     if text is None:
         return None
+    parts = text.split(",")
     try:
-        values = [float(part) for part in text.split(",") if part.strip()]
+        # An empty part ("1," or "1,,0.1") is a number left out, not nothing: refused,
+        # since "--costs 1," had silently made a one-level study.
+        values = [float(part) for part in parts] if all(p.strip() for p in parts) else []
     except ValueError:
         values = []
     if not values:

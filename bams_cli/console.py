@@ -253,7 +253,9 @@ def plain_progress(
         if last is not None and (last[1] or (not finished and now - last[0] < every_s)):
             return
         printed[phase] = (now, finished)
-        line = f"{label}{phase}: {done}/{total}, {now - start:.0f} s elapsed"
+        # "fit: 1/1", not "fit: fit: 1/1", when the phase is the command's own name.
+        head = label if label and label.rstrip(": ") == phase else f"{label}{phase}: "
+        line = f"{head}{done}/{total}, {now - start:.0f} s elapsed"
         ran = now - began[phase]
         if not finished and done > 0 and ran > 0:
             line += f", about {ran * (total - done) / done:.0f} s left"

@@ -951,7 +951,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
         ]
     spent = s["simulation_spent"]
     lines.append(
-        f"Pool of {s['study']['pool_size']} segments; {len(s['batches'])} batches; "
+        f"Pool of {s['study']['pool_size']} segments; {len(s['batches'])} "
+        f"batch{'' if len(s['batches']) == 1 else 'es'}; "
         f"{spent['count']} simulations costing {spent['cost']:g} level-0 runs."
     )
     lines.append("")

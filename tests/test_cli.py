@@ -342,6 +342,15 @@ def test_plain_progress_prints_a_few_lines_with_an_eta(capsys):
     assert not any("predict" in line for line in lines)  # it ended before the threshold
 
 
+def test_plain_progress_names_a_phase_that_is_the_command_once(capsys):
+    clock = FakeClock()
+    update = console.plain_progress("fit: ", after_s=3, clock=clock)
+    update("fit", 0, 1)
+    clock.now = 4.0
+    update("fit", 1, 1)
+    assert capsys.readouterr().err.splitlines() == ["fit: 1/1, 4 s elapsed"]  # not "fit: fit:"
+
+
 def test_progress_is_plain_lines_off_a_terminal_and_nothing_when_quiet(capsys):
     with console.progress(True, "fit") as bar:
         assert bar is not None and bar.__qualname__.startswith("plain_progress")

@@ -101,6 +101,8 @@ def test_gammas_keep_the_order_given(runner, tmp_path):
         (["--costs", "2,1"], "--costs 2,1: level 0 must cost 1 (costs are in units of one"),
         (["--gamma", "nan"], "--gamma nan: gammas must be finite numbers, got [nan]"),
         (["--gamma", "abc"], "--gamma 'abc': expected comma-separated numbers"),
+        (["--costs", "1,"], "--costs '1,': expected comma-separated numbers"),  # not one level
+        (["--costs", "1,,0.1"], "--costs '1,,0.1': expected comma-separated numbers"),
         (["--seed", "-1"], "--seed -1: seed must be an integer >= 0, got -1"),
         (["--dim", "0"], "--dim 0: embedding_dim must be >= 1, got 0"),
         (["--costs", "1,0.1", "--level-names", "a"], "--level-names has 1 names for 2 costs"),
