@@ -480,6 +480,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 ),
                 "latest_estimate": nullable(LATEST_ESTIMATE),
                 "commit_in_progress": BOOL,
+                "finished_interrupted_commit": COUNT,
                 "waiting_on_results": BOOL,
                 "phase": {"enum": ["setup", "discovery", "estimate", "done"]},
                 "next": obj(

@@ -18,6 +18,7 @@ import json
 import math
 import re
 import shlex
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +65,9 @@ def status(root: Path) -> dict[str, Any]:
     """Where the study in ``root`` stands, and the next command (``next``) to run.
 
     ``exit_code`` is 3 (waiting on results) when a batch or plan has picks without
-    results, else 0. Reads only: it takes no lock (so it has no ``wait``).
+    results, else 0. Reads only, and takes no lock (so it has no ``wait``), except to
+    complete a commit a killed command left half done, as every writing command does first
+    (``finished_interrupted_commit``: the files it renamed into place).
 
     Parameters
     ----------
@@ -88,6 +91,12 @@ def status(root: Path) -> dict[str, Any]:
     """
     ws = Workspace(Path(root))
     settings = ws.require_initialised()
+    finished = _finish_interrupted_commit(ws.root)
+    if finished:
+        sys.stderr.write(
+            f"note: {root}: finished an interrupted command's commit ({finished} "
+            f"file{'s' if finished != 1 else ''} renamed into place)\n"
+        )
     has_pool = ws.segments_path.exists()
     obs = ws.read_observations()
     observed = obs.select(SID, "fidelity").unique()
@@ -121,11 +130,32 @@ def status(root: Path) -> dict[str, Any]:
         "model": model,
         "latest_estimate": latest,
         "commit_in_progress": (ws.root / JOURNAL_NAME).exists(),
+        "finished_interrupted_commit": finished,
         "waiting_on_results": waiting,
         "phase": phase,
         "next": step,
         "exit_code": EXIT_PENDING if waiting else EXIT_OK,
     }
+
+
+def _finish_interrupted_commit(root: Path) -> int:
+    """Complete a commit a killed command left half done, as the next writing command would,
+    so that the state reported is the one that command had committed to; returns the files
+    renamed into place. Nothing at all without a journal (status takes no lock then); with
+    one whose command is still running (the lock is held), nothing: ``commit_in_progress``
+    says so. Before, status reported the state before the commit, and named the killed
+    command (``select``) as the next step though its batch was already decided."""
+    from bams_cli.errors import WorkspaceLockedError
+    from bams_cli.state.io import journal_in, recover
+    from bams_cli.state.lock import workspace_lock
+
+    if not (root / JOURNAL_NAME).exists():
+        return 0
+    try:
+        with workspace_lock(root, wait=False), journal_in(root):
+            return recover(root)
+    except WorkspaceLockedError:
+        return 0
 
 
 def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:

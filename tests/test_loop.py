@@ -418,3 +418,32 @@ def test_the_next_command_completes_a_commit_a_crash_interrupted(toy_ws, runner)
     assert target.read_text().startswith("segment_id,fidelity")
     assert not (toy_ws / ".bams-journal.json").exists() and not stray.exists()
     assert not (toy_ws / "x").exists()
+
+
+def test_status_finishes_a_commit_a_killed_select_left_and_reports_its_batch(toy_ws, runner):
+    # As if `select` was killed among its renames: its files wait staged, the journal lists
+    # them. status completes the commit (as the next writing command would) and reports the
+    # batch awaiting results, not "run select" (a trial killed select at its journal).
+    copy = toy_ws.parent / "after"
+    shutil.copytree(toy_ws, copy)
+    ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
+    pairs = []
+    for path in sorted(p for p in copy.rglob("*") if p.is_file() and ".lock" not in p.name):
+        rel = path.relative_to(copy)
+        target = toy_ws / rel
+        if target.exists() and target.read_bytes() == path.read_bytes():
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staged = target.parent / f".tmp-{target.name}-999-{len(pairs)}"
+        staged.write_bytes(path.read_bytes())
+        pairs.append([str(staged.relative_to(toy_ws)), rel.as_posix()])
+    assert any(p[1].startswith("batches/batch-0001") for p in pairs)
+    (toy_ws / ".bams-journal.json").write_text(json.dumps({"renames": pairs}))
+    r = invoke(runner, "status", "-w", toy_ws, "--json")
+    assert r.exit_code == 3, r.output
+    summary = json.loads(r.stdout)
+    assert summary["next"]["step"] == "ingest-results"
+    assert summary["finished_interrupted_commit"] == len(pairs)
+    assert not summary["commit_in_progress"] and not (toy_ws / ".bams-journal.json").exists()
+    assert "finished an interrupted command's commit" in r.stderr
+    assert tree_hash(toy_ws) == tree_hash(copy)
