@@ -147,14 +147,19 @@ def _finish_interrupted_commit(root: Path) -> int:
     command (``select``) as the next step though its batch was already decided."""
     from bams_cli.errors import WorkspaceLockedError
     from bams_cli.state.io import journal_in, recover
-    from bams_cli.state.lock import workspace_lock
+    from bams_cli.state.lock import held_by_a_live_command, workspace_lock
 
-    if not (root / JOURNAL_NAME).exists():
+    # The holder first, then the journal: a command that finished its commit removed its
+    # journal before letting go, so a journal seen after a dead or absent holder is left
+    # over (a live command's commit is never touched, and no lock is taken for nothing).
+    if held_by_a_live_command(root) or not (root / JOURNAL_NAME).exists():
         return 0
     try:
         with workspace_lock(root, wait=False), journal_in(root):
             return recover(root)
-    except WorkspaceLockedError:
+    except (WorkspaceLockedError, OSError):
+        # Taken meanwhile, or a workspace this user cannot write (a colleague's, a
+        # read-only mount): reported as it stands, commit_in_progress true.
         return 0
 
 

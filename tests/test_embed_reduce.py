@@ -15,7 +15,7 @@ from sklearn.decomposition import PCA
 from bams_cli.core import synthetic
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, tree_hash, write_batch
+from tests.conftest import invoke, ok, tree_hash, write_batch
 
 
 def _av_files(folder: Path, n: int = 600, layout: str = "list") -> Path:
@@ -427,3 +427,17 @@ def test_an_ipca_that_fails_to_converge_is_one_line_pointing_to_pca(
     line = r.output.strip()
     assert "\n" not in line and "SVD did not converge" in line and "--method pca" in line
     assert sorted(p.name for p in Path(av_ws).iterdir()) == before
+
+
+def test_an_embedding_list_of_decimals_is_read_as_numbers(tmp_path, runner):
+    # Decimals are numbers: refusing lists of text and booleans must not refuse them.
+    import decimal
+
+    values = [[decimal.Decimal(f"{i * 0.1 + j:.3f}") for j in range(3)] for i in range(8)]
+    emb = pa.array(values, type=pa.list_(pa.decimal128(6, 3)))
+    pq.write_table(
+        pa.table({"segment_id": [f"s{i}" for i in range(8)], "emb": emb}), tmp_path / "d.parquet"
+    )
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, tmp_path / "d.parquet", "--method", "pca")

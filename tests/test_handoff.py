@@ -236,6 +236,26 @@ def test_rows_marked_not_run_stay_pending(named_ws, runner, tmp_path):
     assert "not run" not in r.stdout + r.stderr
 
 
+def test_a_not_run_row_whose_retry_came_first_is_not_pending(named_ws, runner, tmp_path):
+    # The retry's results ingested before the file that first said "crashed": that file
+    # then names no row as not run, since none of its requests waits any more.
+    ws, truth = named_ws
+    batch = _select(runner, ws)
+    t = _fill_template(batch, truth, tmp_path / "r.csv", list(TEMPLATE_COLUMNS))
+    status = ["crashed", "crashed"] + ["ok"] * (t.height - 2)
+    value = [None, None, *t["value"][2:]]
+    t.head(2).select("request_id", "value").write_csv(tmp_path / "retry.csv")
+    t.with_columns(pl.Series("status", status), pl.Series("value", value)).write_csv(
+        tmp_path / "r.csv"
+    )
+    ok(runner, "ingest-results", "-w", ws, tmp_path / "retry.csv")
+    summary = json.loads(
+        ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout
+    )
+    assert summary["ingested"] == t.height - 2
+    assert summary["not_run"]["count"] == 0 and summary["pending"]["count"] == 0
+
+
 def test_batches_written_before_request_ids_get_them_from_their_rows(toy_ws, runner, tmp_path):
     # conftest.write_batch writes a batch as an older bams-cli did: no request_id column.
     write_batch(toy_ws, 1, ["t000000", "t000001", "t000002"], [0, 0, 1])

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import polars as pl
@@ -424,26 +425,55 @@ def test_status_finishes_a_commit_a_killed_select_left_and_reports_its_batch(toy
     # As if `select` was killed among its renames: its files wait staged, the journal lists
     # them. status completes the commit (as the next writing command would) and reports the
     # batch awaiting results, not "run select" (a trial killed select at its journal).
-    copy = toy_ws.parent / "after"
-    shutil.copytree(toy_ws, copy)
+    staged = _journal_of_a_killed_select(toy_ws, runner)
+    r = invoke(runner, "status", "-w", toy_ws, "--json")
+    assert r.exit_code == 3, r.output
+    summary = json.loads(r.stdout)
+    assert summary["next"]["step"] == "ingest-results"
+    assert summary["finished_interrupted_commit"] == staged
+    assert not summary["commit_in_progress"] and not (toy_ws / ".bams-journal.json").exists()
+    assert "finished an interrupted command's commit" in r.stderr
+    assert tree_hash(toy_ws) == tree_hash(toy_ws.parent / f"{toy_ws.name}-after")
+
+
+def _journal_of_a_killed_select(ws: Path, runner) -> int:
+    """Stage a random select's files in ``ws`` and journal them, as a kill among its
+    renames leaves them; returns the number of files staged."""
+    copy = ws.parent / f"{ws.name}-after"
+    shutil.copytree(ws, copy)
     ok(runner, "select", "-w", copy, "--strategy", "random", "--budget", "2")
     pairs = []
     for path in sorted(p for p in copy.rglob("*") if p.is_file() and ".lock" not in p.name):
         rel = path.relative_to(copy)
-        target = toy_ws / rel
+        target = ws / rel
         if target.exists() and target.read_bytes() == path.read_bytes():
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
         staged = target.parent / f".tmp-{target.name}-999-{len(pairs)}"
         staged.write_bytes(path.read_bytes())
-        pairs.append([str(staged.relative_to(toy_ws)), rel.as_posix()])
-    assert any(p[1].startswith("batches/batch-0001") for p in pairs)
-    (toy_ws / ".bams-journal.json").write_text(json.dumps({"renames": pairs}))
-    r = invoke(runner, "status", "-w", toy_ws, "--json")
-    assert r.exit_code == 3, r.output
+        pairs.append([str(staged.relative_to(ws)), rel.as_posix()])
+    (ws / ".bams-journal.json").write_text(json.dumps({"renames": pairs}))
+    return len(pairs)
+
+
+def test_status_leaves_a_running_command_s_commit_alone(toy_ws, runner, monkeypatch):
+    # The journal of a command still holding the lock is its commit under way: status
+    # neither completes it nor takes the lock; and where it cannot take the lock (a
+    # workspace it may not write), it reports the workspace as it stands.
+    from bams_cli.state import lock
+
+    _journal_of_a_killed_select(toy_ws, runner)
+    before = tree_hash(toy_ws)
+    with lock.workspace_lock(toy_ws):  # this process: alive, holding the lock
+        r = invoke(runner, "status", "-w", toy_ws, "--json")
     summary = json.loads(r.stdout)
-    assert summary["next"]["step"] == "ingest-results"
-    assert summary["finished_interrupted_commit"] == len(pairs)
-    assert not summary["commit_in_progress"] and not (toy_ws / ".bams-journal.json").exists()
-    assert "finished an interrupted command's commit" in r.stderr
-    assert tree_hash(toy_ws) == tree_hash(copy)
+    assert summary["commit_in_progress"] and summary["finished_interrupted_commit"] == 0
+    assert tree_hash(toy_ws) == before
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(toy_ws / ".bams.lock"))
+
+    monkeypatch.setattr(lock, "workspace_lock", refused)
+    r = invoke(runner, "status", "-w", toy_ws, "--json")
+    assert r.exit_code == 0, r.output  # as before the commit began: a first batch to select
+    assert json.loads(r.stdout)["commit_in_progress"] and tree_hash(toy_ws) == before

@@ -14,8 +14,9 @@ from bams_cli.errors import (
     shown,
 )
 from bams_cli.pipeline._common import SID, locked, not_run_summary, pending_summary
+from bams_cli.settings import Settings
 from bams_cli.state import pending, schemas
-from bams_cli.state.handoff import REQUEST_ID
+from bams_cli.state.handoff import REQUEST_ID, _level_of
 from bams_cli.state.inputs import read_results
 from bams_cli.state.io import (
     file_sha256,
@@ -97,19 +98,6 @@ def ingest_results(
             if changed.height
             else ""
         )
-        # Its rows marked not run: only those still without a result stay pending (a
-        # re-ingest after their retry said "12 rows not run ... stay pending" beside
-        # "nothing pending").
-        if not_run.height:
-            # A row names its segment by request_id or by segment_id (its fidelity may be a
-            # level name): the segment is what is compared with the pending requests'.
-            req = ws.requests().select(REQUEST_ID, pl.col(SID).alias("_req_sid"))
-            waiting = ws.pending()[SID].unique().implode()
-            not_run = (
-                not_run.join(req, on=REQUEST_ID, how="left", maintain_order="left")
-                .filter(pl.coalesce("_req_sid", SID).is_in(waiting))
-                .drop("_req_sid")
-            )
         return {
             "ingested": 0,
             "already_ingested": True,
@@ -117,7 +105,7 @@ def ingest_results(
             + since,
             "pending": pending_summary(ws),
             "pending_lists": pending.summary(ws),
-            "not_run": not_run_summary(not_run),
+            "not_run": not_run_summary(_still_pending(ws, settings, not_run)),
         }
 
     if results.height == 0:
@@ -128,7 +116,7 @@ def ingest_results(
             f"those requests stay pending",
             "pending": pending_summary(ws),
             "pending_lists": pending.summary(ws),
-            "not_run": not_run_summary(not_run),
+            "not_run": not_run_summary(_still_pending(ws, settings, not_run)),
         }
     pool_ids = pl.from_arrow(ws.read_segments([SID]).column(SID)).alias(SID)  # type: ignore[union-attr]
     unknown = results.filter(~pl.col(SID).is_in(pool_ids.implode()))
@@ -185,7 +173,7 @@ def ingest_results(
             "message": f"{source}: every value is already in the log; nothing changed",
             "pending": pending_summary(ws),
             "pending_lists": pending.summary(ws),
-            "not_run": not_run_summary(not_run),
+            "not_run": not_run_summary(_still_pending(ws, settings, not_run)),
         }
     now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     new_rows = new.select(
@@ -228,5 +216,34 @@ def ingest_results(
         },
         "pending": pending_summary(ws),
         "pending_lists": pending.summary(ws),
-        "not_run": not_run_summary(not_run),
+        "not_run": not_run_summary(_still_pending(ws, settings, not_run)),
     }
+
+
+def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> pl.DataFrame:
+    """The rows a results file marked as not run whose (segment, level) is still pending.
+
+    A row names its request by request_id, or by segment_id and fidelity (a number or a
+    level name). One whose run has a result since (its retry ingested first, or this file
+    ingested again after it) is not reported as "stays pending": a re-ingest had said "12
+    rows not run ... stay pending" beside "nothing pending". A fidelity that names no level
+    compares by segment alone.
+    """
+    if not not_run.height:
+        return not_run
+    req = {
+        r: (sid, int(fid))
+        for r, sid, fid in ws.requests().select(REQUEST_ID, SID, "fidelity").iter_rows()
+    }
+    waiting = ws.pending().select(SID, "fidelity").unique()
+    pairs = set(waiting.iter_rows())
+    segments = set(waiting[SID].to_list())
+    by_name = {lv.name: i for i, lv in enumerate(settings.levels)}
+    keep = []
+    for rid, sid, fid in not_run.select(REQUEST_ID, SID, "fidelity").iter_rows():
+        if rid is not None and rid.strip() in req:
+            sid, level = req[rid.strip()]
+        else:
+            level = _level_of(fid, by_name) if fid is not None else None
+        keep.append((sid, level) in pairs if level is not None else sid in segments)
+    return not_run.filter(pl.Series(keep, dtype=pl.Boolean))

@@ -119,10 +119,16 @@ def _numeric_list(schema: pa.Schema, name: str, source: Path) -> str:
     """``name``, a list column, if its values are numbers; else a one-line SchemaError.
 
     Strings such as "0.25" were parsed as numbers (ten times slower, and a bad one gave an
-    error naming no column or row) and booleans read as 0 and 1."""
+    error naming no column or row) and booleans read as 0 and 1. Decimals stay accepted."""
     value = schema.field(name).type.value_type
-    # null: every list empty or null, which the row checks name ("embedding is empty").
-    if not (pa.types.is_floating(value) or pa.types.is_integer(value) or pa.types.is_null(value)):
+    # null: every list empty or null, which the row checks name ("embedding is empty");
+    # decimals are numbers, read as floats.
+    if not (
+        pa.types.is_floating(value)
+        or pa.types.is_integer(value)
+        or pa.types.is_decimal(value)
+        or pa.types.is_null(value)
+    ):
         raise SchemaError(
             source, f"embedding column holds lists of {value}, not numbers", column=name
         )

@@ -277,6 +277,23 @@ def _try_take(workspace: Path, fd: int, lock_file: str = LOCK_FILE) -> Holder | 
         return None
 
 
+def held_by_a_live_command(workspace: Path, lock_file: str = LOCK_FILE) -> bool:
+    """Whether the lock's record names a command still running, read without taking the
+    lock (or writing anything). True where the record cannot be read: a reader that cannot
+    tell must leave the workspace alone."""
+    try:
+        fd = os.open(workspace / lock_file, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True
+    try:
+        holder = _read_record(fd)
+    finally:
+        os.close(fd)
+    return holder.held and not _dead(holder.info)
+
+
 @contextmanager
 def workspace_lock(
     workspace: Path,
