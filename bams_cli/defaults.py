@@ -196,10 +196,11 @@ STAGE1_SHARE = 0.5
 #: Beta prior on lam, the share of the failure mass the model does not explain
 #: (``core.design.risk_posterior``); its mean (1/3 here) is the trust the first stage places
 #: in p_n. Beta(0.5, 1) leans to trust but keeps a heavy tail towards 1 (its 0.9 quantile,
-#: where the interval's allowance for unseen failures sits, is 0.81): chosen on the suite
-#: against Beta(1, 1), Beta(1, 2), Beta(1, 2.5), Beta(1, 3) and U-shaped priors as the one
-#: that keeps every problem within 1.2x of uniform's variance while bringing av_like to
-#: 1/5 of it (docs/suite/risk_prior.md).
+#: where the interval's allowance for unseen failures sits, is 0.81). Chosen on the suite
+#: against Beta(1, 1), Beta(1, 2) and Beta(1, 3) (docs/suite/risk_prior.md): with Beta(1, 2),
+#: within a few thousandths of it everywhere, it keeps every problem and model within 1.2x
+#: of uniform's variance while bringing av_like to about 1/5 of it; Beta(1, 3) took
+#: rare_regions and digits past 1.2x at worst.
 RISK_MIX_PRIOR = (0.5, 1.0)
 
 #: Posterior quantile of lam at which the interval's allowance for an unseen failure is

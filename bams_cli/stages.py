@@ -96,7 +96,8 @@ def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list
     norms (``p_mean_unknown``, ``risk_norms``): its sampled segments' relative risk
     u = p_n / mean_U(p_n) at planning, and whether their level-0 value is <= gamma
     (``core.design.risk_posterior`` reads them). Plans made for another gamma, or by an
-    older version, are skipped. Returns the evidence and the plan numbers it came from.
+    older version whose shapes cannot be told, are skipped. Returns the evidence and the plan
+    numbers it came from.
     """
     from bams_cli.core.design import TAUS, StageEvidence
 
