@@ -332,6 +332,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "candidates_per_round": nullable(COUNT),
                         "workers": nullable(COUNT),
                         "workers_reason": STR,
+                        "scheduler": STR,
                     },
                 ),
             },

@@ -477,3 +477,13 @@ def test_status_leaves_a_running_command_s_commit_alone(toy_ws, runner, monkeypa
     r = invoke(runner, "status", "-w", toy_ws, "--json")
     assert r.exit_code == 0, r.output  # as before the commit began: a first batch to select
     assert json.loads(r.stdout)["commit_in_progress"] and tree_hash(toy_ws) == before
+
+
+def test_a_budget_is_refused_only_beyond_what_the_whole_pool_costs(toy_ws, runner):
+    # 400 segments at levels costing 1 and 0.1 cost 440 in all: 100 level-0 runs are a
+    # batch (the bound was budget / the cheapest cost, 1,000 > 800 runs: refused), 441 not.
+    ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "100")
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "441")
+    assert r.exit_code == 1 and "(400 segments x 2 levels cost 440)" in r.stderr, r.stderr
+    assert tree_hash(toy_ws) == before

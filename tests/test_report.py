@@ -179,6 +179,8 @@ def test_report_says_first_what_state_the_study_is_in(study, stage):
     body = html[html.index("<h1>") : html.index("<h2>")]
     assert body.count("class='banner") == len(s["notices"])
     head = md.split("\nPool of ")[0]
+    n_batches = len(s["batches"])
+    assert f"segments; {n_batches} batch{'' if n_batches == 1 else 'es'};" in md  # not "1 batches"
     for n in s["notices"]:
         assert f"data-kind='{n['kind']}'" in body
         assert f"> {n['text']}" in head
