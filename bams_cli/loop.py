@@ -374,6 +374,9 @@ def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | Non
     if len(numbers) < opts.batches:
         if not numbers:
             return ("select", "batch", 1)
+        if ws.read_observations().height == 0:
+            # Every request so far abandoned: nothing to fit, a new random batch (``_run``).
+            return ("select", "batch", numbers[-1] + 1)
         if not _model_fresh(ws):
             return ("fit", None, None)
         return ("select", "batch", numbers[-1] + 1)
@@ -416,7 +419,9 @@ def _run(
         record["up_to_date"] = bool(out.get("up_to_date", False))
     elif name == "select":
         assert number is not None
-        first = number == 1 and not ws.model_path.exists()
+        # A random batch while there is no model: the first, or one after a first batch
+        # whose every request was abandoned (``_next_step``).
+        first = not ws.model_path.exists()
         out = pipeline.select(
             root,
             strategy="random" if first else "bams",

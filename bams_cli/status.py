@@ -105,7 +105,9 @@ def status(root: Path) -> dict[str, Any]:
     model = _model(ws, obs) if has_pool else None
     latest = latest_estimate(ws)
     estimating = _estimating(ws, plans)
-    step = _next_step(ws, settings, has_pool, batches, plans, model, estimating)
+    step = _next_step(
+        ws, settings, has_pool, batches, plans, model, estimating, has_results=obs.height > 0
+    )
     waiting = step["step"] == "ingest-results"
     if not has_pool:
         phase = "setup"
@@ -289,6 +291,7 @@ def _next_step(
     plans: list[dict[str, Any]],
     model: dict[str, Any] | None,
     estimating: bool,
+    has_results: bool = True,
 ) -> dict[str, Any]:
     """The step the loop needs next: ``step`` (a command name, or "done"), the exact
     ``command``, ``text`` saying why, for a person, and ``alternatives``, the other
@@ -348,10 +351,14 @@ def _next_step(
     fit = f"bams-cli fit -w {w}"
     stale = model is None or not model["fresh"]
     why_fit = "no model yet" if model is None else f"the model is stale: {model['reason']}"
-    if not batches and not plans:
+    if not batches and not plans or not has_results:
+        # No result at all and none awaited (every request of the batches so far was
+        # abandoned): nothing to fit, so a new random batch, as at the start. "run fit"
+        # here sent a study whose first batch was lost round in a circle.
         mixed = " --mixed-fidelity" if settings.n_levels > 1 else ""
         cmd = f"bams-cli select -w {w} --strategy random{mixed} --budget {defaults.BUDGET:g}"
-        return step("select", cmd, f"no batch yet: run `{cmd}` for a random first batch")
+        why = "no batch yet" if not batches and not plans else "no result yet (none awaited)"
+        return step("select", cmd, f"{why}: run `{cmd}` for a random first batch")
     if estimating:
         k = plans[-1]["plan"]
         if plans[-1]["estimate"] is None and plans[-1]["abandoned"]:

@@ -11,6 +11,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
+from bams_cli.state.workspace import Workspace
 from tests.conftest import invoke, ok, simulate_and_ingest, tree_hash, write_toy
 
 
@@ -300,3 +301,28 @@ def test_a_partly_answered_list_offers_abandon_for_runs_that_never_come_back(stu
     command = f"bams-cli abandon -w {copy} --batch 2 --reason WHY"
     assert [a["command"] for a in nxt["alternatives"]] == [command]
     assert f"runs that can never be simulated: `{command}`" in nxt["text"]
+
+
+def test_a_study_whose_every_request_was_abandoned_selects_a_new_random_batch(
+    toy_ws, runner, tmp_path
+):
+    # Nothing to fit and nothing awaited: the way on is a new random batch, for status and
+    # for the loop alike ("run fit" sent such a study round in a circle: fit refuses).
+    from bams_cli import loop
+
+    ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "3")
+    ok(runner, "abandon", "-w", toy_ws, "--batch", "1", "--reason", "simulator lost them")
+    r = invoke(runner, "status", "-w", toy_ws, "--json")
+    assert r.exit_code == 0, r.output
+    nxt = json.loads(r.stdout)["next"]
+    assert nxt["step"] == "select" and "--strategy random" in nxt["command"]
+    assert "no result yet" in nxt["text"]
+    opts = loop.Options(
+        simulator="true", batches=2, budget=3, first_budget=3, then_estimate=False,
+        samples=None, results_dir=tmp_path, abandon_failed=False, retries=0, clusters=2,
+        workers=1, wait=False,
+    )  # fmt: skip
+    assert loop._next_step(Workspace(toy_ws), opts) == ("select", "batch", 2)
+    record = loop._run(Workspace(toy_ws), opts, "select", "batch", 2, set())
+    assert record["picks"] > 0  # a random batch: BAMS would need a model
+    assert Workspace(toy_ws).read_batch(2)["strategy"].unique().to_list() == ["random"]
