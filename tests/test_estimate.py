@@ -125,7 +125,7 @@ def _plan_ids(ws, number: int) -> list[str]:
 def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
-    ws, _ = _copy(fitted_ws, tmp_path)
+    ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
 
     def plan(*extra):
@@ -150,6 +150,17 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
         (7, "--seed", [7, 10_000]),
         (8, "--seed", [8, 10_000]),
     ]
+    # A later stage draws from its series' --seed, its own stream per stage: fresh plans
+    # of one study, each from its own seed, had shared stage 2's draws (a trial study).
+    for k in (1, 2, 3, 4):
+        ok(runner, "abandon", "-w", ws, "--plan", str(k), "--reason", "next: a series by --seed")
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60", "--seed", "5", "--new-series")
+    _simulate_and_ingest(runner, ws, truth, 5, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    stage2 = plan()
+    assert (stage2["stage"], stage2["seed"], stage2["seed_source"]) == (2, 5, "stage 1's --seed")
+    m6 = read_metadata_json(ws / "estimates" / "plan-0006.parquet")
+    assert m6["rng_stream"] == [5, 10_002]
     # --seed without --plan is a usage error that names the fix.
     r = invoke(runner, "estimate", "-w", ws, "--seed", "7")
     assert r.exit_code == 2 and "pass it with --plan" in r.output + r.stderr

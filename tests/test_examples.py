@@ -140,3 +140,48 @@ def test_runs_that_crash_are_simulated_again_alone_and_make_goes_on_after_a_hand
     assert asked.count(str(whole)) == 1 and asked.count(str(pending)) == 1
     assert (study / "report" / "summary.md").exists()
     assert _make(tmp_path, sim, "-q", check=False).returncode == 0
+
+
+BROKEN = """
+import subprocess, sys
+from pathlib import Path
+bams, handoff, out, truth, log = sys.argv[1:6]
+with open(log, "a") as fh:
+    fh.write(handoff + "\\n")
+n = sum("batch-0002" in a for a in open(log).read().split())
+if "batch-0002" in handoff and n == 1:  # writes half a file, then fails
+    Path(out).write_bytes(b"PAR1 half")
+    sys.exit(1)
+if "batch-0002" in handoff and n == 2:  # succeeds, with a file cut short
+    Path(out).write_bytes(b"PAR1 cut short")
+    sys.exit(0)
+subprocess.run([bams, "simulate", handoff, "--truth", truth, "-o", out], check=True)
+"""
+
+
+@pytest.mark.slow  # a whole study through make, three times: about a minute
+def test_a_failed_or_malformed_simulation_is_simulated_again_by_the_next_make(tmp_path):
+    # A simulator that fails after writing part of its file leaves nothing make would take
+    # for done (.DELETE_ON_ERROR); a results file ingest-results refuses is set aside, so
+    # the next make simulates the list again instead of failing on that file for ever.
+    write_toy(tmp_path / "data", n=400)
+    settings = Settings(
+        gammas=(0.56,), levels=levels_from_costs([1.0, 0.1]), seed=0, embedding_dim=2
+    )
+    (tmp_path / "data" / "settings.toml").write_text(settings.to_toml())
+    (tmp_path / "broken.py").write_text(BROKEN)
+    sim = (
+        f"SIMULATE={sys.executable} {tmp_path / 'broken.py'} {BAMS} $(1) $(2) "
+        f"$(DATA)/truth.parquet {tmp_path / 'asked.log'}"
+    )
+    results = tmp_path / "study-sim" / "results-0002.parquet"
+    r = _make(tmp_path, sim, check=False)
+    assert r.returncode != 0 and not results.exists()  # the half-written file is gone
+    r = _make(tmp_path, sim, check=False)
+    assert r.returncode != 0 and not results.exists()
+    [rejected] = (tmp_path / "study-sim").glob("rejected-*-results-0002.parquet")
+    assert rejected.read_bytes() == b"PAR1 cut short"  # kept for the user to read
+    assert "set aside as rejected" in r.stderr
+    _make(tmp_path, sim)  # simulated a third time, and the study finishes
+    assert (tmp_path / "study" / "report" / "summary.md").exists()
+    assert open(tmp_path / "asked.log").read().count("batch-0002") == 3

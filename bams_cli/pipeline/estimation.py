@@ -48,6 +48,10 @@ from bams_cli.state.io import (
 )
 from bams_cli.state.workspace import Workspace
 
+#: Where a plan's seed came from (its metadata's ``seed_source``).
+SEED_OPTION = "--seed"
+SEED_INHERITED = "stage 1's --seed"
+
 
 @locked
 def estimate_plan(
@@ -273,7 +277,19 @@ def estimate_plan(
         weights = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
         K_stage = series_K * weights[0]
     K_stage = min(K_stage, float(n_unknown))
-    stream = [settings.seed, 10_000 + number] if seed is None else [int(seed), 10_000]
+    # A later stage of a series whose stage 1 was drawn with --seed draws from that seed
+    # too (its own stream per stage): fresh plans of one study, each from its own --seed,
+    # had shared stage 2's draws, all from the study's seed.
+    inherited = None
+    if continuing and seed is None and prev is not None:
+        if prev.meta.get("seed_source") in (SEED_OPTION, SEED_INHERITED):
+            inherited = int(prev.meta["seed"])
+    if seed is not None:
+        stream, seed_source = [int(seed), 10_000], SEED_OPTION
+    elif inherited is not None:
+        stream, seed_source = [inherited, 10_000 + stage], SEED_INHERITED
+    else:
+        stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     rng = np.random.default_rng(stream)
     unknown = np.flatnonzero(~known)
     pu = p[unknown]
@@ -393,7 +409,7 @@ def estimate_plan(
         # `estimate` reports it when the plan's results have not been fitted yet.
         "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
         "seed": stream[0],
-        "seed_source": "study settings" if seed is None else "--seed",
+        "seed_source": seed_source,
         "rng_stream": stream,
     }
     path = ws.estimates_dir / f"plan-{number:04d}.parquet"
