@@ -1175,7 +1175,8 @@ def loop(
             "--retries",
             help="Run the simulator again on a list's requests still without a result (failed "
             "or missing rows) up to N times before stopping (or, with --abandon-failed, "
-            "abandoning them).",
+            "abandoning them). N counts a list's tries over every loop run (from the "
+            "retried-K-* files kept): a second run with the same N tries no more.",
         ),
     ] = defaults.RETRIES,
     clusters: Annotated[

@@ -492,6 +492,7 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
         partial.unlink(missing_ok=True)
         raise
     if returncode != 0:
+        partial.unlink(missing_ok=True)  # what a failed run wrote is never results
         raise LoopError(
             f"--simulator: `{command}` exited with {returncode} on {handoff}; fix it and "
             "run the same `bams-cli loop` again (it resumes here)"

@@ -171,10 +171,12 @@ def test_a_loop_killed_at_random_points_ends_where_an_uninterrupted_one_does(dat
 def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     tmp, seg, _, _, _ = data
     ws = _study(tmp_path, "ws", seg)
-    args = [*BAMS, "loop", "-w", str(ws), "--simulator", "exit 7 # {handoff} {results}",
+    # It writes part of its file, then fails: what it wrote is not kept.
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", "echo x > {results}; exit 7 # {handoff}",
             "--batches", "2", "--budget", "2"]  # fmt: skip
     r = subprocess.run(args, capture_output=True, text=True)
     assert r.returncode == 1 and "exited with 7" in r.stderr and "batch-0001.csv" in r.stderr
+    assert not list((ws / "loop-results").glob(".partial-*"))
     s = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True, text=True)
     assert s.returncode == 3  # batch 1 drawn, waiting for its results: resumable
     r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
