@@ -149,6 +149,7 @@ def test_a_finished_loop_does_nothing(data):
     assert tree_hash(ws) == before
 
 
+@pytest.mark.slow  # about a minute; make test was near its 10-minute budget
 def test_a_loop_killed_at_random_points_ends_where_an_uninterrupted_one_does(data):
     tmp, seg, truth, ws, _ = data
     resumed = _study(tmp, "killed", seg)
