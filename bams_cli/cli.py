@@ -1218,7 +1218,10 @@ def loop(
         _json("loop", summary)
         return
     if summary["unchanged"]:
-        console.note(f"loop: nothing to do; {summary['batches']} batches are in")
+        console.note(
+            f"loop: nothing to do; {console.plural(summary['batches'], 'batch', 'batches')} "
+            f"{'is' if summary['batches'] == 1 else 'are'} in"
+        )
         if summary["estimate"]:
             console.estimate_lines(summary["estimate"])
         return

@@ -371,12 +371,13 @@ def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | Non
                     return ("ingest-results", kind, n)
                 return ("simulate", kind, n)
     numbers = ws.batch_numbers()
+    if numbers and ws.read_observations().height == 0:
+        # Every request so far abandoned: nothing to fit, a new random batch (``_run``),
+        # whatever --batches says: batches that brought no result do not count against it.
+        return ("select", "batch", numbers[-1] + 1)
     if len(numbers) < opts.batches:
         if not numbers:
             return ("select", "batch", 1)
-        if ws.read_observations().height == 0:
-            # Every request so far abandoned: nothing to fit, a new random batch (``_run``).
-            return ("select", "batch", numbers[-1] + 1)
         if not _model_fresh(ws):
             return ("fit", None, None)
         return ("select", "batch", numbers[-1] + 1)

@@ -357,7 +357,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "alpha": NUM,
                 "defensive": NUM,
                 "seed": INT,
-                "seed_source": {"enum": ["study settings", "--seed"]},
+                "seed_source": {"enum": ["study settings", "--seed", "stage 1's --seed"]},
                 "series": INT,
                 "stage": INT,
                 "stages": INT,

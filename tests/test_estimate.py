@@ -160,7 +160,11 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     stage2 = plan()
     assert (stage2["stage"], stage2["seed"], stage2["seed_source"]) == (2, 5, "stage 1's --seed")
     m6 = read_metadata_json(ws / "estimates" / "plan-0006.parquet")
-    assert m6["rng_stream"] == [5, 10_002]
+    assert m6["rng_stream"] == [5, 20_002]  # not [5, 10_002]: a seed-5 study's own plan 2
+    from bams_cli import schemas_json
+    from tests.jsonschema_subset import errors
+
+    assert errors(stage2, schemas_json.schema("estimate-plan")) == []
     # --seed without --plan is a usage error that names the fix.
     r = invoke(runner, "estimate", "-w", ws, "--seed", "7")
     assert r.exit_code == 2 and "pass it with --plan" in r.output + r.stderr

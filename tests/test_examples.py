@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import polars as pl
 import pytest
 
 from bams_cli.settings import Settings, levels_from_costs
@@ -182,6 +183,16 @@ def test_a_failed_or_malformed_simulation_is_simulated_again_by_the_next_make(tm
     [rejected] = (tmp_path / "study-sim").glob("rejected-*-results-0002.parquet")
     assert rejected.read_bytes() == b"PAR1 cut short"  # kept for the user to read
     assert "set aside as rejected" in r.stderr
-    _make(tmp_path, sim)  # simulated a third time, and the study finishes
+    # A value that conflicts with one logged is not the file's fault: it stays, make stops.
+    conflict = tmp_path / "study-sim" / "results-0001.parquet"
+    saved = conflict.read_bytes()
+    t = pl.read_parquet(conflict)
+    t.with_columns(pl.col("value") + 1.0).write_parquet(conflict)
+    (tmp_path / "study-sim" / "ingested-0001").unlink()
+    r = _make(tmp_path, sim, check=False)
+    assert r.returncode != 0 and "is already known as" in r.stderr and conflict.exists()
+    assert "set aside" not in r.stderr
+    conflict.write_bytes(saved)  # put right by hand: make goes on
+    _make(tmp_path, sim)  # batch 2 simulated a third time, and the study finishes
     assert (tmp_path / "study" / "report" / "summary.md").exists()
     assert open(tmp_path / "asked.log").read().count("batch-0002") == 3

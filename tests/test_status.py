@@ -3,6 +3,7 @@ documented exit codes (0 done, 1 error, 2 usage, 3 waiting on results)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -323,6 +324,9 @@ def test_a_study_whose_every_request_was_abandoned_selects_a_new_random_batch(
         workers=1, wait=False,
     )  # fmt: skip
     assert loop._next_step(Workspace(toy_ws), opts) == ("select", "batch", 2)
+    # ... also once --batches is used up by batches that brought nothing.
+    one = dataclasses.replace(opts, batches=1, then_estimate=True)
+    assert loop._next_step(Workspace(toy_ws), one) == ("select", "batch", 2)
     record = loop._run(Workspace(toy_ws), opts, "select", "batch", 2, set())
     assert record["picks"] > 0  # a random batch: BAMS would need a model
     assert Workspace(toy_ws).read_batch(2)["strategy"].unique().to_list() == ["random"]

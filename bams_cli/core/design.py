@@ -72,11 +72,12 @@ _LAM_GRID = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, 121))
 #: Shapes the calibration map may take: r proportional to u^tau (tau 1: p_n as it is;
 #: 0.5: flatter, a model whose contrasts are overstated). The sharper shapes tau 1.5 and 2
 #: were weighed until 2026-11-24. Dropping them lowered the mean variance on toy2d, av_like,
-#: weak_cheap and gap_sim under every prior measured (av_like 0.258 -> 0.245 of uniform's
-#: under Beta(1, 1)) and raised it on rare_regions by up to 0.017, and some worst seeds
-#: with it (rare_regions 1.179 -> 1.188 and digits' MCM-GP runs 1.123 -> 1.160 under
-#: Beta(0.5, 1)); docs/suite/risk_prior.md. With stage 1's one or two failures a sharper
-#: shape fits them as well as tau 1 and mostly adds weight where the model puts most.
+#: weak_cheap, digits and gap_sim under every prior measured (av_like 0.258 -> 0.245 of
+#: uniform's under Beta(1, 1)) and raised it on rare_regions by up to 0.017; some worst
+#: seeds rose with it (under Beta(0.5, 1): rare_regions 1.179 -> 1.188, weak_cheap 1.011
+#: -> 1.016 and 1.060 -> 1.076, digits' MCM-GP runs 1.123 -> 1.160); docs/suite/risk_prior.md.
+#: With stage 1's one or two failures a sharper shape fits them as well as tau 1 and
+#: mostly adds weight where the model puts most.
 TAUS = (0.5, 1.0)
 
 

@@ -287,7 +287,9 @@ def estimate_plan(
     if seed is not None:
         stream, seed_source = [int(seed), 10_000], SEED_OPTION
     elif inherited is not None:
-        stream, seed_source = [inherited, 10_000 + stage], SEED_INHERITED
+        # 20,000 + stage: never a stream a plan of the study's own seed draws from
+        # ([seed, 10,000 + plan number]), whatever seed the series was given.
+        stream, seed_source = [inherited, 20_000 + stage], SEED_INHERITED
     else:
         stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     rng = np.random.default_rng(stream)
