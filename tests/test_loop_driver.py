@@ -185,6 +185,7 @@ def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     assert r.returncode == 2 and "must name {handoff}" in r.stderr
 
 
+@pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
 def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_path):
     """One loop drives a workspace at a time: while the first waits on its simulator (no
     command lock held then), a second is refused naming it; with --wait it runs once the
@@ -224,6 +225,7 @@ def test_a_second_loop_is_refused_naming_the_first_then_waits_for_it(data, tmp_p
     assert _final(study) == _final(ws)
 
 
+@pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
 def test_a_loop_killed_inside_a_step_is_noted_once_by_the_next(data, tmp_path):
     """Killed while a step held the command lock, a loop leaves both its locks to the next
     loop, which takes them over saying so in one note, not one per lock."""
@@ -400,6 +402,7 @@ def test_a_simulator_s_memory_is_not_held_against_the_loop(data, tmp_path):
     assert Workspace(ws).read_observations().height > 0
 
 
+@pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
 def test_the_loop_shows_the_warnings_its_steps_give(data, tmp_path):
     # Run by hand, fit, select and estimate --plan each print their warnings; the loop ran
     # the same steps and printed none (a trial's fit warned twice that the model was
