@@ -30,7 +30,7 @@ from bams_cli.settings import Settings
 from bams_cli.stages import plan_numbers
 from bams_cli.state import schemas
 from bams_cli.state.handoff import handoff_path
-from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json
+from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json, recovered_note
 from bams_cli.state.pending import to_simulate
 from bams_cli.state.workspace import Workspace
 
@@ -93,10 +93,7 @@ def status(root: Path) -> dict[str, Any]:
     settings = ws.require_initialised()
     finished = _finish_interrupted_commit(ws.root)
     if finished:
-        sys.stderr.write(
-            f"note: {root}: finished an interrupted command's commit ({finished} "
-            f"file{'s' if finished != 1 else ''} renamed into place)\n"
-        )
+        sys.stderr.write(recovered_note(root, finished))
     has_pool = ws.segments_path.exists()
     obs = ws.read_observations()
     observed = obs.select(SID, "fidelity").unique()

@@ -32,12 +32,17 @@ def _make(tmp: Path, *extra: str, check: bool = True) -> subprocess.CompletedPro
     return r
 
 
-def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
-    write_toy(tmp_path / "data", n=400)
+def _toy_data(tmp: Path) -> None:
+    """400 toy2d segments in tmp/data, with two levels (costs 1 and 0.1) and gamma 0.56."""
+    write_toy(tmp / "data", n=400)
     settings = Settings(
         gammas=(0.56,), levels=levels_from_costs([1.0, 0.1]), seed=0, embedding_dim=2
     )
-    (tmp_path / "data" / "settings.toml").write_text(settings.to_toml())
+    (tmp / "data" / "settings.toml").write_text(settings.to_toml())
+
+
+def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
+    _toy_data(tmp_path)
 
     # The simulation team fails on batch 2: make stops there, nothing half-done.
     failing = "SIMULATE=$(if $(findstring batch-0002,$(1)),false,$(BAMS) simulate $(1) "
@@ -101,11 +106,7 @@ def test_runs_that_crash_are_simulated_again_alone_and_make_goes_on_after_a_hand
     # make's ingest step simulates that list (they crash again) and stops, with status
     # naming the list. The user simulates and ingests it by hand; the next make asks for
     # nothing more of batch 2 and finishes the study.
-    write_toy(tmp_path / "data", n=400)
-    settings = Settings(
-        gammas=(0.56,), levels=levels_from_costs([1.0, 0.1]), seed=0, embedding_dim=2
-    )
-    (tmp_path / "data" / "settings.toml").write_text(settings.to_toml())
+    _toy_data(tmp_path)
     (tmp_path / "crashy.py").write_text(CRASHY)
     log = tmp_path / "asked.txt"
     sim = (
@@ -165,11 +166,7 @@ def test_a_failed_or_malformed_simulation_is_simulated_again_by_the_next_make(tm
     # A simulator that fails after writing part of its file leaves nothing make would take
     # for done (.DELETE_ON_ERROR); a results file ingest-results refuses is set aside, so
     # the next make simulates the list again instead of failing on that file for ever.
-    write_toy(tmp_path / "data", n=400)
-    settings = Settings(
-        gammas=(0.56,), levels=levels_from_costs([1.0, 0.1]), seed=0, embedding_dim=2
-    )
-    (tmp_path / "data" / "settings.toml").write_text(settings.to_toml())
+    _toy_data(tmp_path)
     (tmp_path / "broken.py").write_text(BROKEN)
     sim = (
         f"SIMULATE={sys.executable} {tmp_path / 'broken.py'} {BAMS} $(1) $(2) "

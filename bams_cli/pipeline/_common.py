@@ -22,6 +22,7 @@ from bams_cli.state.io import (
     journal_in,
     read_state,
     recover,
+    recovered_note,
 )
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
@@ -59,10 +60,7 @@ def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
         with workspace_lock(Path(root), wait=wait), journal_in(Path(root)):
             moved = recover(Path(root))
             if moved:
-                sys.stderr.write(
-                    f"note: {root}: finished an interrupted command's commit ({moved} "
-                    f"file{'s' if moved != 1 else ''} renamed into place)\n"
-                )
+                sys.stderr.write(recovered_note(root, moved))
             return fn(root, *args, **kwargs)
 
     sig = inspect.signature(fn)

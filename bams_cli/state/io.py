@@ -163,6 +163,14 @@ def recover(workspace: Path) -> int:
     return moved
 
 
+def recovered_note(workspace: Path, moved: int) -> str:
+    """What a command says after ``recover`` completed an interrupted commit."""
+    return (
+        f"note: {workspace}: finished an interrupted command's commit ({moved} "
+        f"file{'s' if moved != 1 else ''} renamed into place)\n"
+    )
+
+
 def _journal_name(workspace: Path, path: Path) -> str:
     """How the journal names ``path``: relative to the workspace when inside it, so a
     copied or moved workspace recovers its own files and never the original's; absolute
