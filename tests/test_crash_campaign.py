@@ -407,6 +407,13 @@ def _run_all(tmp_path: Path, subprocesses: bool, kills: int, chain: int, threads
         assert outcomes["landed"] == kills
 
 
+def test_each_writing_command_killed_once(tmp_path):
+    """A kill of each command started as ``python -m bams_cli`` (its pid). The slow set
+    kills each three times (pid, group, pid) and 50 times in-process."""
+    _run_all(tmp_path, subprocesses=True, kills=1, chain=1, threads=2)
+
+
+@pytest.mark.slow
 def test_each_writing_command_killed_a_few_times(tmp_path):
     """3 kills of each command started as ``python -m bams_cli``: pid, group, pid."""
     _run_all(tmp_path, subprocesses=True, kills=3, chain=3, threads=2)

@@ -41,6 +41,7 @@ def _toy_data(tmp: Path) -> None:
     (tmp / "data" / "settings.toml").write_text(settings.to_toml())
 
 
+@pytest.mark.slow  # a whole study through make, four times: about a minute and a half
 def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
     _toy_data(tmp_path)
 
