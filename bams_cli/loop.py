@@ -453,6 +453,7 @@ def _run(
                 raise
             raise LoopError(_rejected(results, exc, kind, number)) from None
         record["ingested"] = out["ingested"]
+        _drop_answered_subset(ws, kind, number, results.parent)
     elif name == "estimate --plan":
         out = pipeline.estimate_plan(root, samples=opts.samples, wait=wait)
         record["to_simulate"] = out["to_simulate"]
@@ -521,6 +522,17 @@ def _still_pending(ws: Workspace, kind: Kind, number: int, handoff: Path, folder
     with transaction() as tx:
         tx.write_text(subset, rows.write_csv())
     return subset
+
+
+def _drop_answered_subset(ws: Workspace, kind: str, number: int, folder: Path) -> None:
+    """Remove the pending-only list ``_still_pending`` wrote for ``kind number`` once none
+    of its requests is pending: left behind, it reads as work still to do."""
+    which: Kind = "batch" if kind == "batch" else "plan"
+    subset = folder / pending_path(handoff_path(ws.root, which, number)).name
+    if subset.exists():
+        pend = ws.pending()
+        if pend.filter(pend[which] == number).height == 0:
+            subset.unlink(missing_ok=True)
 
 
 def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> None:

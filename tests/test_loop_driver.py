@@ -461,9 +461,10 @@ def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_
     results.unlink()  # as the message says
     again = subprocess.run([*args, "--json"], capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
-    subset = ws / "loop-results" / "batch-0001.pending.csv"
-    assert len(pl.read_csv(subset)) == 2  # the two crashed requests, no more
+    assert len(pl.read_csv(results)) == 2  # the two crashed requests were simulated, no more
     assert Workspace(ws).pending().height == 0
+    # The pending-only list it simulated goes once the batch is answered.
+    assert not (ws / "loop-results" / "batch-0001.pending.csv").exists()
 
 
 BAD_LEVEL = """
@@ -542,7 +543,8 @@ def test_retries_simulate_what_has_no_result_again_then_abandon_it(data, tmp_pat
     assert not (folder / f"retried-{tries + 1}-batch-0001.csv").exists()
     w = Workspace(ws)
     assert w.pending().height == 0
-    assert len(pl.read_csv(folder / "batch-0001.pending.csv")) == 2  # the crashed two alone
+    assert len(pl.read_csv(folder / "batch-0001.csv")) == 2  # the crashed two were simulated alone
+    assert not (folder / "batch-0001.pending.csv").exists()  # nothing left to simulate
     assert w.read_abandoned().height == (0 if crashes == "once" else 2)
 
 
