@@ -1174,9 +1174,10 @@ def loop(
         typer.Option(
             "--retries",
             help="Run the simulator again on a list's requests still without a result (failed "
-            "or missing rows) up to N times before stopping (or, with --abandon-failed, "
-            "abandoning them). N counts a list's tries over every loop run (from the "
-            "retried-K-* files kept): a second run with the same N tries no more.",
+            "or missing rows), or on the whole list when ingest-results refused its results "
+            "file, up to N times before stopping (or, with --abandon-failed, abandoning "
+            "them). N counts a list's tries over every loop run (from the retried-K-* and "
+            "rejected-* files kept): a second run with the same N tries no more.",
         ),
     ] = defaults.RETRIES,
     clusters: Annotated[

@@ -451,7 +451,18 @@ def _run(
         except InputError as exc:
             if Path(exc.file) != results:  # a damaged workspace file, not the simulator's
                 raise
-            raise LoopError(_rejected(results, exc, kind, number)) from None
+            if (t := _retries_spent(results) + 1) > opts.retries:
+                raise LoopError(_rejected(results, exc, kind, number)) from None
+            # A try of its own: set aside, and the list is simulated again.
+            kept = _set_aside(results, "rejected")
+            ingested.discard(results)
+            if on_warning is not None:
+                on_warning(
+                    f"{_describe(name, kind, number)}: {exc} (kept as {kept}; simulating "
+                    f"the list again, retry {t} of {opts.retries})"
+                )
+            record["rejected"] = str(kept)
+            return record
         record["ingested"] = out["ingested"]
         _drop_answered_subset(ws, kind, number, results.parent)
     elif name == "estimate --plan":
@@ -566,9 +577,19 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
 
 
 def _retries_spent(results: Path) -> int:
-    """Retries already spent on ``results``' list: the tries kept beside it as
-    ``retried-K-NAME`` (on disk, so a loop stopped and run again counts them too)."""
-    return sum(1 for _ in results.parent.glob(f"retried-*-{results.name}"))
+    """Retries already spent on ``results``' list: the tries kept beside it, as
+    ``retried-K-NAME`` (ingested, some requests still without a result) or
+    ``rejected[-K]-NAME`` (refused by ``ingest-results``); on disk, so a loop stopped and
+    run again counts them too."""
+    folder, name = results.parent, results.name
+    rejected = sum(1 for p in folder.glob(f"rejected-*{name}") if _is_kept(p.name, name))
+    return sum(1 for _ in folder.glob(f"retried-*-{name}")) + rejected
+
+
+def _is_kept(kept: str, name: str) -> bool:
+    """Whether ``kept`` is ``rejected-NAME`` or ``rejected-K-NAME`` (``_set_aside``)."""
+    middle = kept.removeprefix("rejected-").removesuffix(name)
+    return middle == "" or (middle.endswith("-") and middle[:-1].isdigit())
 
 
 def _set_aside(results: Path, prefix: str) -> Path:

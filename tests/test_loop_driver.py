@@ -507,6 +507,45 @@ def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_
     assert Workspace(ws).pending().height == 0 and len(Workspace(ws).read_observations()) > 0
 
 
+def test_with_retries_left_a_refused_results_file_is_a_try_and_the_list_is_simulated_again(
+    data, tmp_path
+):
+    # --retries covered failed rows only: a refused file stopped the loop with tries left.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "bad_level.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
+    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3", "--retries", "1"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    folder = ws / "loop-results"
+    [warning] = [x for x in r.stderr.splitlines() if "retry 1 of 1" in x]
+    assert "column 'fidelity', row 1: fidelity 3" in warning
+    assert f"kept as {folder / 'rejected-batch-0001.csv'}" in warning
+    assert (folder / "rejected-batch-0001.csv").exists()
+    assert Workspace(ws).pending().height == 0 and len(Workspace(ws).read_observations()) > 0
+    # A simulator that writes a refused file every time: one retry, then the loop stops,
+    # and a second loop with the same --retries counts the kept files and tries no more.
+    always = tmp_path / "always_bad.py"
+    always.write_text(
+        f"BAMS = {BAMS!r}\n" + BAD_LEVEL.replace("if not __import__", "if 1 or not __import__")
+    )
+    ws2 = _study(tmp_path, "ws2", seg)
+    args2 = [*BAMS, "loop", "-w", str(ws2), "--simulator",
+             f"{sys.executable} {always} {tmp_path / 'flag2'} {truth} {{handoff}} {{results}}",
+             "--batches", "1", "--budget", "3", "--retries", "1"]  # fmt: skip
+    folder2 = ws2 / "loop-results"
+    stuck = subprocess.run(args2, capture_output=True, text=True)
+    assert stuck.returncode == 1 and stuck.stderr.count("retry 1 of 1") == 1, stuck.stderr
+    assert f"moved to {folder2 / 'rejected-2-batch-0001.csv'}" in stuck.stderr
+    again = subprocess.run(args2, capture_output=True, text=True)
+    assert again.returncode == 1 and "retry" not in again.stderr, again.stderr
+    assert f"moved to {folder2 / 'rejected-3-batch-0001.csv'}" in again.stderr
+    assert len(Workspace(ws2).read_observations()) == 0
+
+
 @pytest.mark.parametrize("crashes", ["once", "always"])
 def test_retries_simulate_what_has_no_result_again_then_abandon_it(data, tmp_path, crashes):
     # --retries N reruns the simulator on the requests still without a result by itself,
