@@ -25,12 +25,15 @@ runner's timeout) reaches it too. A loop stopped alone by SIGTERM, SIGINT or SIG
 the simulator and every process it started (SIGTERM, then SIGKILL after
 ``SIMULATOR_GRACE_S``), discards the partial results and exits 128 + the signal's number;
 the list stays pending, so the same loop run again resumes it. A SIGKILL of the loop alone
-cannot be caught: it leaves the simulator running.
+cannot be caught: it leaves the simulator running, and a loop started while it still runs
+refuses to simulate the same list again, naming its pid (the loop notes its simulator in
+``.simulator-NAME.json`` beside the results file).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shlex
 import signal
@@ -489,6 +492,8 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     results.parent.mkdir(parents=True, exist_ok=True)
     handoff = _still_pending(ws, which, number, handoff, results.parent)
     partial = results.with_name(f".partial-{results.name}")
+    running = results.with_name(f".simulator-{results.name}.json")
+    _refuse_an_earlier_loops_simulator(running, kind, number)
     partial.unlink(missing_ok=True)
     command = opts.simulator.format(
         handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
@@ -498,12 +503,15 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     before = {p.pid for p in psutil.Process().children()}  # not the simulator's
     proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL)
     try:
+        _record_simulator(running, proc.pid, command)
         with memory.outside(proc.pid):  # the simulator's memory is not the loop's
             returncode = proc.wait()
     except BaseException:
         _end_tree(proc, before)
         partial.unlink(missing_ok=True)
+        running.unlink(missing_ok=True)
         raise
+    running.unlink(missing_ok=True)
     if returncode != 0:
         partial.unlink(missing_ok=True)  # what a failed run wrote is never results
         raise LoopError(
@@ -533,6 +541,50 @@ def _still_pending(ws: Workspace, kind: Kind, number: int, handoff: Path, folder
     with transaction() as tx:
         tx.write_text(subset, rows.write_csv())
     return subset
+
+
+def _record_simulator(record: Path, pid: int, command: str) -> None:
+    """Note the running simulator beside its results file, for a loop started after this
+    one was killed by SIGKILL (which leaves the simulator running) to find."""
+    import psutil
+
+    with contextlib.suppress(psutil.Error):
+        started = psutil.Process(pid).create_time()
+        with transaction() as tx:
+            tx.write_text(record, json.dumps({"pid": pid, "started": started, "command": command}))
+
+
+def _refuse_an_earlier_loops_simulator(record: Path, kind: str, number: int) -> None:
+    """Refuse to simulate a list again while the simulator an earlier, killed loop started
+    on it still runs: both would write the same results file. A record whose process has
+    ended (or whose pid now belongs to another process) is removed."""
+    import psutil
+
+    try:
+        doc = json.loads(record.read_text())
+        pid, started, command = int(doc["pid"]), float(doc["started"]), str(doc["command"])
+    except FileNotFoundError:
+        return
+    except (OSError, ValueError, KeyError, TypeError):
+        record.unlink(missing_ok=True)  # unreadable: written by a loop killed mid-write
+        return
+    try:
+        p = psutil.Process(pid)
+        alive = abs(p.create_time() - started) < 0.05 and p.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        alive = False
+    if not alive:
+        record.unlink(missing_ok=True)
+        return
+    pids = [pid]
+    with contextlib.suppress(psutil.Error):
+        pids += [c.pid for c in p.children(recursive=True)]
+    raise LoopError(
+        f"{kind} {number}: the simulator an earlier `bams-cli loop` started on it is still "
+        f"running (`{command}`, pid {', '.join(map(str, pids))}); that loop was killed "
+        f"without ending it. End it (`kill {' '.join(map(str, pids))}`) or let it finish, "
+        "then run the same `bams-cli loop` again (it simulates the list again)"
+    )
 
 
 def _drop_answered_subset(ws: Workspace, kind: str, number: int, folder: Path) -> None:

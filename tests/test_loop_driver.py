@@ -379,6 +379,42 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
 
 
+def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(data, tmp_path):
+    # SIGKILL of the loop alone leaves its simulator running; a loop started then ran a
+    # second simulator on the same list, both writing the same results file.
+    tmp, seg, truth, _, _ = data
+    proc, started = _start_sleeper_loop(tmp_path, seg)
+    ws, args = tmp_path / "ws", proc.args
+    try:
+        proc.kill()  # the loop alone
+        proc.wait(timeout=60)  # (its stderr stays open: the simulator holds it)
+        assert not process_gone(started[0])
+        refused = subprocess.run(args, capture_output=True, text=True)
+        assert refused.returncode == 1, refused.stderr
+        [line] = [x for x in refused.stderr.splitlines() if x.startswith("error:")]
+        assert line.startswith(
+            "error: batch 1: the simulator an earlier `bams-cli loop` started on it is still "
+            "running (`"
+        ), line
+        # The whole tree, named to be ended: the `sh -c` the loop started, the simulator's
+        # shell and its child.
+        named = [int(x) for x in line.split("`kill ")[1].split("`")[0].split()]
+        assert set(started) <= set(named) and len(named) == 3, line
+    finally:
+        _end_leftovers(started)
+        proc.stderr.close()
+    deadline = time.monotonic() + 30
+    while not process_gone(started[0]) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    real = _loop_args(ws, truth)
+    args[args.index("--simulator") + 1] = real[real.index("--simulator") + 1]
+    again = subprocess.run([*args, "--json"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
+    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
+    assert not list((ws / "loop-results").glob(".simulator-*"))  # the note of it is gone
+
+
 def test_a_simulator_s_memory_is_not_held_against_the_loop(data, tmp_path):
     # Every command runs under a memory ceiling (BAMS_MAX_MEMORY here), counted over the
     # command's process tree; the loop's simulator is the user's program, and one that
