@@ -1158,7 +1158,8 @@ def loop(
         Path | None,
         typer.Option(
             "--results-dir",
-            help="Where the simulator's results files go \\[default: WS/loop-results].",
+            help="Where the simulator's results files go, a folder of their own (not the "
+            "workspace's) \\[default: WS/loop-results].",
         ),
     ] = None,
     abandon_failed: Annotated[

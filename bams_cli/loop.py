@@ -188,6 +188,12 @@ def loop(
             f"--simulator {simulator!r}: must name {{handoff}} (the hand-off list to read) "
             "and {results} (the results file to write), e.g. 'my-sim {handoff} -o {results}'"
         )
+    for name in ("handoff", "results"):
+        if any(f"{q}{{{name}}}{q}" in simulator for q in ("'", '"')):
+            raise OptionValueError(
+                f"--simulator {simulator!r}: write {{{name}}} without quotes; the loop quotes "
+                "the path it puts there (a quoted one breaks on a path with spaces)"
+            )
     if batches < 1:
         raise OptionValueError(f"--batches {batches}: must be >= 1")
     if retries < 0:
@@ -217,9 +223,11 @@ def loop(
         workers=workers,
         wait=wait,
     )
+    _check_results_dir(ws, opts.results_dir)
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
+    selected: set[int] = set()  # batches drawn by this run
     with (
         workspace_lock(
             ws.root,
@@ -233,7 +241,7 @@ def loop(
         try:
             while True:
                 current = None
-                step = _next_step(ws, opts)
+                step = _next_step(ws, opts, frozenset(selected))
                 if step is None:
                     break
                 current = name, kind, number = step
@@ -259,6 +267,8 @@ def loop(
                 if on_step is not None:
                     on_step(_describe(name, kind, number), _progress(ws, opts), total)
                 steps.append(_run(ws, opts, name, kind, number, ingested, on_warning))
+                if name == "select" and number is not None:
+                    selected.add(number)
         except LoopStopped as exc:
             raise LoopStopped(exc.signum, _stopped(ws, exc.signum, current)) from None
     if on_step is not None:
@@ -274,6 +284,21 @@ def loop(
         "estimate_file": None if latest is None else latest["file"],
         "estimate": latest,
     }
+
+
+def _check_results_dir(ws: Workspace, folder: Path) -> None:
+    """Refuse a --results-dir that is the workspace or one of its own folders: its results
+    files (``batch-0001.csv``) would take the names of the hand-off lists there, and the
+    loop would ingest a hand-off list as results and set it aside."""
+    where = folder.resolve()
+    own = [ws.root, ws.batches_dir, ws.estimates_dir, ws.history_dir, ws.report_dir]
+    if any(where == p.resolve() for p in own):
+        raise OptionValueError(
+            f"--results-dir {folder}: is the workspace's own folder; give the results a "
+            f"folder of their own (the default is {ws.root / 'loop-results'})"
+        )
+    if where.exists() and not where.is_dir():
+        raise OptionValueError(f"--results-dir {folder}: is a file, not a folder")
 
 
 @contextmanager
@@ -362,8 +387,11 @@ def _model_fresh(ws: Workspace) -> bool:
     return True
 
 
-def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | None] | None:
-    """(step, list kind, list number) the study needs next, or None when the loop is done."""
+def _next_step(
+    ws: Workspace, opts: Options, selected: frozenset[int] = frozenset()
+) -> tuple[str, str | None, int | None] | None:
+    """(step, list kind, list number) the study needs next, or None when the loop is done.
+    ``selected``: the batches this loop run drew."""
     pend = ws.pending()
     if pend.height:
         for kind in ("batch", "plan"):
@@ -377,6 +405,15 @@ def _next_step(ws: Workspace, opts: Options) -> tuple[str, str | None, int | Non
     if numbers and ws.read_observations().height == 0:
         # Every request so far abandoned: nothing to fit, a new random batch (``_run``),
         # whatever --batches says: batches that brought no result do not count against it.
+        # But not after one this run drew: a simulator that fails every run (abandoned by
+        # --abandon-failed) had the loop draw batch after batch for ever.
+        if numbers[-1] in selected:
+            last = handoff_path(ws.root, "batch", numbers[-1])
+            raise LoopError(
+                f"every request of batch {numbers[-1]} failed and was abandoned, and the study "
+                f"has no result yet: check the simulator on {last}, then run the same "
+                "`bams-cli loop` again (it draws a new random batch)"
+            )
         return ("select", "batch", numbers[-1] + 1)
     if len(numbers) < opts.batches:
         if not numbers:
@@ -448,7 +485,17 @@ def _run(
             # With retries left, what failed is simulated again rather than abandoned.
             if opts.abandon_failed and _retries_spent(results) >= opts.retries:
                 out = abandon.ingest_results_abandoning_failed(root, results, wait=wait)
-                record["abandoned"] = out["abandoned"]["abandoned"]
+                record["abandoned"] = n = out["abandoned"]["abandoned"]
+                if n and on_warning is not None:
+                    on_warning(
+                        f"{_describe(name, kind, number)}: {n} failed request"
+                        f"{'s' if n != 1 else ''} abandoned (--abandon-failed): "
+                        + (
+                            "the estimate bounds what they might have been"
+                            if kind == "plan"
+                            else "not asked for again"
+                        )
+                    )
             else:
                 out = pipeline.ingest_results(root, results, wait=wait)
         except InputError as exc:
@@ -467,7 +514,6 @@ def _run(
             record["rejected"] = str(kept)
             return record
         record["ingested"] = out["ingested"]
-        _drop_answered_subset(ws, kind, number, results.parent)
     elif name == "estimate --plan":
         out = pipeline.estimate_plan(root, samples=opts.samples, wait=wait)
         record["to_simulate"] = out["to_simulate"]
@@ -491,6 +537,16 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     results = _results_file(opts, kind, number)
     results.parent.mkdir(parents=True, exist_ok=True)
     handoff = _still_pending(ws, which, number, handoff, results.parent)
+    try:
+        return _run_simulator(opts, kind, number, handoff, results)
+    finally:
+        if handoff != handoff_path(ws.root, which, number):
+            # The pending-only list is made afresh for each run of the simulator: one kept
+            # goes stale as results come in, and reads as work still to do.
+            handoff.unlink(missing_ok=True)
+
+
+def _run_simulator(opts: Options, kind: str, number: int, handoff: Path, results: Path) -> Path:
     partial = results.with_name(f".partial-{results.name}")
     running = results.with_name(f".simulator-{results.name}.json")
     _refuse_an_earlier_loops_simulator(running, kind, number)
@@ -585,17 +641,6 @@ def _refuse_an_earlier_loops_simulator(record: Path, kind: str, number: int) -> 
         f"without ending it. End it (`kill {' '.join(map(str, pids))}`) or let it finish, "
         "then run the same `bams-cli loop` again (it simulates the list again)"
     )
-
-
-def _drop_answered_subset(ws: Workspace, kind: str, number: int, folder: Path) -> None:
-    """Remove the pending-only list ``_still_pending`` wrote for ``kind number`` once none
-    of its requests is pending: left behind, it reads as work still to do."""
-    which: Kind = "batch" if kind == "batch" else "plan"
-    subset = folder / pending_path(handoff_path(ws.root, which, number)).name
-    if subset.exists():
-        pend = ws.pending()
-        if pend.filter(pend[which] == number).height == 0:
-            subset.unlink(missing_ok=True)
 
 
 def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> None:

@@ -183,6 +183,11 @@ def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 2 and "must name {handoff}" in r.stderr
+    # Quoted placeholders: the loop quotes the paths itself, so a path with a space broke.
+    for quoted in ("sim '{handoff}' {results}", 'sim {handoff} "{results}"'):
+        r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", quoted, "--batches", "1"],
+                           capture_output=True, text=True)  # fmt: skip
+        assert r.returncode == 2 and "without quotes; the loop quotes" in r.stderr, r.stderr
 
 
 @pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
@@ -602,6 +607,8 @@ def test_retries_simulate_what_has_no_result_again_then_abandon_it(data, tmp_pat
             stuck.returncode == 1 and "2 requests of batch 1 still have no result" in stuck.stderr
         )
         assert stuck.stderr.count("simulating them again (retry") == 2  # then it stops
+        # The list the retries simulated is not kept: it would go stale as results come in.
+        assert not (ws / "loop-results" / "batch-0001.pending.csv").exists()
         # Run again as its message says, with --abandon-failed: the two retries are spent
         # (counted from the files kept), so it abandons at once, simulating nothing more.
         args.append("--abandon-failed")
@@ -648,3 +655,62 @@ def test_a_damaged_workspace_file_during_ingest_is_not_blamed_on_the_simulator(
     assert got.value is damaged and not isinstance(got.value, LoopError)
     assert (ws / "loop-results" / "batch-0001.csv").exists()
     assert not list((ws / "loop-results").glob("rejected-*"))
+
+
+CRASH_ALL = """
+import csv, subprocess, sys
+handoff, results = sys.argv[1:3]
+raw = results + ".raw.csv"
+subprocess.run([*BAMS, "simulate", handoff, "--truth", sys.argv[3], "-o", raw], check=True)
+rows = list(csv.DictReader(open(raw)))
+for r in rows:
+    r["value"], r["status"] = "", "crashed"
+with open(results, "w", newline="") as fh:
+    w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+"""
+
+
+def test_a_simulator_that_fails_every_run_stops_the_loop_after_one_batch(data, tmp_path):
+    # With --abandon-failed, a batch whose every run failed was abandoned whole and, the
+    # study still without a result, the loop drew a new random batch, for ever (42 batches
+    # in a minute in a trial study).
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "crash_all.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + CRASH_ALL)
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator",
+            f"{sys.executable} {sim} {{handoff}} {{results}} {truth}", "--batches", "2",
+            "--budget", "3", "--abandon-failed"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        "error: every request of batch 1 failed and was abandoned, and the study has no result "
+        f"yet: check the simulator on {ws / 'batches' / 'batch-0001.csv'}, then run the same "
+        "`bams-cli loop` again (it draws a new random batch)"
+    )
+    [warning] = [x for x in r.stderr.splitlines() if "abandoned (--abandon-failed)" in x]
+    n = len(pl.read_csv(ws / "batches" / "batch-0001.csv"))
+    assert f"batch 1: ingest-results: {n} failed requests abandoned" in warning
+    assert Workspace(ws).batch_numbers() == [1]
+    # The simulator fixed, the same loop goes on with a new random batch.
+    real = _loop_args(ws, truth)
+    args[args.index("--simulator") + 1] = real[real.index("--simulator") + 1]
+    again = subprocess.run([*args, "--json"], capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert Workspace(ws).batch_numbers()[:2] == [1, 2]
+    assert len(Workspace(ws).read_observations()) > 0
+
+
+def test_a_results_dir_that_is_a_workspace_folder_is_refused(data, tmp_path):
+    # --results-dir WS/batches: the results file batch-0001.csv was the hand-off list
+    # itself, ingested as results and set aside, and the study was broken.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    for folder in (ws / "batches", ws, ws / "estimates"):
+        args = _loop_args(ws, truth) + ["--results-dir", str(folder)]
+        r = subprocess.run(args, capture_output=True, text=True)
+        assert r.returncode == 2, r.stderr
+        assert f"--results-dir {folder}: is the workspace's own folder" in r.stderr
+    assert Workspace(ws).batch_numbers() == []  # refused before any step
