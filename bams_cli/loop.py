@@ -480,6 +480,8 @@ def _run(
     elif name == "ingest-results":
         assert kind is not None and number is not None
         results = _results_file(opts, kind, number)
+        _check_written_for(results, handoff_path(root, "batch" if kind == "batch" else "plan",
+                                                 number))  # fmt: skip
         ingested.add(results)  # ingested again only after a retry (``loop``)
         try:
             # With retries left, what failed is simulated again rather than abandoned.
@@ -687,6 +689,24 @@ def _is_kept(kept: str, name: str) -> bool:
     """Whether ``kept`` is ``rejected-NAME`` or ``rejected-K-NAME`` (``_set_aside``)."""
     middle = kept.removeprefix("rejected-").removesuffix(name)
     return middle == "" or (middle.endswith("-") and middle[:-1].isdigit())
+
+
+def _check_written_for(results: Path, handoff: Path) -> None:
+    """Refuse a results file older than the hand-off list it would answer: it was not
+    written for that list (a results folder kept from an earlier study, or shared with
+    another), and from the same seed it would be ingested as this study's results; it is
+    left where it is."""
+    try:
+        older = results.stat().st_mtime_ns < handoff.stat().st_mtime_ns
+    except FileNotFoundError:
+        return
+    if older:
+        raise LoopError(
+            f"{results}: older than the hand-off list it would answer ({handoff}), so not "
+            "written for it (a --results-dir kept from an earlier study, or shared with "
+            "another?); move it away to have the loop simulate the list, or `touch` it to "
+            "ingest it as it is, then run the same `bams-cli loop` again"
+        )
 
 
 def _set_aside(results: Path, prefix: str) -> Path:

@@ -714,3 +714,34 @@ def test_a_results_dir_that_is_a_workspace_folder_is_refused(data, tmp_path):
         assert r.returncode == 2, r.stderr
         assert f"--results-dir {folder}: is the workspace's own folder" in r.stderr
     assert Workspace(ws).batch_numbers() == []  # refused before any step
+
+
+def test_a_results_file_older_than_its_hand_off_list_is_refused_and_left_alone(data, tmp_path):
+    # A --results-dir kept from an earlier study (or shared): the new study, drawn from the
+    # same seed, ingested the old study's results as its own without running its simulator.
+    tmp, seg, truth, _, _ = data
+    shared = tmp_path / "results"
+    first = _study(tmp_path, "first", seg)
+    full = _loop_args(first, truth)
+    sim = full[full.index("--simulator") + 1]
+    args = [*BAMS, "loop", "-w", str(first), "--simulator", sim, "--batches", "1",
+            "--budget", "2", "--results-dir", str(shared)]  # fmt: skip
+    assert subprocess.run(args, capture_output=True, text=True).returncode == 0
+    old = shared / "batch-0001.csv"
+    before = old.read_bytes()
+    second = _study(tmp_path, "second", seg)  # the same settings and seed: the same batch
+    args[args.index("-w") + 1] = str(second)
+    r = subprocess.run(args, capture_output=True, text=True)
+    assert r.returncode == 1, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith(
+        f"error: {old}: older than the hand-off list it would answer "
+        f"({second / 'batches' / 'batch-0001.csv'}), so not written for it"
+    ), last
+    assert old.read_bytes() == before  # left where it is, as it was
+    assert len(Workspace(second).read_observations()) == 0
+    os.utime(old)  # `touch`: taken as this study's results
+    again = subprocess.run([*args, "--json"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
+    assert steps[0] == ("ingest-results", "batch 1")
