@@ -406,6 +406,15 @@ def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
     assert s["batches"][0]["pending_handoff"] == str(pending)
     says = f"simulate {pending} (the 3 of the 10 requests of batch-0001.csv without a result)"
     assert says in s["next"]["text"] and says in text.replace("\n", " ")
+    # select's and estimate --plan's refusals name the same list (they named the whole one).
+    r = invoke(runner, "select", "-w", ws, "--strategy", "random", "--budget", "2")
+    assert r.exit_code == 3 and f"simulate {pending}, ingest the results" in r.stderr, r.stderr
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code == 3 and f"simulate {pending}, ingest the results" in r.stderr, r.stderr
+    ok(runner, "report", "-w", ws)
+    notices = json.loads((ws / "report" / "summary.json").read_text())["notices"]
+    [text] = [n["text"] for n in notices if n["kind"] == "pending_batches"]
+    assert "batch 1 (3 of 10 picks, batches/batch-0001.pending.csv)" in text, text
 
     # The whole list from a noisy simulator is what the old advice led to ...
     whole = answer_handoff(runner, handoff, truth, tmp_path / "whole.csv", noise=0.01)

@@ -186,7 +186,8 @@ def estimate_plan(
             name = "estimate plan" if kind == "plan" else "batch"
             raise PendingResultsError(
                 f"{ws.root}: {name} {waiting[-1]} awaits results for "
-                f"{int(pend[kind].is_in(waiting).sum())} picks; simulate its hand-off list, "
+                f"{int(pend[kind].is_in(waiting).sum())} picks; simulate "
+                f"{pending.to_simulate(ws, kind, int(waiting[-1]))}, "
                 f"ingest the results and {then}"
             )
     model = ws.require_fresh_model()

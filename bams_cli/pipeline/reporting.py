@@ -33,6 +33,7 @@ from bams_cli.state.io import (
     require_columns,
     transaction,
 )
+from bams_cli.state.pending import to_simulate
 from bams_cli.state.workspace import Workspace
 
 
@@ -155,7 +156,8 @@ def report(
         open_ = df.join(observed_pairs, on=[SID, "fidelity"], how="anti")
         pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
         if pending:
-            waiting.append(f"batch {b} ({pending} of {df.height} picks, batches/batch-{b:04d}.csv)")
+            todo = to_simulate(ws, "batch", b).relative_to(ws.root)
+            waiting.append(f"batch {b} ({pending} of {df.height} picks, {todo})")
         idx = np.array([pos[s] for s in df[SID].to_list() if s in pos], dtype=np.int64)
         if truth_f0 is not None:
             f0 = truth_f0[idx]
@@ -187,8 +189,8 @@ def report(
             {
                 "kind": "pending_batches",
                 "severity": "info",
-                "text": f"Results pending for {'; '.join(waiting)}: simulate the hand-off "
-                f"list and run `bams-cli ingest-results -w {root}`. A batch's mean level-0 f "
+                "text": f"Results pending for {'; '.join(waiting)}: simulate the list named "
+                f"and run `bams-cli ingest-results -w {root}`. A batch's mean level-0 f "
                 "counts only the picks whose level-0 value is known.",
             }
         )
@@ -478,7 +480,8 @@ def _report_plan_notices(
         if missing:
             text = (
                 f"Estimate plan {k} awaits level-0 results for {missing} of its {len(sampled)} "
-                f"sampled segments (estimates/plan-{k:04d}-handoff.csv); {shown_text}."
+                f"sampled segments ({to_simulate(ws, 'plan', k).relative_to(ws.root)}); "
+                f"{shown_text}."
             )
         elif gone:
             text = (

@@ -37,7 +37,7 @@ from bams_cli.pipeline._handoff import (
 )
 from bams_cli.pipeline.fitting import load_posterior
 from bams_cli.state import handoff as contract
-from bams_cli.state import schemas
+from bams_cli.state import pending, schemas
 from bams_cli.state.io import (
     read_metadata_json,
     remove_strays,
@@ -433,9 +433,15 @@ def select(
     if pend.height and not allow_pending:
         where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
         where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
+        lists = [
+            str(pending.to_simulate(ws, kind, int(n)))
+            for kind in ("batch", "plan")
+            for n in sorted(set(pend[kind].drop_nulls().to_list()))
+        ]
         raise PendingResultsError(
             f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
-            f"ingest them with `bams-cli ingest-results`, or pass --allow-pending"
+            f"simulate {' and '.join(lists)}, ingest the results with `bams-cli "
+            "ingest-results`, or pass --allow-pending"
         )
     number = (ws.batch_numbers() or [0])[-1] + 1
     rng = np.random.default_rng([settings.seed, number])
