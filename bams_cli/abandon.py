@@ -257,8 +257,8 @@ def _commit(
     }
     if new.height == 0:
         summary["message"] = (
-            f"nothing to abandon: {already} of these requests were abandoned before, the "
-            "rest have results"
+            f"nothing to abandon: {already} of these requests "
+            f"{'was' if already == 1 else 'were'} abandoned before, the rest have results"
             if already
             else "nothing to abandon: every request asked for has a result"
         )
@@ -428,7 +428,8 @@ def planned_abandoned(
     if lost and failed_as is None:
         names = ", ".join(map(str, lost[:NAMED])) + (", ..." if len(lost) > NAMED else "")
         raise AbandonedRunsError(
-            f"{path}: {len(lost)} planned segments were abandoned ({names}); an estimate "
+            f"{path}: {len(lost)} planned segment{' was' if len(lost) == 1 else 's were'} "
+            f"abandoned ({names}); an estimate "
             "without them would rest on a smaller sample than planned, biased toward "
             "whatever made them fail. Pass --failed-as bounds for the worst-case interval "
             "(abandoned taken as all failures and as all passes), or simulate them again "
