@@ -1174,11 +1174,10 @@ def loop(
         int,
         typer.Option(
             "--retries",
-            help="Run the simulator again on a list's requests still without a result (failed "
-            "or missing rows), or on the whole list when ingest-results refused its results "
-            "file, up to N times before stopping (or, with --abandon-failed, abandoning "
-            "them). N counts a list's tries over every loop run (from the retried-K-* and "
-            "rejected-* files kept): a second run with the same N tries no more.",
+            help="Simulate again, up to N times, a list's requests still without a result "
+            "(failed or missing rows) or a list whose results file ingest-results refused; "
+            "then stop (with --abandon-failed: abandon them). N counts tries over every loop "
+            "run (the retried-* and rejected-* files kept).",
         ),
     ] = defaults.RETRIES,
     clusters: Annotated[

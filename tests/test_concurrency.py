@@ -91,6 +91,7 @@ def test_concurrent_writers_with_wait_all_succeed_and_nothing_is_lost(study):
     _consistent(ws)
 
 
+@pytest.mark.slow  # about 20 s: make test ran 812 s on a clean clone (budget 600)
 def test_concurrent_writers_without_wait_succeed_or_name_the_holder(study):
     ws, parts = study
     before = _rows(ws / "observations.parquet")
@@ -128,6 +129,7 @@ def _holder_pid(ws: Path) -> int | None:
     return record.get("pid")
 
 
+@pytest.mark.slow  # about 20 s: make test ran 812 s on a clean clone (budget 600)
 def test_writers_started_while_one_holds_the_lock_are_refused_naming_it_then_wait(study):
     ws, parts = study
     holder = _start(["fit", "-w", str(ws), "--restarts", "40"])  # seconds of work

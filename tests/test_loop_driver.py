@@ -327,6 +327,7 @@ def test_a_signal_to_the_loop_s_whole_job_ends_the_simulator_and_its_children(
     assert proc.returncode == code, err
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_a_loop_started_under_nohup_outlives_its_terminal(data, tmp_path):
     # nohup ignores SIGHUP for the command; the loop's own handler had replaced that, so a
     # closed terminal or SSH session stopped a loop that was meant to outlive it.
@@ -347,6 +348,7 @@ def test_a_loop_started_under_nohup_outlives_its_terminal(data, tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
 def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     """`kill -TERM` (or -INT) of a loop waiting on its simulator ends the simulator and what
@@ -384,6 +386,7 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(data, tmp_path):
     # SIGKILL of the loop alone leaves its simulator running; a loop started then ran a
     # second simulator on the same list, both writing the same results file.
@@ -548,6 +551,7 @@ def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_
     assert Workspace(ws).pending().height == 0 and len(Workspace(ws).read_observations()) > 0
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_with_retries_left_a_refused_results_file_is_a_try_and_the_list_is_simulated_again(
     data, tmp_path
 ):
@@ -587,6 +591,7 @@ def test_with_retries_left_a_refused_results_file_is_a_try_and_the_list_is_simul
     assert len(Workspace(ws2).read_observations()) == 0
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 @pytest.mark.parametrize("crashes", ["once", "always"])
 def test_retries_simulate_what_has_no_result_again_then_abandon_it(data, tmp_path, crashes):
     # --retries N reruns the simulator on the requests still without a result by itself,
@@ -672,6 +677,7 @@ with open(results, "w", newline="") as fh:
 """
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_a_simulator_that_fails_every_run_stops_the_loop_after_one_batch(data, tmp_path):
     # With --abandon-failed, a batch whose every run failed was abandoned whole and, the
     # study still without a result, the loop drew a new random batch, for ever (42 batches
@@ -716,6 +722,7 @@ def test_a_results_dir_that_is_a_workspace_folder_is_refused(data, tmp_path):
     assert Workspace(ws).batch_numbers() == []  # refused before any step
 
 
+@pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_a_results_file_older_than_its_hand_off_list_is_refused_and_left_alone(data, tmp_path):
     # A --results-dir kept from an earlier study (or shared): the new study, drawn from the
     # same seed, ingested the old study's results as its own without running its simulator.
