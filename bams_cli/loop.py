@@ -14,8 +14,9 @@ killed at any point picks up where it stopped and a finished loop does nothing:
 
 Each step is the command a user would run (the same pipeline function, holding the
 workspace lock and writing atomically); the loop itself writes nothing else but the
-simulator's results files. One loop drives a workspace at a time: it holds a second lock
-(``LOOP_LOCK_FILE``) for its whole run, so a second loop started beside it is refused
+simulator's results files, the pending-only list it hands the simulator, and a note of the
+running simulator (``.simulator-NAME.json``). One loop drives a workspace at a time: it
+holds a second lock (``LOOP_LOCK_FILE``) for its whole run, so a second loop started beside it is refused
 naming the first (or waits for it with ``--wait``) instead of simulating the same list
 twice; a loop that was killed leaves no lock behind.
 
@@ -188,12 +189,6 @@ def loop(
             f"--simulator {simulator!r}: must name {{handoff}} (the hand-off list to read) "
             "and {results} (the results file to write), e.g. 'my-sim {handoff} -o {results}'"
         )
-    for name in ("handoff", "results"):
-        if any(f"{q}{{{name}}}{q}" in simulator for q in ("'", '"')):
-            raise OptionValueError(
-                f"--simulator {simulator!r}: write {{{name}}} without quotes; the loop quotes "
-                "the path it puts there (a quoted one breaks on a path with spaces)"
-            )
     if batches < 1:
         raise OptionValueError(f"--batches {batches}: must be >= 1")
     if retries < 0:
@@ -506,7 +501,7 @@ def _run(
             if (t := _retries_spent(results) + 1) > opts.retries:
                 raise LoopError(_rejected(results, exc, kind, number)) from None
             # A try of its own: set aside, and the list is simulated again.
-            kept = _set_aside(results, "rejected")
+            kept = _set_aside(results, f"retried-{t}")
             ingested.discard(results)
             if on_warning is not None:
                 on_warning(
@@ -538,24 +533,36 @@ def _simulate(ws: Workspace, opts: Options, kind: str, number: int) -> Path:
     handoff = handoff_path(ws.root, which, number)
     results = _results_file(opts, kind, number)
     results.parent.mkdir(parents=True, exist_ok=True)
-    handoff = _still_pending(ws, which, number, handoff, results.parent)
-    try:
-        return _run_simulator(opts, kind, number, handoff, results)
-    finally:
-        if handoff != handoff_path(ws.root, which, number):
-            # The pending-only list is made afresh for each run of the simulator: one kept
-            # goes stale as results come in, and reads as work still to do.
-            handoff.unlink(missing_ok=True)
-
-
-def _run_simulator(opts: Options, kind: str, number: int, handoff: Path, results: Path) -> Path:
-    partial = results.with_name(f".partial-{results.name}")
     running = results.with_name(f".simulator-{results.name}.json")
+    # Before the pending-only list is written again: an earlier simulator may be reading it.
     _refuse_an_earlier_loops_simulator(running, kind, number)
+    handoff = _still_pending(ws, which, number, handoff, results.parent)
+    done = _run_simulator(opts, kind, number, handoff, results, running)
+    if handoff != handoff_path(ws.root, which, number):
+        # The pending-only list is made afresh for each run of the simulator: one kept
+        # goes stale as results come in, and reads as work still to do. (After a failed
+        # run it stays, named in the error, to run the command again by hand.)
+        handoff.unlink(missing_ok=True)
+    return done
+
+
+def fill_simulator(template: str, handoff: Path, results: Path) -> str:
+    """The simulator command: ``{handoff}`` and ``{results}`` replaced by the paths, quoted
+    for the shell; a placeholder the user quoted already (``'{handoff}'``,
+    ``"{results}"``, e.g. inside ``python -c '...'``) gets the bare path."""
+    for name, path in (("handoff", handoff), ("results", results)):
+        for q in ("'", '"'):
+            template = template.replace(f"{q}{{{name}}}{q}", f"{q}{path}{q}")
+        template = template.replace(f"{{{name}}}", shlex.quote(str(path)))
+    return template
+
+
+def _run_simulator(
+    opts: Options, kind: str, number: int, handoff: Path, results: Path, running: Path
+) -> Path:
+    partial = results.with_name(f".partial-{results.name}")
     partial.unlink(missing_ok=True)
-    command = opts.simulator.format(
-        handoff=shlex.quote(str(handoff)), results=shlex.quote(str(partial))
-    )
+    command = fill_simulator(opts.simulator, handoff, partial)
     import psutil
 
     before = {p.pid for p in psutil.Process().children()}  # not the simulator's
@@ -628,7 +635,7 @@ def _refuse_an_earlier_loops_simulator(record: Path, kind: str, number: int) -> 
         return
     try:
         p = psutil.Process(pid)
-        alive = abs(p.create_time() - started) < 0.05 and p.status() != psutil.STATUS_ZOMBIE
+        alive = abs(p.create_time() - started) < 2.0 and p.status() != psutil.STATUS_ZOMBIE
     except psutil.Error:
         alive = False
     if not alive:
@@ -676,19 +683,16 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
 
 
 def _retries_spent(results: Path) -> int:
-    """Retries already spent on ``results``' list: the tries kept beside it, as
-    ``retried-K-NAME`` (ingested, some requests still without a result) or
-    ``rejected[-K]-NAME`` (refused by ``ingest-results``); on disk, so a loop stopped and
-    run again counts them too."""
-    folder, name = results.parent, results.name
-    rejected = sum(1 for p in folder.glob(f"rejected-*{name}") if _is_kept(p.name, name))
-    return sum(1 for _ in folder.glob(f"retried-*-{name}")) + rejected
+    """Retries already spent on ``results``' list: the tries kept beside it as
+    ``retried-K-NAME`` before each retry (its results ingested with some requests still
+    without one, or refused by ``ingest-results``); on disk, so a loop stopped and run
+    again counts them too. A file refused when no try is left (``rejected-NAME``) does
+    not count: no retry followed it."""
+    return sum(1 for _ in results.parent.glob(f"retried-*-{results.name}"))
 
 
-def _is_kept(kept: str, name: str) -> bool:
-    """Whether ``kept`` is ``rejected-NAME`` or ``rejected-K-NAME`` (``_set_aside``)."""
-    middle = kept.removeprefix("rejected-").removesuffix(name)
-    return middle == "" or (middle.endswith("-") and middle[:-1].isdigit())
+#: How much older than its hand-off list a results file may be and still be ingested.
+MTIME_SLACK_S = 10.0
 
 
 def _check_written_for(results: Path, handoff: Path) -> None:
@@ -697,7 +701,9 @@ def _check_written_for(results: Path, handoff: Path) -> None:
     another), and from the same seed it would be ingested as this study's results; it is
     left where it is."""
     try:
-        older = results.stat().st_mtime_ns < handoff.stat().st_mtime_ns
+        # By more than MTIME_SLACK_S: a results folder on a file system with coarser
+        # timestamps (1-2 s) or on a server whose clock lags a little is not refused.
+        older = results.stat().st_mtime < handoff.stat().st_mtime - MTIME_SLACK_S
     except FileNotFoundError:
         return
     if older:
