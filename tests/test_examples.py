@@ -114,7 +114,7 @@ def test_runs_that_crash_are_simulated_again_alone_and_make_goes_on_after_a_hand
         f"SIMULATE={sys.executable} {tmp_path / 'crashy.py'} {BAMS} $(1) $(2) "
         f"$(DATA)/truth.parquet {log}"
     )
-    r = _make(tmp_path, *sim, check=False)
+    r = _make(tmp_path, sim, check=False)
     assert r.returncode != 0 and "runs still pending" in r.stdout
     study = tmp_path / "study"
     whole = study / "batches" / "batch-0002.csv"
@@ -138,7 +138,7 @@ def test_runs_that_crash_are_simulated_again_alone_and_make_goes_on_after_a_hand
         assert subprocess.run([BAMS, *args], capture_output=True).returncode == 0
     assert not pending.exists()
 
-    _make(tmp_path, *sim)
+    _make(tmp_path, sim)
     asked = log.read_text().split()
     assert asked.count(str(whole)) == 1 and asked.count(str(pending)) == 1
     assert (study / "report" / "summary.md").exists()
