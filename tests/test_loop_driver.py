@@ -522,6 +522,18 @@ if not __import__("os").path.exists(flag):  # the first time: a bug writes level
 """
 
 
+def _bad_level_loop(tmp_path: Path, seg: Path, truth: Path, *extra: str):
+    """A study and the loop arguments whose simulator is BAD_LEVEL (wrong once):
+    (workspace, argv)."""
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "bad_level.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
+    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3", *extra]  # fmt: skip
+    return ws, args
+
+
 @pytest.mark.slow  # 5-10 s each: make test ran 625 s on a clean clone (budget 600)
 def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_again(
     data, tmp_path
@@ -529,12 +541,7 @@ def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_
     # A simulator that exits 0 with a file ingest-results refuses: the loop kept the file,
     # and every rerun ingested it again and failed the same way, the simulator fixed or not.
     tmp, seg, truth, _, _ = data
-    ws = _study(tmp_path, "ws", seg)
-    sim = tmp_path / "bad_level.py"
-    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
-    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
-    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
-            "--budget", "3"]  # fmt: skip
+    ws, args = _bad_level_loop(tmp_path, seg, truth)
     first = subprocess.run(args, capture_output=True, text=True)
     results = ws / "loop-results" / "batch-0001.csv"
     rejected = ws / "loop-results" / "rejected-batch-0001.csv"
@@ -555,12 +562,7 @@ def test_with_retries_left_a_refused_results_file_is_a_try_and_the_list_is_simul
 ):
     # --retries covered failed rows only: a refused file stopped the loop with tries left.
     tmp, seg, truth, _, _ = data
-    ws = _study(tmp_path, "ws", seg)
-    sim = tmp_path / "bad_level.py"
-    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
-    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
-    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
-            "--budget", "3", "--retries", "1"]  # fmt: skip
+    ws, args = _bad_level_loop(tmp_path, seg, truth, "--retries", "1")
     r = subprocess.run(args, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     folder = ws / "loop-results"
