@@ -294,6 +294,20 @@ def _check_results_dir(ws: Workspace, folder: Path) -> None:
         )
     if where.exists() and not where.is_dir():
         raise OptionValueError(f"--results-dir {folder}: is a file, not a folder")
+    if not where.exists():
+        # Made, then removed again: a folder that cannot be made (a read-only or missing
+        # mount) is refused before any step, and a refused loop leaves nothing behind.
+        made = [p for p in (where, *where.parents) if not p.exists()]
+        try:
+            where.mkdir(parents=True)
+        except OSError as exc:
+            raise OptionValueError(
+                f"--results-dir {folder}: cannot be made ({exc.strerror or exc})"
+            ) from None
+        finally:
+            for p in made:
+                with contextlib.suppress(OSError):
+                    p.rmdir()
 
 
 @contextmanager
@@ -433,7 +447,9 @@ def _next_step(
             return ("estimate --plan", "plan", plans[-1] + 1)
         if not (ws.estimates_dir / f"estimate-{plans[-1]:04d}.json").exists():
             return ("estimate", "plan", plans[-1])
-    if not _model_fresh(ws) and ws.model_path.exists():
+    if not _model_fresh(ws) and ws.read_observations().height:
+        # Last, the model of every result (after --batches 1 too: the next `select`,
+        # `report` and `status` read it).
         return ("fit", None, None)
     return None
 
@@ -753,6 +769,6 @@ def _stuck(ws: Workspace, opts: Options, kind: str, number: int, results: Path) 
             if opts.abandon_failed
             else " (or run the loop with --abandon-failed)"
         )
-        + ", or delete the file to run the simulator again on those requests alone "
-        "(--retries N does that N times by itself)"
+        + ", or move the file aside (its results are in the workspace) to run the "
+        "simulator again on those requests alone (--retries N does that N times by itself)"
     )

@@ -482,7 +482,7 @@ with open(results, "w", newline="") as fh:
 
 
 def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_path):
-    # The loop stops when runs crashed and says: delete the results file to run the
+    # The loop stops when runs crashed and says: move the results file aside to run the
     # simulator again. It then handed the whole list to the simulator once more, and a
     # simulator with run-to-run noise answered the runs already logged with other values,
     # which ingesting refused as conflicts, again on every rerun.
@@ -496,14 +496,21 @@ def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_
             "--budget", "3"]  # fmt: skip
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 1 and "2 requests of batch 1 still have no result" in first.stderr
-    assert "run the simulator again on those requests alone" in first.stderr
+    assert (
+        "move the file aside (its results are in the workspace) to run the simulator "
+        "again on those requests alone" in first.stderr
+    )
     assert first.stderr.count("batch 1: ingest-results") == 1  # one step, one progress line
     results = ws / "loop-results" / "batch-0001.csv"
-    results.unlink()  # as the message says
+    results.rename(results.with_name("first-try-batch-0001.csv"))  # as the message says
     again = subprocess.run([*args, "--json"], capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert len(pl.read_csv(results)) == 2  # the two crashed requests were simulated, no more
     assert Workspace(ws).pending().height == 0
+    # --batches 1 ends, as every loop does, with the model of all the results: `fit`
+    # was left to the user, and the next `select` refused the stale model.
+    assert [s["step"] for s in json.loads(again.stdout)["steps"]][-1] == "fit"
+    Workspace(ws).require_fresh_model()
     # The pending-only list it simulated goes once the batch is answered.
     assert not (ws / "loop-results" / "batch-0001.pending.csv").exists()
 
@@ -721,6 +728,23 @@ def test_a_results_dir_that_is_a_workspace_folder_is_refused(data, tmp_path):
         assert r.returncode == 2, r.stderr
         assert f"--results-dir {folder}: is the workspace's own folder" in r.stderr
     assert Workspace(ws).batch_numbers() == []  # refused before any step
+
+
+def test_a_results_dir_that_cannot_be_made_is_refused_before_any_step(data, tmp_path):
+    # A folder under a file (as under a missing or read-only mount) got the catch-all
+    # "unexpected" error, and only once the first batch had been drawn.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    (tmp_path / "a-file").write_text("x")
+    before = tree_hash(ws)
+    for folder in (tmp_path / "a-file" / "results", tmp_path / "a-file"):
+        r = subprocess.run(_loop_args(ws, truth) + ["--results-dir", str(folder)],
+                           capture_output=True, text=True)  # fmt: skip
+        assert r.returncode == 2, r.stderr
+        [line] = r.stderr.strip().splitlines()
+        assert line.startswith(f"error: --results-dir {folder}:"), line
+        assert "unexpected" not in line
+    assert tree_hash(ws) == before
 
 
 @pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
