@@ -332,6 +332,14 @@ def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_
     # Its J is the J given batch 2's picks: lower before, and lower after, than batch 2's.
     assert second["j_before"] < first["j_after"] + 1e-12
     assert second["j_after"] < second["j_before"]
+    # With both waiting, the estimate's plan is refused naming both hand-off lists, in
+    # the order they were drawn (only the last was named).
+    r = invoke(runner, "estimate", "-w", lead_ws, "--plan")
+    assert r.exit_code == 3, r.stderr
+    lists = [str(lead_ws / "batches" / f"batch-000{n}.csv") for n in (2, 3)]
+    picks = len(b2["segment_id"]) + len(b3["segment_id"])
+    says = f"batches 2, 3 await results for {picks} picks; simulate {lists[0]} and {lists[1]},"
+    assert says in " ".join(r.stderr.split())
     # A baseline strategy leaves pending pairs out as well (an observed cheap pair may be
     # picked again: it is not pending).
     _, b4 = _select(runner, lead_ws, "--allow-pending", "--strategy", "random",

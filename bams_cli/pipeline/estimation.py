@@ -176,6 +176,7 @@ def estimate_plan(
     # and double-count the rate's sample; a plan beside a pending batch (select refuses the
     # same) would come from a model that has not seen its results, and a pending pick that
     # fails would not count as known. Make re-running a target must do neither.
+    kind: contract.Kind
     for kind, then in (
         ("plan", "run `bams-cli estimate`, or pass --allow-pending to draw another plan beside it"),
         ("batch", "refit before planning the estimate, or pass --allow-pending to plan "
@@ -183,11 +184,14 @@ def estimate_plan(
     ):  # fmt: skip
         waiting = sorted(set(pend[kind].drop_nulls().to_list())) if pend.height else []
         if waiting and not allow_pending:
-            name = "estimate plan" if kind == "plan" else "batch"
+            many = len(waiting) > 1
+            names = {"plan": ("estimate plan", "estimate plans"), "batch": ("batch", "batches")}
+            name = names[kind][many]
+            lists = " and ".join(str(pending.to_simulate(ws, kind, int(n))) for n in waiting)
             raise PendingResultsError(
-                f"{ws.root}: {name} {waiting[-1]} awaits results for "
-                f"{int(pend[kind].is_in(waiting).sum())} picks; simulate "
-                f"{pending.to_simulate(ws, kind, int(waiting[-1]))}, "
+                f"{ws.root}: {name} "
+                f"{', '.join(str(n) for n in waiting)} await{'' if many else 's'} results "
+                f"for {int(pend[kind].is_in(waiting).sum())} picks; simulate {lists}, "
                 f"ingest the results and {then}"
             )
     model = ws.require_fresh_model()
