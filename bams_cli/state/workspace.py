@@ -267,7 +267,8 @@ class Workspace:
         keys = [schemas.SEGMENT_ID, "fidelity"]
         batches = self.read_batches().group_by(keys).agg(pl.col("batch").max())
         plans = self.read_plan_picks().group_by(keys).agg(pl.col("plan").max())
-        return batches.join(plans, on=keys, how="full", coalesce=True)
+        both = batches.join(plans, on=keys, how="full", coalesce=True)
+        return both.sort("batch", "plan", *keys, nulls_last=True)  # one order, run to run
 
     def read_abandoned(self) -> pl.DataFrame:
         """The log of abandoned requests (``schemas.ABANDONED``), empty when there is none."""
@@ -294,10 +295,12 @@ class Workspace:
         that request was abandoned."""
         keys = [schemas.SEGMENT_ID, "fidelity"]
         obs = self.read_observations().select(*keys).unique()
-        pend = self.selections().join(obs, on=keys, how="anti")
+        # In the order of ``selections`` (a join keeps none): the tables and lists that
+        # show them read the same from one run to the next.
+        pend = self.selections().with_row_index("_asked").join(obs, on=keys, how="anti")
         gone = self.read_abandoned()
         if gone.height == 0 or pend.height == 0:
-            return pend
+            return pend.sort("_asked").drop("_asked")
         for key in ("batch", "plan"):
             mark = gone.filter(pl.col(key).is_not_null()).select(*keys, key).unique()
             pend = pend.join(mark.with_columns(pl.lit(True).alias("_gone")), on=[*keys, key],
@@ -305,7 +308,8 @@ class Workspace:
             pend = pend.with_columns(
                 pl.when(pl.col("_gone")).then(None).otherwise(pl.col(key)).alias(key)
             ).drop("_gone")
-        return pend.filter(pl.col("batch").is_not_null() | pl.col("plan").is_not_null())
+        keep = pl.col("batch").is_not_null() | pl.col("plan").is_not_null()
+        return pend.filter(keep).sort("_asked").drop("_asked")
 
     # ---- estimates -----------------------------------------------------------------------
     def estimate_path(self, k: int) -> Path:
