@@ -241,6 +241,7 @@ def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> 
     by_name = {lv.name: i for i, lv in enumerate(settings.levels)}
     keep = []
     for rid, sid, fid in not_run.select(REQUEST_ID, SID, "fidelity").iter_rows():
+        level: int | None
         if rid is not None and rid.strip() in req:
             sid, level = req[rid.strip()]
         else:

@@ -383,10 +383,10 @@ def read_results(
         )
     repeat = _first_repeat(df.filter(pl.col(rid_col).is_not_null()), [rid_col])
     if repeat is not None:
-        again, first = repeat
+        again, first_row = repeat
         raise DuplicateError(
             path,
-            f"request_id {shown(again[rid_col])} appears again (first at row {first})",
+            f"request_id {shown(again[rid_col])} appears again (first at row {first_row})",
             column=rid_col,
             row=int(again["_row"]),
         )
@@ -472,10 +472,10 @@ def read_results(
 
     repeat = _first_repeat(df, [SID, "fidelity"])
     if repeat is not None:
-        again, first = repeat
+        again, first_row = repeat
         raise DuplicateError(
             path,
-            f"({shown(again[SID])}, fidelity {again['fidelity']}) appears again (first at row {first})",
+            f"({shown(again[SID])}, fidelity {again['fidelity']}) appears again (first at row {first_row})",
             column=SID,
             row=int(again["_row"]),
         )
