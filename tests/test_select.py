@@ -340,6 +340,11 @@ def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_
     picks = len(b2["segment_id"]) + len(b3["segment_id"])
     says = f"batches 2, 3 await results for {picks} picks; simulate {lists[0]} and {lists[1]},"
     assert says in " ".join(r.stderr.split())
+    # In one order from run to run (tables and pending-only lists show it): by batch, then
+    # segment and level; it came in hash-join order.
+    pend = Workspace(lead_ws).pending()
+    order = pend.sort("batch", "plan", "segment_id", "fidelity", nulls_last=True)
+    assert pend.height == picks and pend.rows() == order.rows()
     # A baseline strategy leaves pending pairs out as well (an observed cheap pair may be
     # picked again: it is not pending).
     _, b4 = _select(runner, lead_ws, "--allow-pending", "--strategy", "random",
