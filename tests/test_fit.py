@@ -12,7 +12,7 @@ from scipy.special import ndtr
 
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, tree_hash, write_batch
+from tests.conftest import invoke, ok, tree_hash, write_batch
 
 
 @pytest.fixture
@@ -124,6 +124,26 @@ def _fit_with(ws, runner, tmp_path, values, noise0, outputscale0=0.25):
     saved = tmp_path / "hp.json"
     saved.write_text(json.dumps(hp))
     return invoke(runner, "fit", "-w", ws, "--fixed-hyperparameters", saved), ids
+
+
+def test_fit_on_cheap_level_results_alone_warns_that_level_0_is_unmeasured(
+    toy_ws, runner, toy_files, tmp_path
+):
+    # A trial study fitted 20 level-1 results with none at level 0 (late): no warning, the
+    # cheap level's bias silently 0 and "level 0 noise sd 0.0093" measured by nothing.
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(0, 400, 20)]
+    write_batch(toy_ws, 1, ids, [1] * len(ids))
+    res = tmp_path / "r1.parquet"
+    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    r = invoke(runner, "fit", "-w", toy_ws, "--restarts", "1")
+    assert r.exit_code == 0, r.output
+    [line] = [s for s in r.stderr.splitlines() if "no level-0 result" in s]
+    assert line.startswith("warning: no level-0 result yet (20 cheap-level results)")
+    assert "bias against level 0" in line
+    model = json.loads(Workspace(toy_ws).model_path.read_text())
+    assert any(w.startswith("no level-0 result yet") for w in model["warnings"])
 
 
 def test_fit_warns_when_the_model_explains_an_observed_failure_as_noise(toy_ws, runner, tmp_path):

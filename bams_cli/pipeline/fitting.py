@@ -262,6 +262,7 @@ def fit(
     rows = model.conditioned_rows
     checks = check_model(model, idx if rows is None else idx[rows], names=ids)
     warnings = [
+        *_no_level0(lv, settings.n_levels),
         *model.notes,
         *checks.warnings,
         *_contradicted_outcomes(ids, idx, lv, y, p, settings.gammas),
@@ -439,6 +440,20 @@ TRANSFORMS = ("auto", "none")
 #: p_n below this at an observed level-0 failure (or 1 - p_n below it at an observed
 #: non-failure) means the model contradicts what was measured.
 CONTRADICTION = 0.01
+
+
+def _no_level0(levels: np.ndarray, n_levels: int) -> list[str]:
+    """A warning when no observation is at level 0: the cheap levels' offsets from it (their
+    bias) and level 0's own noise are then the priors', not measured, and p_n is level 0's
+    only as far as the cheap levels are unbiased."""
+    if n_levels < 2 or np.any(levels == 0):
+        return []
+    return [
+        f"no level-0 result yet ({levels.size} cheap-level results): the cheap levels' bias "
+        "against level 0 and level 0's noise are not measured (taken as 0 and the prior's), "
+        "so p_n is level 0's only if the cheap levels are unbiased; ingest level-0 results "
+        "before trusting it"
+    ]
 
 
 def _contradicted_outcomes(
