@@ -1174,10 +1174,10 @@ def loop(
         int,
         typer.Option(
             "--retries",
-            help="Simulate again, up to N times, a list's requests still without a result "
-            "(failed or missing rows) or a list whose results file ingest-results refused; "
-            "then stop (with --abandon-failed: abandon them). N counts tries over every loop "
-            "run (the retried-* and rejected-* files kept).",
+            help="Simulate again, up to N times, a list whose simulator run exited non-zero, "
+            "whose results file ingest-results refused, or whose requests are still without "
+            "a result (failed or missing rows); then stop (with --abandon-failed: abandon "
+            "them). N counts tries over every loop run (the retried-* files kept).",
         ),
     ] = defaults.RETRIES,
     clusters: Annotated[

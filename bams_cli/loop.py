@@ -70,6 +70,17 @@ class LoopError(BamsError):
     """The loop cannot go on by itself (a simulator that failed, results still missing)."""
 
 
+class SimulatorFailed(LoopError):
+    """The simulator exited non-zero on a list: ``what`` says how, ``returncode``."""
+
+    def __init__(self, what: str, returncode: int, retries: int = 0) -> None:
+        tries = f", its --retries {retries} spent" if retries else ""
+        super().__init__(
+            f"{what}{tries}; fix it and run the same `bams-cli loop` again (it resumes here)"
+        )
+        self.what, self.returncode = what, returncode
+
+
 class LoopStopped(KeyboardInterrupt):
     """A signal stopped the loop; ``exit_code`` is 128 + its number, as a shell reports it."""
 
@@ -487,7 +498,25 @@ def _run(
         record["picks"] = out["picks"]
     elif name == "simulate":
         assert kind is not None and number is not None
-        record["results"] = str(_simulate(ws, opts, kind, number))
+        try:
+            record["results"] = str(_simulate(ws, opts, kind, number))
+        except SimulatorFailed as exc:
+            # A simulator that fails now and then (a licence server, a busy cluster): with
+            # retries left the run is a try of its own, noted on disk, and the list is
+            # simulated again.
+            results = _results_file(opts, kind, number)
+            if (t := _retries_spent(results) + 1) > opts.retries:
+                raise SimulatorFailed(exc.what, exc.returncode, opts.retries) from None
+            note = results.with_name(f"retried-{t}-{results.stem}{FAILED_RUN_SUFFIX}")
+            with transaction() as tx:
+                tx.write_text(note, f"{exc.what}\n")
+            if on_warning is not None:
+                on_warning(
+                    f"{_describe(name, kind, number)}: the simulator exited with "
+                    f"{exc.returncode} (noted in {note}); simulating the list again, retry "
+                    f"{t} of {opts.retries}"
+                )
+            record["failed"] = exc.returncode
     elif name == "ingest-results":
         assert kind is not None and number is not None
         results = _results_file(opts, kind, number)
@@ -595,9 +624,8 @@ def _run_simulator(
     running.unlink(missing_ok=True)
     if returncode != 0:
         partial.unlink(missing_ok=True)  # what a failed run wrote is never results
-        raise LoopError(
-            f"--simulator: `{command}` exited with {returncode} on {handoff}; fix it and "
-            "run the same `bams-cli loop` again (it resumes here)"
+        raise SimulatorFailed(
+            f"--simulator: `{command}` exited with {returncode} on {handoff}", returncode
         )
     if not partial.exists():
         raise LoopError(
@@ -698,13 +726,22 @@ def _end_tree(proc: subprocess.Popen[bytes], before: set[int] | None = None) -> 
     proc.wait()
 
 
+#: A simulator run that exited non-zero and was retried is noted as
+#: ``retried-K-STEM`` + this, beside the results files.
+FAILED_RUN_SUFFIX = ".failed.txt"
+
+
 def _retries_spent(results: Path) -> int:
     """Retries already spent on ``results``' list: the tries kept beside it as
     ``retried-K-NAME`` before each retry (its results ingested with some requests still
-    without one, or refused by ``ingest-results``); on disk, so a loop stopped and run
-    again counts them too. A file refused when no try is left (``rejected-NAME``) does
-    not count: no retry followed it."""
-    return sum(1 for _ in results.parent.glob(f"retried-*-{results.name}"))
+    without one, or refused by ``ingest-results``) and the simulator runs that exited
+    non-zero (``retried-K-STEM.failed.txt``); on disk, so a loop stopped and run again
+    counts them too. A file refused when no try is left (``rejected-NAME``) does not
+    count: no retry followed it."""
+    folder = results.parent
+    return sum(1 for _ in folder.glob(f"retried-*-{results.name}")) + sum(
+        1 for _ in folder.glob(f"retried-*-{results.stem}{FAILED_RUN_SUFFIX}")
+    )
 
 
 #: How much older than its hand-off list a results file may be and still be ingested.

@@ -183,6 +183,45 @@ def test_a_failing_simulator_stops_the_loop_naming_it(data, tmp_path):
     r = subprocess.run([*BAMS, "loop", "-w", str(ws), "--simulator", "true", "--batches", "2"],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 2 and "must name {handoff}" in r.stderr
+    # With --retries 1 the failed run is a try of its own, noted on disk, and the list is
+    # simulated once more before the loop stops, saying the retries are spent.
+    r = subprocess.run([*args, "--retries", "1"], capture_output=True, text=True)
+    assert r.returncode == 1, r.stderr
+    assert "batch 1: simulate: the simulator exited with 7" in r.stderr
+    assert "retry 1 of 1" in r.stderr and "its --retries 1 spent; fix it" in r.stderr
+    [note] = (ws / "loop-results").glob("retried-*")
+    assert note.name == "retried-1-batch-0001.failed.txt" and "exited with 7" in note.read_text()
+
+
+FLAKY = """
+import os, subprocess, sys
+count, truth, handoff, results = sys.argv[1:]
+n = int(open(count).read()) + 1 if os.path.exists(count) else 1
+open(count, "w").write(str(n))
+if n % 2:  # every other run: a licence server that did not answer
+    sys.exit("licence server unavailable")
+subprocess.run([*BAMS, "simulate", handoff, "--truth", truth, "-o", results], check=True)
+"""
+
+
+def test_with_retries_a_simulator_that_fails_now_and_then_is_run_again(data, tmp_path):
+    # A simulator failing one run in three stopped the loop at every failure, --retries 3
+    # or not: a trial study took 11 runs of the same loop to finish.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    sim = tmp_path / "flaky.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + FLAKY)
+    count = tmp_path / "runs"
+    command = f"{sys.executable} {sim} {count} {truth} {{handoff}} {{results}}"
+    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
+            "--budget", "3", "--retries", "1", "--json"]  # fmt: skip
+    r = subprocess.run(args, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert count.read_text() == "2" and Workspace(ws).pending().height == 0
+    assert "the simulator exited with 1" in r.stderr and "retry 1 of 1" in r.stderr
+    steps = json.loads(r.stdout)["steps"]
+    assert [s["step"] for s in steps] == ["select", "simulate", "simulate", "ingest-results", "fit"]
+    assert steps[1]["failed"] == 1 and "results" in steps[2]
 
 
 @pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
