@@ -406,3 +406,35 @@ def test_a_cheap_level_edited_dear_in_settings_is_warned_by_select(toy_ws, runne
            "--budget", "4", "--json")  # fmt: skip
     [warning] = json.loads(r.stdout)["warnings"]
     assert warning.startswith(f"{settings}: level 1 (low1) costs 1.5, no less than a level-0 run")
+
+
+@pytest.mark.parametrize(
+    ("strategy", "budget", "says"),
+    [
+        ("bas", "0.5", "--strategy bas runs level 0 only, at cost 1"),
+        ("random", "0.5", "--strategy random runs level 0 only, at cost 1"),
+        ("bams", "0.05", "the cheapest level costs 0.1"),
+    ],
+)  # fmt: skip
+def test_a_budget_that_buys_no_run_is_refused_before_the_work(
+    toy_ws, runner, strategy, budget, says
+):
+    # `select --strategy bas --budget 0.5` ran the whole selection (6 s in a trial study),
+    # then said "nothing fits budget 0.5 (cheapest level costs 0.15)": bas runs level 0 only.
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", strategy, "--budget", budget)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip() == f"error: --budget {budget}: buys no run; {says}"
+    assert tree_hash(toy_ws) == before
+    # A mixed random batch may pick the cheap level: 0.5 buys runs of it.
+    ok(
+        runner,
+        "select",
+        "-w",
+        toy_ws,
+        "--strategy",
+        "random",
+        "--mixed-fidelity",
+        "--budget",
+        "0.5",
+    )

@@ -408,6 +408,17 @@ def select(
             f"({len(ids)} segments x {settings.n_levels} levels cost "
             f"{len(ids) * sum(settings.costs):g})"
         )
+    # A budget below one run of every level the strategy may pick: refused before the work
+    # (it was after a full selection, citing the cheap level's cost to a level-0 strategy).
+    multi = strategy in ("bams", "mcm-gp") or (strategy == "random" and mixed_fidelity)
+    usable = settings.costs if multi and settings.n_levels > 1 else settings.costs[:1]
+    if budget < min(usable):
+        why = (
+            f"the cheapest level costs {min(usable):g}"
+            if len(usable) > 1
+            else f"--strategy {strategy} runs level 0 only, at cost {usable[0]:g}"
+        )
+        raise OptionValueError(f"--budget {budget:g}: buys no run; {why}")
     # The options that decide the picks: recorded in the batch, compared by --batch.
     asked = {
         "strategy": strategy,
