@@ -407,10 +407,19 @@ def pending_lists(lists: list[Mapping[str, Any]]) -> None:
     the one to simulate (``state.pending``)."""
     for e in lists:
         if e.get("pending_handoff"):
+            gone = int(e.get("abandoned") or 0)
+            answered = int(e["requests"]) - int(e["pending"]) - gone
+            others = (
+                "the others have results"
+                if not gone
+                else "the others were abandoned"
+                if not answered
+                else f"of the others {answered} {'has' if answered == 1 else 'have'} "
+                f"results, {gone} {'was' if gone == 1 else 'were'} abandoned"
+            )
             out.print(
                 f"{e['list']}: {e['pending']} of its {e['requests']} requests still await "
-                f"results; simulate {e['pending_handoff']}, which lists them alone (the others "
-                "have results)",
+                f"results; simulate {e['pending_handoff']}, which lists them alone ({others})",
                 markup=False,
                 highlight=False,
                 soft_wrap=True,

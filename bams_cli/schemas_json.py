@@ -166,6 +166,7 @@ PENDING_LISTS: Schema = array(
             "list": STR,
             "pending": COUNT,
             "requests": COUNT,
+            "abandoned": COUNT,
             "handoff": PATH,
             "pending_handoff": nullable(PATH),
         }

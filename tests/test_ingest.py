@@ -378,6 +378,20 @@ def crashed_study(tmp_path, runner):
     return ws, truth, handoff, res
 
 
+def test_the_pending_note_counts_the_abandoned_requests_apart(crashed_study, runner, tmp_path):
+    # After abandoning part of a batch, the note said of the requests not pending: "the
+    # others have results"; some had been abandoned without one.
+    ws, _, _, res = crashed_study
+    gone = tmp_path / "gone.csv"
+    gone.write_text(f"request_id\n{CRASHED[0]}\n")
+    ok(runner, "abandon", "-w", ws, "--segments", gone, "--reason", "simulator crash")
+    r = ok(runner, "ingest-results", "-w", ws, res)
+    assert "batch 1: 2 of its 10 requests still await results" in r.stdout
+    assert "(of the others 7 have results, 1 was abandoned)" in " ".join(r.stdout.split())
+    out = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--json").stdout)
+    assert [(e["pending"], e["abandoned"]) for e in out["pending_lists"]] == [(2, 1)]
+
+
 def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
     crashed_study, runner, tmp_path
 ):
@@ -397,9 +411,10 @@ def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
     assert pending.read_text().splitlines()[1:] == handoff.read_text().splitlines()[1:4]
     again = json.loads(ok(runner, "ingest-results", "-w", ws, res, "--json").stdout)
     assert again["pending_lists"] == [
-        {"list": "batch 1", "pending": 3, "requests": 10, "handoff": str(handoff),
-         "pending_handoff": str(pending)}
+        {"list": "batch 1", "pending": 3, "requests": 10, "abandoned": 0,
+         "handoff": str(handoff), "pending_handoff": str(pending)}
     ]  # fmt: skip
+    assert "which lists them alone (the others have results)" in r.stdout
 
     code, s, text = _status(runner, ws)
     assert code == 3 and s["next"]["handoffs"] == [str(pending)]

@@ -184,7 +184,8 @@ def stage(
 
 def summary(ws: Workspace) -> list[dict[str, object]]:
     """The lists partly answered, for a command's output: ``list`` ("batch 3"),
-    ``pending``, ``requests``, ``handoff`` and ``pending_handoff`` (the list to simulate,
+    ``pending``, ``requests``, ``abandoned`` (without a result), ``handoff`` and
+    ``pending_handoff`` (the list to simulate,
     or null when it is not current: ``status`` then names the whole hand-off list)."""
     observed = ws.read_observations().select(KEYS).unique()
     abandoned = ws.read_abandoned()
@@ -200,11 +201,14 @@ def summary(ws: Workspace) -> list[dict[str, object]]:
             if pending_path(handoff).exists()
             else handoff
         )
+        # The others have results, or were abandoned without one.
+        gone = abandoned.filter(pl.col(kind) == number).select(KEYS).unique()
         out.append(
             {
                 "list": f"{kind} {number}",
                 "pending": left.height,
                 "requests": total,
+                "abandoned": gone.join(observed, on=KEYS, how="anti").height,
                 "handoff": str(handoff),
                 "pending_handoff": str(current) if current != handoff else None,
             }
