@@ -238,11 +238,21 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
         "fresh": bool(model["fresh"]),
         "fitted_on": fitted,
         "fitted_at": model.get("fitted_at"),
-        "reason": None
-        if model["fresh"]
-        else f"the observation log changed after the last fit (fitted on {fitted} results, "
-        f"the log now holds {obs.height})",
+        "reason": None if model["fresh"] else stale_log(fitted, obs.height),
     }
+
+
+def stale_log(fitted: int, now: int) -> str:
+    """Why a model fitted on ``fitted`` results is stale for a log of ``now`` active ones."""
+    if fitted == now:  # as many results, other values: `ingest-results --replace`
+        return (
+            f"the observation log changed after the last fit (results replaced since: "
+            f"fitted on {fitted} results, the log holds as many, not all the same)"
+        )
+    return (
+        f"the observation log changed after the last fit (fitted on {fitted} results, "
+        f"the log now holds {now})"
+    )
 
 
 def latest_estimate(ws: Workspace) -> dict[str, Any] | None:

@@ -106,6 +106,25 @@ def test_model_is_stale_after_new_results(fitted_ws, runner, toy_files, tmp_path
     assert "fitted on an older observation log" in r.stderr and "bams-cli fit" in r.stderr
 
 
+def test_a_model_stale_by_a_replaced_value_says_so(fitted_ws, runner, tmp_path):
+    # After `ingest-results --replace`, status said "fitted on 20 results, the log now
+    # holds 20": a reason that reads as none.
+    row = Workspace(fitted_ws).read_observations().row(0, named=True)
+    res = tmp_path / "fix.parquet"
+    pq.write_table(pa.table({"segment_id": [row["segment_id"]], "fidelity": [row["fidelity"]],
+                             "value": [row["value"] + 0.5]}), res)  # fmt: skip
+    ok(runner, "ingest-results", "-w", fitted_ws, res, "--replace")
+    s = json.loads(invoke(runner, "status", "-w", fitted_ws, "--json").stdout)
+    assert s["model"]["reason"] == (
+        "the observation log changed after the last fit (results replaced since: fitted on "
+        "20 results, the log holds as many, not all the same)"
+    )
+    ok(runner, "report", "-w", fitted_ws)
+    notices = json.loads((fitted_ws / "report" / "summary.json").read_text())["notices"]
+    [text] = [n["text"] for n in notices if n["kind"] == "stale_model"]
+    assert text.startswith("Stale model: the observation log changed after the last fit (results")
+
+
 def _fit_with(ws, runner, tmp_path, values, noise0, outputscale0=0.25):
     """Level-0 results with the given values, fitted with fixed hyperparameters."""
     ids = [f"t{i:06d}" for i in range(0, 400, 40)][: len(values)]

@@ -337,7 +337,7 @@ def test_the_original_file_with_replace_undoes_a_replace(ws, runner, tmp_path):
     before = tree_hash(ws)
     r = invoke(runner, "ingest-results", "-w", ws, original)
     assert r.exit_code == 0 and "already ingested" in r.stderr
-    assert "1 of its values were replaced since: pass --replace to restore them" in r.stderr
+    assert "1 of its values was replaced since: pass --replace to restore them" in r.stderr
     assert tree_hash(ws) == before
 
     r = invoke(runner, "ingest-results", "-w", ws, original, "--replace", "--json")

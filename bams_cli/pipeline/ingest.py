@@ -94,7 +94,8 @@ def ingest_results(
             pl.col("_k").is_null() | (pl.col("_k") != pl.col("value"))
         )
         since = (
-            f"; {changed.height} of its values were replaced since: pass --replace to restore them"
+            f"; {changed.height} of its values {'was' if changed.height == 1 else 'were'} "
+            "replaced since: pass --replace to restore them"
             if changed.height
             else ""
         )

@@ -35,6 +35,7 @@ from bams_cli.state.io import (
 )
 from bams_cli.state.pending import to_simulate
 from bams_cli.state.workspace import Workspace
+from bams_cli.status import stale_log
 
 
 # ---------------------------------------------------------------------------------------
@@ -454,8 +455,7 @@ def _report_model_notices(
         {
             "kind": "stale_model",
             "severity": "warning",
-            "text": f"Stale model: the observation log changed after the last fit (fitted on "
-            f"{fitted} results, the log now holds {active.height}). Failure probabilities, "
+            "text": f"Stale model: {stale_log(fitted, active.height)}. Failure probabilities, "
             "the pool map, the likely failures' ranking and the GP's estimate are that "
             f"fit's and miss the newer results; run {fit} to bring them up to date.",
         }
