@@ -76,6 +76,36 @@ def _known_keys(source: str, doc: dict[str, Any], study: dict[str, Any]) -> None
                 f"{source}: {key} must be a whole number, got {value!r}", setting=key
             )
 
+    def number(value: Any) -> bool:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+
+    # Every other value's type, by its key (a cost of "cheap" was "malformed entry (could
+    # not convert string to float: 'cheap')", naming no key).
+    for i, lv in enumerate(levels):
+        for key in _LEVEL_KEYS:
+            if key not in lv:
+                raise SettingsError(f"{source}: levels entry {i} has no {key!r}", setting="levels")
+        if not number(lv["cost"]):
+            raise SettingsError(
+                f"{source}: levels entry {i} ({lv['name']!r}): cost must be a number, got "
+                f"{lv['cost']!r}",
+                setting="levels",
+            )
+        if not isinstance(lv["name"], str):
+            raise SettingsError(
+                f"{source}: levels entry {i}: name must be a string, got {lv['name']!r}",
+                setting="levels",
+            )
+    gammas = study.get("gammas", [])
+    if not isinstance(gammas, list) or not all(number(g) for g in gammas):
+        raise SettingsError(
+            f"{source}: gammas must be a list of numbers, got {gammas!r}", setting="gammas"
+        )
+    if not isinstance(study.get("id_column", ""), str):
+        raise SettingsError(
+            f"{source}: id_column must be a column name, got {study['id_column']!r}"
+        )
+
 
 @dataclass(frozen=True)
 class Level:

@@ -442,6 +442,19 @@ STATE_CASES = [
          "settings.toml", "seed must be a whole number, got 7.5"),
     Case("settings-level-key-misspelt", _edit_settings(r"cost = 0", "costt = 0", "fit"),
          "settings.toml", "unknown key 'costt' in levels entry 1; did you mean 'cost'?"),
+    # A value of the wrong type was "malformed entry (could not convert string to float:
+    # 'cheap')", naming no key.
+    Case("settings-level-cost-a-word", _edit_settings(r"cost = 0\.[0-9]+", 'cost = "cheap"',
+                                                      "status"),
+         "settings.toml", "levels entry 1 ('low1'): cost must be a number, got 'cheap'"),
+    Case("settings-level-without-cost", _edit_settings(r", cost = 0\.[0-9]+", "", "fit"),
+         "settings.toml", "levels entry 1 has no 'cost'"),
+    Case("settings-gamma-a-word", _edit_settings(r"^gammas = \[\n\s*[0-9.]+,", 'gammas = ["x",',
+                                                 "fit"),
+         "settings.toml", "gammas must be a list of numbers, got ['x']"),
+    Case("settings-id-column-a-number", _edit_settings(r'^id_column = .*$', "id_column = 3",
+                                                       "status"),
+         "settings.toml", "id_column must be a column name, got 3"),
     # Results that name their level by a name two levels share would land at the wrong one.
     # A level deleted by hand while the log holds its results: fit names both files.
     Case("settings-level-removed", _edit_settings(r'^\s*\{ name = "[^"]*", cost = 0\..*\n', "", "fit"),
