@@ -565,7 +565,10 @@ def ingest_results(
             for r in pend["first"]
         ]
         console.rows_table(
-            f"still pending: {pend['count']}", ["segment_id", "fidelity", "asked by"], rows
+            f"still pending: {pend['count']}",
+            ["segment_id", "fidelity", "asked by"],
+            rows,
+            total=pend["count"],
         )
         console.pending_lists(summary.get("pending_lists") or [])
     elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
@@ -1108,6 +1111,7 @@ def abandon(
             f"abandoned: {console.plural(summary['abandoned'], 'request')} (log: {summary['log']})",
             ["request_id", "segment_id", "fidelity", "batch", "plan"],
             rows,
+            total=summary["abandoned"],
         )
     pend = summary["pending"]["count"]
     console.note(f"still pending: {pend}" if pend else "nothing pending")

@@ -99,8 +99,14 @@ def print_json(summary: Mapping[str, Any]) -> None:
     sys.stdout.write(json.dumps(summary, indent=2, default=str, allow_nan=False) + "\n")
 
 
-def rows_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
-    table = Table(title=title, title_justify="left")
+def rows_table(
+    title: str, columns: list[str], rows: list[list[Any]], total: int | None = None
+) -> None:
+    """A table of ``rows``; with ``total`` above their count, its caption says how many
+    more there are (the summaries list the first 20)."""
+    more = (total or 0) - len(rows)
+    caption = f"... and {more:,} more (first {len(rows)} shown)" if more > 0 else None
+    table = Table(title=title, title_justify="left", caption=caption, caption_justify="left")
     for col in columns:
         table.add_column(
             col, justify="right" if col not in {"segment_id", "name", "level"} else "left"
@@ -121,9 +127,14 @@ def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None 
         )
     loo = checks["loo_level0"]
     if loo["n"]:
+        of = int(loo.get("of") or loo["n"])
+        runs = (
+            f"{loo['n']} level-0 runs"
+            if of <= loo["n"]
+            else (f"{loo['n']} of the {of:,} level-0 runs (a random sample)")
+        )
         out.print(
-            f"check: leave-one-out at {loo['n']} level-0 runs, mean z^2 {loo['mean_z2']:.2f} "
-            "(1 if calibrated)",
+            f"check: leave-one-out at {runs}, mean z^2 {loo['mean_z2']:.2f} (1 if calibrated)",
             highlight=False,
         )
     for pair in checks["pairs"]:

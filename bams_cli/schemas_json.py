@@ -106,6 +106,7 @@ CHECKS: Schema = obj(
                 "max_abs_z": nullable(NUM),
                 "p_value": nullable(NUM),
                 "max_p_value": nullable(NUM),
+                "of": COUNT,
             },
         ),
         "pairs": array(

@@ -55,6 +55,20 @@ def test_ingest_appends_and_keeps_extra_columns(ws, runner, tmp_path):
     assert '"count": 2' in r.stdout  # two picks of batch 1 still pending
 
 
+def test_the_still_pending_table_says_how_many_it_leaves_out(toy_ws, runner, tmp_path):
+    # "still pending: 27" listed 20 rows and said nothing of the other 7.
+    ids = [f"t{i:06d}" for i in range(30)]
+    write_batch(toy_ws, 1, ids, [0] * 30)
+    res = _results(tmp_path / "r1.parquet", [(i, 0, 1.0) for i in ids[:3]])
+    out = " ".join(ok(runner, "ingest-results", "-w", toy_ws, res).stdout.split())
+    assert "still pending: 27" in out and "... and 7 more (first 20 shown)" in out
+    assert out.count("batch 1") >= 20
+    # At 20 or fewer, no caption.
+    res = _results(tmp_path / "r2.parquet", [(i, 0, 1.0) for i in ids[3:10]])
+    out = " ".join(ok(runner, "ingest-results", "-w", toy_ws, res).stdout.split())
+    assert "still pending: 20" in out and "more (first" not in out
+
+
 def test_reingest_same_file_changes_nothing(ws, runner, tmp_path):
     res = _results(tmp_path / "r1.parquet", [(IDS[0], 0, 1.5)])
     assert invoke(runner, "ingest-results", "-w", ws, res).exit_code == 0

@@ -144,3 +144,21 @@ def test_one_level0_run_far_from_its_prediction_is_flagged_by_name():
     [w] = checks.warnings
     assert "near segment s01037" in w and f"{checks.loo_max_abs_z:.1f} sd" in w
     assert checks.to_dict()["loo_level0"]["max_p_value"] == pytest.approx(bound)
+
+
+def test_above_its_cap_the_loo_check_says_it_took_a_sample(capsys):
+    """"leave-one-out at 500 level-0 runs" of a model holding 1,022 read as a miscount: the
+    check takes a random 500 (``_MAX_LOO``) and says so."""
+    from bams_cli import console
+    from bams_cli.core.gp.checks import _MAX_LOO
+
+    X, hp, y = _drawn_from_the_model(_MAX_LOO + 40)
+    n = y.size
+    checks = check_model(MFGP(X, np.zeros(n, int), y, 1, hp), np.arange(n))
+    assert (checks.loo_n, checks.to_dict()["loo_level0"]["of"]) == (_MAX_LOO, n)
+    console.model_checks(checks.to_dict())
+    assert f"check: leave-one-out at {_MAX_LOO} of the {n:,} level-0 runs (a random sample)" in (
+        " ".join(capsys.readouterr().out.split())
+    )
+    small = check_model(MFGP(X[:50], np.zeros(50, int), y[:50], 1, hp), np.arange(50))
+    assert small.to_dict()["loo_level0"]["of"] == 50

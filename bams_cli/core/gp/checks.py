@@ -84,6 +84,9 @@ class ModelChecks:
         min(1, n erfc(max |z| / sqrt 2)): Bonferroni's bound on P(some |z_i| >= max |z|).
     loo_max_row : int
         Pool row of the level-0 run with the largest |z| (-1 when there is none).
+    loo_of : int
+        Level-0 observations the model holds (the check takes a random ``_MAX_LOO`` of
+        them when there are more).
     pairs : list of PairCheck, one per level >= 1
     warnings : list of str
     """
@@ -94,6 +97,7 @@ class ModelChecks:
     loo_p_value: float
     loo_max_p_value: float = math.nan
     loo_max_row: int = -1
+    loo_of: int = 0
     pairs: list[PairCheck] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
@@ -110,6 +114,7 @@ class ModelChecks:
                 "max_abs_z": num(self.loo_max_abs_z),
                 "p_value": num(self.loo_p_value),
                 "max_p_value": num(self.loo_max_p_value),
+                "of": max(self.loo_of, self.loo_n),
             },
             "pairs": [
                 {
@@ -218,6 +223,7 @@ def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:
         loo_p_value=float(chi2.sf(s2, n)) if n else math.nan,
         loo_max_p_value=min(1.0, n * math.erfc(m / math.sqrt(2.0))) if n else math.nan,
         loo_max_row=int(seg[rows[far]]) if n else -1,
+        loo_of=int(np.sum(model.levels_train == 0)),
     )
     if n >= 5 and checks.loo_p_value < CHECK_LEVEL:
         checks.warnings.append(
