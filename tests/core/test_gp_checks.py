@@ -147,7 +147,7 @@ def test_one_level0_run_far_from_its_prediction_is_flagged_by_name():
 
 
 def test_above_its_cap_the_loo_check_says_it_took_a_sample(capsys):
-    """"leave-one-out at 500 level-0 runs" of a model holding 1,022 read as a miscount: the
+    """The line "leave-one-out at 500 level-0 runs" of a model holding 1,022 read as a miscount: the
     check takes a random 500 (``_MAX_LOO``) and says so."""
     from bams_cli import console
     from bams_cli.core.gp.checks import _MAX_LOO
