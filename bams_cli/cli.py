@@ -404,7 +404,10 @@ def init(
 @command("embed-reduce", max_memory=True)
 def embed_reduce(
     segments: Annotated[
-        Path, typer.Argument(help="Parquet file of segments: segment_id + embedding.")
+        Path,
+        typer.Argument(
+            metavar="SEGMENTS", help="Parquet file of segments: segment_id + embedding."
+        ),
     ],
     workspace: Workspace = Path(defaults.WORKSPACE),
     method: Annotated[
@@ -492,8 +495,9 @@ def ingest_results(
     results: Annotated[
         Path,
         typer.Argument(
+            metavar="RESULTS",
             help="Parquet or CSV: request_id or segment_id + fidelity (number or level name), "
-            "value, optional status (+ extra columns)."
+            "value, optional status (+ extra columns).",
         ),
     ],
     workspace: Workspace = Path(defaults.WORKSPACE),
@@ -580,7 +584,10 @@ def ingest_results(
 @command()
 def simulate(
     handoff: Annotated[
-        Path, typer.Argument(help="A hand-off list (Parquet or CSV): segment_id, fidelity.")
+        Path,
+        typer.Argument(
+            metavar="HANDOFF", help="A hand-off list (Parquet or CSV): segment_id, fidelity."
+        ),
     ],
     truth: Annotated[
         Path, typer.Option("--truth", help="Ground truth: segment_id, value_0, value_1, ...")

@@ -490,7 +490,8 @@ def select_summary(s: Mapping[str, Any]) -> None:
     confirm = None
     if s.get("confirm_picks"):
         confirm = (
-            f"{s['confirm_picks']} level-0 runs ({s.get('confirm_leads', 0)} of cheap-level leads)"
+            f"{plural(s['confirm_picks'], 'level-0 run')} ({s.get('confirm_leads', 0)} of "
+            "cheap-level leads)"
         )
     total = (s.get("timings_s") or {}).get("total")
     facts(
@@ -501,7 +502,9 @@ def select_summary(s: Mapping[str, Any]) -> None:
             "confirming": confirm,
             "hand-off": s.get("handoff_csv") or s.get("handoff"),
             "results template": s.get("results_template"),
-            "time": None if total is None else f"{total:.1f} s",
+            # The selection's own time: the progress display's elapsed also counts reading
+            # the pool and scores and writing the batch.
+            "time": None if total is None else f"{total:.1f} s selecting",
         },
     )
     for text in s.get("warnings") or []:

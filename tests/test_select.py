@@ -102,6 +102,12 @@ def test_select_batch_is_a_stable_make_target(lead_ws, runner):
         r.exit_code == 1
         and "batch 2 exists with other options (budget 5.0 there, 4.0 asked;" in r.stderr
     )
+    # Batch 2 awaits results: the new batch the error offers needs --allow-pending (the
+    # command it named was refused, exit 3).
+    says = "or --batch 3 --allow-pending for a new batch beside the picks awaiting results"
+    assert says in " ".join(r.stderr.split())
+    r = invoke(runner, "select", "-w", lead_ws, "--batch", "2", "--budget", "4", "--allow-pending")
+    assert r.exit_code == 1 and "or --batch 3 for a new batch" in " ".join(r.stderr.split())
     r = invoke(runner, "select", "-w", lead_ws, "--batch", "5")
     assert r.exit_code == 1 and "--batch 5: the next batch is 3" in r.stderr
     assert tree_hash(lead_ws) == before

@@ -188,10 +188,11 @@ def estimate_plan(
             names = {"plan": ("estimate plan", "estimate plans"), "batch": ("batch", "batches")}
             name = names[kind][many]
             lists = " and ".join(str(pending.to_simulate(ws, kind, int(n))) for n in waiting)
+            picks = int(pend[kind].is_in(waiting).sum())
             raise PendingResultsError(
                 f"{ws.root}: {name} "
                 f"{', '.join(str(n) for n in waiting)} await{'' if many else 's'} results "
-                f"for {int(pend[kind].is_in(waiting).sum())} picks; simulate {lists}, "
+                f"for {picks} {'pick' if picks == 1 else 'picks'}; simulate {lists}, "
                 f"ingest the results and {then}"
             )
     model = ws.require_fresh_model()

@@ -147,7 +147,7 @@ def _memory_limit_is_an_option(greedy: str = "auto") -> Iterator[None]:
 
 
 def _existing_batch(
-    ws: Workspace, batch: int, asked: dict[str, Any], n_levels: int
+    ws: Workspace, batch: int, asked: dict[str, Any], n_levels: int, allow_pending: bool = False
 ) -> dict[str, Any] | None:
     """``select --batch N``: N's summary if it exists with these options, None if N is next."""
     from bams_cli.state.handoff import template_path
@@ -169,9 +169,14 @@ def _existing_batch(
         if k in made and made[k] != v
     ]
     if differ:
+        # A new batch beside one that awaits results needs --allow-pending (``select``).
+        waiting = not allow_pending and ws.pending().height > 0
+        flag, beside = (
+            (" --allow-pending", " beside the picks awaiting results") if waiting else ("", "")
+        )
         raise OptionError(
             f"{path}: batch {batch} exists with other options ({'; '.join(differ)}); "
-            f"pass the same options, or --batch {following} for a new batch"
+            f"pass the same options, or --batch {following}{flag} for a new batch{beside}"
         )
     df = ws.read_batch(batch)
     level = df["fidelity"].to_numpy()
@@ -434,7 +439,7 @@ def select(
     if out is not None:
         out = _check_out(out)
     if batch is not None:
-        done = _existing_batch(ws, batch, asked, settings.n_levels)
+        done = _existing_batch(ws, batch, asked, settings.n_levels, allow_pending)
         if done is not None:
             if out is not None:
                 _copy_handoff_if_needed(Path(done["handoff_csv"]), out)
@@ -450,7 +455,8 @@ def select(
             for n in sorted(set(pend[kind].drop_nulls().to_list()))
         ]
         raise PendingResultsError(
-            f"{ws.root}: {pend.height} picks of {', '.join(where)} have no results yet; "
+            f"{ws.root}: {pend.height} {'pick' if pend.height == 1 else 'picks'} of "
+            f"{', '.join(where)} {'has' if pend.height == 1 else 'have'} no results yet; "
             f"simulate {' and '.join(lists)}, ingest the results with `bams-cli "
             "ingest-results`, or pass --allow-pending"
         )
