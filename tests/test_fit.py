@@ -399,3 +399,18 @@ def test_values_at_the_accepted_limit_give_a_one_line_fit_error(toy_ws, runner, 
     [line] = r.stderr.splitlines()
     assert "the observed values span 0 to 1e+150); rescale the metric" in line
     assert tree_hash(toy_ws) == before
+
+
+def test_a_contradicted_value_is_printed_with_the_digits_that_tell_it_from_gamma():
+    # "value 1.9, p_n 1" for a segment observed *not* failing at gamma 1.9 (its value was
+    # 1.9002) read as a contradiction of the warning itself.
+    from bams_cli.pipeline.fitting import _beside, _contradicted_outcomes
+
+    assert _beside(1.9002, 1.9) == "1.9002" and _beside(1.90000001, 1.9) == "1.90000001"
+    assert _beside(1.9, 1.9) == "1.9" and _beside(2.5, 1.9) == "2.5"
+    [line] = _contradicted_outcomes(
+        np.array(["a", "b"]), np.array([0, 1]), np.array([0, 0]), np.array([1.9002, 3.0]),
+        np.array([[1.0 - 1e-5], [0.0]]), [1.9],
+    )  # fmt: skip
+    assert "1 of 2 segments observed not failing" in line
+    assert "(worst 'a': value 1.9002, probability 1e-05)" in line

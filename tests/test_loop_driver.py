@@ -418,7 +418,7 @@ def test_a_stopped_loop_ends_its_simulator_and_resumes(data, tmp_path, signum):
     assert again.returncode == 0, again.stderr
     assert "died holding the lock" not in again.stderr  # the stopped loop let go of its lock
     steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
-    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
+    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1"), ("fit", None)]
 
 
 @pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
@@ -454,7 +454,7 @@ def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(d
     again = subprocess.run([*args, "--json"], capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
-    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1")]
+    assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1"), ("fit", None)]
     assert not list((ws / "loop-results").glob(".simulator-*"))  # the note of it is gone
 
 

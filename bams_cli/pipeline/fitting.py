@@ -456,6 +456,16 @@ def _no_level0(levels: np.ndarray, n_levels: int) -> list[str]:
     ]
 
 
+def _beside(value: float, gamma: float) -> str:
+    """``value`` with the digits that tell it from ``gamma`` (1.9002 is not "1.9" beside a
+    gamma of 1.9)."""
+    for digits in range(4, 17):
+        text = f"{value:.{digits}g}"
+        if float(text) != gamma or value == gamma:
+            return text
+    return repr(value)
+
+
 def _contradicted_outcomes(
     ids: np.ndarray,
     idx: np.ndarray,
@@ -489,8 +499,9 @@ def _contradicted_outcomes(
             out.append(
                 f"gamma {gamma:g}: {bad.size} of {int(failed.sum())} segments observed "
                 f"{what} at level 0 get probability < {CONTRADICTION:g} of that outcome "
-                f"(worst {ids[idx[level0][worst]]!r}: value {val[worst]:.4g}, "
-                f"p_n {pn[worst]:.2g}); the model explains them as noise, so the estimate's "
+                f"(worst {str(ids[idx[level0][worst]])!r}: value {_beside(val[worst], gamma)}, "
+                f"probability {doubt[worst]:.2g}); the model explains them as noise, so the "
+                "estimate's "
                 "variance may be large. Check the level-0 noise in the hyperparameter table; "
                 "more level-0 runs near them help"
             )
