@@ -1007,7 +1007,8 @@ def render_markdown(summary: dict[str, Any]) -> str:
     )
     if s["diverse_failures"]:
         lines.append(
-            "Likely failures (level-0 value unknown, by p_n): "
+            "Diverse likely failures (level-0 value unknown; likely and unlike each other, "
+            "in the order chosen, not by p_n): "
             + ", ".join(f"{r['segment_id']} (p_n {r['p_n']:.2g})" for r in s["diverse_failures"])
             + "."
         )
