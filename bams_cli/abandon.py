@@ -29,7 +29,7 @@ import numpy as np
 import polars as pl
 
 from bams_cli import pipeline
-from bams_cli.errors import AbandonedRunsError, InputError, OptionError
+from bams_cli.errors import AbandonedRunsError, InputError, OptionError, OptionValueError
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
 from bams_cli.state import pending, schemas
@@ -106,7 +106,9 @@ def abandon(
         Another command holds the lock and ``wait`` is False.
     """
     if batch is None and plan is None and segments is None:
-        raise OptionError("abandon: say which requests: --batch N, --plan N or --segments FILE")
+        raise OptionValueError(
+            "abandon: say which requests: --batch N, --plan N or --segments FILE"
+        )
     if batch is not None and plan is not None:
         raise OptionError("abandon: --batch and --plan name one list each; pass one of them")
     ws = Workspace(root)

@@ -205,19 +205,21 @@ def test_a_late_result_outranks_the_abandonment(study, tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("args", "needle"),
+    ("args", "code", "needle"),
     [
-        ((), "say which requests: --batch N, --plan N or --segments FILE"),
-        (("--batch", "7"), "--batch 7: no such batch (batches: 1)"),
-        (("--plan", "1"), "--plan 1: no such estimate plan (plans: none yet)"),
-        (("--batch", "1", "--fidelity", "medium"), "--fidelity 'medium': not a level"),
+        # No request named: a usage error, exit 2, as a missing argument is.
+        ((), 2, "say which requests: --batch N, --plan N or --segments FILE"),
+        # Requests the study does not have: exit 1.
+        (("--batch", "7"), 1, "--batch 7: no such batch (batches: 1)"),
+        (("--plan", "1"), 1, "--plan 1: no such estimate plan (plans: none yet)"),
+        (("--batch", "1", "--fidelity", "medium"), 1, "--fidelity 'medium': not a level"),
     ],
 )
-def test_abandon_usage_errors_change_nothing(study, args, needle):
+def test_abandon_usage_errors_change_nothing(study, args, code, needle):
     runner, ws, *_ = study
     before = tree_hash(ws)
     r = invoke(runner, "abandon", "-w", ws, *args)
-    assert r.exit_code == 1 and needle in r.stderr, r.stderr
+    assert r.exit_code == code and needle in r.stderr, r.stderr
     assert tree_hash(ws) == before
 
 

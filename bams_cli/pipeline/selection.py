@@ -423,7 +423,7 @@ def select(
             if len(usable) > 1
             else f"--strategy {strategy} runs level 0 only, at cost {usable[0]:g}"
         )
-        raise OptionValueError(f"--budget {budget:g}: buys no run; {why}")
+        raise OptionError(f"--budget {budget:g}: buys no run; {why}")
     # The options that decide the picks: recorded in the batch, compared by --batch.
     asked = {
         "strategy": strategy,
