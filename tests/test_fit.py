@@ -414,3 +414,18 @@ def test_a_contradicted_value_is_printed_with_the_digits_that_tell_it_from_gamma
     )  # fmt: skip
     assert "1 of 2 segments observed not failing" in line
     assert "(worst 'a': value 1.9002, probability 1e-05)" in line
+
+
+def test_a_fit_with_nothing_to_do_does_not_load_the_numerical_stack(fitted_ws):
+    # A Makefile runs `fit` after every ingest; with the model up to date it took 3-7 s,
+    # nearly all of it importing the GP and scipy.stats before finding nothing to do.
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from pathlib import Path; from bams_cli.pipeline import fit; "
+        f"out = fit(Path({str(fitted_ws)!r}), restarts=2); "
+        "print(out.get('up_to_date'), 'bams_cli.core.gp' in sys.modules)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert r.stdout.split() == ["True", "False"]

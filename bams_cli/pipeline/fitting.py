@@ -109,7 +109,7 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
     record = model.get("conditioning") or {}
     budget = record.get("memory_budget_bytes")
     if record.get("method") == "exact_subset" and record.get("conditioned_on"):
-        from bams_cli.core.gp.fit import BYTES_PER_ENTRY
+        from bams_cli.memory import BYTES_PER_ENTRY
 
         budget = BYTES_PER_ENTRY * int(record["conditioned_on"]) ** 2
     return fit_mfgp(
@@ -196,16 +196,12 @@ def fit(
     WorkspaceLockedError
         Another command holds the lock and ``wait`` is False.
     """
-    from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
-    from bams_cli.core.gp.checks import check_model
-
     if restarts < 1:
         raise OptionValueError(f"--restarts {restarts}: must be >= 1")
     if chunk_size < 1:
         raise OptionValueError(f"--chunk-size {chunk_size}: must be >= 1")
     if transform not in TRANSFORMS:
         raise OptionValueError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
-    chosen = None if transform == "auto" else OutputTransform()
     ws = Workspace(root)
     settings = ws.require_initialised()
     if not force and fixed_hyperparameters is None:
@@ -214,6 +210,12 @@ def fit(
         )
         if kept is not None:
             return kept
+    # The numerical stack (scipy.stats alone takes seconds to import) only for a real fit:
+    # a Makefile's `fit` with nothing to do returned after 3-7 s.
+    from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
+    from bams_cli.core.gp.checks import check_model
+
+    chosen = None if transform == "auto" else OutputTransform()
     ids, X = ws.read_pool()
     idx, lv, y = _training_data(ws, ids, X, settings.n_levels)
     fixed = None
@@ -368,7 +370,7 @@ def _fit_up_to_date(
     ``--chunk-size`` only bounds memory, so it does not count; the conditioning budget
     counts only if it would condition on another number of observations.
     """
-    from bams_cli.core.gp.fit import max_conditioned
+    from bams_cli.memory import max_conditioned
 
     if not ws.model_path.exists() or not ws.segments_path.exists():
         return None

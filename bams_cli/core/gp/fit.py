@@ -22,16 +22,11 @@ from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import PriorSpec, _Priors
 from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
+from bams_cli.memory import BYTES_PER_ENTRY, max_conditioned
 
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
 _N_POLISH = 2  # restarts continued to convergence
 _MAXITER = 300  # cap on those; converged runs stop well before
-#: Bytes per entry of the n x n training covariance that conditioning holds at its peak:
-#: K alone, built and factorised in place (``MFGP``, ``_numerics.cholesky_inplace``).
-#: Measured: 8.8 bytes per entry of peak RSS above the process's baseline at 8,000
-#: observations (24.0 when K, its factor and the kernel's temporaries were separate
-#: arrays); 10 leaves a margin.
-BYTES_PER_ENTRY = 10
 #: Seed of the draw that fills a conditioning subset (``conditioning_subset``): fixed, so
 #: the same observation log always gives the same subset, and ``select``'s posterior is
 #: the one ``fit`` scored with.
@@ -166,17 +161,6 @@ def fit_mfgp(
             "failure probabilities rest on the priors alone"
         )
     return model
-
-
-def max_conditioned(max_memory: int | None) -> int | None:
-    """Most observations exact conditioning holds within ``max_memory`` bytes (None: no cap).
-
-    floor(sqrt(max_memory / BYTES_PER_ENTRY)), at least 1: the n x n covariance and its
-    factor dominate the memory of conditioning.
-    """
-    if max_memory is None:
-        return None
-    return max(1, math.isqrt(int(max_memory) // BYTES_PER_ENTRY))
 
 
 def conditioning_subset(levels: IntArray, n_levels: int, max_obs: int | None) -> IntArray | None:
