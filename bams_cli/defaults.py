@@ -220,7 +220,7 @@ RISK_ANCHOR_SD = 1.0
 FIT_SUBSET = 300
 
 #: ``fit`` conditions exactly on every observation while the training covariance (factorised
-#: in place) fits this many bytes (``memory.max_conditioned``: 14,654 observations);
+#: in place) fits this many bytes (``core.conditioning_budget.max_conditioned``: 14,654 observations);
 #: above, exactly on a subset of that many, level-0 observations first
 #: (``core.gp.fit.conditioning_subset``; its sds are never below the exact posterior's,
 #: its accuracy measured by ``bench/bench_fit.py --accuracy``). The size also sets the

@@ -109,7 +109,7 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
     record = model.get("conditioning") or {}
     budget = record.get("memory_budget_bytes")
     if record.get("method") == "exact_subset" and record.get("conditioned_on"):
-        from bams_cli.memory import BYTES_PER_ENTRY
+        from bams_cli.core.conditioning_budget import BYTES_PER_ENTRY
 
         budget = BYTES_PER_ENTRY * int(record["conditioned_on"]) ** 2
     return fit_mfgp(
@@ -370,7 +370,7 @@ def _fit_up_to_date(
     ``--chunk-size`` only bounds memory, so it does not count; the conditioning budget
     counts only if it would condition on another number of observations.
     """
-    from bams_cli.memory import max_conditioned
+    from bams_cli.core.conditioning_budget import max_conditioned
 
     if not ws.model_path.exists() or not ws.segments_path.exists():
         return None
@@ -463,7 +463,9 @@ def _beside(value: float, gamma: float) -> str:
     gamma of 1.9)."""
     for digits in range(4, 17):
         text = f"{value:.{digits}g}"
-        if float(text) != gamma or value == gamma:
+        shown = float(text)
+        # On gamma's side that the value is on, and not gamma itself unless the value is.
+        if (shown <= gamma) == (value <= gamma) and (shown != gamma or value == gamma):
             return text
     return repr(value)
 

@@ -9,6 +9,7 @@ from scipy.optimize import OptimizeResult, minimize
 from threadpoolctl import threadpool_limits
 
 from bams_cli import defaults
+from bams_cli.core.conditioning_budget import BYTES_PER_ENTRY, max_conditioned
 from bams_cli.core.gp._numerics import (
     FloatArray,
     GPFitError,
@@ -22,7 +23,6 @@ from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import PriorSpec, _Priors
 from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
-from bams_cli.memory import BYTES_PER_ENTRY, max_conditioned
 
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
 _N_POLISH = 2  # restarts continued to convergence
