@@ -293,9 +293,10 @@ def loop(
 
 
 def _check_results_dir(ws: Workspace, folder: Path) -> None:
-    """Refuse a --results-dir that is the workspace or one of its own folders: its results
-    files (``batch-0001.csv``) would take the names of the hand-off lists there, and the
-    loop would ingest a hand-off list as results and set it aside."""
+    """Refuse a --results-dir that is the workspace or one of its own folders (its results
+    files, ``batch-0001.csv``, would take the names of the hand-off lists there, and the
+    loop would ingest a hand-off list as results and set it aside), a file, a link to
+    nowhere, or a folder that cannot be made or written."""
     where = folder.resolve()
     own = [ws.root, ws.batches_dir, ws.estimates_dir, ws.history_dir, ws.report_dir]
     if any(where == p.resolve() for p in own):
@@ -305,20 +306,30 @@ def _check_results_dir(ws: Workspace, folder: Path) -> None:
         )
     if where.exists() and not where.is_dir():
         raise OptionValueError(f"--results-dir {folder}: is a file, not a folder")
-    if not where.exists():
-        # Made, then removed again: a folder that cannot be made (a read-only or missing
-        # mount) is refused before any step, and a refused loop leaves nothing behind.
-        made = [p for p in (where, *where.parents) if not p.exists()]
-        try:
-            where.mkdir(parents=True)
-        except OSError as exc:
-            raise OptionValueError(
-                f"--results-dir {folder}: cannot be made ({exc.strerror or exc})"
-            ) from None
-        finally:
-            for p in made:
-                with contextlib.suppress(OSError):
-                    p.rmdir()
+    # Checked on the path as given, as the simulator's step will use it (a link resolves
+    # to a folder that may not be there): made, or written, then left as it was, so a
+    # folder the loop cannot use is refused before any step and a refused loop leaves
+    # nothing behind.
+    if folder.is_symlink() and not folder.exists():
+        raise OptionValueError(
+            f"--results-dir {folder}: a link to {os.readlink(folder)}, which does not exist"
+        )
+    made = [p for p in (folder, *folder.parents) if not p.exists()]
+    probe = folder / f".bams-loop-probe-{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.touch()
+    except OSError as exc:
+        doing = "made" if made else "written"
+        raise OptionValueError(
+            f"--results-dir {folder}: cannot be {doing} ({exc.strerror or exc})"
+        ) from None
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink(missing_ok=True)
+        for p in made:
+            with contextlib.suppress(OSError):
+                p.rmdir()
 
 
 @contextmanager

@@ -91,11 +91,6 @@ def _known_keys(source: str, doc: dict[str, Any], study: dict[str, Any]) -> None
                 f"{lv['cost']!r}",
                 setting="levels",
             )
-        if not isinstance(lv["name"], str):
-            raise SettingsError(
-                f"{source}: levels entry {i}: name must be a string, got {lv['name']!r}",
-                setting="levels",
-            )
     gammas = study.get("gammas", [])
     if not isinstance(gammas, list) or not all(number(g) for g in gammas):
         raise SettingsError(

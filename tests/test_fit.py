@@ -408,6 +408,9 @@ def test_a_contradicted_value_is_printed_with_the_digits_that_tell_it_from_gamma
 
     assert _beside(1.9002, 1.9) == "1.9002" and _beside(1.90000001, 1.9) == "1.90000001"
     assert _beside(1.9, 1.9) == "1.9" and _beside(2.5, 1.9) == "2.5"
+    # On the value's side of gamma: 1.90016 is not "1.9" beside a gamma of 1.9001.
+    assert _beside(1.90016, 1.9001) == "1.9002" and _beside(1.90011, 1.9001) == "1.90011"
+    assert _beside(1.90004, 1.9001) == "1.9"
     [line] = _contradicted_outcomes(
         np.array(["a", "b"]), np.array([0, 1]), np.array([0, 0]), np.array([1.9002, 3.0]),
         np.array([[1.0 - 1e-5], [0.0]]), [1.9],

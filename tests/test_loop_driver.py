@@ -775,15 +775,17 @@ def test_a_results_dir_that_cannot_be_made_is_refused_before_any_step(data, tmp_
     tmp, seg, truth, _, _ = data
     ws = _study(tmp_path, "ws", seg)
     (tmp_path / "a-file").write_text("x")
+    (tmp_path / "a-link").symlink_to(tmp_path / "nowhere" / "results")
     before = tree_hash(ws)
-    for folder in (tmp_path / "a-file" / "results", tmp_path / "a-file"):
+    for folder in (tmp_path / "a-file" / "results", tmp_path / "a-file", tmp_path / "a-link"):
         r = subprocess.run(_loop_args(ws, truth) + ["--results-dir", str(folder)],
                            capture_output=True, text=True)  # fmt: skip
         assert r.returncode == 2, r.stderr
         [line] = r.stderr.strip().splitlines()
         assert line.startswith(f"error: --results-dir {folder}:"), line
         assert "unexpected" not in line
-    assert tree_hash(ws) == before
+    assert "a-link: a link to " in line and "which does not exist" in line
+    assert tree_hash(ws) == before and not (tmp_path / "nowhere").exists()
 
 
 @pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
