@@ -288,7 +288,7 @@ BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsErr
         api.OptionValueError,
     ),
     ("report", ["report", "--diverse", "-1"], api.report, {"n_diverse": -1}, api.OptionValueError),
-    ("abandon", ["abandon"], api.abandon, {}, api.OptionError),
+    ("abandon", ["abandon"], api.abandon, {}, api.OptionValueError),
 ]
 
 
