@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from bams_cli import abandon, defaults, memory, pipeline
-from bams_cli.errors import BamsError, InputError, OptionValueError, WorkspaceError
+from bams_cli.errors import BamsError, InputError, OptionError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
 from bams_cli.state import pending
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
@@ -213,8 +213,15 @@ def loop(
     check_clusters(clusters)
     check_workers(workers)
     ws = Workspace(Path(root))
-    ws.require_initialised()
+    settings = ws.require_initialised()
     ws.require_segments()
+    # Every batch may pick any level (a random mixed first batch, then BAMS): a budget below
+    # the cheapest run was refused only by batch 2's select, after batch 1 was simulated.
+    for flag, value in (("--budget", budget), ("--first-budget", first_budget)):
+        if value is not None and value < min(settings.costs):
+            raise OptionError(
+                f"{flag} {value:g}: buys no run; the cheapest level costs {min(settings.costs):g}"
+            )
     opts = Options(
         simulator=simulator,
         batches=batches,

@@ -769,6 +769,21 @@ def test_a_results_dir_that_is_a_workspace_folder_is_refused(data, tmp_path):
     assert Workspace(ws).batch_numbers() == []  # refused before any step
 
 
+def test_a_budget_that_buys_no_run_is_refused_before_any_step(data, tmp_path):
+    # --budget 0.05 with a cheapest level of 0.1: batch 1 (--first-budget) was drawn and
+    # simulated, and only batch 2's select refused the budget.
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    before = tree_hash(ws)
+    for flag in ("--budget", "--first-budget"):
+        args = _loop_args(ws, truth)
+        args[args.index(flag) + 1] = "0.05"
+        r = subprocess.run(args, capture_output=True, text=True)
+        assert r.returncode == 1, r.stderr
+        assert r.stderr.strip() == f"error: {flag} 0.05: buys no run; the cheapest level costs 0.1"
+    assert tree_hash(ws) == before
+
+
 def test_a_results_dir_that_cannot_be_made_is_refused_before_any_step(data, tmp_path):
     # A folder under a file (as under a missing or read-only mount) got the catch-all
     # "unexpected" error, and only once the first batch had been drawn.
