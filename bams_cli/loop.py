@@ -48,8 +48,14 @@ from pathlib import Path
 from typing import Any
 
 from bams_cli import abandon, defaults, memory, pipeline
-from bams_cli.errors import BamsError, InputError, OptionError, OptionValueError, WorkspaceError
-from bams_cli.pipeline._common import check_budget, check_clusters, check_samples, check_workers
+from bams_cli.errors import BamsError, InputError, OptionValueError, WorkspaceError
+from bams_cli.pipeline._common import (
+    check_budget,
+    check_buys_a_run,
+    check_clusters,
+    check_samples,
+    check_workers,
+)
 from bams_cli.state import pending
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
 from bams_cli.state.io import transaction
@@ -218,10 +224,8 @@ def loop(
     # Every batch may pick any level (a random mixed first batch, then BAMS): a budget below
     # the cheapest run was refused only by batch 2's select, after batch 1 was simulated.
     for flag, value in (("--budget", budget), ("--first-budget", first_budget)):
-        if value is not None and value < min(settings.costs):
-            raise OptionError(
-                f"{flag} {value:g}: buys no run; the cheapest level costs {min(settings.costs):g}"
-            )
+        if value is not None:
+            check_buys_a_run(value, settings.costs, flag)
     opts = Options(
         simulator=simulator,
         batches=batches,

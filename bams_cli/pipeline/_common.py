@@ -7,7 +7,7 @@ import functools
 import inspect
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ import numpy as np
 import polars as pl
 
 from bams_cli import stages as stages_mod
-from bams_cli.errors import OptionValueError
+from bams_cli.errors import OptionError, OptionValueError
 from bams_cli.settings import SETTINGS_FILE
 from bams_cli.state import schemas
 from bams_cli.state.io import (
@@ -131,6 +131,22 @@ def check_budget(budget: float, flag: str = "--budget") -> None:
         raise OptionValueError(
             f"{flag} {budget:g}: must be a finite number > 0 (cost units; one level-0 run costs 1)"
         )
+
+
+def check_buys_a_run(
+    budget: float, costs: Sequence[float], flag: str = "--budget", level0_only: str | None = None
+) -> None:
+    """A batch budget that buys at least one run of the levels a batch may pick (``costs``,
+    the study's): refused before any work, naming the cheapest cost. ``level0_only``: the
+    strategy, when it runs level 0 alone. The costs are the study's, so exit code 1."""
+    if budget >= min(costs):
+        return
+    why = (
+        f"--strategy {level0_only} runs level 0 only, at cost {costs[0]:g}"
+        if level0_only
+        else f"the cheapest level costs {min(costs):g}"
+    )
+    raise OptionError(f"{flag} {budget:g}: buys no run; {why}")
 
 
 def check_clusters(clusters: int) -> None:

@@ -25,6 +25,7 @@ from bams_cli.pipeline._common import (
     SID,
     Progress,
     check_budget,
+    check_buys_a_run,
     check_clusters,
     check_workers,
     locked,
@@ -37,13 +38,14 @@ from bams_cli.pipeline._handoff import (
 )
 from bams_cli.pipeline.fitting import load_posterior
 from bams_cli.state import handoff as contract
-from bams_cli.state import pending, schemas
+from bams_cli.state import schemas
 from bams_cli.state.io import (
     read_metadata_json,
     remove_strays,
     transaction,
 )
 from bams_cli.state.workspace import Workspace
+from bams_cli.status import pending_handoffs
 
 # ---------------------------------------------------------------------------------------
 # select
@@ -417,13 +419,7 @@ def select(
     # (it was after a full selection, citing the cheap level's cost to a level-0 strategy).
     multi = strategy in ("bams", "mcm-gp") or (strategy == "random" and mixed_fidelity)
     usable = settings.costs if multi and settings.n_levels > 1 else settings.costs[:1]
-    if budget < min(usable):
-        why = (
-            f"the cheapest level costs {min(usable):g}"
-            if len(usable) > 1
-            else f"--strategy {strategy} runs level 0 only, at cost {usable[0]:g}"
-        )
-        raise OptionError(f"--budget {budget:g}: buys no run; {why}")
+    check_buys_a_run(budget, usable, level0_only=None if len(usable) > 1 else strategy)
     # The options that decide the picks: recorded in the batch, compared by --batch.
     asked = {
         "strategy": strategy,
@@ -449,11 +445,7 @@ def select(
     if pend.height and not allow_pending:
         where = [f"batch {b}" for b in sorted(set(pend["batch"].drop_nulls().to_list()))]
         where += [f"estimate plan {p}" for p in sorted(set(pend["plan"].drop_nulls().to_list()))]
-        lists = [
-            str(pending.to_simulate(ws, kind, int(n)))
-            for kind in ("batch", "plan")
-            for n in sorted(set(pend[kind].drop_nulls().to_list()))
-        ]
+        lists = pending_handoffs(ws, pend)
         raise PendingResultsError(
             f"{ws.root}: {pend.height} {'pick' if pend.height == 1 else 'picks'} of "
             f"{', '.join(where)} {'has' if pend.height == 1 else 'have'} no results yet; "
