@@ -208,13 +208,8 @@ def test_with_retries_a_simulator_that_fails_now_and_then_is_run_again(data, tmp
     # A simulator failing one run in three stopped the loop at every failure, --retries 3
     # or not: a trial study took 11 runs of the same loop to finish.
     tmp, seg, truth, _, _ = data
-    ws = _study(tmp_path, "ws", seg)
-    sim = tmp_path / "flaky.py"
-    sim.write_text(f"BAMS = {BAMS!r}\n" + FLAKY)
+    ws, args = _scripted_loop(tmp_path, seg, truth, FLAKY, "runs", "--retries", "1", "--json")
     count = tmp_path / "runs"
-    command = f"{sys.executable} {sim} {count} {truth} {{handoff}} {{results}}"
-    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
-            "--budget", "3", "--retries", "1", "--json"]  # fmt: skip
     r = subprocess.run(args, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert count.read_text() == "2" and Workspace(ws).pending().height == 0
@@ -526,13 +521,7 @@ def test_a_rerun_after_crashed_runs_simulates_only_what_has_no_result(data, tmp_
     # simulator with run-to-run noise answered the runs already logged with other values,
     # which ingesting refused as conflicts, again on every rerun.
     tmp, seg, truth, _, _ = data
-    ws = _study(tmp_path, "ws", seg)
-    sim = tmp_path / "noisy.py"
-    sim.write_text(f"BAMS = {BAMS!r}\n" + NOISY)
-    flag = tmp_path / "crashed-once"
-    command = f"{sys.executable} {sim} {flag} {truth} {{handoff}} {{results}}"
-    args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
-            "--budget", "3"]  # fmt: skip
+    ws, args = _scripted_loop(tmp_path, seg, truth, NOISY, "crashed-once")
     first = subprocess.run(args, capture_output=True, text=True)
     assert first.returncode == 1 and "2 requests of batch 1 still have no result" in first.stderr
     assert (
@@ -568,13 +557,14 @@ if not __import__("os").path.exists(flag):  # the first time: a bug writes level
 """
 
 
-def _bad_level_loop(tmp_path: Path, seg: Path, truth: Path, *extra: str):
-    """A study and the loop arguments whose simulator is BAD_LEVEL (wrong once):
-    (workspace, argv)."""
+def _scripted_loop(tmp_path: Path, seg: Path, truth: Path, script: str, state: str, *extra: str):
+    """A study and the loop arguments (one batch of budget 3, then ``extra``) whose simulator
+    is ``script``, a Python program run as ``simulator.py STATE TRUTH HANDOFF RESULTS`` with
+    ``BAMS`` defined, STATE the file ``tmp_path / state``: (workspace, argv)."""
     ws = _study(tmp_path, "ws", seg)
-    sim = tmp_path / "bad_level.py"
-    sim.write_text(f"BAMS = {BAMS!r}\n" + BAD_LEVEL)
-    command = f"{sys.executable} {sim} {tmp_path / 'wrote-once'} {truth} {{handoff}} {{results}}"
+    sim = tmp_path / "simulator.py"
+    sim.write_text(f"BAMS = {BAMS!r}\n" + script)
+    command = f"{sys.executable} {sim} {tmp_path / state} {truth} {{handoff}} {{results}}"
     args = [*BAMS, "loop", "-w", str(ws), "--simulator", command, "--batches", "1",
             "--budget", "3", *extra]  # fmt: skip
     return ws, args
@@ -587,7 +577,7 @@ def test_results_the_loop_s_simulator_wrote_wrong_are_moved_aside_and_simulated_
     # A simulator that exits 0 with a file ingest-results refuses: the loop kept the file,
     # and every rerun ingested it again and failed the same way, the simulator fixed or not.
     tmp, seg, truth, _, _ = data
-    ws, args = _bad_level_loop(tmp_path, seg, truth)
+    ws, args = _scripted_loop(tmp_path, seg, truth, BAD_LEVEL, "wrote-once")
     first = subprocess.run(args, capture_output=True, text=True)
     results = ws / "loop-results" / "batch-0001.csv"
     rejected = ws / "loop-results" / "rejected-batch-0001.csv"
@@ -608,7 +598,7 @@ def test_with_retries_left_a_refused_results_file_is_a_try_and_the_list_is_simul
 ):
     # --retries covered failed rows only: a refused file stopped the loop with tries left.
     tmp, seg, truth, _, _ = data
-    ws, args = _bad_level_loop(tmp_path, seg, truth, "--retries", "1")
+    ws, args = _scripted_loop(tmp_path, seg, truth, BAD_LEVEL, "wrote-once", "--retries", "1")
     r = subprocess.run(args, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     folder = ws / "loop-results"
