@@ -22,46 +22,20 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
+from estimate_refit import suite_problem, workspaces_before_estimate
 
-from bams_cli import benchmark as bm
-from bams_cli import defaults, pipeline
+from bams_cli import defaults
 from bams_cli.core import design as dz
-from bams_cli.settings import Settings
 from bams_cli.state.io import read_state
 from bams_cli.state.workspace import Workspace
 
 
-class _Stop(Exception):
-    pass
-
-
 def main(problem, seeds):
     warnings.simplefilter("ignore")
-    proto = bm.PROTOCOLS[problem]
     scratch = Path(tempfile.mkdtemp(prefix=f"probe-{problem}-"))
-    data = bm.prepare_data(proto, None, scratch)
-    truth = bm._column(data / "truth.parquet", "value_0").astype(float)
-    tid = bm._column(data / "truth.parquet", "segment_id").astype(str)
-    pos = {s: i for i, s in enumerate(tid)}
-    gamma = Settings.from_toml((data / "settings.toml").read_text()).gammas[0]
-    K = float(round(proto.k_factor * int((truth <= gamma).sum())))
-    real = pipeline.estimate_plan
-    kept = {}
-
-    def keep(root, **_):
-        kept["ws"] = scratch / f"ws-{Path(root).name}"
-        shutil.copytree(root, kept["ws"])
-        raise _Stop
-
-    for seed in seeds:
-        pipeline.estimate_plan = keep
-        try:
-            bm.run_one(bm.RunSpec(problem, "bams", seed, str(data), str(scratch), 0.5, 6, K))
-        except _Stop:
-            pass
-        finally:
-            pipeline.estimate_plan = real
-        base = kept["ws"]
+    prob = suite_problem(problem, scratch)
+    truth, pos, gamma, K = prob.truth, prob.pos, prob.gamma, prob.K
+    for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
         ws = Workspace(base)
         obs = ws.read_observations()
         ev = []

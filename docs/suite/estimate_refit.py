@@ -32,6 +32,8 @@ import sys
 import tempfile
 import time
 import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,23 +47,40 @@ class _Stop(Exception):
     """Raised in place of the protocol's own estimate, once the workspace is kept."""
 
 
-def run(problem: str, seeds: list[int], trials: int) -> None:
-    from bams_cli import benchmark as bm
-    from bams_cli import defaults, pipeline
-    from bams_cli import stages as st
-    from bams_cli.core import design as dz
-    from bams_cli.core.evaluate import staged_trials
-    from bams_cli.settings import Settings
-    from bams_cli.state.workspace import Workspace
+@dataclass
+class SuiteProblem:
+    """A suite problem's data as the protocol runs it: where its files are, the truth at
+    level 0 by segment, gamma and the estimate's K = k p N."""
 
-    warnings.simplefilter("ignore")
-    proto = bm.PROTOCOLS[problem]
-    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-refit-{problem}-"))
-    data = bm.prepare_data(proto, None, scratch)
+    data: Path
+    truth: np.ndarray
+    pos: dict[str, int]
+    gamma: float
+    K: float
+
+
+def suite_problem(problem: str, scratch: Path) -> SuiteProblem:
+    """The problem's data generated in ``scratch``, and its truth."""
+    from bams_cli import benchmark as bm
+    from bams_cli.settings import Settings
+
+    data = bm.prepare_data(bm.PROTOCOLS[problem], None, scratch)
     truth = bm._column(data / "truth.parquet", "value_0").astype(float)
     pos = {s: i for i, s in enumerate(bm._column(data / "truth.parquet", "segment_id").astype(str))}
     gamma = Settings.from_toml((data / "settings.toml").read_text()).gammas[0]
-    K = float(round(proto.k_factor * int((truth <= gamma).sum())))
+    K = float(round(bm.PROTOCOLS[problem].k_factor * int((truth <= gamma).sum())))
+    return SuiteProblem(data, truth, pos, gamma, K)
+
+
+def workspaces_before_estimate(
+    problem: str, prob: SuiteProblem, seeds: list[int], scratch: Path
+) -> Iterator[tuple[int, Path]]:
+    """(seed, workspace) for each seed: the suite's BAMS protocol run through the tool
+    (``benchmark.run_one``) and stopped where it would plan the estimate, its workspace
+    copied into ``scratch`` (the caller may remove it)."""
+    from bams_cli import benchmark as bm
+    from bams_cli import pipeline
+
     real_plan = pipeline.estimate_plan
     kept: dict[str, Path] = {}
 
@@ -70,20 +89,38 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
         shutil.copytree(root, kept["ws"])
         raise _Stop
 
+    for seed in seeds:
+        pipeline.estimate_plan = keep
+        try:
+            spec = bm.RunSpec(problem, "bams", seed, str(prob.data), str(scratch), 0.5, 6, prob.K)
+            bm.run_one(spec)
+        except _Stop:
+            pass
+        finally:
+            pipeline.estimate_plan = real_plan
+        yield seed, kept["ws"]
+
+
+def run(problem: str, seeds: list[int], trials: int) -> None:
+    from bams_cli import benchmark as bm
+    from bams_cli import defaults, pipeline
+    from bams_cli import stages as st
+    from bams_cli.core import design as dz
+    from bams_cli.core.evaluate import staged_trials
+    from bams_cli.state.workspace import Workspace
+
+    warnings.simplefilter("ignore")
+    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-refit-{problem}-"))
+    prob = suite_problem(problem, scratch)
+    data, truth, pos, gamma, K = prob.data, prob.truth, prob.pos, prob.gamma, prob.K
+    real_plan = pipeline.estimate_plan
+
     def level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
         obs = ws.read_observations()
         return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
 
     OUT.mkdir(exist_ok=True)
-    for seed in seeds:
-        pipeline.estimate_plan = keep
-        try:
-            bm.run_one(bm.RunSpec(problem, "bams", seed, str(data), str(scratch), 0.5, 6, K))
-        except _Stop:
-            pass
-        finally:
-            pipeline.estimate_plan = real_plan
-        base = kept["ws"]
+    for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
         ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
         p = bm._column(base / "scores.parquet", "p_0").astype(float)
         fail = truth[[pos[s] for s in ids]] <= gamma
