@@ -619,7 +619,27 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "workspace": PATH,
                 "batches": COUNT,
                 "plans": COUNT,
-                "steps": array(obj({"step": STR, "list": nullable(STR)})),
+                "steps": array(
+                    obj(
+                        {"step": STR, "list": nullable(STR)},
+                        {
+                            # what each kind of step adds (``loop._run``)
+                            "up_to_date": BOOL,
+                            "picks": COUNT,
+                            "results": PATH,
+                            "failed": {
+                                "type": "integer",
+                                "description": "the simulator's "
+                                "exit code; the list was simulated again",
+                            },
+                            "rejected": PATH,
+                            "abandoned": COUNT,
+                            "ingested": COUNT,
+                            "to_simulate": COUNT,
+                            "estimate_file": PATH,
+                        },
+                    )
+                ),
                 "unchanged": BOOL,
                 "results_dir": PATH,
                 "estimate_file": nullable(PATH),
