@@ -17,7 +17,10 @@ the exact posterior against the subset posterior that a budget for --keep observ
 gives, at 4,000 pool points: |mean error| and sd excess in units of the exact sd, and the
 factor sqrt(1 + T) by which a certificate could bound the subset's sd above the exact one
 (T: the dropped observations' subset-posterior latent variances over their noise): 1.01
-would certify the issue's 1%.
+would certify the issue's 1%. With --local BLOCKS: each of BLOCKS k-means blocks of the pool
+points conditioned on its own --keep most correlated observations instead, and how many
+eigenvalues of the observations' prior covariance exceed 1, 0.1, 0.01 and 0.001 (the rank
+a low-rank model would need).
 
 Score (default run): the n = 200 and n = 500 models on N = 45,000 and 1,000,000 pool
 points. Memory is the tracemalloc peak during score() plus the process's peak RSS.
@@ -155,6 +158,64 @@ def bench_accuracy(n: int, keeps: list[int]) -> None:
         )
 
 
+def bench_local(n: int, keeps: list[int], blocks: int) -> None:
+    """Exact posterior against block-local subsets, and the kernel matrix's spectrum.
+
+    The query points are split into ``blocks`` by k-means; each block conditions exactly
+    on the ``keep`` observations of largest prior level-0 covariance with any of its
+    points (what a local or nearest-neighbour GP does). Then the eigenvalues of the
+    observations' prior covariance: how many exceed a threshold is the rank a low-rank
+    (Nystrom, inducing-point) model would need to hold the posterior to that precision.
+    """
+    from sklearn.cluster import KMeans
+    from sklearn.decomposition import PCA
+
+    from bams_cli.core.kernels import matern52
+    from bams_cli.core.synthetic import av_like
+
+    n_pool = max(4 * n, 8000)
+    pool = av_like(n_pool, seed=0)
+    X = PCA(D, random_state=0).fit_transform(pool.features)
+    rng = np.random.default_rng(1)
+    obs = rng.choice(n_pool, n, replace=False)
+    lv = (rng.random(n) < 0.6).astype(np.int64)
+    y = pool.truth[obs, lv]
+    exact = fit_mfgp(X[obs], lv, y, 2, rng=np.random.default_rng(0), restarts=8, max_memory=None)
+    hp = exact.hyperparameters
+    Xq = X[rng.choice(n_pool, 4000, replace=False)]
+    mu_e, s2_e = exact.predict_theta0(Xq)
+    sd_e = np.sqrt(s2_e)
+    Xo = X[obs]
+    label = KMeans(blocks, n_init=1, random_state=0).fit_predict(Xq)
+    print(f"av_like, {n} observations, level-0 noise {hp.noise[0]:.2g}, outputscale "
+          f"{hp.outputscale0:.3g}, lengthscales {np.min(hp.lengthscales0):.3g}-"
+          f"{np.max(hp.lengthscales0):.3g} (PCA coordinates of sd {X.std(axis=0).min():.2g}-"
+          f"{X.std(axis=0).max():.2g}); {blocks} blocks of the 4,000 pool points; errors "
+          "in exact sds")  # fmt: skip
+    for keep in keeps:
+        mu, s2 = np.empty(len(Xq)), np.empty(len(Xq))
+        t = time.perf_counter()
+        for b in range(blocks):
+            q = np.flatnonzero(label == b)
+            near = matern52(Xq[q], Xo, hp.lengthscales0, hp.outputscale0).max(axis=0)
+            rows = np.argsort(-near)[:keep]
+            mu[q], s2[q] = MFGP(Xo[rows], lv[rows], y[rows], 2, hp).predict_theta0(Xq[q])
+        em = np.abs(mu - mu_e) / sd_e
+        es = (np.sqrt(s2) - sd_e) / sd_e
+        print(
+            f"local {keep:>6}: |mean err| median {np.median(em):.3f} p90 "
+            f"{np.quantile(em, 0.9):.3f} max {em.max():.2f}; sd excess median "
+            f"{np.median(es):.4f} p90 {np.quantile(es, 0.9):.4f} max {es.max():.3f} "
+            f"({time.perf_counter() - t:.1f} s)",
+            flush=True,
+        )
+    K = exact._L @ exact._L.T
+    K[np.diag_indices(n)] -= hp.noise[lv]
+    w = np.linalg.eigvalsh(K)
+    above = ", ".join(f"{int(np.sum(w > t))} > {t:g}" for t in (1.0, 1e-1, 1e-2, 1e-3))
+    print(f"eigenvalues of the {n} x {n} prior covariance: {above}")
+
+
 def bench_fit(sizes: list[int], repeats: int, exact: bool = False) -> dict[int, MFGP]:
     print(f"fit (d = {D}, two levels, restarts = 8, median of {repeats} up to n = 1,000)")
     print(f"{'n':>6} {'search on':>9} {'median s':>9} {'min s':>7} {'max s':>7} {'CPU s':>7}")
@@ -222,6 +283,10 @@ def main() -> None:
     parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--accuracy", type=int, default=None, help="exact vs subset at this n")
     parser.add_argument("--keep", type=str, default=None, help="subset sizes for --accuracy")
+    parser.add_argument(
+        "--local", type=int, default=None, metavar="BLOCKS",
+        help="with --accuracy: block-local subsets of --keep observations, and the spectrum",
+    )  # fmt: skip
     args = parser.parse_args()
     if args.child is not None:
         child(args.child, 0)
@@ -229,7 +294,10 @@ def main() -> None:
     if args.accuracy is not None:
         n = args.accuracy
         keeps = [int(k) for k in args.keep.split(",")] if args.keep else [n // 2, 3 * n // 4]
-        bench_accuracy(n, keeps)
+        if args.local:
+            bench_local(n, keeps, args.local)
+        else:
+            bench_accuracy(n, keeps)
         return
     if args.sizes and not args.exact:
         bench_sizes([int(s) for s in args.sizes.split(",")])
