@@ -27,7 +27,7 @@ import typing
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import typer
 import typer.core
@@ -277,6 +277,20 @@ def _floats(text: str | None, flag: str) -> list[float] | None:
     return values
 
 
+def _dim_option(text: str | None) -> int | Literal["auto"] | None:
+    """--dim: a whole number or 'auto'."""
+    if text is None:
+        return None
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise OptionValueError(
+            f"--dim {text!r}: expected a whole number or 'auto', e.g. --dim 12"
+        ) from None
+
+
 def _json(name: str, summary: dict[str, Any]) -> None:
     """Print a command's --json output, led by the version of its schema (``bams-cli schema``).
 
@@ -353,7 +367,12 @@ def init(
         typer.Option("--seed", help="Seed recorded and used by every step \\[default: 0]."),
     ] = None,
     dim: Annotated[
-        int | None, typer.Option("--dim", help="Reduced embedding dimension \\[default: 12].")
+        str | None,
+        typer.Option(
+            "--dim",
+            help="Reduced embedding dimension, or 'auto': from the embedding's spectrum "
+            "\\[default: auto].",
+        ),
     ] = None,
     settings_from: Annotated[
         Path | None,
@@ -385,7 +404,7 @@ def init(
         costs=_floats(costs, "--costs"),
         level_names=level_names.split(",") if level_names else None,
         seed=seed,
-        dim=dim,
+        dim=_dim_option(dim),
         settings_from=settings_from,
         force=force,
         exist_ok=exist_ok,
@@ -419,7 +438,12 @@ def embed_reduce(
         ),
     ] = defaults.METHOD,
     dim: Annotated[
-        int | None, typer.Option("--dim", help="Reduced dimension \\[default: settings, 12].")
+        str | None,
+        typer.Option(
+            "--dim",
+            help="Reduced dimension, or 'auto': 12, or more where the embedding's spectrum "
+            "drops to its noise floor past 12 \\[default: settings, auto].",
+        ),
     ] = None,
     standardize: Annotated[
         bool,
@@ -468,7 +492,11 @@ def embed_reduce(
 ) -> None:
     """Reduce segment embeddings to a few dimensions and store the pool.
 
-    [bold]Example[/]: bams-cli embed-reduce -w study sample_data/av_like/segments.parquet --dim 12
+    --dim auto (the default) keeps 12 components, or more where the embedding's spectrum
+    drops to its noise floor past component 12 (a drop of 3x or more, up to 32 components);
+    the summary says which and why.
+
+    [bold]Example[/]: bams-cli embed-reduce -w study sample_data/av_like/segments.parquet --dim auto
     """
     with console.progress(not json_out, "embed-reduce") as bar:
         summary = pipeline.embed_reduce(
@@ -476,7 +504,7 @@ def embed_reduce(
             segments,
             apply=apply,
             method=method.value,
-            dim=dim,
+            dim=_dim_option(dim),
             standardize=standardize,
             columns=columns,
             embedding_column=embedding_column,

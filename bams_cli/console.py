@@ -392,6 +392,7 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
         f"pool {s['segments']}: {s['pool_size']} segments ({s['added']} added), "
         f"{s['method']} {s['input_dim']} -> {s['dim']} dimensions",
         {
+            "dimensions": s.get("dim_choice") and f"{s['dim']}, chosen: {s['dim_choice']}",
             "reconstruction error": ", ".join(f"{k} {_num(v)}" for k, v in errors.items()),
             "pass-through": ", ".join(s.get("passthrough_columns") or []),
         },

@@ -44,6 +44,11 @@ COUNT: Schema = {"type": "integer", "minimum": 0}
 NUM: Schema = {"type": "number"}
 BOOL: Schema = {"type": "boolean"}
 PATH: Schema = {"type": "string", "description": "a file or folder path"}
+#: The settings' embedding_dim: embed-reduce's default --dim.
+EMBEDDING_DIM: Schema = {
+    "type": ["integer", "string"],
+    "description": 'a number of dimensions, or "auto" (from the embedding\'s spectrum)',
+}
 ANY: Schema = {}
 
 
@@ -192,7 +197,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "gammas": array(NUM),
                 "levels": LEVELS,
                 "seed": INT,
-                "embedding_dim": INT,
+                "embedding_dim": EMBEDDING_DIM,
             },
             {"unchanged": BOOL, "warnings": array(STR)},
         ),
@@ -210,6 +215,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
             },
             {
                 "input_dim": INT,
+                "dim_choice": nullable(STR),
                 "reconstruction_error": {"type": "object"},
                 "unchanged": BOOL,
                 "note": STR,
@@ -529,7 +535,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "gammas": array(NUM),
                         "levels": LEVELS,
                         "seed": INT,
-                        "embedding_dim": INT,
+                        "embedding_dim": EMBEDDING_DIM,
                         "pool_size": COUNT,
                         "dim": INT,
                     }

@@ -11,7 +11,7 @@ import math
 import tomllib
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import tomli_w
 
@@ -71,9 +71,12 @@ def _known_keys(source: str, doc: dict[str, Any], study: dict[str, Any]) -> None
                 refuse(key, f"levels entry {i}", _LEVEL_KEYS)
     for key in ("seed", "embedding_dim"):
         value = study.get(key)
+        if key == "embedding_dim" and value == "auto":
+            continue
         if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            also = ' or "auto"' if key == "embedding_dim" else ""
             raise SettingsError(
-                f"{source}: {key} must be a whole number, got {value!r}", setting=key
+                f"{source}: {key} must be a whole number{also}, got {value!r}", setting=key
             )
 
     def number(value: Any) -> bool:
@@ -110,6 +113,10 @@ class Level:
     cost: float
 
 
+def _dim(value: Any) -> int | Literal["auto"]:
+    return "auto" if value == "auto" else int(value)
+
+
 @dataclass(frozen=True)
 class Settings:
     """The study's settings, as written in ``settings.toml``."""
@@ -117,7 +124,9 @@ class Settings:
     gammas: tuple[float, ...] = (0.0,)
     levels: tuple[Level, ...] = (Level("high", 1.0),)
     seed: int = 0
-    embedding_dim: int = 12
+    #: embed-reduce's default --dim: a number, or "auto" (from the embedding's spectrum,
+    #: ``core.reduce.choose_dim``; the default since 2026-11-25, when 12 was).
+    embedding_dim: int | Literal["auto"] = "auto"
     id_column: str = "segment_id"
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -185,9 +194,9 @@ class Settings:
             raise SettingsError(
                 f"settings: seed must be an integer >= 0, got {self.seed}", setting="seed"
             )
-        if self.embedding_dim < 1:
+        if self.embedding_dim != "auto" and self.embedding_dim < 1:
             raise SettingsError(
-                f"settings: embedding_dim must be >= 1, got {self.embedding_dim}",
+                f'settings: embedding_dim must be >= 1 or "auto", got {self.embedding_dim}',
                 setting="embedding_dim",
             )
         return self
@@ -250,7 +259,7 @@ class Settings:
                 gammas=tuple(float(g) for g in study.get("gammas", [])),
                 levels=levels,
                 seed=int(study.get("seed", 0)),
-                embedding_dim=int(study.get("embedding_dim", 12)),
+                embedding_dim=_dim(study.get("embedding_dim", "auto")),
                 id_column=str(study.get("id_column", "segment_id")),
                 extra=dict(doc.get("extra", {})),
             )

@@ -441,3 +441,45 @@ def test_an_embedding_list_of_decimals_is_read_as_numbers(tmp_path, runner):
     ws = tmp_path / "ws"
     ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1", "--dim", "2")
     ok(runner, "embed-reduce", "-w", ws, tmp_path / "d.parquet", "--method", "pca")
+
+
+def test_the_default_dimension_is_where_the_spectrum_drops(runner, tmp_path):
+    # A new study reduces by the embedding's spectrum: 20 factors in 60 columns give 20
+    # coordinates, and the summary, --json and the pool's metadata say why.
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.3")
+    assert 'embedding_dim = "auto"' in (ws / "settings.toml").read_text()
+    rng = np.random.default_rng(0)
+    E = rng.normal(size=(800, 20)) @ rng.normal(size=(20, 60)) + 0.05 * rng.normal(size=(800, 60))
+    seg = tmp_path / "seg.parquet"
+    flat = pa.FixedSizeListArray.from_arrays(pa.array(E.ravel()), 60)
+    pq.write_table(pa.table({"segment_id": [f"s{i}" for i in range(800)], "emb": flat}), seg)
+    r = ok(runner, "embed-reduce", "-w", ws, seg)
+    assert "pca 60 -> 20 dimensions" in r.stdout
+    text = " ".join(r.stdout.split())
+    assert "dimensions 20, chosen: the spectrum drops" in text and "after component 20" in text
+    assert Workspace(ws).read_pool()[1].shape == (800, 20)
+    assert "after component 20" in read_metadata(Workspace(ws).segments_path)["dim_choice"]
+    # A number on the command line or in the settings is kept as it is.
+    again = ok(runner, "embed-reduce", "-w", ws, seg, "--dim", "3", "--force", "--json")
+    assert json.loads(again.stdout)["dim"] == 3 and json.loads(again.stdout)["dim_choice"] is None
+    auto = ok(runner, "embed-reduce", "-w", ws, seg, "--dim", "auto", "--force", "--json")
+    assert json.loads(auto.stdout)["dim"] == 20
+    # Fewer factors than 12: 12 are kept all the same.
+    E5 = E[:, :5] @ rng.normal(size=(5, 60)) + 0.05 * rng.normal(size=(800, 60))
+    flat5 = pa.FixedSizeListArray.from_arrays(pa.array(E5.ravel()), 60)
+    pq.write_table(pa.table({"segment_id": [f"s{i}" for i in range(800)], "emb": flat5}), seg)
+    five = json.loads(ok(runner, "embed-reduce", "-w", ws, seg, "--force", "--json").stdout)
+    assert five["dim"] == 12 and "the least auto keeps" in five["dim_choice"]
+
+
+def test_settings_take_auto_or_a_number_for_embedding_dim(tmp_path):
+    from bams_cli.errors import SettingsError
+    from bams_cli.settings import Settings
+
+    base = '[[levels]]\nname = "high"\ncost = 1.0\n\n[study]\ngammas = [0.3]\n'
+    assert Settings.from_toml(base).embedding_dim == "auto"
+    assert Settings.from_toml(base + 'embedding_dim = "auto"\n').embedding_dim == "auto"
+    assert Settings.from_toml(base + "embedding_dim = 12\n").embedding_dim == 12
+    with pytest.raises(SettingsError, match='embedding_dim must be a whole number or "auto", got'):
+        Settings.from_toml(base + 'embedding_dim = "twelve"\n')

@@ -104,7 +104,8 @@ def test_gammas_keep_the_order_given(runner, tmp_path):
         (["--costs", "1,"], "--costs '1,': expected comma-separated numbers"),  # not one level
         (["--costs", "1,,0.1"], "--costs '1,,0.1': expected comma-separated numbers"),
         (["--seed", "-1"], "--seed -1: seed must be an integer >= 0, got -1"),
-        (["--dim", "0"], "--dim 0: embedding_dim must be >= 1, got 0"),
+        (["--dim", "0"], "--dim 0: embedding_dim must be >= 1 or \"auto\", got 0"),
+        (["--dim", "twelve"], "--dim 'twelve': expected a whole number or 'auto'"),
         (["--costs", "1,0.1", "--level-names", "a"], "--level-names has 1 names for 2 costs"),
         (["--costs", "1,0.1", "--level-names", "lr,lr"],
          "--level-names lr,lr: level name 'lr' is given to more than one level"),

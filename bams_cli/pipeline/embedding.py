@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -40,7 +40,7 @@ def embed_reduce(
     *,
     apply: bool = False,
     method: str = "pca",
-    dim: int | None = None,
+    dim: int | Literal["auto"] | None = None,
     standardize: bool = True,
     columns: str | None = None,
     embedding_column: str | None = None,
@@ -67,8 +67,8 @@ def embed_reduce(
     method : {"pca", "autoencoder", "identity", "ipca"}, default "pca"
         The reducer: exact streaming PCA, an autoencoder, none, or the older
         IncrementalPCA (for comparison).
-    dim : int, optional
-        Reduced dimension (default: the settings', 12).
+    dim : int or "auto", optional
+        Reduced dimension (default: the settings', "auto": ``core.reduce.choose_dim``).
     standardize : bool, default True
         Scale each input column to unit variance.
     columns : str, optional
@@ -93,7 +93,7 @@ def embed_reduce(
     -------
     dict
         The summary ``--json`` prints: ``segments`` (rows read), ``added``, ``pool_size``,
-        ``method``, ``dim``, ``input_dim``, ``reconstruction_error``,
+        ``method``, ``dim``, ``dim_choice`` (why, after --dim auto), ``input_dim``, ``reconstruction_error``,
         ``passthrough_columns``, ``warnings`` (embedding columns holding one value in
         every row, and principal components carrying no variance, when the reducer is
         fitted).
@@ -116,7 +116,7 @@ def embed_reduce(
     for flag, value in (
         ("--batch-size", batch_size),
         ("--sample-size", sample_size),
-        ("--dim", dim),
+        ("--dim", None if dim == "auto" else dim),
     ):
         if value is not None and value < 1:
             raise OptionValueError(f"{flag} {value}: must be >= 1")
@@ -160,6 +160,7 @@ def embed_reduce(
                 "pool_size": int(pq.read_metadata(ws.segments_path).num_rows),
                 "method": made.get("method"),
                 "dim": made.get("dim"),
+                "dim_choice": made.get("dim_choice"),
                 "passthrough_columns": [
                     c for c in names if c != SID and not (c[:1] == "z" and c[1:].isdigit())
                 ],
@@ -279,6 +280,8 @@ def embed_reduce(
     meta = {
         "method": reducer.method,
         "dim": reducer.dim,
+        # Why this many (--dim auto); --apply keeps the fit's.
+        "dim_choice": made.get("dim_choice") if apply else reducer.dim_choice,
         "source": str(source),
         "seed": settings.seed,
         "reconstruction_error": reducer.reconstruction_error,
@@ -310,6 +313,7 @@ def embed_reduce(
         "pool_size": table.num_rows,
         "method": reducer.method,
         "dim": reducer.dim,
+        "dim_choice": made.get("dim_choice") if apply else reducer.dim_choice,
         "input_dim": int(expected),
         "reconstruction_error": reducer.reconstruction_error,
         "passthrough_columns": passthrough,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from bams_cli.errors import (
     InputError,
@@ -31,7 +31,7 @@ def init(
     costs: list[float] | None = None,
     level_names: list[str] | None = None,
     seed: int | None = None,
-    dim: int | None = None,
+    dim: int | Literal["auto"] | None = None,
     settings_from: Path | None = None,
     force: bool = False,
     exist_ok: bool = False,
@@ -59,7 +59,7 @@ def init(
         Names for the levels, one per level (``--level-names``).
     seed : int, optional
         Seed recorded and used by every step (``--seed``).
-    dim : int, optional
+    dim : int or "auto", optional
         Reduced embedding dimension (``--dim``).
     settings_from : Path, optional
         Start from this settings.toml; the other arguments override it.

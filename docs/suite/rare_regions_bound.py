@@ -6,10 +6,11 @@ Issue 11 asks BAMS for 5x plain MC's recall on rare_regions (level-0 failures in
 after discovery, 10 + 5 + 5 cost units, plus the estimate's K = 2 p N samples). This script
 asks how much of that the data allow, whatever the method:
 
-1. **What the model sees.** The pipeline reduces the 96-d embedding to 12 PCA components
-   (the protocol's ``embed-reduce``), exactly as the benchmark does. A learner given the
+1. **What the model sees.** The pipeline reduces the 96-d embedding to a few PCA
+   components (the protocol's ``embed-reduce``: 24 by ``--dim auto`` since 2026-11-25, 12
+   before), exactly as the benchmark does. A learner given the
    level-0 value of *every* segment (5-fold cross-validation over all 20,000, so 16,000
-   labels per fit: ~100x what discovery buys) predicts f0 from those 12 features; we count
+   labels per fit: ~100x what discovery buys) predicts f0 from those features; we count
    the true failures among its K lowest predictions, and the recall of the default
    estimate design (q proportional to score^alpha with the defensive share) built from it.
    The same learner on the full 96-d embedding shows what the reduction throws away.
@@ -78,7 +79,8 @@ def main() -> None:
     c1 = pool.costs[1]
 
     rows = []
-    for name, Z in (("12 PCA components (what the model sees)", X), ("96-d embedding", E)):
+    seen = f"{X.shape[1]} PCA components (what the model sees)"
+    for name, Z in ((seen, X), ("96-d embedding", E)):
         pred = cv_predictions(Z, f0)
         r2 = 1.0 - np.mean((pred - f0) ** 2) / f0.var()
         low = np.argsort(pred)
@@ -115,7 +117,7 @@ def main() -> None:
             f"cheap-level failures, of which {leads_true:.2f} fail at level 0 "
             f"(recall {leads_true / F:.4f} if every one were confirmed).",
             "",
-            f"   Upper bound, 1. (12 PCA) + 2.: recall <= {bound:.4f} = "
+            f"   Upper bound, 1. ({X.shape[1]} PCA) + 2.: recall <= {bound:.4f} = "
             f"{bound / mc:.1f}x MC (target 5x = {5 * mc:.4f}).",
             "",
             f"3. Oracle that knows f1 everywhere, runs the {budget + K:.0f} lowest at level 0: "

@@ -216,3 +216,68 @@ def test_a_spanned_direction_far_below_the_first_is_not_called_constant():
     lam = reducer.explained_variance
     assert 1e-13 < lam[1] / lam[0] < 1e-11
     assert null_components(lam, reducer.constant).tolist() == [False, False, True]
+
+
+# ---------------------------------------------------------------------------------------
+# --dim auto
+# ---------------------------------------------------------------------------------------
+def _factors(n: int, k: int, D: int, noise: float, seed: int) -> np.ndarray:
+    """n rows of k independent factors, each of its own scale, seen through a random
+    D-column linear map, plus isotropic noise."""
+    rng = np.random.default_rng(seed)
+    scales = np.linspace(1.0, 0.5, k)
+    A = rng.normal(size=(k, D)) / np.sqrt(k)
+    return (rng.normal(size=(n, k)) * scales) @ A + noise * rng.normal(size=(n, D))
+
+
+@pytest.mark.parametrize("k, kept", [(3, 12), (12, 12), (18, 18), (24, 24)])
+def test_auto_keeps_every_factor_of_an_embedding_and_at_least_twelve(k, kept):
+    from bams_cli.core.reduce import choose_dim
+
+    X = _factors(20_000, k, 96, 0.05, seed=k)
+    red = fit_reducer(_chunks(X, 4096), dim="auto", rng=np.random.default_rng(0))
+    assert red.dim == kept
+    assert red.dim_choice is not None
+    assert (f"after component {k}" in red.dim_choice) == (k >= 12)
+    # The same numbers as the rule applied to sklearn's full spectrum of the same columns.
+    S = (X - X.mean(0)) / X.std(0, ddof=1)
+    assert choose_dim(PCA(svd_solver="full").fit(S).explained_variance_)[0] == kept
+    # ... and the reducer is sklearn's PCA of that many components.
+    ref = PCA(kept, svd_solver="full").fit(S)
+    np.testing.assert_allclose(red.explained_variance, ref.explained_variance_, rtol=1e-8)
+
+
+def test_auto_rule_at_its_edges():
+    from bams_cli.core.reduce import AUTO_MIN_DIM, choose_dim
+
+    assert AUTO_MIN_DIM == 12
+    # A gradual decay (each eigenvalue 0.9 of the one before): no drop of 3x anywhere.
+    dim, why = choose_dim(0.9 ** np.arange(64))
+    assert dim == 12 and "no drop of 3x" in why
+    # A cliff before 12 does not cut: small-variance directions may carry the failures.
+    assert (
+        choose_dim(
+            [43.1, 21.5, 15.8, 8.3, 5.7, 1.5, 0.9, 0.8, 0.6, 0.6, 0.4, 0.2, 0.2, 0.1, 0.1, 0.1]
+        )[0]
+        == 12
+    )
+    # The largest drop wins, and only among components 12 to 33.
+    assert choose_dim([9.0] * 14 + [3.0] * 6 + [0.5] * 20)[0] == 20
+    assert choose_dim([1.0] * 40 + [1e-3] * 10)[0] == 12  # drop after 40: past the cap
+    assert choose_dim([1.0] * 32 + [0.1] * 10)[0] == 32
+    assert choose_dim([1.0] * 33 + [0.1] * 10)[0] == 12  # after 33: out of reach
+    # A drop of less than 3x is no cliff.
+    assert choose_dim([1.0] * 20 + [0.4] * 20)[0] == 12
+    assert choose_dim([1.0] * 20 + [0.3] * 20) == (20, "the spectrum drops 3.3x after component 20")
+    # An embedding of lower rank keeps its rank; one of 12 columns or fewer, all of them.
+    assert choose_dim([3.0, 2.0, 1.0, 0.0, 0.0]) == (3, "the embedding spans 3 dimensions")
+    assert choose_dim([3.0, 2.0, 1.0, 0.5]) == (4, "all 4 columns (no more than 12)")
+    assert choose_dim([1.0])[0] == 1 and choose_dim([0.0, 0.0])[0] == 1
+
+
+def test_auto_dim_is_chosen_the_same_way_by_every_method():
+    X = _factors(3_000, 16, 40, 0.05, seed=1)
+    rng = np.random.default_rng(0)
+    pca = fit_reducer(_chunks(X, 500), dim="auto", rng=rng)
+    ipca = fit_reducer(_chunks(X, 500), method="ipca", dim="auto", rng=rng)
+    assert pca.dim == ipca.dim == 16 and pca.dim_choice == ipca.dim_choice
