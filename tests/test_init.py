@@ -6,6 +6,8 @@ import json
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bams_cli.settings import Settings
 from tests.conftest import invoke, ok, tree_hash
@@ -184,3 +186,52 @@ def test_level_names_are_stripped_and_a_name_no_number_reads_is_kept(runner, tmp
        "--level-names", "high, low1,²")  # fmt: skip
     names = [lv.name for lv in Settings.from_file(ws / "settings.toml").levels]
     assert names == ["high", "low1", "²"]
+
+
+@given(st.text(max_size=8) | st.integers(min_value=-3, max_value=40).map(str))
+def test_any_dim_text_is_a_dimension_or_a_one_line_error(text):
+    # --dim TEXT, as init and embed-reduce read it, then as the settings keep it.
+    from bams_cli.cli import _dim_option
+    from bams_cli.errors import BamsError
+    from bams_cli.settings import Settings
+
+    try:
+        dim = _dim_option(text)
+        settings = Settings(gammas=(0.5,), embedding_dim=dim).validate()
+    except BamsError as exc:
+        message = str(exc)
+        assert "\n" not in message and ("--dim" in message or "embedding_dim" in message)
+        return
+    assert dim == "auto" or (isinstance(dim, int) and dim >= 1)
+    assert Settings.from_toml(settings.to_toml()).embedding_dim == dim
+
+
+@given(
+    st.one_of(
+        st.integers(min_value=-5, max_value=5000),
+        st.floats(allow_nan=False, allow_infinity=False),
+        st.text(max_size=6),
+        st.booleans(),
+    )
+)
+def test_any_embedding_dim_in_the_file_loads_or_is_refused_naming_it(value):
+    import tomli_w
+
+    from bams_cli.errors import SettingsError
+    from bams_cli.settings import Settings
+
+    text = tomli_w.dumps(
+        {
+            "study": {"gammas": [0.5], "embedding_dim": value},
+            "levels": [{"name": "high", "cost": 1.0}],
+        }
+    )
+    try:
+        dim = Settings.from_toml(text).embedding_dim
+    except SettingsError as exc:
+        assert exc.setting == "embedding_dim" and "\n" not in str(exc)
+        assert value != "auto" and not (
+            isinstance(value, int) and not isinstance(value, bool) and value >= 1
+        )
+    else:
+        assert dim == value and (dim == "auto" or dim >= 1)
