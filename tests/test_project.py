@@ -232,7 +232,7 @@ def test_help_paragraphs_come_out_whole_on_a_wide_terminal(runner, name, monkeyp
         ("estimate", "[default: 5 x the GP's p x N, at least 100]"),
         ("estimate", "[default: the latest]"),
         ("select", "[default: all cores]"),
-        ("embed-reduce", "[default: settings, 12]"),
+        ("embed-reduce", "[default: settings, auto]"),
     ],
 )
 def test_help_shows_bracketed_defaults_verbatim(runner, name, hint, monkeypatch):
