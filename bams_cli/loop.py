@@ -240,7 +240,6 @@ def loop(
         workers=workers,
         wait=wait,
     )
-    _check_results_dir(ws, opts.results_dir)
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
@@ -254,6 +253,9 @@ def loop(
         ),
         _stopped_by_signals(),
     ):
+        # Under the loop's lock: a second loop refused by it probes nothing, and the folder
+        # made and removed by the probe cannot be one another loop has just made.
+        _check_results_dir(ws, opts.results_dir)
         current: tuple[str, str | None, int | None] | None = None  # the step under way
         try:
             while True:

@@ -793,6 +793,24 @@ def test_a_results_dir_that_cannot_be_made_is_refused_before_any_step(data, tmp_
     assert tree_hash(ws) == before and not (tmp_path / "nowhere").exists()
 
 
+def test_a_loop_refused_by_the_loop_lock_does_not_touch_its_results_dir(data, tmp_path):
+    # The folder check makes (and removes) the folder to probe it: under the lock, so a
+    # second loop cannot remove the folder the running one has just made.
+    from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
+
+    tmp, seg, truth, _, _ = data
+    ws = _study(tmp_path, "ws", seg)
+    (tmp_path / "a-file").write_text("x")
+    with workspace_lock(ws, lock_file=LOOP_LOCK_FILE):
+        r = subprocess.run(
+            _loop_args(ws, truth) + ["--results-dir", str(tmp_path / "a-file" / "results")],
+            capture_output=True, text=True,
+        )  # fmt: skip
+    assert r.returncode == 1, r.stderr
+    [line] = r.stderr.strip().splitlines()
+    assert "another `bams-cli loop` runs here" in line, line
+
+
 @pytest.mark.slow  # 20-40 s each: make test ran 812 s on a clean clone (budget 600)
 def test_a_results_file_older_than_its_hand_off_list_is_refused_and_left_alone(data, tmp_path):
     # A --results-dir kept from an earlier study (or shared): the new study, drawn from the
