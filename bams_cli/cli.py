@@ -21,6 +21,7 @@ import enum
 import functools
 import inspect
 import os
+import re
 import shlex
 import sys
 import typing
@@ -281,14 +282,11 @@ def _dim_option(text: str | None) -> int | Literal["auto"] | None:
     """--dim: a whole number or 'auto'."""
     if text is None:
         return None
-    if text.strip().lower() == "auto":
+    if text.strip() == "auto":
         return "auto"
-    try:
-        return int(text)
-    except ValueError:
-        raise OptionValueError(
-            f"--dim {text!r}: expected a whole number or 'auto', e.g. --dim 12"
-        ) from None
+    if re.fullmatch(r"\s*-?[0-9]+\s*", text) is None:  # not int()'s "1_2" nor other digits
+        raise OptionValueError(f"--dim {text!r}: expected a whole number or 'auto', e.g. --dim 12")
+    return int(text)
 
 
 def _json(name: str, summary: dict[str, Any]) -> None:

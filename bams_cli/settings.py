@@ -194,6 +194,12 @@ class Settings:
             raise SettingsError(
                 f"settings: seed must be an integer >= 0, got {self.seed}", setting="seed"
             )
+        if isinstance(self.embedding_dim, str) and self.embedding_dim != "auto":
+            raise SettingsError(
+                f'settings: embedding_dim must be a whole number or "auto", got '
+                f"{self.embedding_dim!r}",
+                setting="embedding_dim",
+            )
         if self.embedding_dim != "auto" and self.embedding_dim < 1:
             raise SettingsError(
                 f'settings: embedding_dim must be >= 1 or "auto", got {self.embedding_dim}',
@@ -259,7 +265,9 @@ class Settings:
                 gammas=tuple(float(g) for g in study.get("gammas", [])),
                 levels=levels,
                 seed=int(study.get("seed", 0)),
-                embedding_dim=_dim(study.get("embedding_dim", "auto")),
+                # A file without the key was written before "auto" (to_toml always writes
+                # it): it meant 12 then and still does.
+                embedding_dim=_dim(study.get("embedding_dim", 12)),
                 id_column=str(study.get("id_column", "segment_id")),
                 extra=dict(doc.get("extra", {})),
             )

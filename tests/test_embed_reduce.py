@@ -463,6 +463,13 @@ def test_the_default_dimension_is_where_the_spectrum_drops(runner, tmp_path):
     # A number on the command line or in the settings is kept as it is.
     again = ok(runner, "embed-reduce", "-w", ws, seg, "--dim", "3", "--force", "--json")
     assert json.loads(again.stdout)["dim"] == 3 and json.loads(again.stdout)["dim_choice"] is None
+    settings = (ws / "settings.toml").read_text()
+    (ws / "settings.toml").write_text(
+        settings.replace('embedding_dim = "auto"', "embedding_dim = 7")
+    )
+    seven = ok(runner, "embed-reduce", "-w", ws, seg, "--force", "--json")
+    assert json.loads(seven.stdout)["dim"] == 7
+    (ws / "settings.toml").write_text(settings)
     auto = ok(runner, "embed-reduce", "-w", ws, seg, "--dim", "auto", "--force", "--json")
     assert json.loads(auto.stdout)["dim"] == 20
     # Fewer factors than 12: 12 are kept all the same.
@@ -478,7 +485,8 @@ def test_settings_take_auto_or_a_number_for_embedding_dim(tmp_path):
     from bams_cli.settings import Settings
 
     base = '[[levels]]\nname = "high"\ncost = 1.0\n\n[study]\ngammas = [0.3]\n'
-    assert Settings.from_toml(base).embedding_dim == "auto"
+    # A file without the key was written before "auto": it meant 12, and still does.
+    assert Settings.from_toml(base).embedding_dim == 12
     assert Settings.from_toml(base + 'embedding_dim = "auto"\n').embedding_dim == "auto"
     assert Settings.from_toml(base + "embedding_dim = 12\n").embedding_dim == 12
     with pytest.raises(SettingsError, match='embedding_dim must be a whole number or "auto", got'):

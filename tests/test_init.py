@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bams_cli.settings import Settings
@@ -188,22 +188,23 @@ def test_level_names_are_stripped_and_a_name_no_number_reads_is_kept(runner, tmp
     assert names == ["high", "low1", "²"]
 
 
-@given(st.text(max_size=8) | st.integers(min_value=-3, max_value=40).map(str))
-def test_any_dim_text_is_a_dimension_or_a_one_line_error(text):
-    # --dim TEXT, as init and embed-reduce read it, then as the settings keep it.
-    from bams_cli.cli import _dim_option
-    from bams_cli.errors import BamsError
-    from bams_cli.settings import Settings
+@settings(max_examples=60, deadline=None)
+@given(text=st.text(max_size=6) | st.integers(min_value=-3, max_value=40).map(str))
+def test_any_dim_text_is_a_dimension_or_a_one_line_usage_error(tmp_path_factory, text):
+    # init --dim TEXT: a dimension the settings keep, or exit 2 naming the flag.
+    from typer.testing import CliRunner
 
-    try:
-        dim = _dim_option(text)
-        settings = Settings(gammas=(0.5,), embedding_dim=dim).validate()
-    except BamsError as exc:
-        message = str(exc)
-        assert "\n" not in message and ("--dim" in message or "embedding_dim" in message)
-        return
-    assert dim == "auto" or (isinstance(dim, int) and dim >= 1)
-    assert Settings.from_toml(settings.to_toml()).embedding_dim == dim
+    ws = tmp_path_factory.mktemp("dim") / "ws"
+    r = invoke(CliRunner(), "init", "-w", ws, "--gamma", "0.5", "--dim", text)
+    if r.exit_code == 0:
+        kept = Settings.from_file(ws / "settings.toml").embedding_dim
+        assert kept == "auto" if text.strip() == "auto" else kept == int(text) >= 1
+        assert text.strip() == "auto" or text.strip().lstrip("-").isascii()
+    else:
+        assert r.exit_code == 2, r.output
+        [line] = r.stderr.strip().splitlines()
+        assert line.startswith("error: --dim"), line
+        assert not ws.exists()
 
 
 @given(
@@ -235,3 +236,31 @@ def test_any_embedding_dim_in_the_file_loads_or_is_refused_naming_it(value):
         )
     else:
         assert dim == value and (dim == "auto" or dim >= 1)
+
+
+def test_rerunning_the_init_of_a_workspace_made_before_auto_changes_nothing(runner, tmp_path):
+    # Older inits wrote embedding_dim = 12; the same init line with --exist-ok (a Makefile's)
+    # now asks for the default "auto" and must still be a no-op, not "other settings".
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1")
+    path = ws / "settings.toml"
+    path.write_text(path.read_text().replace('embedding_dim = "auto"', "embedding_dim = 12"))
+    before = tree_hash(ws)
+    r = ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1", "--exist-ok", "--json")
+    assert json.loads(r.stdout)["unchanged"] is True and json.loads(r.stdout)["embedding_dim"] == 12
+    assert tree_hash(ws) == before
+    # Asking for another dimension is still a difference.
+    r = invoke(
+        runner,
+        "init",
+        "-w",
+        ws,
+        "--gamma",
+        "0.5",
+        "--costs",
+        "1,0.1",
+        "--exist-ok",
+        "--dim",
+        "auto",
+    )
+    assert r.exit_code != 0 and "embedding_dim: 12 in the file, auto requested" in r.stderr

@@ -1,7 +1,8 @@
 """Dimensionality reduction of segment embeddings (paper section 4, "Embedding model").
 
-Embeddings arrive as 512-d vectors; the GP works in a few dimensions, by default as many as
-the embedding's spectrum shows factors (``choose_dim``, ``--dim auto``). Reducers:
+Embeddings arrive as 512-d vectors; the GP works in a few dimensions, by default 12 or, where
+the embedding's spectrum shows more factors than that, as many (``choose_dim``, ``--dim
+auto``). Reducers:
 
 - ``pca``: exact PCA from one streaming pass. Each batch adds its centred scatter
   ``Bc^T Bc`` (one BLAS product, float64) to a running D x D scatter matrix with Chan,
@@ -324,17 +325,18 @@ def choose_dim(eigenvalues: ArrayLike) -> tuple[int, str]:
     ``AUTO_MIN_DIM`` (12) components, or more where the spectrum shows more factors than
     that: an embedding of many underlying factors seen through more columns has a spectrum
     that falls off a cliff where the factors end and the noise floor begins (a 24-factor
-    latent in 96 columns: 0.8% of the variance on component 24, 0.2% on 25), and ``auto``
-    keeps the components before the largest drop lam_k / lam_(k+1) of at least
+    latent in 96 columns: 0.80% of the variance on component 24, 0.21% on 25), and
+    ``auto`` keeps the components before the largest drop lam_k / lam_(k+1) of at least
     ``AUTO_GAP`` among k = 12 .. ``AUTO_MAX_DIM``. Twelve components kept 72% of that
-    embedding's variance and half its factors, and BAMS found a third of the failures it
-    finds with 24 (docs/suite/dimension.md).
+    embedding's variance and half its factors, and BAMS found 0.39 of the failures it
+    finds with 24 (0.007 against 0.018; docs/suite/dimension.md).
 
     Never fewer than 12, though a cliff may come earlier: how much of the embedding's
     variance a direction carries says nothing of its bearing on failures. A 16-column
     simulator embedding whose spectrum drops 3.8x after component 5 lost a factor the
-    failures hang on at 5 components (BAMS's recall 0.21 -> 0.04). Only an embedding of
-    lower rank keeps fewer: its rank (the components past it carry no variance).
+    failures hang on at 5 components (BAMS's recall 0.28 at 12 components, 0.21 at 8, 0.04
+    at 5). Only an embedding of lower rank keeps fewer: its rank (the components past it
+    carry no variance).
 
     Parameters
     ----------
@@ -348,12 +350,16 @@ def choose_dim(eigenvalues: ArrayLike) -> tuple[int, str]:
     reason : str
         One line for the user, e.g. "the spectrum drops 11.3x after component 12".
     """
-    lam = np.clip(np.asarray(eigenvalues, dtype=np.float64), 0.0, None)
+    lam = np.asarray(eigenvalues, dtype=np.float64)
+    if lam.size == 0 or not np.all(np.isfinite(lam)):
+        raise ValueError(f"choose_dim needs a finite spectrum, got {lam.size} eigenvalues")
+    lam = np.clip(lam, 0.0, None)
     D = lam.size
-    rank = int(np.sum(~null_components(lam))) if D and lam[0] > 0.0 else 0
+    rank = int(np.sum(~null_components(lam))) if lam[0] > 0.0 else 0
+    if rank == 0:
+        return 1, "the embedding spans no dimension: every row is the same point"
     if rank < min(D, AUTO_MIN_DIM):
-        dim = max(rank, 1)
-        return dim, f"the embedding spans {dim} dimension{'s' * (dim != 1)}"
+        return rank, f"the embedding spans {rank} dimension{'s' * (rank != 1)}"
     if D <= AUTO_MIN_DIM:
         return D, f"all {D} column{'s' * (D != 1)} (no more than {AUTO_MIN_DIM})"
     k = np.arange(AUTO_MIN_DIM, min(D - 1, AUTO_MAX_DIM) + 1)
@@ -389,7 +395,7 @@ def fit_reducer(
     ----------
     batches : callable returning an iterable of ndarray of shape (b, D)
         Called once per pass; each call must restart the stream. ``pca`` reads it once,
-        ``ipca`` twice.
+        ``ipca`` twice (three times with ``dim`` "auto": the exact spectrum first).
     sample : ndarray of shape (s, D), optional
         Random sample of rows: trains the autoencoder and measures its error (and
         ``ipca``'s). ``pca`` does not need it: its error comes from the eigenvalues.
@@ -420,7 +426,7 @@ def fit_reducer(
         return Reducer("identity", mean if standardize else np.zeros(D), scale, constant=constant)
     dim_choice = None
     if dim == AUTO:  # one more pass: the exact spectrum decides
-        exact = _fit_exact_pca(batches, AUTO, standardize, None, n_rows)
+        exact = _fit_exact_pca(batches, AUTO, standardize, progress, n_rows)
         dim, dim_choice = exact.dim, exact.dim_choice
     if dim > D:
         raise ValueError(f"--dim {dim} exceeds the embedding's {D} columns")

@@ -113,6 +113,8 @@ def embed_reduce(
     """
     from bams_cli.core.reduce import Reducer, fit_reducer  # sklearn: ~1 s to import
 
+    if isinstance(dim, str) and dim != "auto":
+        raise OptionValueError(f"--dim {dim!r}: expected a whole number or 'auto'")
     for flag, value in (
         ("--batch-size", batch_size),
         ("--sample-size", sample_size),

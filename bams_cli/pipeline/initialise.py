@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -148,7 +149,12 @@ def init(
         raise OptionValueError(f"{flag} {typed}: {str(exc).removeprefix('settings: ')}") from None
     with workspace_lock(root, wait=wait), transaction() as tx:
         if ws.settings_path.exists() and exist_ok:
-            differences = _settings_differences(Settings.from_file(ws.settings_path), settings)
+            existing = Settings.from_file(ws.settings_path)
+            if dim is None and settings_from is None:
+                # The default changed (12 -> "auto", 2026-11-25): a re-run of the init that
+                # made an older workspace, without --dim, asks for nothing different.
+                settings = replace(settings, embedding_dim=existing.embedding_dim)
+            differences = _settings_differences(existing, settings)
             if differences:
                 raise SettingsError(
                     f"{ws.settings_path}: already exists with other settings "

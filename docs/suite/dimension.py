@@ -85,7 +85,7 @@ def render(out: Path) -> str:
         "What it says (2026-11-25): how much variance a component carries says nothing of "
         "its bearing on failures. gap_sim's 16 columns drop 3.8x after component 5, and "
         "five components lost a factor the failures hang on (recall 0.041, against 0.21 "
-        "at 8 and 0.28 at 12); rare_regions' 96 columns drop 5x after component 24, the "
+        "at 8 and 0.28 at 12); rare_regions' 96 columns drop 3.8x after component 24, the "
         "latent's 24 factors, and twelve kept half of them (0.007, about uniform "
         "sampling's, against 0.018 at 24). So `--dim auto` never keeps fewer than 12 "
         "components (the default until then) and keeps more where the spectrum drops off "

@@ -272,7 +272,24 @@ def test_auto_rule_at_its_edges():
     # An embedding of lower rank keeps its rank; one of 12 columns or fewer, all of them.
     assert choose_dim([3.0, 2.0, 1.0, 0.0, 0.0]) == (3, "the embedding spans 3 dimensions")
     assert choose_dim([3.0, 2.0, 1.0, 0.5]) == (4, "all 4 columns (no more than 12)")
-    assert choose_dim([1.0])[0] == 1 and choose_dim([0.0, 0.0])[0] == 1
+    assert choose_dim([1.0])[0] == 1
+    assert choose_dim([0.0, 0.0]) == (
+        1,
+        "the embedding spans no dimension: every row is the same point",
+    )
+    # Twelve columns are all kept; from 13 on the rule runs (a cliff after 12 or none: 12).
+    assert choose_dim(0.5 ** np.arange(12)) == (12, "all 12 columns (no more than 12)")
+    assert choose_dim(0.9 ** np.arange(13))[0] == 12
+    assert choose_dim([1.0] * 12 + [0.1]) == (12, "the spectrum drops 10.0x after component 12")
+    # Rank 5 in 20 columns: its rank, not 12 components of which 7 are empty.
+    assert choose_dim([5.0, 4.0, 3.0, 2.0, 1.0] + [0.0] * 15) == (
+        5,
+        "the embedding spans 5 dimensions",
+    )
+    with pytest.raises(ValueError, match="finite spectrum"):
+        choose_dim([1.0, np.nan, 0.5])
+    with pytest.raises(ValueError, match="finite spectrum"):
+        choose_dim([])
 
 
 def test_auto_dim_is_chosen_the_same_way_by_every_method():
@@ -280,4 +297,11 @@ def test_auto_dim_is_chosen_the_same_way_by_every_method():
     rng = np.random.default_rng(0)
     pca = fit_reducer(_chunks(X, 500), dim="auto", rng=rng)
     ipca = fit_reducer(_chunks(X, 500), method="ipca", dim="auto", rng=rng)
-    assert pca.dim == ipca.dim == 16 and pca.dim_choice == ipca.dim_choice
+    auto = fit_reducer(
+        _chunks(X, 500), method="autoencoder", dim="auto", rng=rng, sample=X[:600], max_iter=5
+    )
+    assert pca.dim == ipca.dim == auto.dim == 16
+    assert pca.dim_choice == ipca.dim_choice == auto.dim_choice
+    assert auto.transform(X[:3]).shape == (3, 16)
+    # The identity keeps the columns whatever dim says.
+    assert fit_reducer(_chunks(X, 500), method="identity", dim="auto", rng=rng).dim == 40
