@@ -177,8 +177,10 @@ def table() -> None:
         "design's of the same expected size, mean [max] over seeds; fixed p: the same runs "
         "under `estimate_design.py`'s evaluation, which keeps stage 1's p_n for stage 2. lam: "
         "the posterior mean share of failure mass stage 2 leaves to uniform risk. One JSON "
-        "line per seed in docs/suite/estimate_refit/PROBLEM.jsonl (measured 2026-11-24, "
-        "defaults of that day: Beta(0.5, 1) prior on lam, shapes tau 0.5 and 1).",
+        "line per seed in docs/suite/estimate_refit/PROBLEM.jsonl (measured 2026-11-24 with "
+        "a Beta(0.5, 1) prior on lam and shapes tau 0.5 and 1, the defaults since; "
+        "weak_cheap, digits, rare_regions and gap_sim again on 2026-11-25, their embeddings "
+        "reduced by `embed-reduce --dim auto`: 12, 12, 24 and 12 components).",
         "",
         "| problem | seeds | stage-1 draws per seed | var / uniform, refit | var / uniform, fixed p | lam |",
         "| --- | --- | --- | --- | --- | --- |",
