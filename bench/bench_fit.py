@@ -41,6 +41,7 @@ import subprocess
 import sys
 import time
 import tracemalloc
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -113,8 +114,22 @@ def bench_sizes(sizes: list[int]) -> None:
         )
 
 
-def bench_accuracy(n: int, keeps: list[int]) -> None:
-    """Exact posterior against the budget's subset posterior on av_like (module docstring)."""
+@dataclass
+class _Study:
+    X: np.ndarray  # the pool, PCA coordinates
+    Xo: np.ndarray  # the observed points
+    lv: np.ndarray
+    y: np.ndarray
+    exact: MFGP
+    seconds: float  # the exact fit's
+    Xq: np.ndarray  # 4,000 pool points
+    mu_e: np.ndarray
+    sd_e: np.ndarray
+
+
+def _exact_study(n: int) -> _Study:
+    """n av_like observations (60% level 1, PCA to d = 12 as embed-reduce does), the GP
+    fitted and conditioned exactly on all of them, and its posterior at 4,000 pool points."""
     from sklearn.decomposition import PCA
 
     from bams_cli.core.synthetic import av_like
@@ -128,18 +143,25 @@ def bench_accuracy(n: int, keeps: list[int]) -> None:
     y = pool.truth[obs, lv]
     t = time.perf_counter()
     exact = fit_mfgp(X[obs], lv, y, 2, rng=np.random.default_rng(0), restarts=8, max_memory=None)
-    print(f"av_like, {n} observations ({int(np.sum(lv == 0))} at level 0), exact fit "
-          f"{time.perf_counter() - t:.1f} s; errors at 4,000 pool points in exact sds")  # fmt: skip
+    seconds = time.perf_counter() - t
     Xq = X[rng.choice(n_pool, 4000, replace=False)]
     mu_e, s2_e = exact.predict_theta0(Xq)
-    sd_e = np.sqrt(s2_e)
+    return _Study(X, X[obs], lv, y, exact, seconds, Xq, mu_e, np.sqrt(s2_e))
+
+
+def bench_accuracy(n: int, keeps: list[int]) -> None:
+    """Exact posterior against the budget's subset posterior on av_like (module docstring)."""
+    st = _exact_study(n)
+    Xo, lv, y, exact, Xq, mu_e, sd_e = st.Xo, st.lv, st.y, st.exact, st.Xq, st.mu_e, st.sd_e
+    print(f"av_like, {n} observations ({int(np.sum(lv == 0))} at level 0), exact fit "
+          f"{st.seconds:.1f} s; errors at 4,000 pool points in exact sds")  # fmt: skip
     print(
         f"{'kept':>6} {'|mean err| median':>17} {'p90':>6} {'max':>7} "
         f"{'sd excess median':>16} {'p90':>6} {'max':>6} {'min':>9} {'sd bound x':>13}"
     )
     for keep in keeps:
         sub = condition(
-            X[obs], lv, y, 2, exact.hyperparameters, max_memory=BYTES_PER_ENTRY * keep * keep
+            Xo, lv, y, 2, exact.hyperparameters, max_memory=BYTES_PER_ENTRY * keep * keep
         )
         mu, s2 = sub.predict_theta0(Xq)
         em = np.abs(mu - mu_e) / sd_e
@@ -149,7 +171,7 @@ def bench_accuracy(n: int, keeps: list[int]) -> None:
         # T = sum_j e_j / tau_j^2 (the dropped block's covariance is >= its noise).
         dropped = np.setdiff1d(np.arange(n), sub.conditioned_rows)
         tau2 = exact.hyperparameters.noise[lv[dropped]]
-        T = float(np.sum(sub.obs_var(X[obs][dropped], lv[dropped]) / tau2 - 1.0))
+        T = float(np.sum(sub.obs_var(Xo[dropped], lv[dropped]) / tau2 - 1.0))
         print(
             f"{keep:>6} {np.median(em):>17.3f} {np.quantile(em, 0.9):>6.2f} {em.max():>7.1f} "
             f"{np.median(es):>16.3f} {np.quantile(es, 0.9):>6.2f} {es.max():>6.1f} "
@@ -168,24 +190,12 @@ def bench_local(n: int, keeps: list[int], blocks: int) -> None:
     (Nystrom, inducing-point) model would need to hold the posterior to that precision.
     """
     from sklearn.cluster import KMeans
-    from sklearn.decomposition import PCA
 
     from bams_cli.core.kernels import matern52
-    from bams_cli.core.synthetic import av_like
 
-    n_pool = max(4 * n, 8000)
-    pool = av_like(n_pool, seed=0)
-    X = PCA(D, random_state=0).fit_transform(pool.features)
-    rng = np.random.default_rng(1)
-    obs = rng.choice(n_pool, n, replace=False)
-    lv = (rng.random(n) < 0.6).astype(np.int64)
-    y = pool.truth[obs, lv]
-    exact = fit_mfgp(X[obs], lv, y, 2, rng=np.random.default_rng(0), restarts=8, max_memory=None)
-    hp = exact.hyperparameters
-    Xq = X[rng.choice(n_pool, 4000, replace=False)]
-    mu_e, s2_e = exact.predict_theta0(Xq)
-    sd_e = np.sqrt(s2_e)
-    Xo = X[obs]
+    st = _exact_study(n)
+    X, Xo, lv, y, Xq, exact = st.X, st.Xo, st.lv, st.y, st.Xq, st.exact
+    mu_e, sd_e, hp = st.mu_e, st.sd_e, exact.hyperparameters
     label = KMeans(blocks, n_init=1, random_state=0).fit_predict(Xq)
     print(f"av_like, {n} observations, level-0 noise {hp.noise[0]:.2g}, outputscale "
           f"{hp.outputscale0:.3g}, lengthscales {np.min(hp.lengthscales0):.3g}-"
