@@ -279,11 +279,12 @@ def embed_reduce(
         table = pa.concat_tables(
             [existing.replace_schema_metadata(None), table], promote_options="permissive"
         )
+    # Why this many (--dim auto); --apply keeps the fit's.
+    dim_choice = made.get("dim_choice") if apply else reducer.dim_choice
     meta = {
         "method": reducer.method,
         "dim": reducer.dim,
-        # Why this many (--dim auto); --apply keeps the fit's.
-        "dim_choice": made.get("dim_choice") if apply else reducer.dim_choice,
+        "dim_choice": dim_choice,
         "source": str(source),
         "seed": settings.seed,
         "reconstruction_error": reducer.reconstruction_error,
@@ -315,7 +316,7 @@ def embed_reduce(
         "pool_size": table.num_rows,
         "method": reducer.method,
         "dim": reducer.dim,
-        "dim_choice": made.get("dim_choice") if apply else reducer.dim_choice,
+        "dim_choice": dim_choice,
         "input_dim": int(expected),
         "reconstruction_error": reducer.reconstruction_error,
         "passthrough_columns": passthrough,
