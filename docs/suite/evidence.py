@@ -18,6 +18,8 @@ Studies:
   discrepancy  the discrepancy prior: shipped (mode 0.01, log-sd 1.0) vs (0.1, 1.5)
   discrepancy-width  the shipped mode with a wider log-sd (1.25, 1.5); with av_like
   confirm      select --confirm-share 0 (the plain greedy), 0.2 (shipped), 0.4
+  discrepancy-pairs  the discrepancy prior's mode at the pairs' variance (shipped since
+               2026-11-25) vs held at 0.01 whatever the pairs show
 
 Writes docs/suite/evidence.md (tables) and evidence.json (per-seed numbers).
 """
@@ -53,6 +55,11 @@ STUDIES: dict[str, dict[str, tuple[dict[str, Any], dict[str, Any]]]] = {
         "shipped": ({}, {}),
         "discrepancy prior (0.01, 1.25)": ({"discrepancy": (0.01, 1.25)}, {}),
         "discrepancy prior (0.01, 1.5)": ({"discrepancy": (0.01, 1.5)}, {}),
+    },
+    "discrepancy-pairs": {
+        # Explicit flags, so neither setting is taken for an older study's "shipped" run.
+        "mode fixed at 0.01": ({"discrepancy_from_pairs": False}, {}),
+        "mode from pairs (shipped)": ({"discrepancy_from_pairs": True}, {}),
     },
     "confirm": {
         "confirm-share 0": ({}, {"confirm_share": 0.0}),

@@ -112,7 +112,7 @@ def fit_mfgp(
         raise GPFitError(f"restarts must be >= 1, got {restarts}")
 
     ybar, ystd = standardise(y)
-    prior = _Priors.for_data(X, n_levels, priors)
+    prior = _Priors.for_data(X, n_levels, priors, levels, (y - ybar) / ystd)
     sub = fit_subset(levels, n_levels, max_fit, rng)
     Xf, lf, yf = (X, levels, y) if sub is None else (X[sub], levels[sub], y[sub])
     objective = _MAPObjective(Xf, lf, (yf - ybar) / ystd, n_levels, prior)

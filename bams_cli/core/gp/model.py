@@ -214,7 +214,8 @@ class MFGP:
             )
         )
         if np.all(np.isfinite(theta_std)):
-            lp, _ = _Priors.for_data(X, n_levels, priors).log_prior(theta_std)
+            prior = _Priors.for_data(X, n_levels, priors, levels, (y - ybar) / ystd)
+            lp, _ = prior.log_prior(theta_std)
         else:
             lp = -math.inf
         self.log_posterior = self.log_marginal_likelihood + lp
