@@ -36,6 +36,7 @@ from scipy.stats import chi2
 from bams_cli.core.gp._numerics import FloatArray, IntArray
 from bams_cli.core.gp.hyperparameters import Hyperparameters
 from bams_cli.core.gp.model import MFGP
+from bams_cli.core.gp.priors import paired_differences
 
 #: A check's p-value below this is reported as a warning.
 CHECK_LEVEL = 0.01
@@ -167,33 +168,6 @@ def _loo_rows_and_z(
     V = solve_triangular(model._L, E, lower=True, check_finite=False)
     kinv_diag = np.einsum("ij,ij->j", V, V)
     return rows, model._alpha[rows] / np.sqrt(kinv_diag)
-
-
-def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: int) -> FloatArray:
-    """y_l - y_0 for every segment observed at both levels (repeats averaged first).
-
-    Parameters
-    ----------
-    seg : int ndarray of shape (n,)
-        Segment (pool row) of each observation.
-    levels : int ndarray of shape (n,)
-    y : ndarray of shape (n,)
-    level : int
-        The cheap level l >= 1.
-
-    Returns
-    -------
-    d : ndarray of shape (k,), in increasing segment order
-    """
-    out = []
-    for lv in (0, level):
-        m = levels == lv
-        keys, inv = np.unique(seg[m], return_inverse=True)
-        means = np.bincount(inv, weights=y[m]) / np.bincount(inv)
-        out.append((keys, means))
-    (k0, m0), (kl, ml) = out
-    common, i0, il = np.intersect1d(k0, kl, return_indices=True)
-    return ml[il] - m0[i0]
 
 
 def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:

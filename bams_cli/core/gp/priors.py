@@ -60,27 +60,46 @@ from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, IntArray, input_rang
 MIN_PAIRS = 3
 
 
+def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: int) -> FloatArray:
+    """y_l - y_0 for every segment observed at both levels (repeats averaged first).
+
+    Parameters
+    ----------
+    seg : int ndarray of shape (n,)
+        Segment (pool row) of each observation.
+    levels : int ndarray of shape (n,)
+    y : ndarray of shape (n,)
+    level : int
+        The cheap level l >= 1.
+
+    Returns
+    -------
+    d : ndarray of shape (k,), in increasing segment order
+    """
+    out = []
+    for lv in (0, level):
+        m = levels == lv
+        keys, inv = np.unique(seg[m], return_inverse=True)
+        means = np.bincount(inv, weights=y[m]) / np.bincount(inv)
+        out.append((keys, means))
+    (k0, m0), (kl, ml) = out
+    common, i0, il = np.intersect1d(k0, kl, return_indices=True)
+    return ml[il] - m0[i0]
+
+
 def pair_variances(
     X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int
 ) -> list[tuple[int, float]]:
     """(number of pairs, variance of y_l - y_0 over them) for each cheap level l >= 1.
 
-    A pair is an input observed at level 0 and at level l (identical rows of X; repeats
-    at one level are averaged first). The variance is the unbiased sample variance, NaN
-    below two pairs.
+    A pair is an input observed at level 0 and at level l (identical rows of X stand for
+    one segment; ``paired_differences``). The variance is the unbiased sample variance,
+    NaN below two pairs.
     """
-    _, key = np.unique(np.asarray(X), axis=0, return_inverse=True)
-    key = key.ravel()
-    means = []
-    for lv in range(n_levels):
-        m = levels == lv
-        keys, inv = np.unique(key[m], return_inverse=True)
-        means.append((keys, np.bincount(inv, weights=y[m]) / np.bincount(inv)))
-    k0, m0 = means[0]
+    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
     out = []
-    for kl, ml in means[1:]:
-        _, i0, il = np.intersect1d(k0, kl, return_indices=True)
-        d = ml[il] - m0[i0]
+    for lv in range(1, n_levels):
+        d = paired_differences(seg.ravel(), levels, y, lv)
         out.append((int(d.size), float(np.var(d, ddof=1)) if d.size >= 2 else math.nan))
     return out
 
