@@ -179,8 +179,10 @@ def table() -> None:
         "the posterior mean share of failure mass stage 2 leaves to uniform risk. One JSON "
         "line per seed in docs/suite/estimate_refit/PROBLEM.jsonl (measured 2026-11-24 with "
         "a Beta(0.5, 1) prior on lam and shapes tau 0.5 and 1, the defaults since; "
-        "weak_cheap, digits, rare_regions and gap_sim again on 2026-11-25, their embeddings "
-        "reduced by `embed-reduce --dim auto`: 12, 12, 24 and 12 components).",
+        "gap_sim again on 2026-11-25, its embedding reduced by `embed-reduce --dim auto` "
+        "to 12 components; the other five later that day, at `--dim auto` and with the "
+        "discrepancy prior centred on the pairs' variance: their discovery models, and so "
+        "the hyperparameters the refit keeps, changed).",
         "",
         "| problem | seeds | stage-1 draws per seed | var / uniform, refit | var / uniform, fixed p | lam |",
         "| --- | --- | --- | --- | --- | --- |",
