@@ -93,9 +93,10 @@ The shipped (0.01, 1.0) stays.
 discrepancy-pairs (2026-11-25, 2 workers): the same prior (0.01, 1.0) with its mode moved
 to the pairs' variance once 3 segments are run at both levels (shipped since), against the
 mode held at 0.01. The fixed-mode rows ran at commit d78ae39 and equal
-docs/reproduction/suite/suite.md's BAMS rows at 3c3c846 to the last digit; the
-from-pairs rows ran at the same code before that commit (the same ``run_setting``, driven
-from a scratch script, so without timings). Every problem's discrepancy is within 2x on
+docs/reproduction/suite/suite.md's BAMS rows at 3c3c846 to the last digit. The from-pairs
+rows ran before d78ae39 was committed, from a working tree whose code was d78ae39's (only
+comments and formatting differed), through the same ``run_setting`` driven from a scratch
+script, hence no timings; they equal the suite's BAMS rows at b5858e2 to the last digit. Every problem's discrepancy is within 2x on
 10 seeds of 10 (weak_cheap 7 and rare_regions 8 with the fixed mode; 60 of 60 against
 55); weak_cheap's median ratio rises from 0.67 to 1.05 and it finds more (recall 0.075 ->
 0.095, 100 RV 32.5 -> 26.9); av_like's RV falls from 9.4 to 4.0. digits (0.127 -> 0.116)

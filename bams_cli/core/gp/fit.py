@@ -21,7 +21,7 @@ from bams_cli.core.gp._numerics import (
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _hyperparameters
 from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.objective import _MAPObjective
-from bams_cli.core.gp.priors import PriorSpec, _Priors
+from bams_cli.core.gp.priors import PriorSpec, _Priors, with_pair_modes
 from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
 
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
@@ -112,7 +112,8 @@ def fit_mfgp(
         raise GPFitError(f"restarts must be >= 1, got {restarts}")
 
     ybar, ystd = standardise(y)
-    prior = _Priors.for_data(X, n_levels, priors, levels, (y - ybar) / ystd)
+    priors = with_pair_modes(priors, X, levels, (y - ybar) / ystd, n_levels)
+    prior = _Priors.for_data(X, n_levels, priors)
     sub = fit_subset(levels, n_levels, max_fit, rng)
     Xf, lf, yf = (X, levels, y) if sub is None else (X[sub], levels[sub], y[sub])
     objective = _MAPObjective(Xf, lf, (yf - ybar) / ystd, n_levels, prior)
@@ -203,7 +204,10 @@ def condition(
     ``conditioning_subset``. ``model.conditioning`` says which, ``model.conditioned_rows``
     which rows (None: all).
     """
+    X, levels, y = check_data(X, levels, y, n_levels)
     n = y.size
+    ybar, ystd = standardise(y)
+    priors = with_pair_modes(priors, X, levels, (y - ybar) / ystd, n_levels)
     cap = max_conditioned(max_memory)
     rows = conditioning_subset(levels, n_levels, cap)
     if rows is None:

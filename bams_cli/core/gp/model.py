@@ -24,7 +24,7 @@ from bams_cli.core.gp._numerics import (
     standardise,
 )
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
-from bams_cli.core.gp.priors import PriorSpec, _Priors
+from bams_cli.core.gp.priors import PriorSpec, _Priors, with_pair_modes
 from bams_cli.core.kernels import (
     matern52,
     matern52_aug_lower,
@@ -213,9 +213,11 @@ class MFGP:
                 noise=hp.noise / v,
             )
         )
+        #: The priors ``log_posterior`` is scored under, discrepancy modes resolved
+        #: (``fit`` resolves them on every observation; else from this model's own).
+        self.priors = with_pair_modes(priors, X, levels, (y - ybar) / ystd, n_levels)
         if np.all(np.isfinite(theta_std)):
-            prior = _Priors.for_data(X, n_levels, priors, levels, (y - ybar) / ystd)
-            lp, _ = prior.log_prior(theta_std)
+            lp, _ = _Priors.for_data(X, n_levels, self.priors).log_prior(theta_std)
         else:
             lp = -math.inf
         self.log_posterior = self.log_marginal_likelihood + lp
