@@ -308,6 +308,19 @@ def test_uncached_squared_differences_give_same_objective(monkeypatch):
 # ------------------------------------------------------------------ fit behaviour
 
 
+def standardised_theta(hp, ystd):
+    """The packed parameters of ``hp`` in the units of y / std(y), the objective's."""
+    v = ystd**2
+    return _pack(
+        dataclasses.replace(
+            hp,
+            outputscale0=hp.outputscale0 / v,
+            outputscales=hp.outputscales / v,
+            noise=hp.noise / v,
+        )
+    )
+
+
 def test_fit_reports_map_objective_and_beats_prior_mode():
     rng = np.random.default_rng(5)
     X, levels, y = mf_data(rng, 2, 2, n=40)
@@ -316,15 +329,7 @@ def test_fit_reports_map_objective_and_beats_prior_mode():
     priors = _Priors.for_data(X, 2)
     objective = _MAPObjective(X, levels, (y - ybar) / ystd, 2, priors)
     hp = model.hyperparameters
-    v = ystd**2
-    theta = _pack(
-        dataclasses.replace(
-            hp,
-            outputscale0=hp.outputscale0 / v,
-            outputscales=hp.outputscales / v,
-            noise=hp.noise / v,
-        )
-    )
+    theta = standardised_theta(hp, ystd)
     f_fit, grad = objective(theta)
     # log_posterior is the MAP objective in natural units (shift n log std(y)).
     assert model.log_posterior == pytest.approx(-f_fit - len(y) * math.log(ystd), abs=1e-6)
@@ -848,7 +853,7 @@ def test_discrepancy_prior_mode_follows_the_pairs_only_when_they_show_more():
     """Mode at the pairs' variance (standardised) from MIN_PAIRS pairs on, never below the
     spec's mode, and not at all with ``discrepancy_from_pairs`` off."""
     from bams_cli.core.gp import DEFAULT_PRIORS, PriorSpec
-    from bams_cli.core.gp.priors import MIN_PAIRS
+    from bams_cli.core.gp.priors import MIN_PAIRS, with_pair_modes
 
     rng = np.random.default_rng(1)
     U = rng.normal(size=(8, 2))
@@ -859,7 +864,7 @@ def test_discrepancy_prior_mode_follows_the_pairs_only_when_they_show_more():
         X = np.vstack([U, U[:k]])
         levels = np.r_[np.zeros(8, int), np.ones(k, int)]
         y = np.r_[f, f[:k] + scale * d[:k]]
-        return np.exp(_Priors.for_data(X, 2, spec, levels, y).mode[1])
+        return np.exp(_Priors.for_data(X, 2, with_pair_modes(spec, X, levels, y, 2)).mode[1])
 
     assert disc_mode(8) == pytest.approx(np.var(d, ddof=1), rel=1e-9)
     assert disc_mode(MIN_PAIRS) == pytest.approx(np.var(d[:MIN_PAIRS], ddof=1), rel=1e-9)
@@ -929,15 +934,7 @@ def test_the_reported_log_posterior_is_the_map_objective_under_the_pairs_prior()
     assert model.priors.discrepancy_modes == pytest.approx((v,), rel=1e-12)
     priors = _Priors.for_data(X, 2, with_pair_modes(None, X, levels, ys, 2))
     objective = _MAPObjective(X, levels, ys, 2, priors)
-    hp, var = model.hyperparameters, ystd**2
-    theta = _pack(
-        dataclasses.replace(
-            hp,
-            outputscale0=hp.outputscale0 / var,
-            outputscales=hp.outputscales / var,
-            noise=hp.noise / var,
-        )
-    )
+    theta = standardised_theta(model.hyperparameters, ystd)
     assert model.log_posterior == pytest.approx(-objective(theta)[0] - len(y) * math.log(ystd))
 
 

@@ -92,7 +92,7 @@ def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: in
         means = np.bincount(inv, weights=y[m]) / np.bincount(inv)
         out.append((keys, means))
     (k0, m0), (kl, ml) = out
-    common, i0, il = np.intersect1d(k0, kl, return_indices=True)
+    _, i0, il = np.intersect1d(k0, kl, return_indices=True)
     return ml[il] - m0[i0]
 
 
@@ -188,21 +188,15 @@ class _Priors:
         X: FloatArray,
         n_levels: int,
         spec: PriorSpec | None = None,
-        levels: IntArray | None = None,
-        y_std: FloatArray | None = None,
     ) -> _Priors:
         """Priors for training inputs X of shape (n, d) and ``n_levels`` levels.
 
-        A cheap level's discrepancy mode is ``spec.discrepancy_modes``' when resolved
-        (``with_pair_modes``); else, given ``levels`` and the standardised observations
-        ``y_std``, the variance of its paired differences when that is larger than
-        ``spec.discrepancy``'s mode; else that mode.
+        A cheap level's discrepancy mode is ``spec.discrepancy_modes``' when resolved from
+        the study's pairs (``with_pair_modes``), else ``spec.discrepancy``'s.
         """
         spec = DEFAULT_PRIORS if spec is None else spec
         d = X.shape[1]
         m = n_levels
-        if spec.discrepancy_modes is None and levels is not None and y_std is not None:
-            spec = with_pair_modes(spec, X, levels, y_std, m)
         disc_modes = (
             np.full(m - 1, spec.discrepancy[0])
             if spec.discrepancy_modes is None
