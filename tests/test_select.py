@@ -404,6 +404,31 @@ def test_bams_never_offers_a_cheap_run_the_log_already_holds(toy_ws, runner, toy
     assert [s for s, lv in picks("--include-observed") if lv == 1 and s in cheap_seen]
 
 
+def test_random_mixed_picks_cheap_runs_only_where_the_level_is_free(
+    toy_ws, runner, toy_files, tmp_path
+):
+    # 396 of 400 segments hold a level-1 result. The mixed random batch drew its cheap picks
+    # from the whole pool and then dropped the observed ones: a budget of 2 (one level-0
+    # run, ten cheap ones) came back with about no cheap pick, and when every draw had been
+    # dropped select said "nothing fits budget". The picks now come from the free pairs.
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(400)]
+    write_batch(toy_ws, 1, ids[:396] + ids[:4], [1] * 396 + [0] * 4)
+    res = tmp_path / "r1.parquet"
+    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    r = ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--mixed-fidelity",
+           "--budget", "2", "--level0-share", "0.5", "--json")  # fmt: skip
+    t = pq.read_table(toy_ws / "batches" / "batch-0002.parquet")
+    sid, lev = t["segment_id"].to_pylist(), t["fidelity"].to_pylist()
+    cheap = [s for s, lv in zip(sid, lev, strict=True) if lv == 1]
+    zero = [s for s, lv in zip(sid, lev, strict=True) if lv == 0]
+    assert len(zero) == 1 and zero[0] not in ids[:4]
+    # Ten cheap runs asked, four segments free at level 1: all four, none seen before.
+    assert sorted(cheap) == ids[396:]
+    assert json.loads(r.stdout)["picks_per_level"] == {"0": 1, "1": 4}
+
+
 def test_a_cheap_level_edited_dear_in_settings_is_warned_by_select(toy_ws, runner):
     # init warns of a cheap level costing a level-0 run or more; a hand edit came unwarned.
     settings = toy_ws / "settings.toml"

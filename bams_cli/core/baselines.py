@@ -113,6 +113,7 @@ def pick_uniform(
     observed_level0_mask: BoolArray | None = None,
     level_shares: Sequence[float] | None = None,
     paired: bool = True,
+    excluded_pairs: BoolArray | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Uniform picks over unobserved segments: MC / MC-GP (level 0) and MCM-GP (mixed).
 
@@ -139,6 +140,12 @@ def pick_uniform(
     observed_level0_mask : bool ndarray of shape (n_pool,), optional
     level_shares : sequence of float, optional
         Budget shares per level for ``mixed``; default equal.
+    paired : bool
+    excluded_pairs : bool ndarray of shape (n_pool, L + 1), optional
+        (segment, level) pairs that must not be picked: observed, awaiting results or
+        abandoned at that level. A cheap level's picks, its pairs with the level-0 picks
+        included, come only from segments free at that level, so a batch spends its budget
+        on runs that can be made rather than on picks ``select`` would have to drop.
 
     Returns
     -------
@@ -147,6 +154,13 @@ def pick_uniform(
     """
     free0 = _available(n_pool, observed_level0_mask)
     c_arr = np.asarray(costs, dtype=np.float64)
+    if excluded_pairs is not None:
+        excluded_pairs = np.asarray(excluded_pairs, dtype=bool)
+        if excluded_pairs.shape != (n_pool, len(c_arr)):
+            raise ValueError(
+                f"excluded_pairs must have shape {(n_pool, len(c_arr))}; got {excluded_pairs.shape}"
+            )
+        free0 = free0 & ~excluded_pairs[:, 0]
     counts = (
         level_split(costs, budget, level_shares)
         if mixed
@@ -159,8 +173,14 @@ def pick_uniform(
     level0 = np.zeros(0, dtype=np.int64)
     for lev, k in enumerate(counts):
         k = int(k)
-        pair = level0[: k if paired and lev > 0 else 0]
-        pool = np.flatnonzero((free0 if lev == 0 else np.ones(n_pool, dtype=bool)) & ~taken)
+        if lev == 0:
+            free = free0
+        elif excluded_pairs is None:
+            free = np.ones(n_pool, dtype=bool)
+        else:
+            free = ~excluded_pairs[:, lev]
+        pair = level0[free[level0]][: k if paired and lev > 0 else 0]
+        pool = np.flatnonzero(free & ~taken)
         k_new = min(k - len(pair), len(pool))
         new = rng.choice(pool, size=k_new, replace=False) if k_new else np.zeros(0, np.int64)
         taken[new] = True
@@ -345,11 +365,13 @@ def pick_baseline(
     observed_value: FloatArray | None = None,
     mixed: bool | None = None,
     level_shares: Sequence[float] | None = None,
+    excluded_pairs: BoolArray | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Dispatch to the pick function of ``strategy`` (see the module table).
 
     ``mixed`` spreads the uniform strategies over the levels (by default only ``mcm-gp``
-    does), with ``level_shares`` of the budget per level (``pick_uniform``).
+    does), with ``level_shares`` of the budget per level (``pick_uniform``);
+    ``excluded_pairs`` are the (segment, level) pairs they must not pick.
 
     Returns
     -------
@@ -365,6 +387,7 @@ def pick_baseline(
             mixed=strategy == "mcm-gp" if mixed is None else mixed,
             observed_level0_mask=observed_level0_mask,
             level_shares=level_shares,
+            excluded_pairs=excluded_pairs,
         )
     if strategy in ("ds", "ds-gp"):
         if difficulty is None:

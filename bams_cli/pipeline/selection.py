@@ -580,6 +580,9 @@ def select(
             observed_value=observed_value,
             mixed=multi and n_rest > 0,
             level_shares=shares,
+            # A cheap level's picks only where that level can still be run: the picks the
+            # filter below would drop are never drawn, so the batch spends its budget.
+            excluded_pairs=(gone | waiting) if include_observed else (gone | waiting | seen),
         )
         keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
         index, level = np.asarray(index)[keep], np.asarray(level)[keep]

@@ -104,6 +104,35 @@ def test_pairs_are_capped_by_the_cheap_level_count():
     assert set(idx[lev == 1]) <= set(idx[lev == 0])
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_mixed_uniform_never_picks_an_excluded_pair(seed):
+    # (segment, level) pairs observed, pending or abandoned are excluded per level: level 0
+    # and level 1 each from their own free segments, the pairs only where both are free, and
+    # the level's whole count while free segments last.
+    rng = np.random.default_rng(100 + seed)
+    excl = np.zeros((N, 2), bool)
+    excl[:, 1] = rng.random(N) < 0.9  # 40-odd segments free at level 1
+    excl[:, 0] = rng.random(N) < 0.3
+    idx, lev = pick_uniform(
+        N, [1.0, 0.25], 5.0, rng=np.random.default_rng(seed), mixed=True, excluded_pairs=excl
+    )
+    assert not excl[idx, lev].any()
+    zero, cheap = idx[lev == 0], idx[lev == 1]
+    assert zero.size == 2 and cheap.size == 12 and len(set(cheap)) == 12
+    paired = [i for i in zero if not excl[i, 1]]
+    assert set(paired) <= set(cheap)
+    # Only three segments free at level 1: all three, and the pairs among them.
+    few = np.ones((N, 2), bool)
+    few[:, 0] = False
+    few[[5, 9, 11], 1] = False
+    idx, lev = pick_uniform(
+        N, [1.0, 0.25], 5.0, rng=np.random.default_rng(seed), mixed=True, excluded_pairs=few
+    )
+    assert sorted(idx[lev == 1].tolist()) == [5, 9, 11]
+    with pytest.raises(ValueError, match="excluded_pairs must have shape"):
+        pick_uniform(N, [1.0, 0.25], 5.0, rng=rng, mixed=True, excluded_pairs=excl[:, :1])
+
+
 def test_difficulty_weights_transforms():
     d = np.array([0.0, 1.0, 3.0])
     w = difficulty_weights(d)
