@@ -70,7 +70,8 @@ def one(args):
 
 def fixed_lam(lams: list[float], strategies: list[str]) -> None:
     """The exact variance over uniform's of a single-stage calibrated design at fixed lam
-    (tau 1), mean over seeds 0-9: what a design that knew how far to trust p_n would get."""
+    (tau 1), mean [max] over seeds 0-9: what a design that knew how far to trust p_n would
+    get."""
     from bams_cli.core import design as dz
 
     for pb in PROBLEMS:
@@ -92,8 +93,10 @@ def fixed_lam(lams: list[float], strategies: list[str]) -> None:
             print(
                 f"  {pb:13s} {st:7s} fixed lam "
                 + " / ".join(
-                    f"{lam:g}: {r:.3f}"
-                    for lam, r in zip(lams, np.mean(ratios, axis=0), strict=True)
+                    f"{lam:g}: {r:.3f} [{m:.3f}]"
+                    for lam, r, m in zip(
+                        lams, np.mean(ratios, axis=0), np.max(ratios, axis=0), strict=True
+                    )
                 )
             )
 
