@@ -258,6 +258,10 @@ class StagedTrials:
         The uniform share stage 2 used (posterior mean after stage 1).
     stage2_design : list of str
         The design stage 2 chose in each trial.
+    recall : ndarray of shape (n_trials,)
+        The share of the pool's true failures in hand after the estimate: those known
+        before it, stage 1's sampled ones, and the expected number stage 2 samples given
+        stage 1 (its design's pi summed over the failures left), over all failures.
     var : float
         The design's variance of p_hat: sum_s w_s^2 Var(T_s) / N^2, exact for stage 1 and
         averaged over the trials' stage-1 draws for stage 2.
@@ -273,6 +277,7 @@ class StagedTrials:
     ci_high: FloatArray
     lam: FloatArray
     stage2_design: list[str]
+    recall: FloatArray
     var: float
     var_uniform: float
     stage1_design: str
@@ -382,15 +387,18 @@ class _Stage1:
 
     def result(
         self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
-        names: list[str], V2_mean: float,
+        names: list[str], V2_mean: float, in_hand: FloatArray,
     ) -> StagedTrials:  # fmt: skip
-        """The trials' figures with the design's variance against uniform's."""
+        """The trials' figures with the design's variance against uniform's; ``in_hand``:
+        each trial's failures in hand (``StagedTrials.recall`` before dividing by F)."""
         N, K, w = self.N, self.K, self.weights
         var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
         var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
+        n_fail = self.rate * N
+        recall = in_hand / n_fail if n_fail > 0 else np.full(in_hand.shape, np.nan)
         return StagedTrials(
-            p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, var=var,
-            var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
+            p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, recall=recall,
+            var=var, var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
         )  # fmt: skip
 
 
@@ -450,7 +458,7 @@ def _staged_trials(
     st = _stage1(p, is_failure, K, known, share, prior)
     N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
     p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
-    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2")}
+    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2", "in_hand")}
     names: list[str] = []
     for t in range(n_trials):
         s1 = np.flatnonzero(rng.random(n1) < pi1)
@@ -484,8 +492,12 @@ def _staged_trials(
         out["lam"][t] = post.lam_mean
         pf = pi2[f2]
         out["V2"][t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+        out["in_hand"][t] = known_f + int(fs1.sum()) + float(pf.sum())
         names.append(c2.name)
-    return st.result(out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()))
+    return st.result(
+        out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()),
+        out["in_hand"],
+    )  # fmt: skip
 
 
 def _capped(head: FloatArray, rest: float, K: float) -> tuple[int, float]:
@@ -618,6 +630,7 @@ def _staged_trials_fast(
     cap2 = np.empty(n_trials)
     lam = np.empty(n_trials)
     V2 = np.empty(n_trials)
+    in_hand = np.empty(n_trials)
     names: list[str] = []
     for t in range(n_trials):
         take1 = rng.random(n1) < pi1
@@ -725,6 +738,7 @@ def _staged_trials_fast(
         )  # fmt: skip
         pf = pi2[f2]
         V2[t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+        in_hand[t] = known_f + int(fs1.sum()) + float(pf.sum())
         names.append(name)
     # ``combine_stages`` on every trial's stage figures, in its order of operations.
     Nf = float(N)
@@ -737,7 +751,7 @@ def _staged_trials_fast(
     lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
     lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
-    return st.result(total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()))
+    return st.result(total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()), in_hand)
 
 
 def exact_variance(

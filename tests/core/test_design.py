@@ -323,10 +323,33 @@ def test_staged_trials_fast_path_equals_the_tools_functions(
     assert fast.stage2_design == ref.stage2_design
     assert fast.stage1_design == ref.stage1_design
     np.testing.assert_array_equal(fast.lam, ref.lam)
-    for name in ("p_hat", "ci_low", "ci_high"):
+    for name in ("p_hat", "ci_low", "ci_high", "recall"):
         np.testing.assert_allclose(getattr(fast, name), getattr(ref, name), rtol=1e-12, atol=0)
     assert fast.var == pytest.approx(ref.var, rel=1e-12, abs=0)
     assert fast.var_uniform == ref.var_uniform and fast.rate == ref.rate
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_staged_trials_recall_of_uniform_sampling(reference):
+    # p_n constant: both stages sample U uniformly, so the failures in hand are the known
+    # ones plus, in expectation, F_U K / |U| (stage 1 takes F_U K_1/|U|; stage 2 the rest's
+    # share K_2/|U_2| of the F_U (1 - K_1/|U|) left, |U_2| about |U| - K_1).
+    rng = np.random.default_rng(11)
+    n = 3000
+    fail = rng.random(n) < 0.03
+    known = np.zeros(n, bool)
+    known[:300] = True
+    F, known_f, F_U = fail.sum(), fail[known].sum(), fail[~known].sum()
+    K = 270.0
+    r = staged_trials(
+        np.full(n, 0.2), fail, K=K, known=known, n_trials=400 if not reference else 60,
+        rng=np.random.default_rng(3), reference=reference,
+    )  # fmt: skip
+    expected = (known_f + F_U * K / (n - 300)) / F
+    # Per trial: Binomial-like stage-1 count, sd about sqrt(F_U K_1/|U|) ~ 2.8 failures.
+    se = r.recall.std(ddof=1) / np.sqrt(r.recall.size)
+    assert abs(r.recall.mean() - expected) < 4 * se + 1e-3
+    assert np.all(r.recall >= known_f / F) and np.all(r.recall <= 1.0)
 
 
 def test_staged_trials_with_all_of_U_known_fails_as_the_tool_does():
