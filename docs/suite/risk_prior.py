@@ -71,31 +71,41 @@ def one(args):
 def fixed_lam(lams: list[float], strategies: list[str]) -> None:
     """The exact variance over uniform's of a single-stage calibrated design at fixed lam
     (tau 1), mean [max] over seeds 0-9: what a design that knew how far to trust p_n would
-    get."""
+    get; and its recall (known failures plus sum pi over U's, over all failures) over
+    uniform level-0 sampling's expectation (B + K) / N at the same cost."""
+    from bams_cli import benchmark as B
     from bams_cli.core import design as dz
 
     for pb in PROBLEMS:
         z = np.load(F / pb / "runs.npz")
         fail = z["f0"] <= float(z["gamma"])
+        proto = B.PROTOCOLS[pb]
+        uniform = (proto.m1 + proto.mb * (proto.n_batches - 1) + float(z["K"])) / fail.size
         for st in strategies:
-            ratios = []
+            ratios, recalls = [], []
             for seed in range(10):
                 known, p = z[f"{st}-{seed}-known"], z[f"{st}-{seed}-p"]
                 U = np.flatnonzero(~known)
                 K = min(float(z["K"]), U.size)
                 fu, u = fail[U], dz.relative_risk(p[U])
                 v_u = fu.sum() * (U.size - K) / K
-                row = []
+                row, rec = [], []
                 for lam in lams:
                     pi = dz.calibrated_design(lam + (1.0 - lam) * u, K=K)
                     row.append(float(((1.0 - pi[fu]) / pi[fu]).sum()) / v_u)
+                    rec.append((fail[known].sum() + pi[fu].sum()) / fail.sum() / uniform)
                 ratios.append(row)
+                recalls.append(rec)
             print(
                 f"  {pb:13s} {st:7s} fixed lam "
                 + " / ".join(
-                    f"{lam:g}: {r:.3f} [{m:.3f}]"
-                    for lam, r, m in zip(
-                        lams, np.mean(ratios, axis=0), np.max(ratios, axis=0), strict=True
+                    f"{lam:g}: {r:.3f} [{m:.3f}] recall {c:.2f}x"
+                    for lam, r, m, c in zip(
+                        lams,
+                        np.mean(ratios, axis=0),
+                        np.max(ratios, axis=0),
+                        np.mean(recalls, axis=0),
+                        strict=True,
                     )
                 )
             )
