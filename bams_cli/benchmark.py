@@ -835,8 +835,9 @@ def evaluate_runs(
             continue
         stats = [_run_designs(r, is_failure, K, estimator) for r in mine]
         entry = _summary([s["default"][0] for s in stats], [s["default"][1] for s in stats])
-        staged = [_staged_recall(r, is_failure, K) for r in mine]
-        if all(v is not None for v in staged):
+        maybe = [_staged_recall(r, is_failure, K) for r in mine]
+        staged = [v for v in maybe if v is not None]
+        if len(staged) == len(maybe):
             entry["recall_staged"] = float(np.mean(staged))
             entry["recall_staged_se"] = _se(staged)
             entry["per_seed_recall_staged"] = staged

@@ -242,11 +242,56 @@ def test_a_suite_problem_runs_end_to_end_into_the_suite_table(tmp_path):
     [mc_seed] = mc["per_seed_recall_staged"]
     assert mc_seed == pytest.approx(mc["recall"], rel=0.35)
     assert 0 < gp["recall_staged"] <= 1
+    # The default design's recall comes first in a row, then p^alpha's.
+    cells = [c.strip() for c in header.split("|")]
+    assert cells.index("recall, default") + 1 == cells.index("recall, p^alpha")
+    mc_row = next(line for line in md.splitlines() if "| MC |" in line).split("|")
+    at = cells.index("recall, default")
+    assert mc_row[at].strip().startswith(f"{mc['recall_staged']:.3f}")
+    assert mc_row[at + 1].strip().startswith(f"{mc['recall']:.3f}")
     row = next(line for line in md.splitlines() if line.startswith("| gap_sim"))
     assert f"{fitted:.3g}" in row and "10 / 5 / 5" in md
     condensed = json.loads((tmp_path / "suite.json").read_text())
     assert set(condensed) == {"gap_sim"} and set(results) == {"gap_sim"}
     assert condensed["gap_sim"]["strategies"]["mc"]["gp_rate_ratio"] is None
+
+
+def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
+    # The suite's "recall, default" for one run: staged_trials on its final p_n and known
+    # stratum (its own stream); a run without a model plans from a constant p_n; DS and CE
+    # (scores, not probabilities) have none.
+    from types import SimpleNamespace
+
+    from bams_cli import benchmark as B
+    from bams_cli.core.evaluate import staged_trials
+
+    rng = np.random.default_rng(0)
+    n = 3000
+    p = rng.beta(0.3, 8.0, n)
+    fail = rng.random(n) < p
+    known = np.zeros(n, bool)
+    known[np.argsort(-p)[:30]] = True  # discovery ran the riskiest segments
+    run = SimpleNamespace(p_after=[None, p], scores=None, known=known, seed=7)
+    want = staged_trials(
+        p,
+        fail,
+        K=120.0,
+        known=known,
+        n_trials=B.STAGED_TRIALS,
+        rng=np.random.default_rng([7, 2026]),
+    ).recall.mean()
+    assert B._staged_recall(run, fail, 120.0) == pytest.approx(want, rel=1e-12)
+    # The known stratum's failures are in hand whatever the design.
+    assert want >= fail[known].sum() / fail.sum()
+    flat = staged_trials(
+        np.ones(n), fail, K=120.0, known=known, n_trials=B.STAGED_TRIALS,
+        rng=np.random.default_rng([7, 2026]),
+    ).recall.mean()  # fmt: skip
+    assert want > flat  # this p_n ranks the failures: its design holds more of them
+    mc = SimpleNamespace(p_after=[None], scores=None, known=known, seed=7)
+    assert B._staged_recall(mc, fail, 120.0) == pytest.approx(flat, rel=1e-12)
+    ds = SimpleNamespace(p_after=[None], scores=np.ones(n), known=known, seed=7)
+    assert B._staged_recall(ds, fail, 120.0) is None
 
 
 def test_every_suite_problem_has_a_protocol_without_paper_numbers():

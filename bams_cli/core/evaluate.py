@@ -384,6 +384,7 @@ class _Stage1:
     wm1: float
     V1: float
     rate: float
+    n_fail: int
 
     def result(
         self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
@@ -394,8 +395,7 @@ class _Stage1:
         N, K, w = self.N, self.K, self.weights
         var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
         var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
-        n_fail = self.rate * N
-        recall = in_hand / n_fail if n_fail > 0 else np.full(in_hand.shape, np.nan)
+        recall = in_hand / self.n_fail if self.n_fail > 0 else np.full(in_hand.shape, np.nan)
         return StagedTrials(
             p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, recall=recall,
             var=var, var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
@@ -433,6 +433,7 @@ def _stage1(
         weights=[share, 1.0 - share], p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
         order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(post1.allowance_risk(p1), pi1),
         V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
+        n_fail=int(fail.sum()),
     )  # fmt: skip
 
 

@@ -139,8 +139,9 @@ def main(argv: list[str]) -> None:
         "robust) form, sum_U p_n + sum_s (y - p_n)/pi, over Horvitz-Thompson's on stage 1's "
         "design, mean [max] over seeds. recall: the share of the true failures in hand after "
         "the estimate (known before it, plus the design's sampled ones), mean over draws and "
-        "seeds, for the default design and for p^alpha; uniform's row is uniform level-0 "
-        f"sampling's. Wall time {wall:.0f} s on 2 workers "
+        "seeds, for the default design and for p^alpha; the uniform row's is that of a "
+        "uniform estimate after BAMS's discovery (BAMS's known strata, p_n constant), so it "
+        f"counts the failures BAMS's batches found. Wall time {wall:.0f} s on 2 workers "
         f"({sum(r['cpu_seconds'] for r in rows):.0f} CPU s in the trials, {cpu_all:.0f} CPU s "
         f"in all with the workers' start; load average {load0:.1f} at the start, "
         f"{load1:.1f} at the end, on 2 cores).",

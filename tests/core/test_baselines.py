@@ -121,6 +121,19 @@ def test_mixed_uniform_never_picks_an_excluded_pair(seed):
     assert zero.size == 2 and cheap.size == 12 and len(set(cheap)) == 12
     paired = [i for i in zero if not excl[i, 1]]
     assert set(paired) <= set(cheap)
+    # Level 0 free on 0-19, level 1 on 10-69: a level-0 pick pairs exactly when it is one
+    # of 10-19, and the pairs come first among the cheap picks.
+    band = np.ones((N, 2), bool)
+    band[:20, 0] = False
+    band[10:70, 1] = False
+    idx, lev = pick_uniform(
+        N, [1.0, 0.25], 5.0, rng=np.random.default_rng(seed), mixed=True, excluded_pairs=band
+    )
+    zero, cheap = idx[lev == 0], idx[lev == 1]
+    assert zero.size == 2 and set(zero) <= set(range(20))
+    pairs = [i for i in zero if 10 <= i < 20]
+    assert cheap[: len(pairs)].tolist() == pairs
+    assert cheap.size == 12 and set(cheap) <= set(range(10, 70)) and len(set(cheap)) == 12
     # Only three segments free at level 1: all three, and the pairs among them.
     few = np.ones((N, 2), bool)
     few[:, 0] = False
