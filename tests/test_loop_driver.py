@@ -423,7 +423,14 @@ def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(d
     tmp, seg, truth, _, _ = data
     proc, started = _start_sleeper_loop(tmp_path, seg)
     ws, args = tmp_path / "ws", proc.args
+    # The loop notes its simulator just after starting it; the simulator may write its pids
+    # first. Killed in between (a loaded CI machine did it), no loop could know of it.
+    record = ws / "loop-results" / ".simulator-batch-0001.csv.json"
+    deadline = time.monotonic() + 60
+    while not record.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
     try:
+        assert record.exists(), "the loop never noted its simulator"
         proc.kill()  # the loop alone
         proc.wait(timeout=60)  # (its stderr stays open: the simulator holds it)
         assert not process_gone(started[0])
