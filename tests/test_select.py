@@ -379,16 +379,22 @@ def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_
     assert Workspace(lead_ws).pending().height == 0
 
 
-def test_bams_never_offers_a_cheap_run_the_log_already_holds(toy_ws, runner, toy_files, tmp_path):
-    # A trial's fourth BAMS batch repeated 11 cheap picks of earlier batches: wasted on a
-    # deterministic cheap simulator, refused as conflicts from a noisy one. 396 of 400
-    # segments have a level-1 result here, so the greedy would otherwise repeat them.
+def _cheap_level_nearly_full(toy_ws, runner, toy_files, tmp_path) -> list[str]:
+    """Batch 1 run and ingested: 396 of the 400 segments at level 1, 4 of them at level 0."""
     _, truth = toy_files
     ids = [f"t{i:06d}" for i in range(400)]
     write_batch(toy_ws, 1, ids[:396] + ids[:4], [1] * 396 + [0] * 4)
     res = tmp_path / "r1.parquet"
     ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", toy_ws, res)
+    return ids
+
+
+def test_bams_never_offers_a_cheap_run_the_log_already_holds(toy_ws, runner, toy_files, tmp_path):
+    # A trial's fourth BAMS batch repeated 11 cheap picks of earlier batches: wasted on a
+    # deterministic cheap simulator, refused as conflicts from a noisy one. 396 of 400
+    # segments have a level-1 result here, so the greedy would otherwise repeat them.
+    ids = _cheap_level_nearly_full(toy_ws, runner, toy_files, tmp_path)
     ok(runner, "fit", "-w", toy_ws, "--restarts", "1")
     cheap_seen = set(ids[:396])
 
@@ -408,15 +414,10 @@ def test_random_mixed_picks_cheap_runs_only_where_the_level_is_free(
     toy_ws, runner, toy_files, tmp_path
 ):
     # 396 of 400 segments hold a level-1 result. The mixed random batch drew its cheap picks
-    # from the whole pool and then dropped the observed ones: a budget of 2 (one level-0
-    # run, ten cheap ones) came back with about no cheap pick, and when every draw had been
-    # dropped select said "nothing fits budget". The picks now come from the free pairs.
-    _, truth = toy_files
-    ids = [f"t{i:06d}" for i in range(400)]
-    write_batch(toy_ws, 1, ids[:396] + ids[:4], [1] * 396 + [0] * 4)
-    res = tmp_path / "r1.parquet"
-    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
-    ok(runner, "ingest-results", "-w", toy_ws, res)
+    # from the whole pool, so a budget of 2 (one level-0 run, ten cheap ones) re-ran
+    # segments the log already held, and when every draw was pending select said "nothing
+    # fits budget". The picks now come from the pairs free at their level.
+    ids = _cheap_level_nearly_full(toy_ws, runner, toy_files, tmp_path)
     r = ok(runner, "select", "-w", toy_ws, "--strategy", "random", "--mixed-fidelity",
            "--budget", "2", "--level0-share", "0.5", "--json")  # fmt: skip
     t = pq.read_table(toy_ws / "batches" / "batch-0002.parquet")
