@@ -27,8 +27,11 @@ the simulator and every process it started (SIGTERM, then SIGKILL after
 ``SIMULATOR_GRACE_S``), discards the partial results and exits 128 + the signal's number;
 the list stays pending, so the same loop run again resumes it. A SIGKILL of the loop alone
 cannot be caught: it leaves the simulator running, and a loop started while it still runs
-refuses to simulate the same list again, naming its pid (the loop notes its simulator in
-``.simulator-NAME.json`` beside the results file).
+refuses to simulate the same list again, naming its pids. Before starting the simulator
+the loop notes, in ``.simulator-NAME.json`` beside the results file, a token it puts in the
+simulator's environment (``SIMULATOR_TOKEN_ENV``), which every process the simulator starts
+inherits: a loop killed at any instant, even before it learned the simulator's pid, leaves
+a note that finds the whole tree.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ import signal
 import subprocess
 import sys
 import threading
+import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -635,9 +639,17 @@ def _run_simulator(
     import psutil
 
     before = {p.pid for p in psutil.Process().children()}  # not the simulator's
-    proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL)
+    # Noted before it starts: a loop killed between the start and a note of the pid left
+    # a simulator no later loop could know of.
+    token = uuid.uuid4().hex
+    _record_simulator(running, token, command)
+    env = {**os.environ, SIMULATOR_TOKEN_ENV: token}
     try:
-        _record_simulator(running, proc.pid, command)
+        proc = subprocess.Popen(command, shell=True, stdout=subprocess.DEVNULL, env=env)
+    except BaseException:
+        running.unlink(missing_ok=True)
+        raise
+    try:
         with memory.outside(proc.pid):  # the simulator's memory is not the loop's
             returncode = proc.wait()
     except BaseException:
@@ -676,42 +688,47 @@ def _still_pending(ws: Workspace, kind: Kind, number: int, handoff: Path, folder
     return subset
 
 
-def _record_simulator(record: Path, pid: int, command: str) -> None:
-    """Note the running simulator beside its results file, for a loop started after this
-    one was killed by SIGKILL (which leaves the simulator running) to find."""
+#: Set in the simulator's environment to the token noted in ``.simulator-NAME.json``.
+SIMULATOR_TOKEN_ENV = "BAMS_CLI_SIMULATOR_RUN"
+
+
+def _record_simulator(record: Path, token: str, command: str) -> None:
+    """Note the simulator about to run beside its results file, for a loop started after
+    this one was killed by SIGKILL (which leaves the simulator running) to find: every
+    process whose environment holds ``token``."""
+    with transaction() as tx:
+        tx.write_text(record, json.dumps({"token": token, "command": command}))
+
+
+def _simulator_processes(token: str) -> list[int]:
+    """The pids of the running processes whose environment holds ``token`` (a simulator
+    and every process it started that kept its environment)."""
     import psutil
 
-    with contextlib.suppress(psutil.Error):
-        started = psutil.Process(pid).create_time()
-        with transaction() as tx:
-            tx.write_text(record, json.dumps({"pid": pid, "started": started, "command": command}))
+    found = []
+    for p in psutil.process_iter():
+        with contextlib.suppress(psutil.Error):  # gone, or another user's
+            if p.environ().get(SIMULATOR_TOKEN_ENV) == token and p.status() != psutil.STATUS_ZOMBIE:
+                found.append(p.pid)
+    return sorted(found)
 
 
 def _refuse_an_earlier_loops_simulator(record: Path, kind: str, number: int) -> None:
     """Refuse to simulate a list again while the simulator an earlier, killed loop started
-    on it still runs: both would write the same results file. A record whose process has
-    ended (or whose pid now belongs to another process) is removed."""
-    import psutil
-
+    on it still runs: both would write the same results file. A record none of whose
+    processes runs any more is removed."""
     try:
         doc = json.loads(record.read_text())
-        pid, started, command = int(doc["pid"]), float(doc["started"]), str(doc["command"])
+        token, command = str(doc["token"]), str(doc["command"])
     except FileNotFoundError:
         return
     except (OSError, ValueError, KeyError, TypeError):
         record.unlink(missing_ok=True)  # unreadable: written by a loop killed mid-write
         return
-    try:
-        p = psutil.Process(pid)
-        alive = abs(p.create_time() - started) < 2.0 and p.status() != psutil.STATUS_ZOMBIE
-    except psutil.Error:
-        alive = False
-    if not alive:
+    pids = _simulator_processes(token)
+    if not pids:
         record.unlink(missing_ok=True)
         return
-    pids = [pid]
-    with contextlib.suppress(psutil.Error):
-        pids += [c.pid for c in p.children(recursive=True)]
     raise LoopError(
         f"{kind} {number}: the simulator an earlier `bams-cli loop` started on it is still "
         f"running (`{command}`, pid {', '.join(map(str, pids))}); that loop was killed "

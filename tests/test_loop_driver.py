@@ -4,6 +4,7 @@ run again once finished, it does nothing."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -423,12 +424,10 @@ def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(d
     tmp, seg, truth, _, _ = data
     proc, started = _start_sleeper_loop(tmp_path, seg)
     ws, args = tmp_path / "ws", proc.args
-    # The loop notes its simulator just after starting it; the simulator may write its pids
-    # first. Killed in between (a loaded CI machine did it), no loop could know of it.
+    # The loop notes its simulator before starting it (a loop killed between the start
+    # and a later note left one that no loop could know of: test_the_note_of_a_simulator_
+    # finds_it_before_its_pid_is_known).
     record = ws / "loop-results" / ".simulator-batch-0001.csv.json"
-    deadline = time.monotonic() + 60
-    while not record.exists() and time.monotonic() < deadline:
-        time.sleep(0.05)
     try:
         assert record.exists(), "the loop never noted its simulator"
         proc.kill()  # the loop alone
@@ -458,6 +457,52 @@ def test_a_loop_started_while_a_killed_loop_s_simulator_runs_refuses_naming_it(d
     steps = [(s["step"], s["list"]) for s in json.loads(again.stdout)["steps"]]
     assert steps == [("simulate", "batch 1"), ("ingest-results", "batch 1"), ("fit", None)]
     assert not list((ws / "loop-results").glob(".simulator-*"))  # the note of it is gone
+
+
+def test_the_note_of_a_simulator_finds_it_before_its_pid_is_known(tmp_path):
+    """A loop killed by SIGKILL just after starting its simulator, before it could learn
+    the pid, leaves only the note it wrote first: a later loop finds the simulator and what
+    it started by the token in their environment, refuses naming them all, and goes on
+    once they are gone."""
+    from bams_cli import loop
+
+    record = tmp_path / ".simulator-batch-0001.csv.json"
+    loop._record_simulator(record, "t0k3n", "sim {handoff}")
+    env = {**os.environ, loop.SIMULATOR_TOKEN_ENV: "t0k3n"}
+    pids = tmp_path / "pids"
+    # A shell that starts a child, as a simulator script does; both inherit the token.
+    tree = subprocess.Popen(["sh", "-c", f"sleep 60 & echo $$ $! > {pids}; wait"], env=env)
+    other = subprocess.Popen(  # another study's simulator: its token is not this one's
+        ["sleep", "60"], env={**os.environ, loop.SIMULATOR_TOKEN_ENV: "another"}
+    )
+    expected: list[int] = []
+    try:
+        deadline = time.monotonic() + 30
+        while not (pids.exists() and len(pids.read_text().split()) == 2):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        expected = sorted(int(x) for x in pids.read_text().split())
+        with pytest.raises(loop.LoopError) as exc:
+            loop._refuse_an_earlier_loops_simulator(record, "batch", 1)
+        named = [int(x) for x in str(exc.value).split("`kill ")[1].split("`")[0].split()]
+        assert named == expected and other.pid not in named
+        assert "(`sim {handoff}`, pid" in str(exc.value) and record.exists()
+    finally:
+        for p in expected:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p, signal.SIGKILL)
+        tree.wait(timeout=30)
+        other.kill()
+        other.wait(timeout=30)
+    deadline = time.monotonic() + 30
+    while not all(process_gone(p) for p in expected):
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    loop._refuse_an_earlier_loops_simulator(record, "batch", 1)  # nothing runs: goes on
+    assert not record.exists()
+    record.write_text('{"pid": 1, "sta')  # written by a loop killed mid-write
+    loop._refuse_an_earlier_loops_simulator(record, "batch", 1)
+    assert not record.exists()
 
 
 @pytest.mark.slow  # 5-10 s each: make test ran 625 s on a clean clone (budget 600)
