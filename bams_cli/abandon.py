@@ -487,6 +487,8 @@ def bound_estimates(
             failures_sampled=lo.n_failures_sampled,
             abandoned=k,
         )
+        if "p_hat_unbiased" in row:  # a staged estimate: the all-failing case's, as p_hat
+            row["p_hat_unbiased"] = float(high.p_hat_unbiased[g])
     summary["abandoned"] = {
         "count": k,
         "failed_as": "bounds",

@@ -143,6 +143,9 @@ ESTIMATE_ROW: Schema = obj(
     {
         "variance_note": nullable(STR),
         "rel_var_note": nullable(STR),
+        # Staged estimates: the stages' weighted sum, p_hat unless that fell below the
+        # failures found.
+        "p_hat_unbiased": NUM,
         # estimate --failed-as bounds: the range over abandoned planned segments.
         "p_hat_low": NUM,
         "p_hat_high": NUM,

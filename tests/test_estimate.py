@@ -6,6 +6,7 @@ import inspect
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -177,7 +178,9 @@ def _simulate_and_ingest(runner, ws, truth, number: int, tmp_path):
     ok(runner, "ingest-results", "-w", ws, res)
 
 
-def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitted_ws, tmp_path):
+def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
+    fitted_ws, tmp_path, monkeypatch
+):
     # Issue 12, point 1, the way a Makefile drives it: stage 1, its results, a refit, stage 2
     # from the model checked on stage 1's outcomes, its results, the combined estimate.
     from typer.testing import CliRunner
@@ -222,15 +225,35 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(fitt
     w1, w2 = out["staging"]["weights"]
     one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
     two = pipeline.plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
+    n_pool = pq.read_metadata(Path(ws) / "segments.parquet").num_rows
     for g, e in enumerate(out["estimates"]):
-        assert e["p_hat"] == pytest.approx(w1 * one.p_hat[g] + w2 * two.p_hat[g], rel=1e-12)
-        assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
+        wsum = w1 * one.p_hat[g] + w2 * two.p_hat[g]
+        assert e["p_hat_unbiased"] == pytest.approx(wsum, rel=1e-12)
+        # ... raised to the failures found when it falls below them (core.design).
+        assert e["p_hat"] == pytest.approx(max(wsum, e["distinct_failures_found"] / n_pool))
+        assert e["distinct_failures_found"] / n_pool <= e["ci_low"] <= e["p_hat"] <= e["ci_high"]
         # Failures are counted once: known from outside the samples (here: before stage 1),
         # then sampled by either stage (stage 2's known stratum holds stage 1's).
         assert e["failures_known"] == one.n_known_failures[g]
         assert e["failures_sampled"] == one.n_failures_sampled[g] + two.n_failures_sampled[g]
         assert e["failures_known"] + e["failures_sampled"] == e["distinct_failures_found"]
     assert one.n_failures_sampled.max() > 0  # else the double count could not show
+    # A weighted sum below the failures found (as if stage 1 had drawn few of those stage 2
+    # found) is kept as p_hat_unbiased, and the estimate says p_hat was raised.
+    from bams_cli.core import design
+
+    real = design.combine_stages
+    monkeypatch.setattr(
+        design, "combine_stages",
+        lambda *a, **kw: replace(c := real(*a, **kw), p_hat_unbiased=c.p_hat * 0.5),
+    )  # fmt: skip
+    low = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    monkeypatch.undo()
+    for e, e_low in zip(out["estimates"], low["estimates"], strict=True):
+        assert e_low["p_hat"] == e["p_hat"] and e_low["p_hat_unbiased"] == 0.5 * e["p_hat"]
+    raised = [n for n in low["notes"] if "fell below the" in n]
+    assert len(raised) == sum(e["p_hat"] > 0 for e in out["estimates"]) > 0
+    assert "`p_hat_unbiased` keeps the sum" in raised[0]
     # The third plan starts a new estimate: the series is complete.
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)

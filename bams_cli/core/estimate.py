@@ -216,6 +216,9 @@ class RateEstimates:
     design: str
     certain: FloatArray | None = None
     cap: FloatArray | None = None
+    #: Staged estimates: the stages' weighted sum, before p_hat is raised to the failures
+    #: found (``core.design.combine_stages``); None for one stage (p_hat is it).
+    p_hat_unbiased: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.p_hat.size)

@@ -254,6 +254,9 @@ class StagedTrials:
     ----------
     p_hat, ci_low, ci_high : ndarray of shape (n_trials,)
         The combined estimate and its interval in each trial.
+    p_hat_unbiased : ndarray of shape (n_trials,)
+        The stages' weighted sum, p_hat before it is raised to the failures found
+        (``core.design.combine_stages``): exactly unbiased.
     lam : ndarray of shape (n_trials,)
         The uniform share stage 2 used (posterior mean after stage 1).
     stage2_design : list of str
@@ -282,6 +285,7 @@ class StagedTrials:
     var_uniform: float
     stage1_design: str
     rate: float
+    p_hat_unbiased: FloatArray
 
     @property
     def coverage(self) -> float:
@@ -388,10 +392,11 @@ class _Stage1:
 
     def result(
         self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
-        names: list[str], V2_mean: float, in_hand: FloatArray,
+        names: list[str], V2_mean: float, in_hand: FloatArray, unbiased: FloatArray,
     ) -> StagedTrials:  # fmt: skip
         """The trials' figures with the design's variance against uniform's; ``in_hand``:
-        each trial's failures in hand (``StagedTrials.recall`` before dividing by F)."""
+        each trial's failures in hand (``StagedTrials.recall`` before dividing by F);
+        ``unbiased``: each trial's p_hat before it was raised to the failures found."""
         N, K, w = self.N, self.K, self.weights
         var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
         var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
@@ -399,6 +404,7 @@ class _Stage1:
         return StagedTrials(
             p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, recall=recall,
             var=var, var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
+            p_hat_unbiased=unbiased,
         )  # fmt: skip
 
 
@@ -459,7 +465,7 @@ def _staged_trials(
     st = _stage1(p, is_failure, K, known, share, prior)
     N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
     p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
-    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2", "in_hand")}
+    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2", "in_hand", "unbiased")}
     names: list[str] = []
     for t in range(n_trials):
         s1 = np.flatnonzero(rng.random(n1) < pi1)
@@ -490,6 +496,8 @@ def _staged_trials(
         )  # fmt: skip
         comb = dz.combine_stages([e1, e2], weights, n_pool=N)
         out["p_hat"][t], out["lo"][t], out["hi"][t] = comb.p_hat[0], comb.ci_low[0], comb.ci_high[0]
+        assert comb.p_hat_unbiased is not None
+        out["unbiased"][t] = comb.p_hat_unbiased[0]
         out["lam"][t] = post.lam_mean
         pf = pi2[f2]
         out["V2"][t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
@@ -497,7 +505,7 @@ def _staged_trials(
         names.append(c2.name)
     return st.result(
         out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()),
-        out["in_hand"],
+        out["in_hand"], out["unbiased"],
     )  # fmt: skip
 
 
@@ -750,9 +758,13 @@ def _staged_trials_fast(
     v = (0 + w[0] ** 2 * (var[0] / Nf**2) + w[1] ** 2 * (var[1] / Nf**2)) * Nf**2
     w_next = 0 + w[0] ** 2 * wal[0] + w[1] ** 2 * wal[1]
     lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
+    unbiased = total
+    total = np.maximum(total, found2)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
     lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
-    return st.result(total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()), in_hand)
+    return st.result(
+        total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()), in_hand, unbiased / Nf
+    )
 
 
 def exact_variance(

@@ -662,6 +662,7 @@ def estimate_compute(
     remaining = series[-1].stages - series[-1].stage
     rows = []
     gp_rows = []
+    raised: list[str] = []  # gammas whose p_hat was raised to the failures found
     # The IS estimate needs no model. Beside it goes the GP's own estimate: from the
     # current model when it has been fitted on the plan's results, else the model's as of
     # the plan (stored with it), so a large K never forces a refit just to get the number.
@@ -700,6 +701,18 @@ def estimate_compute(
                 "distinct_failures_found": e.n_failures_found,
             }
         )
+        if est.p_hat_unbiased is not None:
+            # The stages' weighted sum, which p_hat equals unless that fell below the
+            # failures found (core.design.combine_stages).
+            rows[-1]["p_hat_unbiased"] = float(est.p_hat_unbiased[g])
+            if est.p_hat_unbiased[g] < e.p_hat:
+                raised.append(
+                    f"gamma {float(gamma):g}: the stages' weighted sum "
+                    f"({float(est.p_hat_unbiased[g]):.4g}) fell below the "
+                    f"{e.n_failures_found} failures found, so p_hat is their share of the "
+                    f"pool ({e.p_hat:.4g}): the rate is at least that; `p_hat_unbiased` "
+                    "keeps the sum, for pooling estimates across studies"
+                )
         gp_mean, gp_bound = gp_values[g]
         gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
         if exact_variance:
@@ -731,7 +744,7 @@ def estimate_compute(
         "estimates": rows,
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
-        "notes": [n for n in (design_note(k.meta) for k in series) if n],
+        "notes": [n for n in (design_note(k.meta) for k in series) if n] + raised,
     }
     # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
     abandon.bound_estimates(

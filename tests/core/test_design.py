@@ -255,6 +255,51 @@ def test_combine_stages_is_the_weighted_sum_with_weighted_variance():
     assert dz.combine_stages([e1], [1.0], n_pool=n) is e1
 
 
+def test_a_weighted_sum_below_the_failures_found_is_raised_to_them():
+    # Stage 1 draws none of the 10 failures of 100 (all at pi 0.1); stage 2, planned from
+    # a model that learned where they are, takes them all at pi = 1. The weighted sum,
+    # 0.5 x 0 + 0.5 x 10 = 5 failures, is below the 10 in hand; the rate cannot be.
+    n = 100
+    fail = np.zeros(n, bool)
+    fail[:10] = True
+    pi1 = np.full(n, 0.1)
+    take1 = np.zeros(n, bool)
+    take1[50:60] = True  # ten passes
+    e1 = _stage(pi1, fail, take1, n_pool=n)
+    rest = ~take1
+    pi2 = np.where(fail[rest], 1.0, 0.05)
+    take2 = fail[rest].copy()
+    e2 = _stage(pi2, fail[rest], take2, n_pool=n)
+    c = dz.combine_stages([e1, e2], [0.5, 0.5], n_pool=n)
+    assert e1.p_hat[0] == 0.0 and e2.p_hat[0] == pytest.approx(0.10, rel=1e-12)
+    assert c.p_hat_unbiased[0] == pytest.approx(0.05, rel=1e-12)
+    assert c.n_failures_found[0] == 10
+    assert c.p_hat[0] == pytest.approx(0.10, rel=1e-12)  # 10 / 100
+    assert 0.10 - 1e-12 <= c.ci_low[0] <= c.p_hat[0] <= c.ci_high[0]
+    # Above the count the sum is p_hat itself; over random stages, p_hat is always the
+    # larger of the sum and the count, and the interval holds it.
+    rng = np.random.default_rng(3)
+    raised = 0
+    for _ in range(200):
+        f = rng.random(n) < 0.08
+        a, b = rng.uniform(0.02, 0.6, n), rng.uniform(0.02, 1.0, n)
+        t1 = rng.random(n) < a
+        r = ~t1
+        s1 = _stage(a, f, t1, n_pool=n)
+        s2 = _stage(b[r], f[r], rng.random(r.sum()) < b[r], n_pool=n,
+                    known_failures=int((f & t1).sum()))  # fmt: skip
+        w = rng.uniform(0.1, 0.9)
+        cc = dz.combine_stages([s1, s2], [w, 1 - w], n_pool=n)
+        wsum = w * s1.p_hat[0] + (1 - w) * s2.p_hat[0]
+        assert cc.p_hat_unbiased[0] == pytest.approx(wsum, rel=1e-12, abs=1e-15)
+        assert cc.p_hat[0] == pytest.approx(max(wsum, cc.n_failures_found[0] / n), rel=1e-12)
+        # (ci_high can be below p_hat: a stage's sum may pass the most the sample allows.)
+        assert cc.n_failures_found[0] / n - 1e-12 <= cc.ci_low[0] <= cc.p_hat[0]
+        assert cc.ci_low[0] <= cc.ci_high[0]
+        raised += cc.p_hat[0] > cc.p_hat_unbiased[0]
+    assert raised > 0  # the random stages reach the case too
+
+
 @pytest.mark.parametrize("model", ["calibrated", "useless"])
 def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     # Repeated draws of the whole two-stage design from a known truth: the mean of p_hat is
@@ -268,10 +313,14 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     # 2,000 draws: a useless model puts failures at small pi, whose weights make p_hat's
     # spread heavy-tailed, and 400 draws put the mean 3.2 SE off once (20,000: 1.1 SE).
     res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=2000, rng=rng)
-    se = res.p_hat.std(ddof=1) / np.sqrt(res.p_hat.size)
-    assert abs(res.p_hat.mean() - res.rate) < 3 * se
-    assert res.p_hat.var(ddof=1) == pytest.approx(res.var, rel=0.15)
+    se = res.p_hat_unbiased.std(ddof=1) / np.sqrt(res.p_hat_unbiased.size)
+    assert abs(res.p_hat_unbiased.mean() - res.rate) < 3 * se
+    assert res.p_hat_unbiased.var(ddof=1) == pytest.approx(res.var, rel=0.15)
     assert res.coverage >= 0.85
+    # p_hat is the sum raised to the failures found: never lower, and on the mean within
+    # the same 3 SE of the rate (it is raised only in the rare draws below the count).
+    assert np.all(res.p_hat >= res.p_hat_unbiased)
+    assert abs(res.p_hat.mean() - res.rate) < 3 * se
 
 
 def _pool(rng, n, kind):
@@ -397,6 +446,7 @@ def test_default_design_drawn_ten_thousand_times_is_unbiased_and_covers():
     res = staged_trials(p, fail, K=5.0 * fail.sum() * 0.6, known=known, n_trials=10_000, rng=rng)
     se = res.p_hat.std(ddof=1) / np.sqrt(res.p_hat.size)
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
+    assert abs(res.p_hat_unbiased.mean() - res.rate) < 3 * se
     assert res.coverage >= 0.88
     assert res.var <= 1.2 * res.var_uniform
 
