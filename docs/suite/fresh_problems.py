@@ -183,11 +183,11 @@ def repeat(out: Path, problem: str, seed: int, n: int) -> None:
 
 def _repeats(out: Path) -> list[str]:
     """Table lines for every ``repeat`` folder."""
+    import polars as pl
+
     lines = []
     for path in sorted((out / "repeat").glob("*/estimates.jsonl")):
         problem = path.parent.name.rsplit("-s", 1)[0]
-        import polars as pl
-
         truth = pl.read_parquet(out / problem / "truth.parquet")["value_0"].to_numpy()
         rate = float(np.mean(truth <= float((out / problem / "gamma").read_text())))
         rows = [json.loads(x) for x in path.read_text().splitlines() if x]
@@ -223,7 +223,8 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
             (pl.col("fidelity") == 0) & pl.col("batch").is_not_null() & (pl.col("batch") <= 3)
         )
         known = ids.is_in(before["segment_id"].implode()).to_numpy()
-        value = ids.to_frame().join(truth, on="segment_id", how="left")["value_0"]
+        levels = ids.to_frame().join(truth, on="segment_id", how="left")
+        value = levels["value_0"]
         fail = value.to_numpy() <= gamma
         rate, N, K = float(fail.mean()), len(fail), float(doc["samples_K"])
         t = staged_trials(
@@ -231,7 +232,7 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         )
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
         model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
-        f1 = ids.to_frame().join(truth, on="segment_id", how="left")["value_1"].to_numpy()
+        f1 = levels["value_1"].to_numpy()
         disc = discrepancy_sd(model["hyperparameters"]) / true_discrepancy_sd(
             value.to_numpy(), f1, model.get("transform")
         )
