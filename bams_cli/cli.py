@@ -294,10 +294,11 @@ def _json(name: str, summary: dict[str, Any]) -> None:
 
     The summary's ``warnings`` also go to stderr, one JSON object per line, as every other
     warning does under --json (a script watching stderr sees them without parsing stdout);
-    not for a no-op re-run, which only repeats what was warned when the work was done."""
-    if not summary.get("up_to_date"):
-        for text in summary.get("warnings") or []:
-            console.warning(str(text))
+    not for a no-op re-run, which only repeats what was warned when the work was done, save
+    its ``settings_warnings`` (about the settings as they are now)."""
+    said = summary.get("settings_warnings" if summary.get("up_to_date") else "warnings")
+    for text in said or []:
+        console.warning(str(text))
     console.print_json({"schema_version": schemas_json.version(name), **summary})
 
 
@@ -688,6 +689,8 @@ def fit(
         return
     if summary.get("up_to_date"):
         console.out.print(summary["message"], markup=False, highlight=False)
+        for text in summary.get("settings_warnings") or []:
+            console.warning(str(text))
         return
     console.fit_summary(summary)
 

@@ -299,6 +299,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 ),
                 "up_to_date": {"const": True},
                 "message": STR,
+                # With up_to_date: warnings about the settings as they are now (also in
+                # warnings), said again although the model is kept.
+                "settings_warnings": array(STR),
             },
         ),
     ),

@@ -432,3 +432,31 @@ def test_a_fit_with_nothing_to_do_does_not_load_the_numerical_stack(fitted_ws):
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert r.stdout.split() == ["True", "False"]
+
+
+def test_fit_says_when_an_edited_embedding_dim_has_not_been_applied(fitted_ws, runner, toy_files):
+    # settings.toml says "edit by hand", but a new embedding_dim changes nothing until the
+    # pool is reduced again: fit (kept or refitted) says so, and says it only while true.
+    ws = Workspace(fitted_ws)
+    text = ws.settings_path.read_text()
+    assert "embedding_dim = 2" in text
+    ws.settings_path.write_text(text.replace("embedding_dim = 2", "embedding_dim = 5"))
+
+    def stale(*args):
+        r = invoke(runner, "fit", "-w", fitted_ws, "--restarts", "2", *args)
+        assert r.exit_code == 0, r.output
+        return [s for s in r.stderr.splitlines() if "embedding_dim" in s]
+
+    [line] = stale()  # the model is up to date: the warning is still said
+    assert line.startswith(f"warning: {ws.settings_path}: embedding_dim is 5, but the pool was ")
+    assert "reduced with 2 (2 components)" in line and "embed-reduce --force" in line
+    assert len(stale("--force")) == 1
+    assert not any("embedding_dim" in w for w in json.loads(ws.model_path.read_text())["warnings"])
+    ws.settings_path.write_text(text)
+    assert stale() == []
+    # A pool reduced with an explicit --dim follows the flag, not the setting.
+    seg, _ = toy_files
+    ok(runner, "embed-reduce", "-w", fitted_ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize", "--dim", "2", "--force")  # fmt: skip
+    ws.settings_path.write_text(text.replace("embedding_dim = 2", "embedding_dim = 5"))
+    assert stale("--force") == []

@@ -124,6 +124,7 @@ def embed_reduce(
             raise OptionValueError(f"{flag} {value}: must be >= 1")
     ws = Workspace(root)
     settings = ws.require_initialised()
+    dim_given = dim
     id_column = id_column or settings.id_column
     if not source.exists():
         raise InputError(source, "segments file not found")
@@ -293,6 +294,9 @@ def embed_reduce(
         "applied_sha256": [*(made.get("applied_sha256") or []), request["source_sha256"]]
         if apply
         else [],
+        # Whether the count is the settings' embedding_dim (no --dim), so that `fit` can say
+        # when settings.toml has been edited since and the pool does not follow it.
+        "dim_from_settings": made.get("dim_from_settings") if apply else dim_given is None,
     }
     warnings = (
         []

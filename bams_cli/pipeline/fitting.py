@@ -26,6 +26,7 @@ from bams_cli.pipeline._common import SID, Progress, locked, read_scores
 from bams_cli.settings import Settings
 from bams_cli.state import schemas
 from bams_cli.state.io import (
+    read_metadata_json,
     stamp,
     transaction,
 )
@@ -204,12 +205,18 @@ def fit(
         raise OptionValueError(f"--transform {transform!r}: choose one of {', '.join(TRANSFORMS)}")
     ws = Workspace(root)
     settings = ws.require_initialised()
+    # Said on every fit, kept or not: it is about the settings as they are now.
+    stale_dim = _dimension_not_applied(ws, settings)
     if not force and fixed_hyperparameters is None:
         kept = _fit_up_to_date(
             ws, settings, restarts=restarts, transform=transform, max_memory=max_memory
         )
         if kept is not None:
-            return kept
+            return {
+                **kept,
+                "warnings": [*stale_dim, *kept["warnings"]],
+                "settings_warnings": stale_dim,
+            }
     # The numerical stack (scipy.stats alone takes seconds to import) only for a real fit:
     # a Makefile's `fit` with nothing to do returned after 3-7 s.
     from bams_cli.core.gp import GPFitError, Hyperparameters, OutputTransform, fit_transformed
@@ -341,7 +348,7 @@ def fit(
         "level0_failures": {
             str(g): int(np.unique(idx[(lv == 0) & (y <= g)]).size) for g in settings.gammas
         },
-        "warnings": warnings,
+        "warnings": [*stale_dim, *warnings],
     }
 
 
@@ -455,6 +462,25 @@ def _no_level0(levels: np.ndarray, n_levels: int) -> list[str]:
         "against level 0 and level 0's noise are not measured (taken as 0 and the prior's), "
         "so p_n is level 0's only if the cheap levels are unbiased; ingest level-0 results "
         "before trusting it"
+    ]
+
+
+def _dimension_not_applied(ws: Workspace, settings: Settings) -> list[str]:
+    """A warning when settings.toml's embedding_dim is not the count the pool was reduced
+    to from it: the pool keeps its coordinates until ``embed-reduce --force``, so an edit of
+    the setting after ``embed-reduce`` changes nothing by itself. Silent for a pool reduced
+    with an explicit ``--dim`` (the flag rules there) and for pools from before the
+    metadata recorded where the count came from."""
+    if not ws.segments_path.exists():
+        return []
+    made = read_metadata_json(ws.segments_path)
+    reduced = (made.get("reduce_options") or {}).get("dim")
+    if made.get("dim_from_settings") is not True or reduced == settings.embedding_dim:
+        return []
+    return [
+        f"{ws.settings_path}: embedding_dim is {settings.embedding_dim!r}, but the pool was "
+        f"reduced with {reduced!r} ({made.get('dim')} components); the setting applies only "
+        f"after `bams-cli embed-reduce --force` (then fit again)"
     ]
 
 
