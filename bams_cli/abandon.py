@@ -449,8 +449,10 @@ def bound_estimates(
     sampled_ids: np.ndarray,
     fails: np.ndarray,
     estimate_with: Callable[[np.ndarray], Any],
-) -> None:
+) -> Any:
     """``estimate --failed-as bounds``: the estimate over every abandoned case, in place.
+    Returns the all-failing case's estimates (``core.estimate.RateEstimates``: what p_hat
+    now reports), or None when nothing was abandoned.
 
     The plan's estimator runs twice on the same sample: abandoned segments taken as all
     passes and as all failures. The rate is reported as the range of the two p_hat
@@ -461,7 +463,7 @@ def bound_estimates(
     fails : bool ndarray of shape (n_sampled, n_gammas), abandoned rows' entries ignored.
     """
     if not lost:
-        return
+        return None
     gone = np.isin(np.asarray(sampled_ids).astype(str), np.asarray(lost, dtype=str))
     as_pass, as_fail = fails.copy(), fails.copy()
     as_pass[gone], as_fail[gone] = False, True
@@ -487,7 +489,7 @@ def bound_estimates(
             failures_sampled=lo.n_failures_sampled,
             abandoned=k,
         )
-        if "p_hat_unbiased" in row:  # a staged estimate: the all-failing case's, as p_hat
+        if "p_hat_unbiased" in row:  # the all-failing case's, as p_hat
             row["p_hat_unbiased"] = float(high.p_hat_unbiased[g])
     summary["abandoned"] = {
         "count": k,
@@ -495,3 +497,4 @@ def bound_estimates(
         "segments": [str(s) for s in lost[:20]],
         "note": note,
     }
+    return high

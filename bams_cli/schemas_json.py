@@ -143,8 +143,8 @@ ESTIMATE_ROW: Schema = obj(
     {
         "variance_note": nullable(STR),
         "rel_var_note": nullable(STR),
-        # Staged estimates: the stages' weighted sum, p_hat unless that fell below the
-        # failures found.
+        # The Horvitz-Thompson sum (staged: the stages' weighted sum), p_hat unless that fell
+        # below the failures found or above the segments not seen to pass.
         "p_hat_unbiased": NUM,
         # estimate --failed-as bounds: the range over abandoned planned segments.
         "p_hat_low": NUM,

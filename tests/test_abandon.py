@@ -5,6 +5,7 @@ without them, and an estimate that refuses them or bounds them (`--failed-as bou
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import random
@@ -19,6 +20,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
+from bams_cli import abandon
 from bams_cli.state.io import journal_in, recover
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
@@ -122,7 +124,7 @@ def _plan_study(runner, ws, truth, tmp: Path, n_lost: int = 3):
     return rids, res
 
 
-def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp_path):
+def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp_path, monkeypatch):
     runner, ws, truth, res, _ = study
     ok(runner, "ingest-results", "-w", ws, res, "--abandon-failed")
     rids, _ = _plan_study(runner, ws, truth, tmp_path)
@@ -154,6 +156,21 @@ def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp
     assert bounded["abandoned"]["count"] == 3 and sorted(
         bounded["abandoned"]["segments"]
     ) == sorted(ids)
+
+    # A note on a p_hat held within what the sample allows speaks of the estimate as
+    # reported, the all-failing case, not of the one before the bounds.
+    real = abandon.bound_estimates
+
+    def held_high(*args, **kwargs):
+        high = real(*args, **kwargs)
+        return dataclasses.replace(high, p_hat_unbiased=high.p_hat * 2.0)
+
+    monkeypatch.setattr(abandon, "bound_estimates", held_high)
+    held = json.loads(ok(runner, "estimate", "-w", ws, "--failed-as", "bounds", "--json").stdout)
+    monkeypatch.undo()
+    notes = [n for n in held["notes"] if "not seen to pass" in n]
+    assert len(notes) == len(held["estimates"]) and not [n for n in bounded["notes"] if "sum" in n]
+    assert f"so p_hat is that share ({held['estimates'][0]['p_hat']:.4g})" in notes[0]
 
     # The bounds are the estimator run on the plan with the lost runs all passing and all
     # failing: what results saying exactly that would give.

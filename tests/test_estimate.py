@@ -227,7 +227,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     two = pipeline.plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
     n_pool = pq.read_metadata(Path(ws) / "segments.parquet").num_rows
     for g, e in enumerate(out["estimates"]):
-        wsum = w1 * one.p_hat[g] + w2 * two.p_hat[g]
+        wsum = w1 * one.p_hat_unbiased[g] + w2 * two.p_hat_unbiased[g]
         assert e["p_hat_unbiased"] == pytest.approx(wsum, rel=1e-12)
         # ... raised to the failures found when it falls below them (core.design).
         assert e["p_hat"] == pytest.approx(max(wsum, e["distinct_failures_found"] / n_pool))
@@ -254,6 +254,15 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     raised = [n for n in low["notes"] if "fell below the" in n]
     assert len(raised) == sum(e["p_hat"] > 0 for e in out["estimates"]) > 0
     assert "`p_hat_unbiased` keeps the sum" in raised[0]
+    # One above what the sample allows is held to it, and said too.
+    monkeypatch.setattr(
+        design, "combine_stages",
+        lambda *a, **kw: replace(c := real(*a, **kw), p_hat_unbiased=c.p_hat * 2.0),
+    )  # fmt: skip
+    high = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    monkeypatch.undo()
+    capped = [n for n in high["notes"] if "not seen to pass" in n]
+    assert len(capped) == len(raised) and "the rate is at most that" in capped[0]
     # The third plan starts a new estimate: the series is complete.
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)

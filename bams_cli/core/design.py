@@ -451,6 +451,10 @@ def unseen_failure_weight(risk: ArrayLike, pi: ArrayLike) -> float:
     return float(r @ ((1.0 - pi) / np.where(rand, pi, 1.0))) / mass
 
 
+def _unbiased(stage: RateEstimates) -> FloatArray:
+    return stage.p_hat if stage.p_hat_unbiased is None else stage.p_hat_unbiased
+
+
 def combine_stages(
     stages: list[RateEstimates], weights: ArrayLike, *, n_pool: int
 ) -> RateEstimates:
@@ -470,8 +474,8 @@ def combine_stages(
     Returns
     -------
     RateEstimates
-        p_hat_unbiased = sum w_s p_hat_s, and p_hat = the larger of it and the failures
-        found over N; var_hat = sum w_s^2 var_hat_s; the gamma interval on the combined
+        p_hat_unbiased = sum w_s p_hat_unbiased_s, and p_hat = it held between the
+        failures found over N and the last stage's cap; var_hat = sum w_s^2 var_hat_s; the gamma interval on the combined
         random part, allowing for one more failure unseen by every stage (mean
         contribution sum w_s = 1, variance sum w_s^2 w_allow_s), never below the failures
         found; design "staged".
@@ -500,7 +504,9 @@ def combine_stages(
     if any(s.certain is None or s.cap is None for s in stages):
         raise ValueError("stages must come from estimate_from_sample (certain and cap set)")
     assert last.cap is not None
-    total = sum(ws * s.p_hat for ws, s in zip(w, stages, strict=True)) * N
+    # Each stage's own sum, not its p_hat held under its cap: the weighted sum of those
+    # would no longer be unbiased.
+    total = sum(ws * _unbiased(s) for ws, s in zip(w, stages, strict=True)) * N
     certain = sum(ws * np.asarray(s.certain) for ws, s in zip(w, stages, strict=True)) * N
     v = sum(ws**2 * s.var_hat for ws, s in zip(w, stages, strict=True)) * N**2
     w_next = sum(ws**2 * s.w_allow for ws, s in zip(w, stages, strict=True))
@@ -509,8 +515,8 @@ def combine_stages(
     lo_r, hi_r = _gamma_interval(np.maximum(R, 0.0), v, w_next, 1.0 - conf)
     found = last.n_failures_found.astype(np.float64)
     unbiased = total
-    total = np.maximum(total, found)
     cap = last.cap * N
+    total = np.minimum(np.maximum(total, found), cap)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap)
     lo = np.minimum(np.maximum(certain + lo_r, found), np.minimum(total, hi))
     var_hat = v / N**2

@@ -62,8 +62,9 @@ conservative (measured 0.97-0.98), the price of never under-covering there. The 
   three, -ln(a/2)(1 - pi)/pi, under uniform sampling.
 
 Finally the interval is intersected with what is certain: at least the failures in hand, at
-most the segments not seen to pass (HT totals are not range-respecting, so in a rare sample
-p_hat exceeds that cap and the interval lies below it).
+most the segments not seen to pass. HT totals are not range-respecting, so in a rare sample
+the sum exceeds that cap; p_hat is then the cap (the truth is below it, so this only moves
+p_hat nearer), and ``p_hat_unbiased`` keeps the sum.
 
 The standard error follows the same reasoning. The HT variance estimate sums over the
 sampled failures with pi < 1, so it is 0 whenever none was sampled, even when failures
@@ -216,8 +217,10 @@ class RateEstimates:
     design: str
     certain: FloatArray | None = None
     cap: FloatArray | None = None
-    #: Staged estimates: the stages' weighted sum, before p_hat is raised to the failures
-    #: found (``core.design.combine_stages``); None for one stage (p_hat is it).
+    #: The design-unbiased total over N (one stage's Horvitz-Thompson sum, or the stages'
+    #: weighted sum), before p_hat is held within what the sample allows: at least the
+    #: failures found (``core.design.combine_stages``), at most ``cap``. p_hat equals it
+    #: but in rare samples. None where no such sum exists (a bound, a GP's estimate).
     p_hat_unbiased: FloatArray | None = None
 
     def __len__(self) -> int:
@@ -487,7 +490,13 @@ def estimate_from_sample(
         # The same for a segment of U_r at its mean inclusion probability K_r / |U_r|.
         w0 = (n_unknown - n_certain - K_r) / K_r if K_r > 0 else 0.0
 
-    total = known + D + R
+    # HT totals are not range-respecting: in a rare sample (failures drawn at small pi from
+    # a small pool) the sum exceeds every segment not seen to pass, which cannot all fail.
+    # p_hat is held to that cap (only nearer the truth, which is below it); p_hat_unbiased
+    # keeps the sum, which stages combine (``core.design.combine_stages``) and pooling uses.
+    unbiased = known + D + R
+    hi_cap = known + n_unknown - n_pass_s
+    total = np.minimum(unbiased, hi_cap)
     N = float(n_pool)
     p_hat = total / N
     var_hat = v / N**2
@@ -531,7 +540,6 @@ def estimate_from_sample(
 
     a = 1.0 - confidence
     found = known + D + n_rand_fail
-    hi_cap = known + n_unknown - n_pass_s
     if interval in ("gamma", "fay-feuer"):
         if interval == "gamma":
             w_next = w_allow
@@ -553,8 +561,7 @@ def estimate_from_sample(
     lo = np.where(np.isfinite(v), lo, -np.inf)
     hi = np.where(np.isfinite(v), hi, np.inf)
     # Intersect with the feasible range: the failures in hand are a sure lower bound, and
-    # segments seen to pass cannot fail. HT totals are not range-respecting, so in rare
-    # samples p_hat exceeds the cap and the interval then lies below p_hat.
+    # segments seen to pass cannot fail (p_hat is within it, above).
     hi = np.minimum(np.maximum(hi, total), hi_cap)
     lo = np.minimum(np.maximum(lo, found), np.minimum(total, hi))
     return RateEstimates(
@@ -575,6 +582,7 @@ def estimate_from_sample(
         design=design,
         certain=(known + D) / N,
         cap=hi_cap / N,
+        p_hat_unbiased=unbiased / N,
     )
 
 

@@ -255,8 +255,8 @@ class StagedTrials:
     p_hat, ci_low, ci_high : ndarray of shape (n_trials,)
         The combined estimate and its interval in each trial.
     p_hat_unbiased : ndarray of shape (n_trials,)
-        The stages' weighted sum, p_hat before it is raised to the failures found
-        (``core.design.combine_stages``): exactly unbiased.
+        The stages' weighted sum, p_hat before it is held between the failures found and
+        the cap (``core.design.combine_stages``): exactly unbiased.
     lam : ndarray of shape (n_trials,)
         The uniform share stage 2 used (posterior mean after stage 1).
     stage2_design : list of str
@@ -396,7 +396,8 @@ class _Stage1:
     ) -> StagedTrials:  # fmt: skip
         """The trials' figures with the design's variance against uniform's; ``in_hand``:
         each trial's failures in hand (``StagedTrials.recall`` before dividing by F);
-        ``unbiased``: each trial's p_hat before it was raised to the failures found."""
+        ``unbiased``: each trial's p_hat before it was held between the failures found
+        and the cap."""
         N, K, w = self.N, self.K, self.weights
         var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
         var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
@@ -759,7 +760,7 @@ def _staged_trials_fast(
     w_next = 0 + w[0] ** 2 * wal[0] + w[1] ** 2 * wal[1]
     lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
     unbiased = total
-    total = np.maximum(total, found2)
+    total = np.minimum(np.maximum(total, found2), cap2 / Nf * Nf)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
     lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
     return st.result(

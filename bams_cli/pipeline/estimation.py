@@ -5,9 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import polars as pl
@@ -47,6 +47,9 @@ from bams_cli.state.io import (
     transaction,
 )
 from bams_cli.state.workspace import Workspace
+
+if TYPE_CHECKING:
+    from bams_cli.core.estimate import RateEstimates
 
 #: Where a plan's seed came from (its metadata's ``seed_source``).
 SEED_OPTION = "--seed"
@@ -662,7 +665,6 @@ def estimate_compute(
     remaining = series[-1].stages - series[-1].stage
     rows = []
     gp_rows = []
-    raised: list[str] = []  # gammas whose p_hat was raised to the failures found
     # The IS estimate needs no model. Beside it goes the GP's own estimate: from the
     # current model when it has been fitted on the plan's results, else the model's as of
     # the plan (stored with it), so a large K never forces a refit just to get the number.
@@ -702,17 +704,10 @@ def estimate_compute(
             }
         )
         if est.p_hat_unbiased is not None:
-            # The stages' weighted sum, which p_hat equals unless that fell below the
-            # failures found (core.design.combine_stages).
+            # The Horvitz-Thompson sum (of a staged estimate, the stages' weighted sum),
+            # which p_hat equals unless that fell below the failures found
+            # (core.design.combine_stages) or above every segment not seen to pass.
             rows[-1]["p_hat_unbiased"] = float(est.p_hat_unbiased[g])
-            if est.p_hat_unbiased[g] < e.p_hat:
-                raised.append(
-                    f"gamma {float(gamma):g}: the stages' weighted sum "
-                    f"({float(est.p_hat_unbiased[g]):.4g}) fell below the "
-                    f"{e.n_failures_found} failures found, so p_hat is their share of the "
-                    f"pool ({e.p_hat:.4g}): the rate is at least that; `p_hat_unbiased` "
-                    "keeps the sum, for pooling estimates across studies"
-                )
         gp_mean, gp_bound = gp_values[g]
         gp_row = {"gamma": float(gamma), "gp_p_hat": gp_mean, "gp_var_bound": gp_bound}
         if exact_variance:
@@ -744,13 +739,16 @@ def estimate_compute(
         "estimates": rows,
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
-        "notes": [n for n in (design_note(k.meta) for k in series) if n] + raised,
+        "notes": [],  # below: they speak of the estimate as reported
     }
     # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
-    abandon.bound_estimates(
+    worst = abandon.bound_estimates(
         summary, lost=lost, sampled_ids=np.concatenate([x.sampled_ids for x in samples]),
         fails=fails, estimate_with=estimate_with,
     )  # fmt: skip
+    summary["notes"] = [n for n in (design_note(k.meta) for k in series) if n] + held_notes(
+        est if worst is None else worst, gammas
+    )
     out = ws.estimate_path(number)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
     earlier = _earlier_estimate(out, text)
@@ -761,6 +759,32 @@ def estimate_compute(
     summary["estimate_file"] = str(out)
     summary["earlier_estimate"] = earlier
     return summary
+
+
+def held_notes(est: RateEstimates, gammas: Sequence[float] | np.ndarray) -> list[str]:
+    """A note per gamma whose p_hat is not the Horvitz-Thompson sum ``p_hat_unbiased``: a
+    staged sum below the failures found (``core.design.combine_stages``), or a sum above
+    every segment not seen to pass, held there."""
+    if est.p_hat_unbiased is None:
+        return []
+    notes = []
+    for g, gamma in enumerate(gammas):
+        total, p_hat = float(est.p_hat_unbiased[g]), float(est.p_hat[g])
+        if total > p_hat:
+            notes.append(
+                f"gamma {float(gamma):g}: the Horvitz-Thompson sum ({total:.4g}) exceeded the "
+                f"share of the pool not seen to pass, so p_hat is that share ({p_hat:.4g}): "
+                "the rate is at most that; `p_hat_unbiased` keeps the sum, for pooling "
+                "estimates across studies"
+            )
+        elif total < p_hat:
+            notes.append(
+                f"gamma {float(gamma):g}: the stages' weighted sum ({total:.4g}) fell below "
+                f"the {int(est.n_failures_found[g])} failures found, so p_hat is their share "
+                f"of the pool ({p_hat:.4g}): the rate is at least that; `p_hat_unbiased` "
+                "keeps the sum, for pooling estimates across studies"
+            )
+    return notes
 
 
 def _earlier_estimate(out: Path, text: str) -> dict[str, Any] | None:

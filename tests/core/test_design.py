@@ -276,28 +276,34 @@ def test_a_weighted_sum_below_the_failures_found_is_raised_to_them():
     assert c.n_failures_found[0] == 10
     assert c.p_hat[0] == pytest.approx(0.10, rel=1e-12)  # 10 / 100
     assert 0.10 - 1e-12 <= c.ci_low[0] <= c.p_hat[0] <= c.ci_high[0]
-    # Above the count the sum is p_hat itself; over random stages, p_hat is always the
-    # larger of the sum and the count, and the interval holds it.
+    # Between the count and the cap the sum is p_hat itself; over random stages, p_hat is
+    # always the sum held between them, and the interval holds it.
     rng = np.random.default_rng(3)
-    raised = 0
+    raised = capped = 0
     for _ in range(200):
         f = rng.random(n) < 0.08
         a, b = rng.uniform(0.02, 0.6, n), rng.uniform(0.02, 1.0, n)
         t1 = rng.random(n) < a
         r = ~t1
+        t2 = rng.random(r.sum()) < b[r]
         s1 = _stage(a, f, t1, n_pool=n)
-        s2 = _stage(b[r], f[r], rng.random(r.sum()) < b[r], n_pool=n,
-                    known_failures=int((f & t1).sum()))  # fmt: skip
+        s2 = _stage(b[r], f[r], t2, n_pool=n, known_failures=int((f & t1).sum()))
         w = rng.uniform(0.1, 0.9)
         cc = dz.combine_stages([s1, s2], [w, 1 - w], n_pool=n)
-        wsum = w * s1.p_hat[0] + (1 - w) * s2.p_hat[0]
+        # Each stage's own Horvitz-Thompson sum (1/pi per sampled failure), not its p_hat,
+        # which a stage's cap may hold below it.
+        ht1 = float((1.0 / a[f & t1]).sum())
+        ht2 = int((f & t1).sum()) + float((1.0 / b[r][f[r] & t2]).sum())
+        assert s1.p_hat_unbiased[0] * n == pytest.approx(ht1, rel=1e-12, abs=1e-12)
+        assert s2.p_hat_unbiased[0] * n == pytest.approx(ht2, rel=1e-12, abs=1e-12)
+        wsum = (w * ht1 + (1 - w) * ht2) / n
         assert cc.p_hat_unbiased[0] == pytest.approx(wsum, rel=1e-12, abs=1e-15)
-        assert cc.p_hat[0] == pytest.approx(max(wsum, cc.n_failures_found[0] / n), rel=1e-12)
-        # (ci_high can be below p_hat: a stage's sum may pass the most the sample allows.)
-        assert cc.n_failures_found[0] / n - 1e-12 <= cc.ci_low[0] <= cc.p_hat[0]
-        assert cc.ci_low[0] <= cc.ci_high[0]
+        found, cap = cc.n_failures_found[0] / n, cc.cap[0]
+        assert cc.p_hat[0] == pytest.approx(min(max(wsum, found), cap), rel=1e-12)
+        assert found - 1e-12 <= cc.ci_low[0] <= cc.p_hat[0] <= cc.ci_high[0] <= cap + 1e-12
         raised += cc.p_hat[0] > cc.p_hat_unbiased[0]
-    assert raised > 0  # the random stages reach the case too
+        capped += cc.p_hat[0] < cc.p_hat_unbiased[0]
+    assert raised > 0 and capped > 0  # the random stages reach both cases
 
 
 @pytest.mark.parametrize("model", ["calibrated", "useless"])

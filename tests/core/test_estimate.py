@@ -677,9 +677,10 @@ def test_ci_contains_found_and_excludes_passed():
         budget=2.7, known_failures=2,
     )  # fmt: skip
     # 2 known + 2 found = 4 failures for sure; the third unknown passed, so at most 4.
-    # p_hat = (2 + 2/0.9)/5 exceeds that cap (HT is not range-respecting).
-    assert est.p_hat[0] > 4 / 5
-    assert est.ci_low[0] == est.ci_high[0] == 4 / 5
+    # The sum (2 + 2/0.9)/5 exceeds that cap (HT is not range-respecting): p_hat is held
+    # to it, and p_hat_unbiased keeps the sum.
+    assert est.p_hat_unbiased[0] == pytest.approx((2 + 2 / 0.9) / 5, rel=1e-12)
+    assert est.ci_low[0] == est.p_hat[0] == est.ci_high[0] == 4 / 5
 
 
 # --------------------------------------------------------------------------------------------
@@ -805,3 +806,22 @@ def test_bvn_cov_special_cases():
         np.testing.assert_allclose(got, both - ndtr(h) * ndtr(k), atol=2e-15)
     # Plackett at h = k = 0: Phi2 = 1/4 + asin(r)/(2 pi).
     assert math.isclose(bvn_cov(0.0, 0.0, 0.5), math.asin(0.5) / (2 * math.pi), rel_tol=1e-14)
+
+
+@pytest.mark.parametrize("design", ["poisson", "with-replacement"])
+def test_a_horvitz_thompson_sum_above_what_the_sample_allows_is_held_to_it(design):
+    # Ten segments at pi 0.1; the sample holds one failure (weight 10) and two passes. The
+    # sum says all ten fail, but two were seen to pass: at most 8 can. p_hat is 8 / 10,
+    # the interval holds it, and p_hat_unbiased keeps the sum (the stages combine that).
+    pi = np.array([0.1, 0.1, 0.1])
+    fails = np.array([True, False, False])
+    e = estimate_from_sample(pi, fails, design=design, n_pool=10, n_unknown=10, budget=1.0)
+    assert e.cap[0] == pytest.approx(0.8)
+    if design == "poisson":
+        assert e.p_hat_unbiased[0] == pytest.approx(1.0, rel=1e-12)
+        assert e.p_hat[0] == pytest.approx(0.8, rel=1e-12)
+    assert e.p_hat[0] <= e.cap[0] + 1e-12 and e.p_hat[0] <= e.p_hat_unbiased[0] + 1e-12
+    assert 0.1 - 1e-12 <= e.ci_low[0] <= e.p_hat[0] <= e.ci_high[0] <= 0.8 + 1e-12
+    # Below the cap nothing changes: p_hat is the sum.
+    few = estimate_from_sample(pi, fails, design=design, n_pool=100, n_unknown=100, budget=10.0)
+    assert few.p_hat[0] == few.p_hat_unbiased[0]
