@@ -19,9 +19,11 @@ from pathlib import Path
 import polars as pl
 import pytest
 
+from bams_cli import schemas_json
 from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
 from tests.conftest import process_gone, tree_hash, write_toy
+from tests.jsonschema_subset import errors
 
 BAMS = [sys.executable, "-m", "bams_cli"]
 
@@ -97,6 +99,13 @@ def test_loop_runs_the_study_to_an_estimate(data):
     assert ("fit", None) in steps[i1:i2] and ("estimate", "plan 2") in steps[i2:]
     assert steps[-1] == ("fit", None)  # the model includes the plan's results
     assert out["batches"] == 3 and out["plans"] == 2 and out["estimate_file"]
+    # The output of a loop that did the work validates against its schema, every field a
+    # step carried included (the schema test's own study runs a loop with nothing to do).
+    assert errors(out, schemas_json.schema("loop")) == []
+    carried = {k for s in out["steps"] for k in s}
+    assert {"picks", "results", "ingested", "to_simulate", "estimate_file"} <= carried
+    described = schemas_json.schema("loop")["properties"]["steps"]["items"]["properties"]
+    assert carried <= set(described), sorted(carried - set(described))  # schemas stay open
     status = subprocess.run([*BAMS, "status", "-w", str(ws), "--json"], capture_output=True,
                             text=True)  # fmt: skip
     s = json.loads(status.stdout)
@@ -215,9 +224,13 @@ def test_with_retries_a_simulator_that_fails_now_and_then_is_run_again(data, tmp
     assert r.returncode == 0, r.stderr
     assert count.read_text() == "2" and Workspace(ws).pending().height == 0
     assert "the simulator exited with 1" in r.stderr and "retry 1 of 1" in r.stderr
-    steps = json.loads(r.stdout)["steps"]
+    out = json.loads(r.stdout)
+    steps = out["steps"]
     assert [s["step"] for s in steps] == ["select", "simulate", "simulate", "ingest-results", "fit"]
     assert steps[1]["failed"] == 1 and "results" in steps[2]
+    assert errors(out, schemas_json.schema("loop")) == []  # a failed step's fields too
+    described = schemas_json.schema("loop")["properties"]["steps"]["items"]["properties"]
+    assert {k for s in steps for k in s} <= set(described)
 
 
 @pytest.mark.slow  # about a minute: make test ran 14 min (budget 10)
