@@ -593,8 +593,11 @@ def _run(
             wait=wait,
         )  # fmt: skip
         record["estimate_file"] = out["estimate_file"]
-    if on_warning is not None and not out.get("up_to_date"):
-        for text in out.get("warnings") or []:
+    if on_warning is not None:
+        # A no-op re-run repeats nothing it warned of when the work was done, save what
+        # it says of the settings as they are now (``fit``'s ``settings_warnings``).
+        said = out.get("settings_warnings" if out.get("up_to_date") else "warnings")
+        for text in said or []:
             on_warning(f"{_describe(name, kind, number)}: {text}")
     return record
 

@@ -171,6 +171,7 @@ def test_estimate_refuses_abandoned_planned_segments_then_bounds_them(study, tmp
     notes = [n for n in held["notes"] if "not seen to pass" in n]
     assert len(notes) == len(held["estimates"]) and not [n for n in bounded["notes"] if "sum" in n]
     assert f"so p_hat is that share ({held['estimates'][0]['p_hat']:.4g})" in notes[0]
+    assert notes[0].startswith("gamma 0.56, with the 3 abandoned segments all failing: ")
 
     # The bounds are the estimator run on the plan with the lost runs all passing and all
     # failing: what results saying exactly that would give.

@@ -924,3 +924,25 @@ def test_the_simulator_command_quotes_the_paths_unless_the_user_did():
     assert shlex.split(inline) == ["python", "-c", f'run("{h}", "{r}")']
     # Other braces (R or Python code in the command) are left as they are.
     assert fill_simulator("sim {handoff} {results} --opt {x}", h, r).endswith(" --opt {x}")
+
+
+def test_a_kept_model_s_warnings_about_the_settings_reach_the_loop(tmp_path, monkeypatch):
+    # fit's no-op re-run repeats none of its stored warnings, but what it says of the
+    # settings as they are now (an edited embedding_dim not applied) is new: the loop says it.
+    from bams_cli import loop, pipeline
+
+    kept = {"up_to_date": True, "warnings": ["old", "now"], "settings_warnings": ["now"]}
+    monkeypatch.setattr(pipeline, "fit", lambda root, wait: kept)
+    said: list[str] = []
+    ws = Workspace(tmp_path)
+    opts = loop.Options(
+        simulator="true", batches=1, budget=1.0, first_budget=1.0, then_estimate=False,
+        samples=None, results_dir=tmp_path, abandon_failed=False, retries=0, clusters=1,
+        workers=None, wait=False,
+    )  # fmt: skip
+    record = loop._run(ws, opts, "fit", None, None, set(), on_warning=said.append)
+    assert record["up_to_date"] is True and said == ["fit: now"]
+    kept = {"warnings": ["fresh"]}  # a fit that did the work: all its warnings
+    said.clear()
+    loop._run(ws, opts, "fit", None, None, set(), on_warning=said.append)
+    assert said == ["fit: fresh"]

@@ -63,7 +63,8 @@ conservative (measured 0.97-0.98), the price of never under-covering there. The 
 
 Finally the interval is intersected with what is certain: at least the failures in hand, at
 most the segments not seen to pass. HT totals are not range-respecting, so in a rare sample
-the sum exceeds that cap; p_hat is then the cap (the truth is below it, so this only moves
+the sum exceeds that cap, and a with-replacement sum can fall below the failures in hand;
+p_hat is then held to the limit it crossed (the truth lies within them, so this only moves
 p_hat nearer), and ``p_hat_unbiased`` keeps the sum.
 
 The standard error follows the same reasoning. The HT variance estimate sums over the
@@ -217,10 +218,10 @@ class RateEstimates:
     design: str
     certain: FloatArray | None = None
     cap: FloatArray | None = None
-    #: The design-unbiased total over N (one stage's Horvitz-Thompson sum, or the stages'
-    #: weighted sum), before p_hat is held within what the sample allows: at least the
-    #: failures found (``core.design.combine_stages``), at most ``cap``. p_hat equals it
-    #: but in rare samples. None where no such sum exists (a bound, a GP's estimate).
+    #: The design-unbiased total over N (one stage's Horvitz-Thompson or Hansen-Hurwitz
+    #: sum, or the stages' weighted sum), before p_hat is held within what the sample
+    #: allows: at least the failures found, at most ``cap``. p_hat equals it but in rare
+    #: samples. None where no such sum exists (a bound, a GP's estimate).
     p_hat_unbiased: FloatArray | None = None
 
     def __len__(self) -> int:
@@ -491,12 +492,15 @@ def estimate_from_sample(
         w0 = (n_unknown - n_certain - K_r) / K_r if K_r > 0 else 0.0
 
     # HT totals are not range-respecting: in a rare sample (failures drawn at small pi from
-    # a small pool) the sum exceeds every segment not seen to pass, which cannot all fail.
-    # p_hat is held to that cap (only nearer the truth, which is below it); p_hat_unbiased
-    # keeps the sum, which stages combine (``core.design.combine_stages``) and pooling uses.
+    # a small pool) the sum exceeds every segment not seen to pass, which cannot all fail;
+    # a with-replacement (Hansen-Hurwitz) sum can also fall below the distinct failures in
+    # hand. p_hat is held between the two (only nearer the truth, which lies between them);
+    # p_hat_unbiased keeps the sum, which stages combine (``core.design.combine_stages``)
+    # and pooling uses.
     unbiased = known + D + R
+    found = known + D + n_rand_fail
     hi_cap = known + n_unknown - n_pass_s
-    total = np.minimum(unbiased, hi_cap)
+    total = np.minimum(np.maximum(unbiased, found), hi_cap)
     N = float(n_pool)
     p_hat = total / N
     var_hat = v / N**2
@@ -539,7 +543,6 @@ def estimate_from_sample(
         n_eff = np.where(R > 0, np.where(v > 0, R**2 / np.where(v > 0, v, 1.0), np.inf), 0.0)
 
     a = 1.0 - confidence
-    found = known + D + n_rand_fail
     if interval in ("gamma", "fay-feuer"):
         if interval == "gamma":
             w_next = w_allow

@@ -730,7 +730,7 @@ def estimate_compute(
             else None
         ),
     }
-    summary = {
+    summary: dict[str, Any] = {
         "plan": number,
         "design": meta["design"] if len(series) == 1 else "staged",
         "interval": interval,
@@ -746,9 +746,12 @@ def estimate_compute(
         summary, lost=lost, sampled_ids=np.concatenate([x.sampled_ids for x in samples]),
         fails=fails, estimate_with=estimate_with,
     )  # fmt: skip
-    summary["notes"] = [n for n in (design_note(k.meta) for k in series) if n] + held_notes(
-        est if worst is None else worst, gammas
+    held = (
+        held_notes(est, gammas)
+        if worst is None
+        else held_notes(worst, gammas, abandoned=summary["abandoned"]["count"])
     )
+    summary["notes"] = [n for n in (design_note(k.meta) for k in series) if n] + held
     out = ws.estimate_path(number)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
     earlier = _earlier_estimate(out, text)
@@ -761,28 +764,34 @@ def estimate_compute(
     return summary
 
 
-def held_notes(est: RateEstimates, gammas: Sequence[float] | np.ndarray) -> list[str]:
-    """A note per gamma whose p_hat is not the Horvitz-Thompson sum ``p_hat_unbiased``: a
-    staged sum below the failures found (``core.design.combine_stages``), or a sum above
-    every segment not seen to pass, held there."""
+def held_notes(
+    est: RateEstimates, gammas: Sequence[float] | np.ndarray, *, abandoned: int = 0
+) -> list[str]:
+    """A note per gamma whose p_hat is not the design-unbiased sum ``p_hat_unbiased``: a
+    sum below the distinct failures found (stages' weighted sum: ``core.design.
+    combine_stages``; a with-replacement sum), or above every segment not seen to pass,
+    held there. ``abandoned``: ``est`` is ``--failed-as bounds``'s all-failing case over
+    that many abandoned segments, and the notes say so (they count them as failures)."""
     if est.p_hat_unbiased is None:
         return []
+    what = "the stages' weighted sum" if est.design == "staged" else "the estimator's sum"
+    case = f", with the {abandoned} abandoned segments all failing" if abandoned else ""
     notes = []
     for g, gamma in enumerate(gammas):
         total, p_hat = float(est.p_hat_unbiased[g]), float(est.p_hat[g])
         if total > p_hat:
             notes.append(
-                f"gamma {float(gamma):g}: the Horvitz-Thompson sum ({total:.4g}) exceeded the "
-                f"share of the pool not seen to pass, so p_hat is that share ({p_hat:.4g}): "
-                "the rate is at most that; `p_hat_unbiased` keeps the sum, for pooling "
-                "estimates across studies"
+                f"gamma {float(gamma):g}{case}: {what} ({total:.4g}) exceeded the share of "
+                f"the pool not seen to pass, so p_hat is that share ({p_hat:.4g}): the rate "
+                "is at most that; `p_hat_unbiased` keeps the sum, for pooling estimates "
+                "across studies"
             )
         elif total < p_hat:
             notes.append(
-                f"gamma {float(gamma):g}: the stages' weighted sum ({total:.4g}) fell below "
-                f"the {int(est.n_failures_found[g])} failures found, so p_hat is their share "
-                f"of the pool ({p_hat:.4g}): the rate is at least that; `p_hat_unbiased` "
-                "keeps the sum, for pooling estimates across studies"
+                f"gamma {float(gamma):g}{case}: {what} ({total:.4g}) fell below the "
+                f"{int(est.n_failures_found[g])} failures found, so p_hat is their share of "
+                f"the pool ({p_hat:.4g}): the rate is at least that; `p_hat_unbiased` keeps "
+                "the sum, for pooling estimates across studies"
             )
     return notes
 

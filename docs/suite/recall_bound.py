@@ -10,22 +10,29 @@ FOLDER holds the suite's saved runs, one subfolder per problem, from
 the known stratum, and the truth.
 
 For each BAMS run the estimate's K level-0 runs are spread over the segments not yet run at
-level 0 (U). A design whose inclusion probabilities depend on p_n through B quantile bins
-of p_n over U has, for pi_b in bin b (n_b segments, F_b of them failing),
+level 0 (U). Among one-stage Poisson designs whose inclusion probability is nondecreasing
+in the model's p_n after discovery, chosen *knowing which segments fail*, ``bound`` finds
+the largest expected recall
 
-    exact variance of the Horvitz-Thompson total  sum_b F_b (1 - pi_b) / pi_b
-    expected recall                                (failures known + sum_b F_b pi_b) / F
+    (failures known + sum over U's failures of pi) / F
 
-The bound is the largest recall over every such design with sum_b n_b pi_b = K and the
-variance at most 1.2 times a uniform design's of the same expected size, K / |U| for all
-(issue 12, point 2), chosen knowing each bin's true F_b (``scipy.optimize`` SLSQP; the
-recall is linear and the variance convex in pi, so the optimum is global). No design that
-sees the model only through those bins can do better, whatever it learns from stage 1;
-with 40 bins and a few dozen failures the hindsight nearly labels the failures, so that
-bound is loose, and 10 bins is the fairer one. Plain MC's recall is that of the same seed's
-MC run (uniform level-0 batches and a uniform estimate of the same K, at equal cost); the
+subject to sum_U pi = K and the Horvitz-Thompson variance sum over U's failures of
+(1 - pi)/pi at most 1.2 times a uniform design's of the same expected size (issue 12,
+point 2). Monotone and with hindsight, a segment ranked below the lowest failure costs
+nothing (pi -> 0) and the segments between one failure and the next take the lower one's
+pi, so the problem is one pi_j per failure j, nondecreasing in j, paying for n_j segments.
+Its optimum is pi_j = min(1, sqrt(mu / (nu nbar_j - 1))) with nbar the nonincreasing
+isotonic fit of n (the generalised isotonic regression theorem), mu spending exactly K and
+nu the least value at which the variance bound holds. ``check`` compares this closed form
+with SLSQP on the same reduced problem (12 random pools).
+
+The bound is for designs that rank by one p_n; the tool's default refits the model on
+stage 1's outcomes and draws stage 2 from the refitted p_n, which a bound on the discovery
+model's ranking does not cover. Plain MC's recall is that of the same seed's MC run
+(uniform level-0 batches and a uniform estimate of the same K, at equal cost); the
 default's is the tool's staged design drawn ``--trials`` times from the truth
-(``core.evaluate.staged_trials``), with its exact variance over uniform's.
+(``core.evaluate.staged_trials``, on the discovery p_n as ``estimate_design.py``), with its
+exact variance over uniform's.
 
 Writes ``recall_bound.json`` and ``recall_bound.md`` to ``--out``.
 """

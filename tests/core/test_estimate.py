@@ -808,20 +808,35 @@ def test_bvn_cov_special_cases():
     assert math.isclose(bvn_cov(0.0, 0.0, 0.5), math.asin(0.5) / (2 * math.pi), rel_tol=1e-14)
 
 
-@pytest.mark.parametrize("design", ["poisson", "with-replacement"])
-def test_a_horvitz_thompson_sum_above_what_the_sample_allows_is_held_to_it(design):
+def test_a_horvitz_thompson_sum_above_what_the_sample_allows_is_held_to_it():
     # Ten segments at pi 0.1; the sample holds one failure (weight 10) and two passes. The
     # sum says all ten fail, but two were seen to pass: at most 8 can. p_hat is 8 / 10,
     # the interval holds it, and p_hat_unbiased keeps the sum (the stages combine that).
     pi = np.array([0.1, 0.1, 0.1])
     fails = np.array([True, False, False])
-    e = estimate_from_sample(pi, fails, design=design, n_pool=10, n_unknown=10, budget=1.0)
+    e = estimate_from_sample(pi, fails, design="poisson", n_pool=10, n_unknown=10, budget=1.0)
     assert e.cap[0] == pytest.approx(0.8)
-    if design == "poisson":
-        assert e.p_hat_unbiased[0] == pytest.approx(1.0, rel=1e-12)
-        assert e.p_hat[0] == pytest.approx(0.8, rel=1e-12)
-    assert e.p_hat[0] <= e.cap[0] + 1e-12 and e.p_hat[0] <= e.p_hat_unbiased[0] + 1e-12
+    assert e.p_hat_unbiased[0] == pytest.approx(1.0, rel=1e-12)
+    assert e.p_hat[0] == pytest.approx(0.8, rel=1e-12)
     assert 0.1 - 1e-12 <= e.ci_low[0] <= e.p_hat[0] <= e.ci_high[0] <= 0.8 + 1e-12
     # Below the cap nothing changes: p_hat is the sum.
-    few = estimate_from_sample(pi, fails, design=design, n_pool=100, n_unknown=100, budget=10.0)
+    few = estimate_from_sample(pi, fails, design="poisson", n_pool=100, n_unknown=100, budget=10.0)
     assert few.p_hat[0] == few.p_hat_unbiased[0]
+
+
+def test_a_hansen_hurwitz_sum_is_held_between_the_failures_found_and_the_cap():
+    # With replacement, T = (1/K) sum over draws of y / q.
+    # Above the cap: 10 segments, the failure at q 0.02 drawn once and a pass once (K 2):
+    # T = (1/2)(1/0.02) = 25 failures, but one was seen to pass: at most 9.
+    hi = estimate_from_sample([0.02, 0.98 / 9], [True, False], design="with-replacement",
+                              n_pool=10, n_unknown=10, budget=2.0, counts=[1, 1])  # fmt: skip
+    assert hi.p_hat_unbiased[0] == pytest.approx(2.5, rel=1e-12)
+    assert hi.p_hat[0] == pytest.approx(0.9, rel=1e-12) == pytest.approx(hi.cap[0])
+    assert hi.ci_low[0] <= hi.p_hat[0] <= hi.ci_high[0] <= 0.9 + 1e-12
+    # Below the failures in hand: the failure at q 0.5 drawn once, a pass at q 0.25 three
+    # times (K 4): T = (1/4)(1/0.5) = 0.5 failures, against 1 found.
+    lo = estimate_from_sample([0.5, 0.25], [True, False], design="with-replacement",
+                              n_pool=10, n_unknown=10, budget=4.0, counts=[1, 3])  # fmt: skip
+    assert lo.p_hat_unbiased[0] == pytest.approx(0.05, rel=1e-12)
+    assert lo.p_hat[0] == pytest.approx(0.1, rel=1e-12)  # 1 / 10
+    assert 0.1 - 1e-12 <= lo.ci_low[0] <= lo.p_hat[0] <= lo.ci_high[0]
