@@ -243,24 +243,26 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     from bams_cli.core import design
 
     real = design.combine_stages
-    monkeypatch.setattr(
-        design, "combine_stages",
-        lambda *a, **kw: replace(c := real(*a, **kw), p_hat_unbiased=c.p_hat * 0.5),
-    )  # fmt: skip
-    low = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
-    monkeypatch.undo()
+
+    def estimate_with_sum(factor):
+        """The estimate had the stages' weighted sum been ``factor`` x p_hat."""
+        monkeypatch.setattr(
+            design, "combine_stages",
+            lambda *a, **kw: replace(c := real(*a, **kw), p_hat_unbiased=c.p_hat * factor),
+        )  # fmt: skip
+        try:
+            return strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+        finally:
+            monkeypatch.undo()
+
+    low = estimate_with_sum(0.5)
     for e, e_low in zip(out["estimates"], low["estimates"], strict=True):
         assert e_low["p_hat"] == e["p_hat"] and e_low["p_hat_unbiased"] == 0.5 * e["p_hat"]
     raised = [n for n in low["notes"] if "fell below the" in n]
     assert len(raised) == sum(e["p_hat"] > 0 for e in out["estimates"]) > 0
     assert "`p_hat_unbiased` keeps the sum" in raised[0]
     # One above what the sample allows is held to it, and said too.
-    monkeypatch.setattr(
-        design, "combine_stages",
-        lambda *a, **kw: replace(c := real(*a, **kw), p_hat_unbiased=c.p_hat * 2.0),
-    )  # fmt: skip
-    high = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
-    monkeypatch.undo()
+    high = estimate_with_sum(2.0)
     capped = [n for n in high["notes"] if "not seen to pass" in n]
     assert len(capped) == len(raised) and "the rate is at most that" in capped[0]
     # The third plan starts a new estimate: the series is complete.

@@ -451,10 +451,6 @@ def unseen_failure_weight(risk: ArrayLike, pi: ArrayLike) -> float:
     return float(r @ ((1.0 - pi) / np.where(rand, pi, 1.0))) / mass
 
 
-def _unbiased(stage: RateEstimates) -> FloatArray:
-    return stage.p_hat if stage.p_hat_unbiased is None else stage.p_hat_unbiased
-
-
 def combine_stages(
     stages: list[RateEstimates], weights: ArrayLike, *, n_pool: int
 ) -> RateEstimates:
@@ -501,12 +497,14 @@ def combine_stages(
         return stages[0]
     N = float(n_pool)
     last = stages[-1]
-    if any(s.certain is None or s.cap is None for s in stages):
-        raise ValueError("stages must come from estimate_from_sample (certain and cap set)")
+    if any(s.certain is None or s.cap is None or s.p_hat_unbiased is None for s in stages):
+        raise ValueError(
+            "stages must come from estimate_from_sample (certain, cap and p_hat_unbiased set)"
+        )
     assert last.cap is not None
     # Each stage's own sum, not its p_hat held under its cap: the weighted sum of those
     # would no longer be unbiased.
-    total = sum(ws * _unbiased(s) for ws, s in zip(w, stages, strict=True)) * N
+    total = sum(ws * np.asarray(s.p_hat_unbiased) for ws, s in zip(w, stages, strict=True)) * N
     certain = sum(ws * np.asarray(s.certain) for ws, s in zip(w, stages, strict=True)) * N
     v = sum(ws**2 * s.var_hat for ws, s in zip(w, stages, strict=True)) * N**2
     w_next = sum(ws**2 * s.w_allow for ws, s in zip(w, stages, strict=True))
