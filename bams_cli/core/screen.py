@@ -1,0 +1,143 @@
+"""The screened (two-phase) rate estimate: a cheap-level screen, then level-0 confirmation.
+
+A study with a cheap simulator level can spend part of the estimate's budget K on it.
+Phase 1 draws a Poisson sample S1 of U (the segments without a level-0 result) with
+inclusion probabilities pi1, chosen from the model as an estimate stage is
+(``design.choose_design``), and runs the cheap level on it at ``cost`` per run. The model
+refitted on those results gives p2 over S1, now informed by each segment's own cheap run.
+Phase 2 draws a Poisson sample S2 of S1 with probabilities pi2 chosen from p2 and runs
+level 0 on it, with what is left of K:
+
+    K2 = K - cost |S1|.
+
+The estimate of the failures in U (Sarndal, Swensson & Wretman 1992, ch. 9, two-phase
+sampling) is
+
+    T = sum_{S2} y / (pi1 pi2),
+
+unbiased whatever rule chose pi2 from phase 1's outcomes, as long as it was fixed before
+phase 2's: E[T | S1] = sum_{S1} y / pi1, whose mean is sum_U y. Its variance splits as
+
+    Var T = sum_U y (1 - pi1) / pi1  +  E[ sum_{S1} y (1 - pi2) / (pi1^2 pi2) ]
+
+(``phase1_variance``, ``phase2_variance``), and
+
+    v = sum_{S2} y (1 - pi1 pi2) / (pi1 pi2)^2
+
+estimates it without bias: term by term, (1 - pi1)/(pi1^2 pi2) + (1 - pi2)/(pi1 pi2)^2 =
+(1 - pi1 pi2)/(pi1 pi2)^2. That is the one-phase Poisson form at pi = pi1 pi2, so
+``estimate.estimate_from_sample`` estimates a screened sample as it stands
+(``confirmed_pi``).
+
+Why: the model ranks failures by its p_n, which on a problem it knows poorly ranks them
+little better than chance (digits, weak_cheap). A cheap run on the segment itself is
+evidence p_n does not have. Measured through the tool on the suite
+(docs/suite/screen_design.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from bams_cli.core.design import DesignChoice, RiskPosterior, choose_design
+
+FloatArray = NDArray[np.float64]
+
+
+def screen_size(K: float, cost: float, share: float, n_unknown: int) -> float:
+    """Expected number of cheap runs of the screen: ``share`` of K spent at ``cost`` each,
+    at most one per segment of U.
+
+    Parameters
+    ----------
+    K : float
+        The estimate's budget in level-0 runs.
+    cost : float
+        One cheap run's cost in level-0 runs, in (0, 1).
+    share : float
+        Share of K spent on the screen, in (0, 1).
+    n_unknown : int
+        |U|.
+    """
+    if not (K > 0 and math.isfinite(K)):
+        raise ValueError(f"K must be a positive number, got {K!r}")
+    if not 0 < cost < 1:
+        raise ValueError(f"the cheap level's cost must lie in (0, 1), got {cost!r}")
+    if not 0 < share < 1:
+        raise ValueError(f"the screen's share of K must lie in (0, 1), got {share!r}")
+    return float(min(share * K / cost, n_unknown))
+
+
+def screen_design(
+    p: ArrayLike, *, K: float, cost: float, share: float, posterior: RiskPosterior
+) -> DesignChoice:
+    """Phase 1: pi1 over U, the estimate's own design choice at the screen's size.
+
+    Parameters
+    ----------
+    p : array_like of shape (n_unknown,)
+        p_n over U.
+    K, cost, share : float
+        As in ``screen_size``.
+    posterior : RiskPosterior
+        How far p_n is trusted (``design.risk_posterior``).
+    """
+    p = np.asarray(p, dtype=np.float64)
+    return choose_design(p, K=screen_size(K, cost, share, p.size), posterior=posterior)
+
+
+def confirm_budget(K: float, cost: float, n_screened: int) -> float:
+    """K2 = K - cost |S1|: the level-0 runs left once the screen's cheap runs are paid.
+
+    At least one: every screened segment must keep pi2 > 0 for T to stay unbiased, so a
+    screen drawn far larger than expected (its size is random) overspends K a little
+    rather than leave it unconfirmed.
+    """
+    return max(1.0, float(K) - float(cost) * int(n_screened))
+
+
+def confirm_design(p2: ArrayLike, *, K2: float, posterior: RiskPosterior) -> DesignChoice:
+    """Phase 2: pi2 over S1 from the refitted model's p2, expected size min(K2, |S1|).
+
+    A weight 1/pi1 in the risk would minimise the predicted variance, but it draws the
+    budget towards segments phase 1 took at small pi1, most of them passing ones, and
+    measured worse on the suite wherever p2 is good (docs/suite/screen_design.md).
+    """
+    p2 = np.asarray(p2, dtype=np.float64)
+    if p2.size == 0:
+        raise ValueError("the screen sampled no segment: nothing to confirm")
+    if not K2 > 0:
+        raise ValueError(f"no level-0 budget is left to confirm the screen (K2 = {K2!r})")
+    return choose_design(p2, K=min(float(K2), float(p2.size)), posterior=posterior)
+
+
+def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:
+    """pi = pi1 pi2 of each segment of S1: what its level-0 result is weighted by."""
+    pi1 = np.asarray(pi1, dtype=np.float64)
+    pi2 = np.asarray(pi2, dtype=np.float64)
+    if pi1.shape != pi2.shape:
+        raise ValueError(
+            f"pi1 has shape {pi1.shape}, pi2 {pi2.shape}: one each per screened segment"
+        )
+    for name, a in (("pi1", pi1), ("pi2", pi2)):
+        if a.size and not (np.all(a > 0) and np.all(a <= 1)):
+            raise ValueError(f"{name} must lie in (0, 1]")
+    return pi1 * pi2
+
+
+def phase1_variance(failures: ArrayLike, pi1: ArrayLike) -> float:
+    """sum_U y (1 - pi1)/pi1: the variance T would have if S1's level-0 values were seen."""
+    y = np.asarray(failures, dtype=bool)
+    pi1 = np.asarray(pi1, dtype=np.float64)
+    return float(((1.0 - pi1[y]) / pi1[y]).sum())
+
+
+def phase2_variance(failures: ArrayLike, pi1: ArrayLike, pi2: ArrayLike) -> float:
+    """sum_{S1} y (1 - pi2)/(pi1^2 pi2): Var(T | S1), over the screened segments."""
+    y = np.asarray(failures, dtype=bool)
+    a = np.asarray(pi1, dtype=np.float64)[y]
+    b = np.asarray(pi2, dtype=np.float64)[y]
+    return float(((1.0 - b) / (a * a * b)).sum())

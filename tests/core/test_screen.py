@@ -1,0 +1,117 @@
+"""The screened (two-phase) estimate: checked by enumerating every pair of samples.
+
+Reference: on a pool of 7 segments every phase-1 sample S1 and every phase-2 sample S2 of
+it (3^7 = 2,187 pairs) is enumerated with its probability, so the estimator's mean,
+variance and the variance estimate's mean are exact, not Monte Carlo.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from bams_cli.core import design as dz
+from bams_cli.core import screen as sc
+from bams_cli.core.estimate import estimate_from_sample
+
+N = 7
+FAIL = np.array([1, 0, 1, 0, 0, 1, 0], dtype=bool)
+# The cheap level's value: low where level 0 fails, but not always (segment 5 fails
+# unseen, segment 3 looks like a failure and is not).
+CHEAP = np.array([0.1, 0.9, 0.3, 0.2, 0.8, 0.7, 0.6])
+PI1 = np.array([0.9, 0.3, 0.6, 0.5, 0.2, 0.4, 0.7])
+K, COST = 3.0, 0.25
+
+
+def _pi2(s1: np.ndarray) -> np.ndarray:
+    """Phase 2 as the tool draws it: the design chosen from what the screen showed."""
+    p2 = np.clip(1.0 - CHEAP[s1], 0.01, 1.0) ** 2
+    K2 = sc.confirm_budget(K, COST, s1.size)
+    return sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([])).pi
+
+
+def _enumerate():
+    """(probability, S1, pi2 over S1, S2 as a mask over S1) for every pair of samples."""
+    for bits in itertools.product((0, 1), repeat=N):
+        in1 = np.array(bits, dtype=bool)
+        P1 = float(np.prod(np.where(in1, PI1, 1.0 - PI1)))
+        s1 = np.flatnonzero(in1)
+        pi2 = _pi2(s1) if s1.size else np.zeros(0)
+        for bits2 in itertools.product((0, 1), repeat=s1.size):
+            in2 = np.array(bits2, dtype=bool)
+            P2 = float(np.prod(np.where(in2, pi2, 1.0 - pi2))) if s1.size else 1.0
+            yield P1 * P2, s1, pi2, in2
+
+
+def test_the_screened_estimate_is_unbiased_and_its_variance_splits_by_phase():
+    mean = second = v_mean = total_p = 0.0
+    phase2 = 0.0  # E[Var(T | S1)], accumulated once per S1
+    seen_s1: set[tuple[int, ...]] = set()
+    for P, s1, pi2, in2 in _enumerate():
+        total_p += P
+        pi = sc.confirmed_pi(PI1[s1], pi2) if s1.size else np.zeros(0)
+        y = FAIL[s1]
+        T = float(np.sum(y[in2] / pi[in2]))
+        v = float(np.sum(y[in2] * (1.0 - pi[in2]) / pi[in2] ** 2))
+        mean += P * T
+        second += P * T * T
+        v_mean += P * v
+        key = tuple(s1)
+        if key not in seen_s1:
+            seen_s1.add(key)
+            P1 = float(np.prod(np.where(np.isin(np.arange(N), s1), PI1, 1.0 - PI1)))
+            if s1.size:
+                phase2 += P1 * sc.phase2_variance(y, PI1[s1], pi2)
+    assert total_p == pytest.approx(1.0, abs=1e-12)
+    assert mean == pytest.approx(FAIL.sum(), abs=1e-10)
+    var = second - mean**2
+    assert var == pytest.approx(sc.phase1_variance(FAIL, PI1) + phase2, rel=1e-10)
+    # The one-phase Poisson form at pi = pi1 pi2 estimates it without bias.
+    assert v_mean == pytest.approx(var, rel=1e-10)
+    # Weighting by pi2 alone (forgetting the screen) is biased.
+    wrong = sum(P * float(np.sum(FAIL[s1][in2] / pi2[in2])) for P, s1, pi2, in2 in _enumerate())
+    assert abs(wrong - FAIL.sum()) > 0.1
+
+
+def test_estimate_from_sample_takes_a_screened_sample_at_pi1_pi2():
+    # One pair of samples: the HT sum and its variance estimate from the tool's estimator.
+    s1 = np.array([0, 2, 3, 5])
+    pi2 = _pi2(s1)
+    in2 = np.array([True, True, False, True])
+    pi = sc.confirmed_pi(PI1[s1], pi2)[in2]
+    y = FAIL[s1][in2]
+    est = estimate_from_sample(
+        pi, y, design="poisson", n_pool=N, n_unknown=N, budget=K, confidence=0.9
+    )
+    assert est.p_hat_unbiased is not None
+    assert est.p_hat_unbiased[0] * N == pytest.approx(float(np.sum(y / pi)), rel=1e-12)
+    assert est.var_hat[0] * N**2 == pytest.approx(float(np.sum(y * (1 - pi) / pi**2)), rel=1e-12)
+
+
+def test_the_confirmation_budget_pays_for_the_screen_and_never_reaches_zero():
+    assert sc.screen_size(100.0, 0.1, 0.3, 20_000) == pytest.approx(300.0)
+    assert sc.screen_size(100.0, 0.1, 0.3, 250) == 250.0  # one cheap run per segment at most
+    assert sc.confirm_budget(100.0, 0.1, 300) == pytest.approx(70.0)
+    # A screen drawn larger than expected still leaves a level-0 run to confirm with:
+    # every screened segment must keep pi2 > 0 for the estimate to stay unbiased.
+    assert sc.confirm_budget(10.0, 0.5, 40) == 1.0
+    pi2 = sc.confirm_design(np.full(5, 0.1), K2=1.0, posterior=dz.risk_posterior([])).pi
+    assert np.all(pi2 > 0) and pi2.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    ("K", "cost", "share", "match"),
+    [(0.0, 0.1, 0.3, "K must"), (10.0, 1.0, 0.3, "cost"), (10.0, 0.1, 1.0, "share")],
+)
+def test_a_screen_out_of_range_is_refused(K, cost, share, match):
+    with pytest.raises(ValueError, match=match):
+        sc.screen_size(K, cost, share, 100)
+
+
+def test_confirmed_pi_refuses_probabilities_outside_0_1():
+    with pytest.raises(ValueError, match="pi2"):
+        sc.confirmed_pi([0.5, 0.5], [0.5, 0.0])
+    with pytest.raises(ValueError, match="shape"):
+        sc.confirmed_pi([0.5], [0.5, 0.5])
