@@ -1,0 +1,258 @@
+"""The screened estimate design (``core.screen``) measured through the tool on the suite.
+
+    .venv/bin/python docs/suite/screen_design.py run PROBLEM [--seeds 0-9] [--trials 4]
+    .venv/bin/python docs/suite/screen_design.py table
+
+For every seed the suite's BAMS protocol runs through the tool and stops where it would plan
+the estimate (``estimate_refit.workspaces_before_estimate``). From that workspace, for each
+screen share of K (0.2, 0.3, 0.4) and each phase-1 design ("uniform": pi1 = n1 / |U|;
+"design": ``core.screen.screen_design``, the estimate's own design choice at the screen's
+size), ``--trials`` times: phase 1 draws S1, the truth's cheap-level values of S1 are
+appended to the observation log (as ingesting the screen's results would), the model is
+refitted at the discovery model's hyperparameters (``fit --fixed-hyperparameters``, as the
+benchmark refits), and phase 2's pi2 over S1 comes from the refitted p_0 with K2 = K - c |S1|
+under two rules: "plain" (``core.screen.confirm_design``) and "weighted" (the risk weighted
+by 1/pi1^2, the minimiser of the predicted variance, against uniform).
+
+Exact, given each trial's S1: var = phase1_variance + mean over trials of phase2_variance,
+over the variance of a uniform Poisson design of K level-0 runs (the shipped estimate's
+comparison); recall = (failures known before the estimate + expected level-0 failures of
+phase 2) / all failures, the suite's recall at the same cost (the screen's cheap runs are
+paid out of K). "one stage": the estimate's design choice over U at K, no screen, on the
+same workspace (the shipped default runs it in two stages with a refit; its recall is the
+same to within the seeds' spread, docs/suite/estimate_refit.md).
+
+``run`` appends one JSON line per seed to docs/suite/screen_design/PROBLEM.jsonl; ``table``
+writes docs/suite/screen_design.md from them.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "screen_design"
+sys.path.insert(0, str(HERE))
+import estimate_refit as er  # noqa: E402
+
+PROBLEMS = er.PROBLEMS
+SHARES = (0.2, 0.3, 0.4)
+PHASE1 = ("uniform", "design")
+RULES = ("plain", "weighted")
+#: The suite's plain MC recall at the same cost (README, the suite table), for the ratio.
+PLAIN_MC = {
+    "toy2d": 0.0093, "av_like": 0.0428, "weak_cheap": 0.0323,
+    "digits": 0.0580, "rare_regions": 0.0057, "gap_sim": 0.0138,
+}  # fmt: skip
+
+
+def _append_cheap(root: Path, ids: np.ndarray, values: np.ndarray, batch: int) -> None:
+    """The screen's cheap-level results, written into the observation log."""
+    import polars as pl
+    import pyarrow.parquet as pq
+
+    from bams_cli.state import schemas
+    from bams_cli.state.workspace import Workspace
+
+    ws = Workspace(root)
+    full = ws.read_observations(active_only=False)
+    n = ids.size
+    add = pl.DataFrame(
+        {
+            "segment_id": ids, "fidelity": np.ones(n, np.int64), "value": values,
+            "batch": np.full(n, batch, np.int64), "source_file": ["screen"] * n,
+            "source_sha256": ["-"] * n, "ingested_at": ["-"] * n, "active": [True] * n,
+            "extra": [None] * n,
+        },
+        schema=full.schema,
+    )  # fmt: skip
+    table = pl.concat([full, add]).to_arrow().cast(schemas.OBSERVATIONS.schema)
+    pq.write_table(table, ws.observations_path)
+
+
+def _weighted(p2: np.ndarray, pi1: np.ndarray, K2: float, posterior) -> np.ndarray:  # noqa: ANN001
+    from bams_cli.core import design as dz
+
+    risk = posterior.risk(p2)
+    cands = [np.full(p2.size, K2 / p2.size), dz.calibrated_design(risk / pi1**2, K=K2)]
+    pv = [float((risk * (1 - q) / (pi1**2 * q)).sum()) for q in cands]
+    return cands[int(np.argmin(pv))]
+
+
+def run(problem: str, seeds: list[int], trials: int) -> None:
+    from bams_cli import benchmark as bm
+    from bams_cli import pipeline
+    from bams_cli.core import design as dz
+    from bams_cli.core import screen as sc
+    from bams_cli.settings import Settings
+    from bams_cli.state.workspace import Workspace
+
+    warnings.simplefilter("ignore")
+    scratch = Path(tempfile.mkdtemp(prefix=f"screen-{problem}-"))
+    prob = er.suite_problem(problem, scratch)
+    truth1 = bm._column(prob.data / "truth.parquet", "value_1").astype(float)
+    c = Settings.from_toml((prob.data / "settings.toml").read_text()).costs[1]
+    K, gamma = prob.K, prob.gamma
+    prior = dz.risk_posterior([])
+    OUT.mkdir(exist_ok=True)
+    for seed, base in er.workspaces_before_estimate(problem, prob, seeds, scratch):
+        ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
+        rows = np.array([prob.pos[s] for s in ids])
+        fail = prob.truth[rows] <= gamma
+        cheap = truth1[rows]
+        obs = Workspace(base).read_observations()
+        level0 = obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str)
+        known = np.isin(ids, level0)
+        p = bm._column(base / "scores.parquet", "p_0").astype(float)
+        U = np.flatnonzero(~known)
+        fU = fail[U]
+        F, Fk = int(fail.sum()), int((fail & known).sum())
+        var_u = int(fU.sum()) * (U.size - K) / K
+        d0 = dz.choose_design(p[U], K=K, posterior=prior).pi
+        row: dict = {
+            "problem": problem, "seed": seed, "trials": trials, "F": F, "K": K, "cost": c,
+            "uniform_recall": (Fk + fU.sum() * K / U.size) / F,
+            "one_stage": {
+                "recall": (Fk + d0[fU].sum()) / F,
+                "var": float(((1 - d0[fU]) / d0[fU]).sum()) / var_u,
+            },
+        }  # fmt: skip
+        next_batch = int(obs["batch"].max()) + 1
+        for mode in PHASE1:
+            for share in SHARES:
+                n1 = sc.screen_size(K, c, share, U.size)
+                if mode == "uniform":
+                    pi1 = np.full(U.size, n1 / U.size)
+                else:
+                    pi1 = sc.screen_design(p[U], K=K, cost=c, share=share, posterior=prior).pi
+                rng = np.random.default_rng(seed * 100 + 7)
+                V2: dict[str, list[float]] = {r: [] for r in RULES}
+                found: dict[str, list[float]] = {r: [] for r in RULES}
+                for t in range(trials):
+                    s1 = np.flatnonzero(rng.random(U.size) < pi1)
+                    root = scratch / f"trial-{seed}-{t}"
+                    shutil.copytree(base, root)
+                    _append_cheap(root, ids[U[s1]], cheap[U[s1]], next_batch)
+                    pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
+                    p2 = bm._column(root / "scores.parquet", "p_0").astype(float)[U[s1]]
+                    shutil.rmtree(root)
+                    K2 = min(sc.confirm_budget(K, c, s1.size), float(s1.size))
+                    for rule in RULES:
+                        if rule == "plain":
+                            pi2 = sc.confirm_design(p2, K2=K2, posterior=prior).pi
+                        else:
+                            pi2 = _weighted(p2, pi1[s1], K2, prior)
+                        f = fU[s1]
+                        V2[rule].append(sc.phase2_variance(f, pi1[s1], pi2))
+                        found[rule].append(float(pi2[f].sum()))
+                V1 = sc.phase1_variance(fU, pi1)
+                for rule in RULES:
+                    row[f"{mode}-{rule}-{share}"] = {
+                        "recall": (Fk + float(np.mean(found[rule]))) / F,
+                        "var": (V1 + float(np.mean(V2[rule]))) / var_u,
+                    }
+        with open(OUT / f"{problem}.jsonl", "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        print(json.dumps(row), flush=True)
+        shutil.rmtree(base)
+    shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _cell(rows: list[dict], key: str, problem: str) -> str:
+    rec = [r[key]["recall"] for r in rows]
+    var = [r[key]["var"] for r in rows]
+    return (
+        f"{statistics.mean(rec):.4f} ({statistics.mean(rec) / PLAIN_MC[problem]:.1f}x) | "
+        f"{statistics.mean(var):.2f} [{max(var):.2f}]"
+    )
+
+
+def table() -> None:
+    lines = [
+        "# A cheap-level screen before the level-0 estimate, measured through the tool",
+        "",
+        "`docs/suite/screen_design.py` (its docstring says how; `core.screen` holds the "
+        "design and its unbiasedness, checked by enumeration in tests/core/test_screen.py). "
+        "BAMS runs of the suite protocol; from each run's workspace, part of the estimate's "
+        "budget K (the share) buys cheap-level runs on a Poisson sample S1, the model is "
+        "refitted on them, and the rest buys level-0 runs on S1. recall: failures confirmed "
+        "at level 0 by the end, over all failures, at the same cost as plain MC (x: over the "
+        "suite's plain MC recall). var: the estimate's exact variance over a uniform level-0 "
+        "design of K runs, mean [max] over seeds. no screen: the estimate's design without "
+        "a screen, on the same workspaces (it does not depend on the share). uniform / "
+        "design screen: phase 1 uniform over U, or the estimate's own design choice at the "
+        "screen's size (`core.screen.screen_design`). Phase 2 is "
+        '`core.screen.confirm_design` ("plain"). The predicted-variance minimiser that '
+        'weights the risk by 1/pi1^2 ("weighted", in the JSON lines) did worse where the '
+        "refitted p_n is good (design screen 0.3: av_like var 0.27 against 0.08, toy2d 0.31 "
+        "against 0.02) and better where it is weak (digits 0.87 against 1.06, weak_cheap "
+        "1.12 against 1.23). 4 screens per seed; measured 2026-11-25 (17:00, the lines were "
+        "written by this script's first form, whose draws and numbers it reproduces: "
+        "digits seed 0 checked).",
+        "",
+        "| problem | seeds | design | "
+        + " | ".join(f"share {x}: recall (x MC) | var" for x in SHARES)
+        + " |",
+        "| --- | --- | --- |" + " --- | --- |" * len(SHARES),
+    ]
+    for problem in PROBLEMS:
+        path = OUT / f"{problem}.jsonl"
+        if not path.exists():
+            continue
+        rows = [json.loads(line) for line in path.read_text().splitlines() if line]
+        head = f"| {problem} | {len(rows)} |"
+        one = _cell(rows, "one_stage", problem)
+        lines.append(f"{head} no screen | " + " | ".join([one] * len(SHARES)) + " |")
+        for m in PHASE1:
+            cells = [_cell(rows, f"{m}-plain-{x}", problem) for x in SHARES]
+            lines.append(f"| | | {m} screen | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "What it shows (design screen at share 0.3 against no screen):",
+        "",
+        "- Recall rose on all six problems: toy2d 17.7x -> 39.3x plain MC, av_like 12.0x -> "
+        "15.6x, weak_cheap 1.5x -> 1.9x, digits 1.5x -> 2.3x, rare_regions 1.9x -> 3.1x "
+        "(4.0x at share 0.4), gap_sim 4.7x -> 6.3x. A cheap run on the segment itself is "
+        "evidence the discovery model's p_n lacks, so the screen lies outside the class "
+        "docs/suite/recall_bound.md bounds (designs monotone in p_n); on rare_regions it "
+        "passes that bound's mean (3.8x) at share 0.4.",
+        "- Variance fell on four: toy2d 0.06 -> 0.02, av_like 0.19 -> 0.08 (worst seed 0.27 "
+        "-> 0.12: issue 12's 1/5 on every seed), rare_regions 1.06 -> 0.62, gap_sim 0.47 -> "
+        "0.39. It rose where the cheap level is weakest: weak_cheap 0.94 -> 1.23 (worst "
+        "1.63) and digits' worst seed 1.17 -> 1.60 (mean 1.03 -> 1.06).",
+        "- So the screen cannot be spent blindly: a study must screen where its cheap level "
+        "has shown it tells failures apart, and not where it is weak. What decides that (the "
+        "pairs' measured discrepancy, or a predicted variance from the model checked on "
+        "them) is not chosen yet, nor measured on held-out instances.",
+        "- Not shipped: `estimate --plan` does not draw a screen, and the interval's coverage "
+        "under the screened design has not been measured.",
+    ]
+    (HERE / "screen_design.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main(argv: list[str]) -> None:
+    if argv[:1] == ["table"]:
+        table()
+        return
+    if argv[:1] != ["run"] or len(argv) < 2:
+        raise SystemExit(__doc__)
+    seeds, trials = list(range(10)), 4
+    if "--seeds" in argv:
+        lo, hi = argv[argv.index("--seeds") + 1].split("-")
+        seeds = list(range(int(lo), int(hi) + 1))
+    if "--trials" in argv:
+        trials = int(argv[argv.index("--trials") + 1])
+    run(argv[1], seeds, trials)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
