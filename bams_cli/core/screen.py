@@ -102,13 +102,16 @@ def confirm_budget(K: float, cost: float, n_screened: int) -> float:
 def confirm_design(p2: ArrayLike, *, K2: float, posterior: RiskPosterior) -> DesignChoice:
     """Phase 2: pi2 over S1 from the refitted model's p2, expected size min(K2, |S1|).
 
-    A weight 1/pi1 in the risk would minimise the predicted variance, but it draws the
+    A weight 1/pi1^2 in the risk would minimise the predicted variance, but it draws the
     budget towards segments phase 1 took at small pi1, most of them passing ones, and
     measured worse on the suite wherever p2 is good (docs/suite/screen_design.md).
+
+    An empty screen (S1 is random, and may be empty) has nothing to confirm: T = 0, which
+    is E[T | S1] for it; the design returned is empty.
     """
     p2 = np.asarray(p2, dtype=np.float64)
     if p2.size == 0:
-        raise ValueError("the screen sampled no segment: nothing to confirm")
+        return DesignChoice(name="uniform", pi=np.zeros(0), risk=np.zeros(0), predicted={})
     if not K2 > 0:
         raise ValueError(f"no level-0 budget is left to confirm the screen (K2 = {K2!r})")
     return choose_design(p2, K=min(float(K2), float(p2.size)), posterior=posterior)

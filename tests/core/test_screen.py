@@ -25,31 +25,33 @@ PI1 = np.array([0.9, 0.3, 0.6, 0.5, 0.2, 0.4, 0.7])
 K, COST = 3.0, 0.25
 
 
-def _pi2(s1: np.ndarray) -> np.ndarray:
+def _pi2(s1: np.ndarray, K: float = K, cost: float = COST) -> np.ndarray:
     """Phase 2 as the tool draws it: the design chosen from what the screen showed."""
     p2 = np.clip(1.0 - CHEAP[s1], 0.01, 1.0) ** 2
-    K2 = sc.confirm_budget(K, COST, s1.size)
+    K2 = sc.confirm_budget(K, cost, s1.size)
     return sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([])).pi
 
 
-def _enumerate():
+def _enumerate(K: float = K, cost: float = COST):
     """(probability, S1, pi2 over S1, S2 as a mask over S1) for every pair of samples."""
     for bits in itertools.product((0, 1), repeat=N):
         in1 = np.array(bits, dtype=bool)
         P1 = float(np.prod(np.where(in1, PI1, 1.0 - PI1)))
         s1 = np.flatnonzero(in1)
-        pi2 = _pi2(s1) if s1.size else np.zeros(0)
+        pi2 = _pi2(s1, K, cost)
         for bits2 in itertools.product((0, 1), repeat=s1.size):
             in2 = np.array(bits2, dtype=bool)
             P2 = float(np.prod(np.where(in2, pi2, 1.0 - pi2))) if s1.size else 1.0
             yield P1 * P2, s1, pi2, in2
 
 
-def test_the_screened_estimate_is_unbiased_and_its_variance_splits_by_phase():
+# (3.0, 0.25): K2 = 3 - |S1|/4 >= 1.25; (1.5, 0.4): screens of 2 or more reach K2's floor.
+@pytest.mark.parametrize(("K", "cost"), [(K, COST), (1.5, 0.4)])
+def test_the_screened_estimate_is_unbiased_and_its_variance_splits_by_phase(K, cost):
     mean = second = v_mean = total_p = 0.0
     phase2 = 0.0  # E[Var(T | S1)], accumulated once per S1
     seen_s1: set[tuple[int, ...]] = set()
-    for P, s1, pi2, in2 in _enumerate():
+    for P, s1, pi2, in2 in _enumerate(K, cost):
         total_p += P
         pi = sc.confirmed_pi(PI1[s1], pi2) if s1.size else np.zeros(0)
         y = FAIL[s1]
@@ -71,7 +73,9 @@ def test_the_screened_estimate_is_unbiased_and_its_variance_splits_by_phase():
     # The one-phase Poisson form at pi = pi1 pi2 estimates it without bias.
     assert v_mean == pytest.approx(var, rel=1e-10)
     # Weighting by pi2 alone (forgetting the screen) is biased.
-    wrong = sum(P * float(np.sum(FAIL[s1][in2] / pi2[in2])) for P, s1, pi2, in2 in _enumerate())
+    wrong = sum(
+        P * float(np.sum(FAIL[s1][in2] / pi2[in2])) for P, s1, pi2, in2 in _enumerate(K, cost)
+    )
     assert abs(wrong - FAIL.sum()) > 0.1
 
 
@@ -115,3 +119,22 @@ def test_confirmed_pi_refuses_probabilities_outside_0_1():
         sc.confirmed_pi([0.5, 0.5], [0.5, 0.0])
     with pytest.raises(ValueError, match="shape"):
         sc.confirmed_pi([0.5], [0.5, 0.5])
+
+
+def test_the_screen_spends_its_share_and_draws_likelier_failures_more_often():
+    p = np.geomspace(1e-5, 0.3, 400)
+    prior = dz.risk_posterior([])
+    pi1 = sc.screen_design(p, K=20.0, cost=0.1, share=0.3, posterior=prior).pi
+    assert pi1.sum() == pytest.approx(sc.screen_size(20.0, 0.1, 0.3, p.size), rel=1e-9)
+    assert pi1.sum() == pytest.approx(60.0, rel=1e-9)  # 0.3 of K at 0.1 per cheap run
+    assert np.all(np.diff(pi1) >= -1e-12) and pi1[-1] > 2 * pi1[0]
+
+
+def test_the_confirmation_follows_the_refitted_model_and_an_empty_screen_confirms_nothing():
+    prior = dz.risk_posterior([])
+    p2 = np.array([1e-4, 1e-3, 0.01, 0.1, 0.5, 0.9])
+    pi2 = sc.confirm_design(p2, K2=2.0, posterior=prior).pi
+    assert pi2.sum() == pytest.approx(2.0, rel=1e-9)
+    assert np.all(np.diff(pi2) >= -1e-12) and pi2[-1] > 2 * pi2[0] > 0
+    empty = sc.confirm_design(np.zeros(0), K2=2.0, posterior=prior)
+    assert empty.pi.size == 0
