@@ -42,7 +42,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from bams_cli.core.design import DesignChoice, RiskPosterior, choose_design
+from bams_cli.core.design import DesignChoice, RiskPosterior, choose_design, predicted_variance
 
 FloatArray = NDArray[np.float64]
 
@@ -132,10 +132,9 @@ def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:
 
 
 def phase1_variance(failures: ArrayLike, pi1: ArrayLike) -> float:
-    """sum_U y (1 - pi1)/pi1: the variance T would have if S1's level-0 values were seen."""
-    y = np.asarray(failures, dtype=bool)
-    pi1 = np.asarray(pi1, dtype=np.float64)
-    return float(((1.0 - pi1[y]) / pi1[y]).sum())
+    """sum_U y (1 - pi1)/pi1: the variance T would have if S1's level-0 values were seen
+    (``design.predicted_variance`` with the failures as the risk)."""
+    return predicted_variance(pi1, np.asarray(failures, dtype=np.float64))
 
 
 def phase2_variance(failures: ArrayLike, pi1: ArrayLike, pi2: ArrayLike) -> float:

@@ -203,19 +203,23 @@ def table() -> None:
     print("\n".join(lines))
 
 
+def seeds_and_trials(argv: list[str], seeds: str, trials: int) -> tuple[list[int], int]:
+    """``--seeds LO-HI`` and ``--trials T`` from ``argv``, else the defaults given."""
+    if "--seeds" in argv:
+        seeds = argv[argv.index("--seeds") + 1]
+    lo, hi = seeds.split("-")
+    if "--trials" in argv:
+        trials = int(argv[argv.index("--trials") + 1])
+    return list(range(int(lo), int(hi) + 1)), trials
+
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["table"]:
         table()
         return
     if argv[:1] != ["run"] or len(argv) < 2:
         raise SystemExit(__doc__)
-    seeds, trials = list(range(10)), 8
-    if "--seeds" in argv:
-        lo, hi = argv[argv.index("--seeds") + 1].split("-")
-        seeds = list(range(int(lo), int(hi) + 1))
-    if "--trials" in argv:
-        trials = int(argv[argv.index("--trials") + 1])
-    run(argv[1], seeds, trials)
+    run(argv[1], *seeds_and_trials(argv, "0-9", 8))
 
 
 if __name__ == "__main__":

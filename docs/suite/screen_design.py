@@ -37,7 +37,10 @@ import statistics
 import sys
 import tempfile
 import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,34 +93,107 @@ def _weighted(p2: np.ndarray, pi1: np.ndarray, K2: float, posterior) -> np.ndarr
     return cands[int(np.argmin(pv))]
 
 
-def run(problem: str, seeds: list[int], trials: int) -> None:
+@dataclass
+class Setup:
+    """A suite problem as every mode reads it: its data, the truth's cheap level by pool
+    row, the cheap level's cost and the estimate's prior trust in p_n."""
+
+    problem: str
+    prob: er.SuiteProblem
+    scratch: Path
+    truth1: np.ndarray
+    cost: float
+    prior: Any
+
+
+@dataclass
+class SeedState:
+    """One seed's workspace where it would plan the estimate, in the scores' row order."""
+
+    ids: np.ndarray
+    fail: np.ndarray
+    cheap: np.ndarray
+    known: np.ndarray
+    p: np.ndarray
+    U: np.ndarray
+    next_batch: int
+
+    @property
+    def fU(self) -> np.ndarray:
+        return self.fail[self.U]
+
+    @property
+    def F(self) -> int:
+        return int(self.fail.sum())
+
+    @property
+    def Fk(self) -> int:
+        return int((self.fail & self.known).sum())
+
+
+def _setup(problem: str, mode: str) -> Setup:
     from bams_cli import benchmark as bm
-    from bams_cli import pipeline
     from bams_cli.core import design as dz
-    from bams_cli.core import screen as sc
     from bams_cli.settings import Settings
-    from bams_cli.state.workspace import Workspace
 
     warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"screen-{problem}-"))
+    scratch = Path(tempfile.mkdtemp(prefix=f"screen-{mode}-{problem}-"))
     prob = er.suite_problem(problem, scratch)
     truth1 = bm._column(prob.data / "truth.parquet", "value_1").astype(float)
-    c = Settings.from_toml((prob.data / "settings.toml").read_text()).costs[1]
-    K, gamma = prob.K, prob.gamma
-    prior = dz.risk_posterior([])
+    cost = Settings.from_toml((prob.data / "settings.toml").read_text()).costs[1]
     OUT.mkdir(exist_ok=True)
-    for seed, base in er.workspaces_before_estimate(problem, prob, seeds, scratch):
+    return Setup(problem, prob, scratch, truth1, cost, dz.risk_posterior([]))
+
+
+def _level0_known(base: Path, ids: np.ndarray) -> np.ndarray:
+    from bams_cli.state.workspace import Workspace
+
+    obs = Workspace(base).read_observations()
+    return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
+
+
+def _seed_states(su: Setup, seeds: list[int]) -> Iterator[tuple[int, Path, SeedState]]:
+    """(seed, workspace, its state) for each seed; the workspace is removed after."""
+    from bams_cli import benchmark as bm
+    from bams_cli.state.workspace import Workspace
+
+    for seed, base in er.workspaces_before_estimate(su.problem, su.prob, seeds, su.scratch):
         ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
-        rows = np.array([prob.pos[s] for s in ids])
-        fail = prob.truth[rows] <= gamma
-        cheap = truth1[rows]
-        obs = Workspace(base).read_observations()
-        level0 = obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str)
-        known = np.isin(ids, level0)
-        p = bm._column(base / "scores.parquet", "p_0").astype(float)
-        U = np.flatnonzero(~known)
-        fU = fail[U]
-        F, Fk = int(fail.sum()), int((fail & known).sum())
+        rows = np.array([su.prob.pos[s] for s in ids])
+        known = _level0_known(base, ids)
+        yield seed, base, SeedState(
+            ids=ids, fail=su.prob.truth[rows] <= su.prob.gamma, cheap=su.truth1[rows],
+            known=known, p=bm._column(base / "scores.parquet", "p_0").astype(float),
+            U=np.flatnonzero(~known),
+            next_batch=int(Workspace(base).read_observations()["batch"].max()) + 1,
+        )  # fmt: skip
+        shutil.rmtree(base)
+    shutil.rmtree(su.scratch, ignore_errors=True)
+
+
+def _refit_on_screen(base: Path, root: Path, st: SeedState, s1: np.ndarray) -> np.ndarray:
+    """p_0 over U from a copy of ``base`` refitted with S1's cheap-level results (positions
+    in U), at the discovery model's hyperparameters; the copy is removed."""
+    from bams_cli import benchmark as bm
+    from bams_cli import pipeline
+
+    shutil.copytree(base, root)
+    sel = st.U[s1]
+    _append_cheap(root, st.ids[sel], st.cheap[sel], st.next_batch)
+    pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
+    p = bm._column(root / "scores.parquet", "p_0").astype(float)[st.U]
+    shutil.rmtree(root)
+    return p
+
+
+def run(problem: str, seeds: list[int], trials: int) -> None:
+    from bams_cli.core import design as dz
+    from bams_cli.core import screen as sc
+
+    su = _setup(problem, "run")
+    K, c, prior = su.prob.K, su.cost, su.prior
+    for seed, base, st in _seed_states(su, seeds):
+        U, p, fU, F, Fk = st.U, st.p, st.fU, st.F, st.Fk
         var_u = int(fU.sum()) * (U.size - K) / K
         d0 = dz.choose_design(p[U], K=K, posterior=prior).pi
         row: dict = {
@@ -128,7 +204,6 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
                 "var": float(((1 - d0[fU]) / d0[fU]).sum()) / var_u,
             },
         }  # fmt: skip
-        next_batch = int(obs["batch"].max()) + 1
         for mode in PHASE1:
             for share in SHARES:
                 n1 = sc.screen_size(K, c, share, U.size)
@@ -141,12 +216,7 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
                 found: dict[str, list[float]] = {r: [] for r in RULES}
                 for t in range(trials):
                     s1 = np.flatnonzero(rng.random(U.size) < pi1)
-                    root = scratch / f"trial-{seed}-{t}"
-                    shutil.copytree(base, root)
-                    _append_cheap(root, ids[U[s1]], cheap[U[s1]], next_batch)
-                    pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
-                    p2 = bm._column(root / "scores.parquet", "p_0").astype(float)[U[s1]]
-                    shutil.rmtree(root)
+                    p2 = _refit_on_screen(base, su.scratch / f"trial-{seed}-{t}", st, s1)[s1]
                     K2 = min(sc.confirm_budget(K, c, s1.size), float(s1.size))
                     for rule in RULES:
                         if rule == "plain":
@@ -165,8 +235,6 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
         with open(OUT / f"{problem}.jsonl", "a") as fh:
             fh.write(json.dumps(row) + "\n")
         print(json.dumps(row), flush=True)
-        shutil.rmtree(base)
-    shutil.rmtree(scratch, ignore_errors=True)
 
 
 COVERAGE_SHARE = 0.3
@@ -198,68 +266,33 @@ def coverage(problem: str, seeds: list[int], trials: int, draws: int) -> None:
     """The default 90% interval's coverage under the design screen at COVERAGE_SHARE:
     for each of ``trials`` screens per seed (S1 drawn, the model refitted), ``draws``
     confirmations drawn from the truth (pi2 fixed given S1), under each of ALLOWANCES."""
-    from bams_cli import benchmark as bm
-    from bams_cli import pipeline
     from bams_cli.core import design as dz
     from bams_cli.core import screen as sc
     from bams_cli.core.estimate import estimate_from_sample
-    from bams_cli.settings import Settings
-    from bams_cli.state.workspace import Workspace
 
-    warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"screen-cov-{problem}-"))
-    prob = er.suite_problem(problem, scratch)
-    truth1 = bm._column(prob.data / "truth.parquet", "value_1").astype(float)
-    c = Settings.from_toml((prob.data / "settings.toml").read_text()).costs[1]
-    K, gamma = prob.K, prob.gamma
-    prior = dz.risk_posterior([])
-    OUT.mkdir(exist_ok=True)
-    for seed, base in er.workspaces_before_estimate(problem, prob, seeds, scratch):
-        ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
-        rows = np.array([prob.pos[s] for s in ids])
-        fail = prob.truth[rows] <= gamma
-        cheap = truth1[rows]
-        obs = Workspace(base).read_observations()
-        level0 = obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str)
-        known = np.isin(ids, level0)
-        p = bm._column(base / "scores.parquet", "p_0").astype(float)
-        U = np.flatnonzero(~known)
-        fU = fail[U]
-        N, F, Fk = ids.size, int(fail.sum()), int((fail & known).sum())
-        rate = F / N
-        pi1 = sc.screen_design(p[U], K=K, cost=c, share=COVERAGE_SHARE, posterior=prior).pi
+    su = _setup(problem, "cov")
+    K, c, prior = su.prob.K, su.cost, su.prior
+    for seed, base, st in _seed_states(su, seeds):
+        U, fU, N, Fk = st.U, st.fU, st.ids.size, st.Fk
+        rate = st.F / N
+        pi1 = sc.screen_design(st.p[U], K=K, cost=c, share=COVERAGE_SHARE, posterior=prior).pi
         rng = np.random.default_rng(seed * 100 + 11)
         tally = {h: np.zeros(5) for h in ALLOWANCES}  # hits, below, above, width, p_hat
         for t in range(trials):
             s1 = np.flatnonzero(rng.random(U.size) < pi1)
-            root = scratch / f"cov-{seed}-{t}"
-            shutil.copytree(base, root)
-            _append_cheap(root, ids[U[s1]], cheap[U[s1]], int(obs["batch"].max()) + 1)
-            pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
-            p2_all = bm._column(root / "scores.parquet", "p_0").astype(float)[U]
-            shutil.rmtree(root)
-            counts = None
-            pi2 = np.zeros(0)
-            K2 = 0.0
-            if s1.size:
-                K2 = min(sc.confirm_budget(K, c, s1.size), float(s1.size))
-                pi2 = sc.confirm_design(p2_all[s1], K2=K2, posterior=prior).pi
-                counts = (rng.random((s1.size, draws)) < pi2[:, None]).astype(np.int64)
+            p2_all = _refit_on_screen(base, su.scratch / f"cov-{seed}-{t}", st, s1)
+            # An empty screen has an empty confirmation: T = 0 in every draw.
+            K2 = min(sc.confirm_budget(K, c, s1.size), float(s1.size)) if s1.size else K
+            pi2 = sc.confirm_design(p2_all[s1], K2=K2, posterior=prior).pi
+            counts = (rng.random((s1.size, draws)) < pi2[:, None]).astype(np.int64)
             allow = prior.allowance_risk(p2_all)
             for how in ALLOWANCES:
                 wm = dz.unseen_failure_weight(allow, _allowance_pi(pi1, s1, pi2, allow, how))
-                if counts is None:  # an empty screen: T = 0, every draw alike
-                    est = estimate_from_sample(
-                        np.ones(1), np.zeros(1, bool), design="poisson", n_pool=N,
-                        n_unknown=U.size, budget=K, counts=np.zeros((1, draws), np.int64),
-                        known_failures=Fk, confidence=0.9, w_model=wm,
-                    )  # fmt: skip
-                else:
-                    est = estimate_from_sample(
-                        sc.confirmed_pi(pi1[s1], pi2), fU[s1], design="poisson", n_pool=N,
-                        n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk,
-                        confidence=0.9, w_model=wm,
-                    )  # fmt: skip
+                est = estimate_from_sample(
+                    sc.confirmed_pi(pi1[s1], pi2), fU[s1], design="poisson", n_pool=N,
+                    n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk,
+                    confidence=0.9, w_model=wm,
+                )  # fmt: skip
                 tally[how] += [
                     np.sum((est.ci_low <= rate) & (rate <= est.ci_high)),
                     np.sum(est.ci_high < rate),
@@ -280,8 +313,6 @@ def coverage(problem: str, seeds: list[int], trials: int, draws: int) -> None:
         with open(OUT / f"coverage-{problem}.jsonl", "a") as fh:
             fh.write(json.dumps(row) + "\n")
         print(json.dumps(row), flush=True)
-        shutil.rmtree(base)
-    shutil.rmtree(scratch, ignore_errors=True)
 
 
 def predict(problem: str, seeds: list[int], draws: int = 30) -> None:
@@ -301,25 +332,17 @@ def predict(problem: str, seeds: list[int], draws: int = 30) -> None:
     from bams_cli.core import design as dz
     from bams_cli.core import screen as sc
     from bams_cli.pipeline.fitting import load_posterior
-    from bams_cli.settings import Settings
     from bams_cli.state.workspace import Workspace
 
-    warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"screen-pred-{problem}-"))
-    prob = er.suite_problem(problem, scratch)
-    c = Settings.from_toml((prob.data / "settings.toml").read_text()).costs[1]
-    K, gamma = prob.K, prob.gamma
-    prior = dz.risk_posterior([])
+    su = _setup(problem, "pred")
+    K, c, gamma, prior = su.prob.K, su.cost, su.prob.gamma, su.prior
     lam = prior.lam_mean
-    OUT.mkdir(exist_ok=True)
-    for seed, base in er.workspaces_before_estimate(problem, prob, seeds, scratch):
+    for seed, base in er.workspaces_before_estimate(problem, su.prob, seeds, su.scratch):
         ws = Workspace(base)
         ids, X = ws.read_pool()
         ids = np.asarray(ids).astype(str)
         post, _ = load_posterior(ws, ws.require_initialised(), ids, X)
-        obs = ws.read_observations()
-        level0 = obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str)
-        U = np.flatnonzero(~np.isin(ids, level0))
+        U = np.flatnonzero(~_level0_known(base, ids))
         mu0, sd0, pp = post.score(X[U], [gamma])
         p = pp[:, 0]
         cov, var = post.own_point(X[U], np.ones(U.size, np.int64))
@@ -347,7 +370,7 @@ def predict(problem: str, seeds: list[int], draws: int = 30) -> None:
             fh.write(json.dumps(row) + "\n")
         print(json.dumps(row), flush=True)
         shutil.rmtree(base)
-    shutil.rmtree(scratch, ignore_errors=True)
+    shutil.rmtree(su.scratch, ignore_errors=True)
 
 
 def _cell(rows: list[dict], key: str, problem: str) -> str:
@@ -516,18 +539,12 @@ def main(argv: list[str]) -> None:
         return
     if argv[:1] not in (["run"], ["coverage"], ["predict"]) or len(argv) < 2:
         raise SystemExit(__doc__)
-    seeds, trials = list(range(10)), 4
-    if "--seeds" in argv:
-        lo, hi = argv[argv.index("--seeds") + 1].split("-")
-        seeds = list(range(int(lo), int(hi) + 1))
-    if "--trials" in argv:
-        trials = int(argv[argv.index("--trials") + 1])
     if argv[0] == "predict":
-        predict(argv[1], seeds)
+        predict(argv[1], er.seeds_and_trials(argv, "0-4", 0)[0])
     elif argv[0] == "coverage":
-        coverage(argv[1], seeds, trials, 1000)
+        coverage(argv[1], *er.seeds_and_trials(argv, "0-9", 8), 1000)
     else:
-        run(argv[1], seeds, trials)
+        run(argv[1], *er.seeds_and_trials(argv, "0-9", 4))
 
 
 if __name__ == "__main__":
