@@ -930,6 +930,16 @@ def estimate(
             "\\[default: the study seed and the plan number, so re-runs reproduce].",
         ),
     ] = None,
+    screen: Annotated[
+        float | None,
+        typer.Option(
+            "--screen",
+            help="With --plan: start a screened estimate, spending this share of K (e.g. 0.3) "
+            "on cheap-level runs of a sample first; once their results are in and the model "
+            "refitted, the next --plan confirms within the screen at level 0 "
+            "\\[default: no screen].",
+        ),
+    ] = None,
     plan_number: Annotated[
         int | None,
         typer.Option(
@@ -990,6 +1000,9 @@ def estimate(
 
     The stages' weights are fixed at stage 1, so the combined estimate stays unbiased.
 
+    With --screen SHARE the estimate starts with cheap-level runs of a sample (a batch of
+    the log); after their results and a refit, --plan confirms within it at level 0.
+
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
 
     then simulate the hand-off list, ingest the results, `bams-cli fit -w study`,
@@ -1000,6 +1013,8 @@ def estimate(
             f"--seed {seed} seeds the sample's draw: pass it with --plan (computing the "
             "estimate from a drawn plan involves no randomness)"
         )
+    if screen is not None and not plan:
+        raise OptionValueError(f"--screen {screen:g} draws a screen: pass it with --plan")
     if plan:
         summary = pipeline.estimate_plan(
             workspace,
@@ -1012,11 +1027,15 @@ def estimate(
             stage1_share=stage1_share,
             new_series=new_series,
             seed=seed,
+            screen=screen,
             handoff_internal=handoff_internal,
             allow_pending=allow_pending,
             wait=wait,
         )
-        _show(summary, json_out, console.plan_summary, "estimate-plan")
+        if "screen_file" in summary:
+            _show(summary, json_out, console.screen_summary, "estimate-screen")
+        else:
+            _show(summary, json_out, console.plan_summary, "estimate-plan")
         return
     with console.progress(not json_out, "estimate") as bar:
         summary = pipeline.estimate_compute(

@@ -536,6 +536,32 @@ def plan_summary(s: Mapping[str, Any]) -> None:
         warning(text)
 
 
+def screen_summary(s: Mapping[str, Any]) -> None:
+    head = (
+        f"screen for estimate plan {s['plan']}: {plural(s['cheap_runs'], 'segment')} to "
+        f"simulate at level {s['screen_level']}"
+    )
+    facts(
+        head,
+        {
+            "budget": f"K {_num(s['samples_K'])}: share {_num(s['screen_share'])} on the screen "
+            f"at cost {_num(s['screen_cost'])} a run, about {_num(s['level0_left'])} left "
+            "for level 0",
+            "screened": f"{plural(s['screened'], 'segment')} ({s['cheap_in_log']} with a cheap "
+            f"result in the log, {s['cheap_abandoned']} abandoned at that level)",
+            "design": s["screen_design"],
+            "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",
+            "screen file": s["screen_file"],
+            "hand-off": s.get("handoff") or "none: nothing to run",
+            "results template": s.get("results_template"),
+        },
+    )
+    for text in s.get("notes") or []:
+        note(text)
+    for text in s.get("warnings") or []:
+        warning(text)
+
+
 def report_summary(s: Mapping[str, Any]) -> None:
     rates = "; ".join(
         f"gamma {e['gamma']:g}: {_num(e['p_hat'])} [{_num(e['ci_low'])}, {_num(e['ci_high'])}]"

@@ -28,6 +28,7 @@ VERSIONS: dict[str, int] = {
     "fit": 1,
     "select": 1,
     "estimate-plan": 2,
+    "estimate-screen": 1,
     "estimate": 2,
     "report": 1,
     "status": STATUS_SCHEMA_VERSION,
@@ -377,7 +378,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "stages": INT,
                 "series_K": NUM,
                 "stage_weights": array(NUM),
-                "weighting": {"enum": ["calibrated", "uniform", "p^alpha"]},
+                "weighting": {"enum": ["calibrated", "uniform", "p^alpha", "screen"]},
                 "predicted_vs_uniform": nullable({"type": "object"}),
                 "model_check": obj(
                     {
@@ -388,6 +389,50 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "plans": array(INT),
                     }
                 ),
+                "notes": array(STR),
+                "warnings": array(STR),
+            },
+            {
+                "screen": obj(
+                    {
+                        "file": PATH,
+                        "batch": nullable(INT),
+                        "share": NUM,
+                        "level": INT,
+                        "cost": NUM,
+                        "series_K": NUM,
+                        "screened": COUNT,
+                        "cheap_runs": COUNT,
+                        "level0_budget": NUM,
+                        "seed": nullable(INT),
+                    }
+                )
+            },
+        ),
+    ),
+    "estimate-screen": (
+        "bams-cli estimate --plan --screen SHARE --json (the screen before a screened estimate)",
+        obj(
+            {
+                "screen_file": PATH,
+                "plan": INT,
+                "batch": nullable(INT),
+                "handoff": nullable(PATH),
+                "results_template": nullable(PATH),
+                "samples_K": NUM,
+                "screen_share": NUM,
+                "screen_level": INT,
+                "screen_cost": NUM,
+                "screen_expected": NUM,
+                "screen_design": {"enum": ["calibrated", "uniform", "p^alpha"]},
+                "screened": COUNT,
+                "cheap_runs": COUNT,
+                "cheap_in_log": COUNT,
+                "cheap_abandoned": COUNT,
+                "level0_left": NUM,
+                "known_stratum": COUNT,
+                "seed": INT,
+                "seed_source": {"enum": ["study settings", "--seed"]},
                 "notes": array(STR),
                 "warnings": array(STR),
             }

@@ -366,6 +366,21 @@ def _next_step(
         cmd = f"bams-cli select -w {w} --strategy random{mixed} --budget {defaults.BUDGET:g}"
         why = "no batch yet" if not batches and not plans else "no result yet (none awaited)"
         return step("select", cmd, f"{why}: run `{cmd}` for a random first batch")
+    screen_for = (plans[-1]["plan"] if plans else 0) + 1
+    if (ws.root / schemas.SCREEN.relpath.format(n=screen_for)).exists():
+        # A screened estimate (`estimate --plan --screen`) whose screen has its results:
+        # the confirmation is drawn from the model refitted on them.
+        if stale:
+            return step(
+                "fit", fit, f"{why_fit}; run `{fit}` before the screen's level-0 confirmation"
+            )
+        cmd = f"bams-cli estimate -w {w} --plan"
+        return step(
+            "estimate",
+            cmd,
+            f"the screen for estimate plan {screen_for} has its results: run `{cmd}` to draw "
+            "the level-0 confirmation within it",
+        )
     if estimating:
         k = plans[-1]["plan"]
         if plans[-1]["estimate"] is None and plans[-1]["abandoned"]:

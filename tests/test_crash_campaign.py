@@ -248,6 +248,8 @@ def prepare(base: Path, launcher) -> list[Case]:
     step("fit", cli("fit", "-w", ws))
     fitted = base / "fitted"
     shutil.copytree(ws, fitted, symlinks=True)
+    screened = base / "screened"  # a screened estimate: the screen, then its confirmation
+    shutil.copytree(ws, screened, symlinks=True)
     step("select", cli("select", "-w", ws, "--strategy", "bams", "--budget", 5, *pool))
     step("abandon", cli("abandon", "-w", ws, "--batch", 2, "--reason", "gone"))
     ws = fitted
@@ -258,6 +260,15 @@ def prepare(base: Path, launcher) -> list[Case]:
     _ok(launcher, cli("ingest-results", "-w", ws, p1), log)
     step("estimate", cli("estimate", "-w", ws))
     step("report", cli("report", "-w", ws, "--truth", truth))
+    ws = screened
+    screen = cli("--plan", "--screen", 0.3, "--samples", 40)
+    step("estimate --plan --screen", cli("estimate", "-w", ws, *screen))
+    s1 = base / "s1.parquet"
+    _ok(launcher, cli("simulate", ws / "batches/batch-0002.csv", "--truth", truth, "-o", s1),
+        log)  # fmt: skip
+    _ok(launcher, cli("ingest-results", "-w", ws, s1), log)
+    _ok(launcher, cli("fit", "-w", ws), log)
+    step("estimate --plan, confirming", cli("estimate", "-w", ws, "--plan"))
 
     args: dict[str, Callable[[Path], list[str]]] = {
         "init": lambda w: cli("init", "-w", w, *init),
@@ -270,6 +281,8 @@ def prepare(base: Path, launcher) -> list[Case]:
         "estimate --plan": lambda w: cli("estimate", "-w", w, *plan),
         "estimate": lambda w: cli("estimate", "-w", w),
         "report": lambda w: cli("report", "-w", w, "--truth", truth),
+        "estimate --plan --screen": lambda w: cli("estimate", "-w", w, *screen),
+        "estimate --plan, confirming": lambda w: cli("estimate", "-w", w, "--plan"),
     }
     keep["init"] = base / "before-init"  # never created: init starts from nothing
     return [Case(name, keep[name], args[name]) for name in args]

@@ -70,6 +70,16 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     run("status", "status", "-w", ws, code=3)
     run("ingest-results", "ingest-results", "-w", ws, answer(plan["handoff"], 3))
     run("estimate", "estimate", "-w", ws)
+    # A screened estimate: the screen (a cheap batch), its results, a refit, the confirmation.
+    run("fit", "fit", "-w", ws, "--restarts", 2)
+    screen = run("estimate-screen", "estimate", "-w", ws, "--plan", "--screen", 0.3,
+                 "--samples", 10, "--new-series")  # fmt: skip
+    run("ingest-results", "ingest-results", "-w", ws, answer(screen["handoff"], 4))
+    run("fit", "fit", "-w", ws, "--restarts", 2)
+    confirm = run("estimate-plan", "estimate", "-w", ws, "--plan")
+    assert confirm["weighting"] == "screen"
+    run("ingest-results", "ingest-results", "-w", ws, answer(confirm["handoff"], 5))
+    run("estimate", "estimate", "-w", ws)
     run("report", "report", "-w", ws, "--truth", truth)
     out["summary.json"].append(json.loads((ws / "report" / "summary.json").read_text()))
     run("status", "status", "-w", ws)

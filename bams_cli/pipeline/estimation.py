@@ -22,6 +22,7 @@ from bams_cli.errors import (
     StaleStateError,
     WorkspaceError,
 )
+from bams_cli.pipeline import screening
 from bams_cli.pipeline._common import (
     SID,
     Progress,
@@ -53,7 +54,7 @@ if TYPE_CHECKING:
 
 #: Where a plan's seed came from (its metadata's ``seed_source``).
 SEED_OPTION = "--seed"
-SEED_INHERITED = "stage 1's --seed"
+SEED_INHERITED = "stage 1's --seed"  # or, for a screened estimate's plan, the screen's
 
 
 @locked
@@ -69,6 +70,7 @@ def estimate_plan(
     stage1_share: float = defaults.STAGE1_SHARE,
     new_series: bool = False,
     seed: int | None = None,
+    screen: float | None = None,
     handoff_internal: bool = False,
     allow_pending: bool = False,
 ) -> dict[str, Any]:
@@ -117,6 +119,11 @@ def estimate_plan(
         Start a new estimate although the last one has stages to go.
     seed : int, optional
         Draw a fresh plan from this seed (above).
+    screen : float, optional
+        Start a screened estimate: spend this share of K on cheap-level runs of a Poisson
+        sample first (``bams_cli.pipeline.screening``); the next call, once their results
+        are in and the model refitted, draws the level-0 confirmation. The summary is then
+        the screen's (``screen_file``, ``batch``, ``handoff`` ...), not a plan's.
     handoff_internal : bool, default False
         Also put the internal columns in the CSV hand-off.
     allow_pending : bool, default False
@@ -224,6 +231,49 @@ def estimate_plan(
         and prev.stage < prev.stages
         and st.plan_complete(ws, prev.number)
     )
+    # A screen drawn for this plan number and not dropped (--new-series) is confirmed
+    # first, whatever series came before it; --screen starts a new estimate.
+    if screen is None and screening.screen_path(ws, number).exists() and not new_series:
+        return _confirm_screen(
+            ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known=known,
+            samples=samples, seed=seed, model=model, gp_rate=gp_rate,
+            handoff_internal=handoff_internal,
+        )  # fmt: skip
+    if screen is not None and not continuing:
+        # A new screen (a stale one of this number, dropped by --new-series, is overwritten).
+        if design != "poisson":
+            raise OptionValueError(
+                f"--screen: a screen confirms with a Poisson design, not --design {design}"
+            )
+        screening.check_share(screen, settings)
+        samples, warned = _plan_samples(
+            ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n,
+            n_unknown=n_unknown, design="poisson",
+        )  # fmt: skip
+        # Its own stream: the confirmation, plan `number`, draws from the plan's.
+        stream, seed_source = (
+            ([int(seed), 30_000], SEED_OPTION)
+            if seed is not None
+            else ([settings.seed, 30_000 + number], "study settings")
+        )
+        evidence, _ = st.mix_evidence(ws, settings.gammas[g_plan])
+        out = screening.draw_screen(
+            ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
+            share=float(screen),
+            posterior=dz.risk_posterior(evidence), rng=np.random.default_rng(stream),
+            meta={"seed": stream[0], "seed_source": seed_source, "rng_stream": stream,
+                  "plan_gamma": settings.gammas[g_plan],
+                  "model_hash": model["observations_hash"]},
+            handoff_internal=handoff_internal,
+        )  # fmt: skip
+        return out | {"warnings": warnings + warned}
+    if screen is not None:
+        assert prev is not None
+        raise WorkspaceError(
+            f"--screen: plan {prev.number} is stage {prev.stage} of {prev.stages} of an "
+            "estimate; plan its next stage (drop --screen), or pass --new-series to start a "
+            "screened estimate instead"
+        )
     if continuing:
         assert prev is not None
         if samples is not None and not math.isclose(samples, prev.series_K, rel_tol=1e-9):
@@ -247,39 +297,11 @@ def estimate_plan(
                 f"{'s' if len(earlier) > 1 else ''} {', '.join(map(str, earlier))}) stays in "
                 "its files, and the report and status show this one once its results are in"
             )
-        unchecked = None  # the default K's 5 p N when no level-0 failure has checked p
-        if samples is None:
-            # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
-            # can put p N near 0, so the failures already seen at level 0 set a floor, and
-            # so does defaults.PLAN_MIN_SAMPLES: a GP that has seen no failure at level 0
-            # can put its rate at 1e-6 and K at 5, an estimate of "0, at most 0.5".
-            obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
-            seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
-            paper = 5 * max(gp_rate * n, seen + 1)
-            samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
-            unchecked = paper if seen == 0 else None
-        if design == "with-replacement":
-            samples = float(round(samples))
-        if design != "with-replacement":
-            samples = min(samples, float(n_unknown))
-        if unchecked is not None:
-            if unchecked >= defaults.PLAN_MIN_SAMPLES:
-                why = f"K = {samples:g} rests on that rate"
-            elif samples == defaults.PLAN_MIN_SAMPLES:
-                why = (
-                    f"K = {samples:g} is the default's floor (the paper's 5 p N gives "
-                    f"{unchecked:.3g})"
-                )
-            else:
-                why = f"K = {samples:g}, every segment without a level-0 result"
-            # The interval is two-sided: with no failure among K uniform samples its upper
-            # limit is the 1 - (1 - confidence)/2 quantile, -ln(0.05)/K = 3.0/K at 90%.
-            warnings.append(
-                "no level-0 failure is known, so nothing has checked the model's rate "
-                f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
-                "the estimate must rule out (with no failure among K uniform samples the "
-                "90% interval's upper limit is about 3.0/K)"
-            )
+        samples, warned = _plan_samples(
+            ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n, n_unknown=n_unknown,
+            design=design,
+        )  # fmt: skip
+        warnings += warned
         n_stages = stages if staged and samples >= 2 * stages else 1
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
@@ -353,33 +375,6 @@ def estimate_plan(
         saved = float(full[known].sum())
     sampled_idx = plan.sampled_pool_index
     known_idx = np.flatnonzero(known)
-    # The sampled rows are the plan's requests (level 0, in hand-off order); the known
-    # stratum's rows follow with the contract's columns null: nothing to simulate there.
-    requests = contract.contract_columns(
-        "plan",
-        number,
-        ids[sampled_idx],
-        np.zeros(len(sampled_idx), np.int64),
-        settings,
-        ["estimate"] * len(sampled_idx),
-    )
-    n_known = len(known_idx)
-    cols: dict[str, Any] = {
-        name: pa.concat_arrays([arr, pa.nulls(n_known, arr.type)])
-        for name, arr in requests.items()
-        if name != SID
-    }
-    cols = {
-        SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]).astype(str), pa.string()),
-        "stratum": ["sampled"] * len(sampled_idx) + ["known"] * n_known,
-        "pi": np.concatenate([plan.pi[plan.sampled], np.ones(n_known)]),
-        "draws": np.concatenate([plan.counts, np.zeros(n_known, np.int64)]),
-        "q": np.concatenate([plan.q[plan.sampled], np.zeros(n_known)]),
-        "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
-        **cols,
-    }
-    cols |= passthrough_columns(ws, np.concatenate([sampled_idx, known_idx]), taken=cols)
-    table = pa.table(cols)
     predicted = (
         {k: round(v, 6) for k, v in choice.predicted.items()} if choice is not None else None
     )
@@ -423,14 +418,11 @@ def estimate_plan(
         "seed_source": seed_source,
         "rng_stream": stream,
     }
-    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
-    handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
-    state = schemas.PLAN.conform(table, meta)
-    with transaction() as tx:
-        tx.write_parquet(path, state)
-        _, template = write_handoff(
-            tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
-        )
+    path, handoff_path, template = write_plan(
+        ws, settings, number, ids, p, sampled_idx=sampled_idx, known_idx=known_idx,
+        pi=plan.pi[plan.sampled], draws=plan.counts, q=plan.q[plan.sampled], meta=meta,
+        handoff_internal=handoff_internal,
+    )  # fmt: skip
     notes = [n for n in [new_estimate, design_note(meta)] if n]
     return {
         "plan": number,
@@ -455,6 +447,215 @@ def estimate_plan(
         "seed_source": meta["seed_source"],
         "notes": notes,
         "warnings": warnings,
+    }
+
+
+def _plan_samples(
+    ws: Workspace,
+    settings: Settings,
+    samples: float | None,
+    *,
+    g_plan: int,
+    gp_rate: float,
+    n: int,
+    n_unknown: int,
+    design: str,
+) -> tuple[float, list[str]]:
+    """K of a new estimate: ``samples``, or the default (below), and the warning when no
+    level-0 failure has checked the model's rate that the default rests on."""
+    warnings: list[str] = []
+    unchecked = None  # the default K's 5 p N when no level-0 failure has checked p
+    if samples is None:
+        # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
+        # can put p N near 0, so the failures already seen at level 0 set a floor, and
+        # so does defaults.PLAN_MIN_SAMPLES: a GP that has seen no failure at level 0
+        # can put its rate at 1e-6 and K at 5, an estimate of "0, at most 0.5".
+        obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
+        seen = int((obs0["value"] <= settings.gammas[g_plan]).sum())
+        paper = 5 * max(gp_rate * n, seen + 1)
+        samples = float(round(max(paper, defaults.PLAN_MIN_SAMPLES)))
+        unchecked = paper if seen == 0 else None
+    if design == "with-replacement":
+        samples = float(round(samples))
+    if design != "with-replacement":
+        samples = min(samples, float(n_unknown))
+    if unchecked is not None:
+        if unchecked >= defaults.PLAN_MIN_SAMPLES:
+            why = f"K = {samples:g} rests on that rate"
+        elif samples == defaults.PLAN_MIN_SAMPLES:
+            why = (
+                f"K = {samples:g} is the default's floor (the paper's 5 p N gives {unchecked:.3g})"
+            )
+        else:
+            why = f"K = {samples:g}, every segment without a level-0 result"
+        # The interval is two-sided: with no failure among K uniform samples its upper
+        # limit is the 1 - (1 - confidence)/2 quantile, -ln(0.05)/K = 3.0/K at 90%.
+        warnings.append(
+            "no level-0 failure is known, so nothing has checked the model's rate "
+            f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
+            "the estimate must rule out (with no failure among K uniform samples the "
+            "90% interval's upper limit is about 3.0/K)"
+        )
+    return float(samples), warnings
+
+
+def write_plan(
+    ws: Workspace,
+    settings: Settings,
+    number: int,
+    ids: np.ndarray,
+    p: np.ndarray,
+    *,
+    sampled_idx: np.ndarray,
+    known_idx: np.ndarray,
+    pi: np.ndarray,
+    draws: np.ndarray,
+    q: np.ndarray,
+    meta: dict[str, Any],
+    handoff_internal: bool,
+) -> tuple[Path, Path, Path]:
+    """Write plan ``number`` (its Parquet file and CSV hand-off) in one transaction.
+
+    ``sampled_idx``, ``known_idx``: pool indices of the sampled segments (with their
+    ``pi``, ``draws`` and ``q``) and of the known stratum; ``p``: p_n over the pool.
+    Returns the plan's path, its hand-off's and the results template's.
+    """
+    # The sampled rows are the plan's requests (level 0, in hand-off order); the known
+    # stratum's rows follow with the contract's columns null: nothing to simulate there.
+    requests = contract.contract_columns(
+        "plan",
+        number,
+        ids[sampled_idx],
+        np.zeros(len(sampled_idx), np.int64),
+        settings,
+        ["estimate"] * len(sampled_idx),
+    )
+    n_known = len(known_idx)
+    cols: dict[str, Any] = {
+        name: pa.concat_arrays([arr, pa.nulls(n_known, arr.type)])
+        for name, arr in requests.items()
+        if name != SID
+    }
+    cols = {
+        SID: pa.array(np.concatenate([ids[sampled_idx], ids[known_idx]]).astype(str), pa.string()),
+        "stratum": ["sampled"] * len(sampled_idx) + ["known"] * n_known,
+        "pi": np.concatenate([pi, np.ones(n_known)]),
+        "draws": np.concatenate([draws, np.zeros(n_known, np.int64)]),
+        "q": np.concatenate([q, np.zeros(n_known)]),
+        "p_n": np.concatenate([p[sampled_idx], p[known_idx]]),
+        **cols,
+    }
+    cols |= passthrough_columns(ws, np.concatenate([sampled_idx, known_idx]), taken=cols)
+    path = ws.estimates_dir / f"plan-{number:04d}.parquet"
+    handoff_path = ws.estimates_dir / f"plan-{number:04d}-handoff.csv"
+    state = schemas.PLAN.conform(pa.table(cols), meta)
+    with transaction() as tx:
+        tx.write_parquet(path, state)
+        _, template = write_handoff(
+            tx, state.slice(0, len(sampled_idx)), handoff_path, PLAN_INTERNAL, handoff_internal
+        )
+    return path, handoff_path, template
+
+
+def _confirm_screen(
+    ws: Workspace,
+    settings: Settings,
+    *,
+    number: int,
+    ids: np.ndarray,
+    p_all: np.ndarray,
+    g_plan: int,
+    known: np.ndarray,
+    samples: float | None,
+    seed: int | None,
+    model: dict[str, Any],
+    gp_rate: float,
+    handoff_internal: bool,
+) -> dict[str, Any]:
+    """Plan ``number``: the level-0 confirmation of the screen of the same number
+    (``screening.confirm_screen``), a one-stage plan at pi = pi1 pi2."""
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import gp_estimate
+
+    smeta = read_metadata_json(screening.screen_path(ws, number))
+    if seed is not None:
+        stream, seed_source = [int(seed), 10_000], SEED_OPTION
+    elif smeta.get("seed_source") == SEED_OPTION:  # the screen's --seed: its own stream
+        stream, seed_source = [int(smeta["seed"]), 40_000], SEED_INHERITED
+    else:
+        stream, seed_source = [settings.seed, 10_000 + number], "study settings"
+    evidence, evidence_plans = stages_mod.mix_evidence(ws, settings.gammas[g_plan])
+    post = dz.risk_posterior(evidence)
+    c = screening.confirm_screen(
+        ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known_now=known,
+        samples=samples, posterior=post, rng=np.random.default_rng(stream),
+    )  # fmt: skip
+    p = p_all[:, g_plan]
+    K2 = float(c["K2"])
+    sampled_idx, pi = c["sampled_idx"], c["pi"]
+    check = {**post.summary(), "plans": evidence_plans}
+    stage_info = {
+        "series": number, "stage": 1, "stages": 1, "series_K": K2, "stage_weights": [1.0],
+    }  # fmt: skip
+    meta = {
+        "plan": number,
+        "design": "poisson",
+        "samples": K2,
+        "alpha": defaults.ALPHA,
+        "defensive": defaults.DEFENSIVE,
+        "weighting": "screen",
+        "weighting_option": "screen",
+        "predicted_vs_uniform": None,
+        "model_check": check,
+        **stage_info,
+        "n_pool": len(ids),
+        "n_unknown": c["n_unknown"],
+        # No p_mean_unknown: the confirmation is drawn on cheap-run evidence p_n lacks, so
+        # its outcomes would not say how far p_n alone is to be trusted (stages.mix_evidence).
+        "w_max": finite_or_none(c["w_max"]),
+        "w_model": [finite_or_none(w) for w in c["w_model"]],
+        "plan_gamma": settings.gammas[g_plan],
+        "model_hash": model["observations_hash"],
+        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
+        "seed": stream[0],
+        "seed_source": seed_source,
+        "rng_stream": stream,
+        "screen": c["screen"],
+    }
+    path, handoff_path, template = write_plan(
+        ws, settings, number, ids, p, sampled_idx=sampled_idx, known_idx=c["known_idx"],
+        pi=pi, draws=np.ones(len(sampled_idx), np.int64), q=pi / max(K2, 1e-300), meta=meta,
+        handoff_internal=handoff_internal,
+    )  # fmt: skip
+    scr = c["screen"]
+    return {
+        "plan": number,
+        "plan_file": str(path),
+        "handoff": str(handoff_path),
+        "results_template": str(template),
+        "design": "poisson",
+        "samples_K": K2,
+        **stage_info,
+        "weighting": "screen",
+        "predicted_vs_uniform": None,
+        "model_check": check,
+        "to_simulate": len(sampled_idx),
+        "simulations_certain": int((pi >= 1.0).sum()),
+        "known_stratum": len(c["known_idx"]),
+        "simulations_saved_by_known_stratum": 0.0,
+        "gp_rate_estimate": gp_rate,
+        "plan_gamma": settings.gammas[g_plan],
+        "alpha": defaults.ALPHA,
+        "defensive": defaults.DEFENSIVE,
+        "seed": stream[0],
+        "seed_source": seed_source,
+        "screen": scr,
+        "notes": [
+            f"plan {number} confirms the screen of {scr['screened']} segments ({scr['file']}) "
+            f"at level 0 with {K2:g} of K = {scr['series_K']:g}; each sampled segment is "
+            "weighted by 1 / (pi1 pi2)"
+        ],
+        "warnings": [],
     }
 
 

@@ -137,6 +137,23 @@ PLAN = StateFile(
     optional=pa.schema(_REQUEST_COLUMNS),
 )
 
+# A cheap-level screen drawn by `estimate --plan --screen` (bams_cli.pipeline.screening):
+# every segment of the pool as it stood, the screen's pi1 over U and which were drawn.
+# Named by the number of the plan that confirms it.
+SCREEN = StateFile(
+    "screen",
+    "estimates/screen-{n:04d}.parquet",
+    pa.schema(
+        [
+            (SEGMENT_ID, pa.string()),
+            ("stratum", pa.string()),  # "known" (a level-0 result in hand) or "unknown"
+            ("pi1", pa.float64()),  # 1 on the known stratum
+            ("screened", pa.bool_()),
+            ("p_n", pa.float64()),
+        ]
+    ),
+)
+
 # Append-only log of requests that will never come back (`bams-cli abandon`, `ingest-results
 # --abandon-failed`): the (segment, level) a batch or a plan asked for, with why. Exactly one
 # of batch and plan is set on each row. Nothing is ever removed; a result that arrives
@@ -158,7 +175,7 @@ ABANDONED = StateFile(
     ),
 )
 
-ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN, ABANDONED)
+ALL = (SEGMENTS, OBSERVATIONS, SCORES, BATCH, PLAN, SCREEN, ABANDONED)
 
 
 def batch_path(workspace: Path, n: int) -> Path:

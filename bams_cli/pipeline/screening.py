@@ -1,0 +1,318 @@
+"""``estimate --plan --screen SHARE``: a cheap-level screen, then level-0 confirmation in it.
+
+A screened estimate takes two ``estimate --plan`` calls (``core.screen`` holds the math):
+
+1. With ``--screen SHARE``: pi1 over U (the segments without a level-0 result) is the
+   estimate's own design choice at the screen's size, SHARE x K spent at the cheap level's
+   cost; a Poisson sample S1 is drawn and its cheap runs go out as a batch of the log
+   (``batches/batch-NNNN``, strategy "screen"), so simulating, ingesting, abandoning and
+   ``loop`` treat them as any batch. The screen itself, pi1 over the pool as it stood, is
+   ``estimates/screen-NNNN.parquet``, named by the plan number its confirmation takes.
+2. Once the batch's results are in and the model refitted on them, the next ``estimate
+   --plan`` draws the confirmation: pi2 over S1 from the refitted p_n with what is left of
+   K, and a plan (``plan-NNNN``) whose sampled segments carry pi = pi1 pi2. ``estimate``
+   then computes it as any one-stage plan: T = sum y / (pi1 pi2) is unbiased whatever the
+   refit did, since pi2 is fixed before any level-0 outcome of the confirmation is seen.
+
+Segments of S1 whose cheap result is already in the log are not run again (the screen
+observes them all the same) and cost nothing; neither are those whose cheap run was
+abandoned: the refitted model's p_n stands in for their run.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pyarrow as pa
+
+from bams_cli.errors import OptionValueError, WorkspaceError
+from bams_cli.pipeline._common import SID
+from bams_cli.pipeline._handoff import BATCH_INTERNAL, passthrough_columns, write_handoff
+from bams_cli.settings import Settings
+from bams_cli.state import handoff as contract
+from bams_cli.state import schemas
+from bams_cli.state.io import read_metadata_json, read_state, transaction
+from bams_cli.state.workspace import Workspace
+
+#: The level a screen runs: the first cheap level (level 1).
+SCREEN_LEVEL = 1
+
+
+def screen_path(ws: Workspace, number: int) -> Path:
+    """Where the screen confirmed by plan ``number`` lives."""
+    return ws.root / schemas.SCREEN.relpath.format(n=number)
+
+
+def check_share(share: float, settings: Settings) -> float:
+    """The cost of a screen's cheap run, once ``--screen SHARE`` is known to make sense."""
+    if not 0 < share < 1:
+        raise OptionValueError(
+            f"--screen {share:g}: the share of K the screen spends must lie in (0, 1), e.g. 0.3"
+        )
+    if settings.n_levels < 2:
+        raise OptionValueError(
+            f"--screen {share:g}: the study has one fidelity level; a screen runs the cheap "
+            "level (init --costs 1,0.1 declares one)"
+        )
+    cost = float(settings.costs[SCREEN_LEVEL])
+    if not 0 < cost < 1:
+        raise OptionValueError(
+            f"--screen {share:g}: level {SCREEN_LEVEL}'s cost is {cost:g}; a screen needs a "
+            "level cheaper than level 0 (cost in (0, 1))"
+        )
+    return cost
+
+
+def draw_screen(
+    ws: Workspace,
+    settings: Settings,
+    *,
+    number: int,
+    ids: np.ndarray,
+    p: np.ndarray,
+    known: np.ndarray,
+    K: float,
+    share: float,
+    posterior: Any,
+    rng: np.random.Generator,
+    meta: dict[str, Any],
+    handoff_internal: bool,
+) -> dict[str, Any]:
+    """Draw S1, write the screen and the batch of its cheap runs (one transaction).
+
+    ``p``: p_n over the pool at the plan's gamma; ``known``: which segments have a level-0
+    result; ``meta``: what the screen's metadata shares with a plan's (seed, gamma ...).
+    Returns the summary ``estimate --plan --screen --json`` prints.
+    """
+    from bams_cli.abandon import abandoned_mask
+    from bams_cli.core import screen as sc
+    from bams_cli.core.sampling import draw_poisson
+
+    cost = check_share(share, settings)
+    unknown = np.flatnonzero(~known)
+    if unknown.size == 0:
+        raise WorkspaceError(
+            f"{ws.root}: every segment has a level-0 result; there is nothing to screen "
+            "(drop --screen: the estimate is a census)"
+        )
+    choice = sc.screen_design(p[unknown], K=K, cost=cost, share=share, posterior=posterior)
+    pi1 = choice.pi
+    s1 = unknown[draw_poisson(pi1, rng)]
+    obs = ws.read_observations().filter(pl.col("fidelity") == SCREEN_LEVEL)
+    have = np.isin(ids[s1], obs[SID].to_numpy())
+    gone = abandoned_mask(ws, ids, settings.n_levels)[s1, SCREEN_LEVEL]
+    run = s1[~have & ~gone]
+    n = len(ids)
+    pi1_pool = np.ones(n)
+    pi1_pool[unknown] = pi1
+    screened = np.zeros(n, bool)
+    screened[s1] = True
+    batch = (ws.batch_numbers() or [0])[-1] + 1 if run.size else None
+    screen_meta = {
+        **meta,
+        "plan": number,
+        "screen_share": share,
+        "screen_level": SCREEN_LEVEL,
+        "screen_cost": cost,
+        "series_K": K,
+        "n_pool": n,
+        "n_unknown": int(unknown.size),
+        "screen_expected": float(pi1.sum()),
+        "screen_design": choice.name,
+        "screened": int(s1.size),
+        "cheap_runs": int(run.size),
+        "cheap_in_log": int(have.sum()),
+        "cheap_abandoned": int((gone & ~have).sum()),
+        "batch": batch,
+    }
+    table = schemas.SCREEN.conform(
+        pa.table(
+            {
+                SID: pa.array(ids.astype(str), pa.string()),
+                "stratum": np.where(known, "known", "unknown").tolist(),
+                "pi1": pi1_pool,
+                "screened": screened,
+                "p_n": np.asarray(p, np.float64),
+            }
+        ),
+        screen_meta,
+    )
+    path = screen_path(ws, number)
+    out: dict[str, Any] = {"batch": batch, "handoff": None, "results_template": None}
+    with transaction() as tx:
+        tx.write_parquet(path, table)
+        if batch is not None:
+            cols: dict[str, Any] = contract.contract_columns(
+                "batch", batch, ids[run], np.full(run.size, SCREEN_LEVEL, np.int64), settings,
+                ["screen"] * run.size,
+            )  # fmt: skip
+            cols |= {
+                "delta_j": np.full(run.size, np.nan),
+                "cluster": np.zeros(run.size, np.int64),
+                "rank": np.arange(run.size, dtype=np.int64),
+                "strategy": ["screen"] * run.size,
+            }
+            cols |= passthrough_columns(ws, run, taken=cols)
+            bmeta = {
+                "batch": batch,
+                "seed": meta["seed"],
+                "model_hash": meta["model_hash"],
+                "options": {"strategy": "screen", "screen_for_plan": number,
+                            "gamma": settings.gammas[0]},
+                "j_before": None,
+                "j_after": None,
+            }  # fmt: skip
+            btable = schemas.BATCH.conform(pa.table(cols), bmeta)
+            bpath = schemas.batch_path(ws.root, batch)
+            tx.write_parquet(bpath, btable)
+            csv, template = write_handoff(
+                tx, btable, bpath.with_suffix(".csv"), BATCH_INTERNAL, handoff_internal
+            )
+            out |= {"handoff": str(csv), "results_template": str(template)}
+    then = (
+        f"simulate {out['handoff']}, ingest the results, `bams-cli fit -w {ws.root}`, then "
+        if batch is not None
+        else "every screened segment's cheap result is in the log: "
+    )
+    return {
+        "screen_file": str(path),
+        "plan": number,
+        **out,
+        "samples_K": K,
+        "screen_share": share,
+        "screen_level": SCREEN_LEVEL,
+        "screen_cost": cost,
+        "screen_expected": round(float(pi1.sum()), 6),
+        "screen_design": choice.name,
+        "screened": int(s1.size),
+        "cheap_runs": int(run.size),
+        "cheap_in_log": int(have.sum()),
+        "cheap_abandoned": int((gone & ~have).sum()),
+        "level0_left": round(sc.confirm_budget(K, cost, int(run.size)), 6),
+        "known_stratum": int(known.sum()),
+        "seed": meta["seed"],
+        "seed_source": meta["seed_source"],
+        "notes": [
+            f"screen for plan {number}: {then}`bams-cli estimate --plan -w {ws.root}` draws "
+            "the level-0 confirmation within the screen"
+        ],
+    }
+
+
+def read_screen(
+    ws: Workspace, number: int, ids: np.ndarray
+) -> tuple[pl.DataFrame, dict, np.ndarray]:
+    """The screen confirmed by plan ``number``: its table, metadata, and each row's pool index.
+
+    Raises WorkspaceError when the pool no longer holds a screened segment.
+    """
+    path = screen_path(ws, number)
+    meta = read_metadata_json(path)
+    table = pl.from_arrow(schemas.SCREEN.check(read_state(path), path))
+    assert isinstance(table, pl.DataFrame)
+    pos = pl.DataFrame({SID: ids.astype(str), "_i": np.arange(len(ids))})
+    joined = table.join(pos, on=SID, how="left")
+    lost = joined.filter(pl.col("_i").is_null())
+    if lost.height:
+        raise WorkspaceError(
+            f"{path}: {lost.height} segments of the screen are no longer in the pool "
+            f"({', '.join(lost[SID].head(3).to_list())}); start a new estimate with "
+            "`estimate --plan --new-series`"
+        )
+    return joined, meta, joined["_i"].to_numpy().astype(np.int64)
+
+
+def confirm_screen(
+    ws: Workspace,
+    settings: Settings,
+    *,
+    number: int,
+    ids: np.ndarray,
+    p_all: np.ndarray,
+    g_plan: int,
+    known_now: np.ndarray,
+    samples: float | None,
+    posterior: Any,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    """pi2 over S1 from the refitted p_n and the confirmation's draw.
+
+    Returns what ``estimation.estimate_plan`` writes as plan ``number``: ``sampled_idx``,
+    ``known_idx``, ``pi`` (pi1 pi2 of the sampled), ``K2``, ``w_model``, ``w_max``,
+    ``n_unknown`` and the ``screen`` facts for the plan's metadata.
+    """
+    from bams_cli.core import design as dz
+    from bams_cli.core import screen as sc
+    from bams_cli.core.sampling import draw_poisson
+
+    table, smeta, index = read_screen(ws, number, ids)
+    path = screen_path(ws, number)
+    K = float(smeta["series_K"])
+    if samples is not None and not math.isclose(samples, K, rel_tol=1e-9):
+        raise WorkspaceError(
+            f"--samples: {path} screened for an estimate with K = {K:g}; its confirmation "
+            "spends the rest (drop --samples, or pass the same K); pass --new-series to start "
+            "a new estimate instead"
+        )
+    unknown_rows = (table["stratum"] == "unknown").to_numpy()
+    U = index[unknown_rows]
+    known_idx = index[~unknown_rows]
+    newly = U[known_now[U]]
+    if newly.size:
+        raise WorkspaceError(
+            f"{path}: {newly.size} segments the screen counted as unknown have a level-0 "
+            f"result since ({', '.join(ids[newly[:3]].astype(str))}); the screen's design no "
+            "longer holds: start a new estimate with `estimate --plan --new-series`"
+        )
+    pi1_U = table["pi1"].to_numpy()[unknown_rows]
+    in_s1 = table["screened"].to_numpy()[unknown_rows]
+    S1 = U[in_s1]
+    pi1_S1 = pi1_U[in_s1]
+    cost = float(smeta["screen_cost"])
+    p2 = p_all[S1, g_plan]
+    if S1.size:
+        K2 = min(sc.confirm_budget(K, cost, int(smeta["cheap_runs"])), float(S1.size))
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=posterior).pi
+    else:  # an empty screen has nothing to confirm: T = 0, its conditional mean
+        K2, pi2 = 0.0, np.zeros(0)
+    drawn = draw_poisson(pi2, rng)
+    pi = sc.confirmed_pi(pi1_S1, pi2)
+    # The interval's allowance for a failure no run has seen: a segment outside S1 would
+    # have been confirmed at most as often as the screen's least-confirmed one (the "min"
+    # allowance, measured in docs/suite/screen_design.md).
+    allow_pi = pi1_U * float(pi2.min(initial=1.0))
+    allow_pi[in_s1] = pi
+    w_model = [
+        dz.unseen_failure_weight(posterior.allowance_risk(p_all[U, g]), allow_pi)
+        for g in range(p_all.shape[1])
+    ]
+    rand = allow_pi[allow_pi < 1.0]
+    w_max = (
+        0.0 if rand.size == 0 else (math.inf if rand.min() <= 0 else (1 - rand.min()) / rand.min())
+    )
+    return {
+        "sampled_idx": S1[drawn],
+        "known_idx": known_idx,
+        "pi": pi[drawn],
+        "K2": K2,
+        "w_model": w_model,
+        "w_max": w_max,
+        "n_unknown": int(U.size),
+        "p_unknown": p_all[U, g_plan],
+        "screen": {
+            "file": str(path),
+            "batch": smeta.get("batch"),
+            "share": float(smeta["screen_share"]),
+            "level": int(smeta["screen_level"]),
+            "cost": cost,
+            "series_K": K,
+            "screened": int(S1.size),
+            "cheap_runs": int(smeta["cheap_runs"]),
+            "level0_budget": K2,
+            "seed": smeta.get("seed"),
+        },
+    }

@@ -1,0 +1,237 @@
+"""A screened estimate through the CLI, as a Makefile drives it: ``estimate --plan --screen``
+(cheap-level runs as a batch), their results, a refit, ``estimate --plan`` (the level-0
+confirmation within the screen), its results, ``estimate``.
+
+``core.screen``'s unbiasedness is shown by enumeration in tests/core/test_screen.py; here
+the wiring: what the screen records is what the confirmation and the estimate use, and the
+estimate is the two-phase Horvitz-Thompson sum computed by hand from the files and truth.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import polars as pl
+import pyarrow.parquet as pq
+import pytest
+
+from bams_cli import schemas_json
+from bams_cli.core import design as dz
+from bams_cli.core import screen as sc
+from bams_cli.state.io import read_metadata_json
+from bams_cli.state.schemas import SEGMENT_ID as SID
+from tests.conftest import invoke, ok, tree_hash, write_toy
+from tests.jsonschema_subset import errors
+from tests.test_estimate import strict_json
+
+K = 60.0
+SHARE = 0.3
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """400 toy2d segments (two levels, the cheap one at cost 0.1), a random mixed batch with
+    level-0 and cheap runs, fitted."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    tmp = tmp_path_factory.mktemp("screen")
+    seg, truth = write_toy(tmp / "data", n=400, seed=0)
+    ws = tmp / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.05,0.56", "--costs", "1,0.1", "--dim", "2",
+       "--seed", "3")  # fmt: skip
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "20")
+    res = tmp / "r1.parquet"
+    ok(runner, "simulate", ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    return ws, truth
+
+
+def _copy(fitted, tmp_path):
+    src, truth = fitted
+    shutil.copytree(src, tmp_path / "ws")
+    return tmp_path / "ws", truth
+
+
+def _sim(runner, handoff, truth, out):
+    ok(runner, "simulate", handoff, "--truth", truth, "-o", out)
+    return out
+
+
+def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(fitted, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, truth = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    cheap_before = pl.read_parquet(ws / "observations.parquet").filter(pl.col("fidelity") == 1)
+    scr = strict_json(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K, "--json"
+        ).stdout  # fmt: skip
+    )
+    assert errors(scr, schemas_json.schema("estimate-screen")) == []
+    assert (scr["plan"], scr["batch"], scr["samples_K"], scr["screen_level"]) == (1, 2, K, 1)
+    # The screen's expected size is its share of K at the cheap level's cost.
+    assert scr["screen_expected"] == pytest.approx(SHARE * K / 0.1)
+    screen = pl.read_parquet(ws / "estimates" / "screen-0001.parquet")
+    smeta = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
+    assert screen.height == 400 and smeta["series_K"] == K
+    s1 = screen.filter(pl.col("screened"))
+    assert s1.height == scr["screened"] and (s1["stratum"] == "unknown").all()
+    # The batch runs the cheap level on S1 but for what the log already holds.
+    batch = pl.read_parquet(ws / "batches" / "batch-0002.parquet")
+    assert (batch["fidelity"] == 1).all() and (batch["strategy"] == "screen").all()
+    held = set(cheap_before[SID]) & set(s1[SID])
+    assert set(batch[SID]) == set(s1[SID]) - held
+    assert scr["cheap_in_log"] == len(held) and scr["cheap_runs"] == batch.height
+    assert scr["level0_left"] == pytest.approx(K - 0.1 * batch.height)
+    assert not list((ws / "estimates").glob("plan-*.parquet"))  # no plan until confirmed
+    # The confirmation waits for the screen's results (exit code 3) and for the refit.
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code == 3 and "batch 2 awaits results" in r.stderr
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code != 0 and "fit" in r.stderr
+    nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
+    assert nxt["step"] == "fit" and "confirmation" in nxt["text"]
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
+    assert nxt["command"].endswith("--plan") and "screen for estimate plan 1" in nxt["text"]
+    # A different K than the screen's is refused, naming the way out.
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--samples", "80")
+    assert r.exit_code == 1 and "--new-series" in r.stderr
+    plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert errors(plan, schemas_json.schema("estimate-plan")) == []
+    assert (plan["plan"], plan["weighting"], plan["stages"]) == (1, "screen", 1)
+    # pi2 over S1, recomputed from the refitted scores: the plan's pi is pi1 pi2.
+    scores = pl.read_parquet(ws / "scores.parquet")
+    p_col = [c for c in scores.columns if c.startswith("p_")][-1]  # the largest gamma's
+    s1p = s1.join(scores.select(SID, p_col), on=SID, how="left")
+    K2 = min(sc.confirm_budget(K, 0.1, scr["cheap_runs"]), float(s1.height))
+    pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=dz.risk_posterior([])).pi
+    assert plan["samples_K"] == pytest.approx(K2)
+    pi_by_id = dict(zip(s1[SID].to_list(), (s1["pi1"].to_numpy() * pi2).tolist(), strict=True))
+    planned = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
+    sampled = planned.filter(pl.col("stratum") == "sampled")
+    assert set(sampled[SID]) <= set(s1[SID]) and sampled.height == plan["to_simulate"]
+    for sid, pi in zip(sampled[SID].to_list(), sampled["pi"].to_list(), strict=True):
+        assert pi == pytest.approx(pi_by_id[sid], rel=1e-12)
+    # The known stratum is the screen's: every segment with a level-0 result at the screen.
+    known = planned.filter(pl.col("stratum") == "known")
+    assert set(known[SID]) == set(screen.filter(pl.col("stratum") == "known")[SID])
+    # A second plan while the confirmation awaits results is refused, as any plan's.
+    assert invoke(runner, "estimate", "-w", ws, "--plan").exit_code == 3
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "estimates" / "plan-0001-handoff.csv", truth, tmp_path / "c.parquet"))  # fmt: skip
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert errors(out, schemas_json.schema("estimate")) == []
+    # The estimate is the two-phase HT sum, by hand from the truth: known failures, plus
+    # each confirmed failure weighted by 1 / (pi1 pi2), over N.
+    f = pl.read_parquet(truth).select(SID, pl.col("value_0").alias("f0"))
+    for e in out["estimates"]:
+        g = e["gamma"]
+        fails = f.filter(pl.col("f0") <= g)
+        n_known = known.join(fails, on=SID).height
+        hits = sampled.join(fails, on=SID)
+        total = n_known + float((1.0 / hits["pi"].to_numpy()).sum())
+        assert e["p_hat_unbiased"] == pytest.approx(total / 400, rel=1e-12)
+        assert e["failures_known"] == n_known and e["failures_sampled"] == hits.height
+        assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
+    # The weights show: a confirmed failure that was not certain (pi1 pi2 < 1).
+    assert (hits["pi"].to_numpy() < 1).any()
+    # status and report read a study with a screen in it.
+    assert invoke(runner, "status", "-w", ws).exit_code in (0, 3)
+    ok(runner, "report", "-w", ws)
+
+
+def test_cheap_results_already_in_the_log_are_not_run_again_and_cost_nothing(fitted, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, truth = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    # A screen at share 0.99 of a large K takes every unknown segment (pi1 = 1): the cheap
+    # runs batch 1 already holds are in S1 and must not be asked for again.
+    scr = strict_json(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", 0.9, "--samples", 300, "--json"
+        ).stdout  # fmt: skip
+    )
+    cheap = pl.read_parquet(ws / "observations.parquet").filter(pl.col("fidelity") == 1)
+    level0 = pl.read_parquet(ws / "observations.parquet").filter(pl.col("fidelity") == 0)
+    unknown_cheap = set(cheap[SID]) - set(level0[SID])
+    assert unknown_cheap, "batch 1 must hold cheap runs of segments without level 0"
+    assert scr["screened"] == 400 - level0[SID].n_unique()  # every unknown segment
+    assert scr["cheap_in_log"] == len(unknown_cheap)
+    assert scr["cheap_runs"] == scr["screened"] - len(unknown_cheap)
+    batch = pl.read_parquet(ws / "batches" / "batch-0002.parquet")
+    assert not set(batch[SID]) & unknown_cheap
+    assert scr["level0_left"] == pytest.approx(300 - 0.1 * scr["cheap_runs"])
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--screen", "1.5"], "must lie in (0, 1)"),
+        (["--screen", "0"], "must lie in (0, 1)"),
+        (["--screen", "0.3", "--design", "fixed"], "Poisson design"),
+    ],
+)
+def test_a_screen_out_of_range_is_refused_and_changes_nothing(fitted, tmp_path, args, message):
+    from typer.testing import CliRunner
+
+    ws, _ = _copy(fitted, tmp_path)
+    before = tree_hash(ws)
+    r = invoke(CliRunner(), "estimate", "-w", ws, "--plan", *args)
+    assert r.exit_code == 2 and message in r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_screen_needs_plan_and_a_cheap_level(tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    seg, truth = write_toy(tmp_path / "data", n=120, seed=1)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--dim", "2")  # one level
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "15")
+    res = _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r.parquet")
+    ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "0.3")
+    assert r.exit_code == 2 and "one fidelity level" in r.stderr
+    r = invoke(runner, "estimate", "-w", ws, "--screen", "0.3")
+    assert r.exit_code == 2 and "pass it with --plan" in r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_new_series_drops_an_open_screen_for_a_plain_plan(fitted, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, truth = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    ok(runner, "abandon", "-w", ws, "--batch", "2", "--reason", "the cheap simulator is down")
+    out = strict_json(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--new-series", "--samples", "40", "--json"
+        ).stdout  # fmt: skip
+    )
+    assert out["weighting"] != "screen" and out["plan"] == 1
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    assert "screen" not in meta
+    assert pq.read_metadata(ws / "estimates" / "plan-0001.parquet").num_rows > 0
+    # The next plan after it is a plain plan again, not a confirmation of the dropped screen.
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "estimates" / "plan-0001-handoff.csv", truth, tmp_path / "p.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    nxt = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert nxt["weighting"] != "screen" and nxt["plan"] == 2
+    assert np.isfinite(nxt["samples_K"])
