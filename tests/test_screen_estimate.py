@@ -142,8 +142,9 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
         assert e["p_hat_unbiased"] == pytest.approx(total / 400, rel=1e-12)
         assert e["failures_known"] == n_known and e["failures_sampled"] == hits.height
         assert e["ci_low"] <= e["p_hat"] <= e["ci_high"]
-    # The weights show: a confirmed failure that was not certain (pi1 pi2 < 1).
-    assert (hits["pi"].to_numpy() < 1).any()
+    # The design is random: segments confirmed at pi1 pi2 < 1 carry weights above 1 (a
+    # wrong weight, 1 / pi2 alone, is caught by the pi check above).
+    assert (sampled["pi"].to_numpy() < 1).any()
     # status and report read a study with a screen in it.
     assert invoke(runner, "status", "-w", ws).exit_code in (0, 3)
     ok(runner, "report", "-w", ws)
@@ -235,3 +236,63 @@ def test_new_series_drops_an_open_screen_for_a_plain_plan(fitted, tmp_path):
     nxt = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
     assert nxt["weighting"] != "screen" and nxt["plan"] == 2
     assert np.isfinite(nxt["samples_K"])
+
+
+def test_a_screen_awaiting_confirmation_is_not_drawn_again_nor_confirmed_early(fitted, tmp_path):
+    # Found in review: --screen again overwrote the open screen (K spent twice), and
+    # --allow-pending confirmed before the screen's cheap runs were in.
+    from typer.testing import CliRunner
+
+    ws, truth = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--allow-pending")
+    assert r.exit_code == 3 and "the screen's cheap runs, awaits" in r.stderr
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE)
+    assert r.exit_code == 1 and "awaits its confirmation" in r.stderr and "--new-series" in r.stderr
+    assert tree_hash(ws) == before
+    # A new screen on the first one's results (--new-series) draws from fresh uniforms: on
+    # the same ones, S1' = {u < pi1'} with pi1' fitted on S1's cheap runs is biased.
+    first = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K, "--new-series")
+    again = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
+    assert first["rng_stream"][:2] == again["rng_stream"][:2]
+    assert first["rng_stream"] != again["rng_stream"]
+
+
+def test_a_screen_is_refused_beside_pending_level0_runs(fitted, tmp_path):
+    from typer.testing import CliRunner
+
+    ws, _ = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "30", "--stages", "1")
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--allow-pending",
+               "--new-series")  # fmt: skip
+    assert r.exit_code == 3 and "level-0 runs await results" in r.stderr
+    assert tree_hash(ws) == before
+
+
+def test_a_pool_grown_since_the_screen_is_refused(fitted, tmp_path):
+    # Found in review: segments added after the screen were in no stratum, never sampled.
+    from typer.testing import CliRunner
+
+    from bams_cli.errors import WorkspaceError
+    from bams_cli.pipeline import screening
+    from bams_cli.state.workspace import Workspace
+
+    ws, _ = _copy(fitted, tmp_path)
+    ok(CliRunner(), "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    w = Workspace(ws)
+    ids, _ = w.read_pool()
+    table, _, index = screening.read_screen(w, 1, ids)
+    assert (ids[index] == table[SID].to_numpy()).all()
+    with pytest.raises(WorkspaceError, match="1 segments more than when the screen was drawn"):
+        screening.read_screen(w, 1, np.append(ids, "new-segment"))
+    with pytest.raises(WorkspaceError, match="no longer in the pool"):
+        screening.read_screen(w, 1, ids[1:])

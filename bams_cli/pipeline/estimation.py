@@ -233,7 +233,16 @@ def estimate_plan(
     )
     # A screen drawn for this plan number and not dropped (--new-series) is confirmed
     # first, whatever series came before it; --screen starts a new estimate.
-    if screen is None and screening.screen_path(ws, number).exists() and not new_series:
+    open_screen = screening.screen_path(ws, number).exists() and not new_series
+    if screen is not None and open_screen:
+        # Drawing it again would spend K twice, and a screen drawn on the first one's
+        # cheap results re-weights the segments those picked: --new-series says so.
+        raise WorkspaceError(
+            f"--screen: {screening.screen_path(ws, number)} awaits its confirmation; run "
+            f"`bams-cli estimate -w {ws.root} --plan` (no --screen) once its results are in "
+            "and fitted, or pass --new-series to drop it and draw a new screen"
+        )
+    if open_screen:
         return _confirm_screen(
             ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known=known,
             samples=samples, seed=seed, model=model, gp_rate=gp_rate,
@@ -246,15 +255,28 @@ def estimate_plan(
                 f"--screen: a screen confirms with a Poisson design, not --design {design}"
             )
         screening.check_share(screen, settings)
+        # A level-0 result that arrives between the screen and its confirmation would move
+        # a segment of U into the known stratum after pi1 was drawn for it.
+        level0 = pend.filter(pl.col("fidelity") == 0) if pend.height else pend
+        if level0.height:
+            raise PendingResultsError(
+                f"--screen: {level0.height} level-0 runs await results; ingest them (or "
+                f"abandon them) first: the screen's U is every segment without a level-0 "
+                "result, and must not change before the screen is confirmed"
+            )
         samples, warned = _plan_samples(
             ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n,
             n_unknown=n_unknown, design="poisson",
         )  # fmt: skip
-        # Its own stream: the confirmation, plan `number`, draws from the plan's.
+        # Its own stream: the confirmation, plan `number`, draws from the plan's. A screen
+        # drawn again (--new-series) after the first one's results must not reuse its
+        # uniforms: S1' = {u < pi1'} with pi1' fitted on S1 = {u < pi1}'s cheap runs would
+        # re-weight the segments S1 picked. The log's size and the batch count tell them apart.
+        state = [ws.read_observations().height, len(ws.batch_numbers())]
         stream, seed_source = (
-            ([int(seed), 30_000], SEED_OPTION)
+            ([int(seed), 30_000, *state], SEED_OPTION)
             if seed is not None
-            else ([settings.seed, 30_000 + number], "study settings")
+            else ([settings.seed, 30_000 + number, *state], "study settings")
         )
         evidence, _ = st.mix_evidence(ws, settings.gammas[g_plan])
         out = screening.draw_screen(

@@ -29,7 +29,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli.errors import OptionValueError, WorkspaceError
+from bams_cli.errors import OptionValueError, PendingResultsError, WorkspaceError
 from bams_cli.pipeline._common import SID
 from bams_cli.pipeline._handoff import BATCH_INTERNAL, passthrough_columns, write_handoff
 from bams_cli.settings import Settings
@@ -217,6 +217,13 @@ def read_screen(
     pos = pl.DataFrame({SID: ids.astype(str), "_i": np.arange(len(ids))})
     joined = table.join(pos, on=SID, how="left")
     lost = joined.filter(pl.col("_i").is_null())
+    if lost.height == 0 and table.height != len(ids):
+        # New segments would be in no stratum: never sampled, and the rate biased low.
+        raise WorkspaceError(
+            f"{path}: the pool has {len(ids) - table.height} segments more than when the "
+            "screen was drawn; they are in none of its strata: start a new estimate with "
+            "`estimate --plan --new-series`"
+        )
     if lost.height:
         raise WorkspaceError(
             f"{path}: {lost.height} segments of the screen are no longer in the pool "
@@ -251,6 +258,16 @@ def confirm_screen(
 
     table, smeta, index = read_screen(ws, number, ids)
     path = screen_path(ws, number)
+    batch = smeta.get("batch")
+    pend = ws.pending()
+    if batch is not None and pend.height and bool((pend["batch"] == batch).any()):
+        # Even with --allow-pending: pi2 drawn without the cheap runs K2 has paid for
+        # would waste the screen.
+        waiting = int((pend["batch"] == batch).sum())
+        raise PendingResultsError(
+            f"{path}: batch {batch}, the screen's cheap runs, awaits {waiting} results; "
+            "ingest them (or abandon them) and refit before its confirmation"
+        )
     K = float(smeta["series_K"])
     if samples is not None and not math.isclose(samples, K, rel_tol=1e-9):
         raise WorkspaceError(
