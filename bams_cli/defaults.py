@@ -191,6 +191,13 @@ PLAN_MIN_SAMPLES = 100
 #: this share of the budget K, and its level-0 outcomes check the model before the later
 #: stages spend the rest (``core.design``).
 STAGES = 2
+#: ``estimate --plan`` suggests a screen (``--screen``) where the fitted model's
+#: discrepancy-plus-cheap-noise sd is under this share of its level-0 signal sd: on the
+#: suite the screen never had more than 1.06x the unscreened design's variance there, and
+#: up to 1.68x where the cheap level was weaker (docs/suite/screen_design.md, fourth table).
+SCREEN_HINT_DISCREPANCY = 0.3
+#: The share of K the suggested screen spends (the share measured there).
+SCREEN_HINT_SHARE = 0.3
 STAGE1_SHARE = 0.5
 
 #: Beta prior on lam, the share of the failure mass the model does not explain

@@ -296,3 +296,34 @@ def test_a_pool_grown_since_the_screen_is_refused(fitted, tmp_path):
         screening.read_screen(w, 1, np.append(ids, "new-segment"))
     with pytest.raises(WorkspaceError, match="no longer in the pool"):
         screening.read_screen(w, 1, ids[1:])
+
+
+def test_a_new_plain_estimate_suggests_a_screen_where_the_cheap_level_tracks_level0(
+    fitted, tmp_path
+):
+    import json
+    import math
+
+    from typer.testing import CliRunner
+
+    from bams_cli import defaults
+    from bams_cli.pipeline import screening
+
+    ws, _ = _copy(fitted, tmp_path)
+    hp = json.loads((ws / "model.json").read_text())["hyperparameters"]
+    ratio = math.sqrt((hp["outputscales"][0] + hp["noise"][1]) / hp["outputscale0"])
+    assert ratio < defaults.SCREEN_HINT_DISCREPANCY  # toy2d's cheap level is close
+    out = strict_json(
+        ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", 40, "--json").stdout
+    )
+    (hint,) = [n for n in out["notes"] if "tracks level 0 closely" in n]
+    assert f"{ratio:.2f} of its level-0 signal's" in hint and "--screen 0.3" in hint
+    # A weak cheap level (its discrepancy as large as the signal), a one-level model, or
+    # one without the hyperparameters: no suggestion.
+    weak = {"hyperparameters": {"outputscale0": 1.0, "outputscales": [0.9], "noise": [0, 0.2]}}
+    edge = {"hyperparameters": {"outputscale0": 1.0, "outputscales": [0.0], "noise": [0, 0.09]}}
+    assert screening.screen_hint(weak, ws) is None
+    assert screening.cheap_level_discrepancy(edge) == pytest.approx(0.3)
+    assert screening.screen_hint(edge, ws) is None  # the threshold itself does not suggest
+    one = {"hyperparameters": {"outputscale0": 1.0, "outputscales": [], "noise": [0.0]}}
+    assert screening.screen_hint(one, ws) is None and screening.screen_hint({}, ws) is None

@@ -445,7 +445,9 @@ def estimate_plan(
         pi=plan.pi[plan.sampled], draws=plan.counts, q=plan.q[plan.sampled], meta=meta,
         handoff_internal=handoff_internal,
     )  # fmt: skip
-    notes = [n for n in [new_estimate, design_note(meta)] if n]
+    # A new estimate where a screen measured better: said, not done (it is not the default).
+    hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
+    notes = [n for n in [new_estimate, design_note(meta), hint] if n]
     return {
         "plan": number,
         "plan_file": str(path),

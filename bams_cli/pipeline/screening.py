@@ -29,6 +29,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
+from bams_cli import defaults
 from bams_cli.errors import OptionValueError, PendingResultsError, WorkspaceError
 from bams_cli.pipeline._common import SID
 from bams_cli.pipeline._handoff import BATCH_INTERNAL, passthrough_columns, write_handoff
@@ -65,6 +66,37 @@ def check_share(share: float, settings: Settings) -> float:
             "level cheaper than level 0 (cost in (0, 1))"
         )
     return cost
+
+
+def cheap_level_discrepancy(model: dict[str, Any]) -> float | None:
+    """The fitted model's level-1 discrepancy-plus-noise sd over its level-0 signal sd:
+    how far the cheap level strays from level 0, as a share of level 0's own variation
+    (scale-free). None for a one-level model or one without those hyperparameters."""
+    hp = model.get("hyperparameters") or {}
+    try:
+        disc = float(hp["outputscales"][0]) + float(hp["noise"][SCREEN_LEVEL])
+        signal = float(hp["outputscale0"])
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None
+    if not (signal > 0 and math.isfinite(disc) and disc >= 0):
+        return None
+    return math.sqrt(disc / signal)
+
+
+def screen_hint(model: dict[str, Any], root: Path) -> str | None:
+    """A note for a new unscreened estimate when the cheap level tracks level 0 closely
+    (``defaults.SCREEN_HINT_DISCREPANCY``)."""
+    ratio = cheap_level_discrepancy(model)
+    if ratio is None or ratio >= defaults.SCREEN_HINT_DISCREPANCY:
+        return None
+    return (
+        f"the cheap level tracks level 0 closely (the model's discrepancy sd is {ratio:.2f} "
+        "of its level-0 signal's): a screened estimate (`bams-cli estimate -w "
+        f"{root} --plan --new-series --screen {defaults.SCREEN_HINT_SHARE:g}`, cheap runs "
+        "of a sample first) had 0.31 to 1.06 times this design's variance on the suite's "
+        f"problems below {defaults.SCREEN_HINT_DISCREPANCY:g}, and found more failures "
+        "(docs/suite/screen_design.md)"
+    )
 
 
 def draw_screen(
