@@ -1213,6 +1213,14 @@ def loop(
             help="With --then-estimate: the estimate's budget K \\[default: 5 x the GP's p x N].",
         ),
     ] = None,
+    screen: Annotated[
+        float | None,
+        typer.Option(
+            "--screen",
+            help="With --then-estimate: a screened estimate, this share of K (e.g. 0.3) on "
+            "cheap-level runs first (see estimate --screen) \\[default: no screen].",
+        ),
+    ] = None,
     results_dir: Annotated[
         Path | None,
         typer.Option(
@@ -1265,6 +1273,7 @@ def loop(
             first_budget=first_budget,
             then_estimate=then_estimate,
             samples=samples,
+            screen=screen,
             results_dir=results_dir,
             abandon_failed=abandon_failed,
             retries=retries,

@@ -60,6 +60,7 @@ from bams_cli.pipeline._common import (
     check_samples,
     check_workers,
 )
+from bams_cli.pipeline.screening import check_share, screen_path
 from bams_cli.state import pending
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
 from bams_cli.state.io import transaction
@@ -114,6 +115,7 @@ class Options:
     clusters: int
     workers: int | None
     wait: bool
+    screen: float | None = None  # with then_estimate: a screened estimate's share of K
 
 
 def loop(
@@ -125,6 +127,7 @@ def loop(
     first_budget: float | None = None,
     then_estimate: bool = False,
     samples: float | None = None,
+    screen: float | None = None,
     results_dir: Path | None = None,
     abandon_failed: bool = False,
     retries: int = defaults.RETRIES,
@@ -160,6 +163,10 @@ def loop(
         Then plan the rate estimate, simulate it and compute it.
     samples : float, optional
         With ``then_estimate``: the estimate's budget K.
+    screen : float, optional
+        With ``then_estimate``: a screened estimate (``estimate --plan --screen``): this
+        share of K on cheap-level runs first, their results and a refit, then the level-0
+        confirmation.
     results_dir : Path, optional
         Where the simulator's results files go (default: ``root / "loop-results"``).
     abandon_failed : bool, default False
@@ -230,6 +237,12 @@ def loop(
     for flag, value in (("--budget", budget), ("--first-budget", first_budget)):
         if value is not None:
             check_buys_a_run(value, settings.costs, flag)
+    if screen is not None:  # refused now, not after the discovery batches
+        if not then_estimate:
+            raise OptionValueError(
+                f"--screen {screen:g} screens the estimate: pass --then-estimate"
+            )
+        check_share(screen, settings)
     opts = Options(
         simulator=simulator,
         batches=batches,
@@ -237,6 +250,7 @@ def loop(
         first_budget=budget if first_budget is None else first_budget,
         then_estimate=then_estimate,
         samples=samples,
+        screen=screen,
         results_dir=Path(results_dir) if results_dir else ws.root / "loop-results",
         abandon_failed=abandon_failed,
         retries=retries,
@@ -585,8 +599,11 @@ def _run(
             return record
         record["ingested"] = out["ingested"]
     elif name == "estimate --plan":
-        out = pipeline.estimate_plan(root, samples=opts.samples, wait=wait)
-        record["to_simulate"] = out["to_simulate"]
+        # --screen draws the screen once; with the screen drawn, the same step confirms it.
+        drawn = opts.screen is not None and screen_path(Workspace(root), number or 1).exists()
+        screen = None if drawn else opts.screen
+        out = pipeline.estimate_plan(root, samples=opts.samples, screen=screen, wait=wait)
+        record["to_simulate"] = out["cheap_runs"] if "screen_file" in out else out["to_simulate"]
     elif name == "estimate":
         out = pipeline.estimate_compute(
             root, plan_number=number, failed_as="bounds" if opts.abandon_failed else None,

@@ -124,6 +124,66 @@ def _headline(ws: Path, plan: int) -> list[str]:
     ]
 
 
+def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
+    # `loop --then-estimate --screen`: the screen's cheap runs as a batch, simulated and
+    # ingested as any, a refit, the level-0 confirmation (plan 1), its results, the estimate.
+    _, seg, truth, _, _ = data
+    ws = _study(tmp_path, "screened", seg)
+    done = subprocess.run(
+        [*_loop_args(ws, truth), "--screen", "0.3", "--json"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert errors(out, schemas_json.schema("loop")) == []
+    steps = [(s["step"], s["list"]) for s in out["steps"]]
+    first = steps.index(("estimate --plan", "plan 1"))
+    assert steps[first + 1 : first + 4] == [
+        ("simulate", "batch 4"),
+        ("ingest-results", "batch 4"),
+        ("fit", None),
+    ]
+    assert steps[first + 4 : first + 8] == [
+        ("estimate --plan", "plan 1"),
+        ("simulate", "plan 1"),
+        ("ingest-results", "plan 1"),
+        ("estimate", "plan 1"),
+    ]
+    batch = Workspace(ws).read_batch(4)
+    assert (batch["strategy"] == "screen").all() and (batch["fidelity"] == 1).all()
+    assert out["steps"][first]["to_simulate"] == batch.height
+    from bams_cli.state.io import read_metadata_json
+
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    assert meta["weighting"] == "screen" and meta["screen"]["batch"] == 4
+    assert out["plans"] == 1 and out["estimate_file"].endswith("estimate-0001.json")
+    # Run again, it has nothing left to do: the screen is neither drawn nor confirmed again.
+    again = subprocess.run(
+        [*_loop_args(ws, truth), "--screen", "0.3", "--json"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    assert [s["step"] for s in json.loads(again.stdout)["steps"]] == []
+
+
+def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
+    _, seg, truth, _, _ = data
+    ws = _study(tmp_path, "refused", seg)
+    before = tree_hash(ws)
+    for extra, needle in (
+        (["--screen", "1.2"], "must lie in (0, 1)"),
+        (["--screen", "0.3"], "pass --then-estimate"),
+    ):
+        args = (
+            [a for a in _loop_args(ws, truth) if a != "--then-estimate"]
+            if needle.startswith("pass")
+            else _loop_args(ws, truth)
+        )
+        r = subprocess.run([*args, *extra], capture_output=True, text=True, check=False)
+        assert r.returncode == 2 and needle in r.stderr, r.stderr
+    assert tree_hash(ws) == before
+
+
 def test_a_loop_that_ends_with_the_estimate_prints_it(data, tmp_path):
     # A loop whose last step was `estimate` ended on "estimate  .../estimate-0002.json":
     # the rate itself took a `report` or `status`.
