@@ -312,6 +312,18 @@ def _show(
         human(summary)
 
 
+def _screen_share(value: str | None) -> float | str | None:
+    """``--screen``: a share of K, or "auto"."""
+    if value is None or value == "auto":
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        raise OptionValueError(
+            f"--screen {value}: a share of K in (0, 1) such as 0.3, or auto"
+        ) from None
+
+
 def _version(value: bool) -> None:
     if value:
         console.out.print(f"bams-cli {__version__}")
@@ -931,13 +943,15 @@ def estimate(
         ),
     ] = None,
     screen: Annotated[
-        float | None,
+        str | None,
         typer.Option(
             "--screen",
-            help="With --plan: start a screened estimate, spending this share of K (e.g. 0.3) "
-            "on cheap-level runs of a sample first; once their results are in and the model "
-            "refitted, the next --plan confirms within the screen at level 0 "
-            "\\[default: no screen].",
+            metavar="SHARE|auto",
+            help="With --plan: start a screened estimate, spending SHARE of K on cheap-level "
+            "runs of a sample first, then (after their results and a refit) the next --plan "
+            "confirms within the screen at level 0; auto screens 0.3 where the fitted cheap "
+            "level tracks level 0 (discrepancy sd under 0.3 of the signal's) and plans "
+            "without elsewhere \\[default: no screen].",
         ),
     ] = None,
     plan_number: Annotated[
@@ -1014,7 +1028,7 @@ def estimate(
             "estimate from a drawn plan involves no randomness)"
         )
     if screen is not None and not plan:
-        raise OptionValueError(f"--screen {screen:g} draws a screen: pass it with --plan")
+        raise OptionValueError(f"--screen {screen} draws a screen: pass it with --plan")
     if plan:
         summary = pipeline.estimate_plan(
             workspace,
@@ -1027,7 +1041,7 @@ def estimate(
             stage1_share=stage1_share,
             new_series=new_series,
             seed=seed,
-            screen=screen,
+            screen=_screen_share(screen),
             handoff_internal=handoff_internal,
             allow_pending=allow_pending,
             wait=wait,
@@ -1214,11 +1228,12 @@ def loop(
         ),
     ] = None,
     screen: Annotated[
-        float | None,
+        str | None,
         typer.Option(
             "--screen",
+            metavar="SHARE|auto",
             help="With --then-estimate: a screened estimate, this share of K (e.g. 0.3) on "
-            "cheap-level runs first (see estimate --screen) \\[default: no screen].",
+            "cheap-level runs first, or auto (see estimate --screen) \\[default: no screen].",
         ),
     ] = None,
     results_dir: Annotated[
@@ -1273,7 +1288,7 @@ def loop(
             first_budget=first_budget,
             then_estimate=then_estimate,
             samples=samples,
-            screen=screen,
+            screen=_screen_share(screen),
             results_dir=results_dir,
             abandon_failed=abandon_failed,
             retries=retries,

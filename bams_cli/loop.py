@@ -115,7 +115,7 @@ class Options:
     clusters: int
     workers: int | None
     wait: bool
-    screen: float | None = None  # with then_estimate: a screened estimate's share of K
+    screen: float | str | None = None  # with then_estimate: a screen's share of K, or "auto"
 
 
 def loop(
@@ -127,7 +127,7 @@ def loop(
     first_budget: float | None = None,
     then_estimate: bool = False,
     samples: float | None = None,
-    screen: float | None = None,
+    screen: float | str | None = None,
     results_dir: Path | None = None,
     abandon_failed: bool = False,
     retries: int = defaults.RETRIES,
@@ -163,10 +163,10 @@ def loop(
         Then plan the rate estimate, simulate it and compute it.
     samples : float, optional
         With ``then_estimate``: the estimate's budget K.
-    screen : float, optional
+    screen : float or "auto", optional
         With ``then_estimate``: a screened estimate (``estimate --plan --screen``): this
         share of K on cheap-level runs first, their results and a refit, then the level-0
-        confirmation.
+        confirmation; "auto" as ``estimate --plan --screen auto`` decides.
     results_dir : Path, optional
         Where the simulator's results files go (default: ``root / "loop-results"``).
     abandon_failed : bool, default False
@@ -239,10 +239,11 @@ def loop(
             check_buys_a_run(value, settings.costs, flag)
     if screen is not None:  # refused now, not after the discovery batches
         if not then_estimate:
-            raise OptionValueError(
-                f"--screen {screen:g} screens the estimate: pass --then-estimate"
-            )
-        check_share(screen, settings)
+            raise OptionValueError(f"--screen {screen} screens the estimate: pass --then-estimate")
+        if isinstance(screen, str) and screen != "auto":
+            raise OptionValueError(f"--screen {screen}: a share of K in (0, 1), or auto")
+        if not isinstance(screen, str):
+            check_share(screen, settings)
     opts = Options(
         simulator=simulator,
         batches=batches,

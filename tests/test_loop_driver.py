@@ -172,7 +172,9 @@ def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
     before = tree_hash(ws)
     for extra, needle in (
         (["--screen", "1.2"], "must lie in (0, 1)"),
+        (["--screen", "half"], "or auto"),
         (["--screen", "0.3"], "pass --then-estimate"),
+        (["--screen", "auto"], "pass --then-estimate"),
     ):
         args = (
             [a for a in _loop_args(ws, truth) if a != "--then-estimate"]

@@ -327,3 +327,62 @@ def test_a_new_plain_estimate_suggests_a_screen_where_the_cheap_level_tracks_lev
     assert screening.screen_hint(edge, ws) is None  # the threshold itself does not suggest
     one = {"hyperparameters": {"outputscale0": 1.0, "outputscales": [], "noise": [0.0]}}
     assert screening.screen_hint(one, ws) is None and screening.screen_hint({}, ws) is None
+
+
+def test_screen_auto_screens_where_the_cheap_level_tracks_level0_and_plans_plainly_elsewhere(
+    fitted, tmp_path, monkeypatch
+):
+    from typer.testing import CliRunner
+
+    from bams_cli import defaults
+    from bams_cli.pipeline import screening
+
+    runner = CliRunner()
+    ws, _ = _copy(fitted, tmp_path / "close")
+    # toy2d's cheap level tracks level 0 (the hint's test): auto screens 0.3 of K.
+    out = strict_json(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", "auto", "--samples", K, "--json"
+        ).stdout  # fmt: skip
+    )
+    assert errors(out, schemas_json.schema("estimate-screen")) == []
+    assert out["screen_share"] == defaults.SCREEN_HINT_SHARE
+    assert any(n.startswith("--screen auto: screening 0.3 of K") for n in out["notes"])
+    # auto again while that screen awaits its confirmation does not draw another (the
+    # batch is pending: exit 3, as a plain --plan).
+    assert invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "auto").exit_code == 3
+    # A weaker cheap level: auto plans as without it, and says why.
+    ws2, _ = _copy(fitted, tmp_path / "far")
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)
+    out = strict_json(
+        ok(
+            runner, "estimate", "-w", ws2, "--plan", "--screen", "auto", "--samples", K, "--json"
+        ).stdout  # fmt: skip
+    )
+    assert out["weighting"] != "screen" and "screen_file" not in out
+    (note,) = [n for n in out["notes"] if n.startswith("--screen auto: no screen")]
+    assert "0.80 of its level-0 signal's" in note
+    assert not list((ws2 / "estimates").glob("screen-*.parquet"))
+    # A word that is neither a share nor auto is a usage error.
+    r = invoke(runner, "estimate", "-w", ws2, "--plan", "--screen", "half")
+    assert r.exit_code == 2 and "or auto" in r.stderr
+
+
+def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    seg, truth = write_toy(tmp_path / "data", n=120, seed=1)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "15")
+    res = _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r.parquet")
+    ok(runner, "ingest-results", "-w", ws, res)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    out = strict_json(
+        ok(runner, "estimate", "-w", ws, "--plan", "--screen", "auto", "--json").stdout
+    )
+    assert "screen_file" not in out
+    assert any("no cheap level" in n for n in out["notes"])

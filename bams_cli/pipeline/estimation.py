@@ -70,7 +70,7 @@ def estimate_plan(
     stage1_share: float = defaults.STAGE1_SHARE,
     new_series: bool = False,
     seed: int | None = None,
-    screen: float | None = None,
+    screen: float | str | None = None,
     handoff_internal: bool = False,
     allow_pending: bool = False,
 ) -> dict[str, Any]:
@@ -119,11 +119,15 @@ def estimate_plan(
         Start a new estimate although the last one has stages to go.
     seed : int, optional
         Draw a fresh plan from this seed (above).
-    screen : float, optional
+    screen : float or "auto", optional
         Start a screened estimate: spend this share of K on cheap-level runs of a Poisson
         sample first (``bams_cli.pipeline.screening``); the next call, once their results
         are in and the model refitted, draws the level-0 confirmation. The summary is then
-        the screen's (``screen_file``, ``batch``, ``handoff`` ...), not a plan's.
+        the screen's (``screen_file``, ``batch``, ``handoff`` ...), not a plan's. "auto"
+        screens ``defaults.SCREEN_HINT_SHARE`` of a new estimate's K where the fitted
+        cheap-level discrepancy is under ``defaults.SCREEN_HINT_DISCREPANCY`` of the
+        level-0 signal, and otherwise plans as without it (it confirms an open screen and
+        continues a staged estimate as a plain call does), saying which in a note.
     handoff_internal : bool, default False
         Also put the internal columns in the CSV hand-off.
     allow_pending : bool, default False
@@ -234,7 +238,16 @@ def estimate_plan(
     # A screen drawn for this plan number and not dropped (--new-series) is confirmed
     # first, whatever series came before it; --screen starts a new estimate.
     open_screen = screening.screen_path(ws, number).exists() and not new_series
-    if screen is not None and open_screen:
+    auto_note = None
+    if screen == "auto":
+        share, auto_note = (
+            (None, None) if open_screen or continuing else screening.auto_share(model, settings)
+        )
+    elif isinstance(screen, str):
+        raise OptionValueError(f"--screen {screen!r}: a share of K in (0, 1) such as 0.3, or auto")
+    else:
+        share = screen
+    if share is not None and open_screen:
         # Drawing it again would spend K twice, and a screen drawn on the first one's
         # cheap results re-weights the segments those picked: --new-series says so.
         raise WorkspaceError(
@@ -248,13 +261,13 @@ def estimate_plan(
             samples=samples, seed=seed, model=model, gp_rate=gp_rate,
             handoff_internal=handoff_internal,
         )  # fmt: skip
-    if screen is not None and not continuing:
+    if share is not None and not continuing:
         # A new screen (a stale one of this number, dropped by --new-series, is overwritten).
         if design != "poisson":
             raise OptionValueError(
                 f"--screen: a screen confirms with a Poisson design, not --design {design}"
             )
-        screening.check_share(screen, settings)
+        screening.check_share(share, settings)
         # A level-0 result that arrives between the screen and its confirmation would move
         # a segment of U into the known stratum after pi1 was drawn for it.
         level0 = pend.filter(pl.col("fidelity") == 0) if pend.height else pend
@@ -281,15 +294,18 @@ def estimate_plan(
         evidence, _ = st.mix_evidence(ws, settings.gammas[g_plan])
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
-            share=float(screen),
+            share=share,
             posterior=dz.risk_posterior(evidence), rng=np.random.default_rng(stream),
             meta={"seed": stream[0], "seed_source": seed_source, "rng_stream": stream,
                   "plan_gamma": settings.gammas[g_plan],
                   "model_hash": model["observations_hash"]},
             handoff_internal=handoff_internal,
         )  # fmt: skip
-        return out | {"warnings": warnings + warned}
-    if screen is not None:
+        return out | {
+            "notes": [n for n in [auto_note] if n] + out["notes"],
+            "warnings": warnings + warned,
+        }
+    if share is not None:
         assert prev is not None
         raise WorkspaceError(
             f"--screen: plan {prev.number} is stage {prev.stage} of {prev.stages} of an "
@@ -447,7 +463,7 @@ def estimate_plan(
     )  # fmt: skip
     # A new estimate where a screen measured better: said, not done (it is not the default).
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
-    notes = [n for n in [new_estimate, design_note(meta), hint] if n]
+    notes = [n for n in [new_estimate, design_note(meta), auto_note or hint] if n]
     return {
         "plan": number,
         "plan_file": str(path),

@@ -99,6 +99,27 @@ def screen_hint(model: dict[str, Any], root: Path) -> str | None:
     )
 
 
+def auto_share(model: dict[str, Any], settings: Settings) -> tuple[float | None, str]:
+    """``--screen auto`` for a new estimate: the share to screen (None: no screen) and a
+    note saying why, from the fitted cheap-level discrepancy (``screen_hint``'s rule)."""
+    limit = defaults.SCREEN_HINT_DISCREPANCY
+    ratio = cheap_level_discrepancy(model) if settings.n_levels > 1 else None
+    if ratio is None:
+        return None, "--screen auto: no screen (the model has no cheap level to screen with)"
+    if ratio >= limit:
+        return None, (
+            f"--screen auto: no screen; the model's cheap-level discrepancy sd is {ratio:.2f} "
+            f"of its level-0 signal's (screened below {limit:g}: where it was higher, the "
+            "screen had up to 1.68x the variance on the suite, docs/suite/screen_design.md)"
+        )
+    share = defaults.SCREEN_HINT_SHARE
+    return share, (
+        f"--screen auto: screening {share:g} of K; the model's cheap-level discrepancy sd is "
+        f"{ratio:.2f} of its level-0 signal's (under {limit:g}: the screen had 0.31 to 1.06 "
+        "times the unscreened variance there on the suite, docs/suite/screen_design.md)"
+    )
+
+
 def draw_screen(
     ws: Workspace,
     settings: Settings,
