@@ -192,19 +192,25 @@ def test_a_screen_out_of_range_is_refused_and_changes_nothing(fitted, tmp_path, 
     assert tree_hash(ws) == before
 
 
-def test_screen_needs_plan_and_a_cheap_level(tmp_path):
-    from typer.testing import CliRunner
-
-    runner = CliRunner()
+def _one_level_study(runner, tmp_path):
+    """A fitted toy study with level 0 alone (no cheap level to screen with)."""
     seg, truth = write_toy(tmp_path / "data", n=120, seed=1)
     ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--dim", "2")  # one level
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--dim", "2")
     ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
        "--no-standardize")  # fmt: skip
     ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "15")
     res = _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r.parquet")
     ok(runner, "ingest-results", "-w", ws, res)
     ok(runner, "fit", "-w", ws, "--restarts", "1")
+    return ws
+
+
+def test_screen_needs_plan_and_a_cheap_level(tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    ws = _one_level_study(runner, tmp_path)
     before = tree_hash(ws)
     r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "0.3")
     assert r.exit_code == 2 and "one fidelity level" in r.stderr
@@ -372,15 +378,7 @@ def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    seg, truth = write_toy(tmp_path / "data", n=120, seed=1)
-    ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--dim", "2")
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "15")
-    res = _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r.parquet")
-    ok(runner, "ingest-results", "-w", ws, res)
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ws = _one_level_study(runner, tmp_path)
     out = strict_json(
         ok(runner, "estimate", "-w", ws, "--plan", "--screen", "auto", "--json").stdout
     )
