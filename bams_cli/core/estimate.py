@@ -641,7 +641,14 @@ def max_failure_weight(plan: SamplePlan) -> float:
     if plan.design == "with-replacement":
         qmin = float(plan.q.min())
         return math.inf if qmin <= 0 else (1.0 - qmin) / (plan.budget * qmin)
-    rand = plan.pi[plan.pi < 1.0]
+    return poisson_max_weight(plan.pi)
+
+
+def poisson_max_weight(pi: ArrayLike) -> float:
+    """(1 - pi)/pi at the smallest pi < 1 of a Poisson design over U: 0 when every pi is 1,
+    +inf when some segment can never be sampled (``max_failure_weight``'s w_M)."""
+    pi = np.asarray(pi, dtype=np.float64)
+    rand = pi[pi < 1.0]
     if rand.size == 0:
         return 0.0
     pmin = float(rand.min())

@@ -443,18 +443,16 @@ def estimate_plan(
         "p_mean_unknown": float(pu.mean()) if pu.size else None,
         "risk_norms": dz.risk_norms(dz.relative_risk(pu)).tolist(),
         "risk_taus": list(dz.TAUS),
-        # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
-        # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
-        "w_max": finite_or_none(max_failure_weight(plan)),
-        "w_model": [finite_or_none(w) for w in w_model],
-        "plan_gamma": settings.gammas[g_plan],
-        "model_hash": model["observations_hash"],
-        # The GP's own estimate (mean p_n, variance bound) per gamma, as of this plan:
-        # `estimate` reports it when the plan's results have not been fitted yet.
-        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
-        "seed": stream[0],
-        "seed_source": seed_source,
-        "rng_stream": stream,
+        **_plan_meta_tail(
+            settings,
+            g_plan,
+            p_all,
+            model,
+            max_failure_weight(plan),
+            w_model,
+            stream,
+            seed_source,
+        ),
     }
     path, handoff_path, template = write_plan(
         ws, settings, number, ids, p, sampled_idx=sampled_idx, known_idx=known_idx,
@@ -597,6 +595,36 @@ def write_plan(
     return path, handoff_path, template
 
 
+def _plan_meta_tail(
+    settings: Settings,
+    g_plan: int,
+    p_all: np.ndarray,
+    model: dict[str, Any],
+    w_max: float,
+    w_model: Sequence[float],
+    stream: list[int],
+    seed_source: str,
+) -> dict[str, Any]:
+    """What every plan's metadata records beside its design: the interval's weights, the
+    gamma and model it was drawn for, the GP's own estimate then, and its random stream."""
+    from bams_cli.core.estimate import gp_estimate
+
+    return {
+        # Undefined weights (no segment with pi < 1; p_n = 0 over U) are null, never a
+        # bare NaN/Infinity in the metadata's JSON; reading them back gives NaN again.
+        "w_max": finite_or_none(w_max),
+        "w_model": [finite_or_none(w) for w in w_model],
+        "plan_gamma": settings.gammas[g_plan],
+        "model_hash": model["observations_hash"],
+        # The GP's own estimate (mean p_n, variance bound) per gamma, as of this plan:
+        # `estimate` reports it when the plan's results have not been fitted yet.
+        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
+        "seed": stream[0],
+        "seed_source": seed_source,
+        "rng_stream": stream,
+    }
+
+
 def _confirm_screen(
     ws: Workspace,
     settings: Settings,
@@ -615,7 +643,6 @@ def _confirm_screen(
     """Plan ``number``: the level-0 confirmation of the screen of the same number
     (``screening.confirm_screen``), a one-stage plan at pi = pi1 pi2."""
     from bams_cli.core import design as dz
-    from bams_cli.core.estimate import gp_estimate
 
     smeta = read_metadata_json(screening.screen_path(ws, number))
     if seed is not None:
@@ -652,14 +679,9 @@ def _confirm_screen(
         "n_unknown": c["n_unknown"],
         # No p_mean_unknown: the confirmation is drawn on cheap-run evidence p_n lacks, so
         # its outcomes would not say how far p_n alone is to be trusted (stages.mix_evidence).
-        "w_max": finite_or_none(c["w_max"]),
-        "w_model": [finite_or_none(w) for w in c["w_model"]],
-        "plan_gamma": settings.gammas[g_plan],
-        "model_hash": model["observations_hash"],
-        "gp_at_plan": [list(gp_estimate(p_all[:, g])) for g in range(len(settings.gammas))],
-        "seed": stream[0],
-        "seed_source": seed_source,
-        "rng_stream": stream,
+        **_plan_meta_tail(
+            settings, g_plan, p_all, model, c["w_max"], c["w_model"], stream, seed_source
+        ),
         "screen": c["screen"],
     }
     path, handoff_path, template = write_plan(

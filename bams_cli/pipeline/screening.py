@@ -165,16 +165,13 @@ def draw_screen(
     screened = np.zeros(n, bool)
     screened[s1] = True
     batch = (ws.batch_numbers() or [0])[-1] + 1 if run.size else None
-    screen_meta = {
-        **meta,
+    # What the screen drew: its metadata and the summary both say it.
+    facts = {
         "plan": number,
         "screen_share": share,
         "screen_level": SCREEN_LEVEL,
         "screen_cost": cost,
-        "series_K": K,
-        "n_pool": n,
-        "n_unknown": int(unknown.size),
-        "screen_expected": float(pi1.sum()),
+        "screen_expected": round(float(pi1.sum()), 6),
         "screen_design": choice.name,
         "screened": int(s1.size),
         "cheap_runs": int(run.size),
@@ -182,6 +179,7 @@ def draw_screen(
         "cheap_abandoned": int((gone & ~have).sum()),
         "batch": batch,
     }
+    screen_meta = {**meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size)}
     table = schemas.SCREEN.conform(
         pa.table(
             {
@@ -233,18 +231,9 @@ def draw_screen(
     )
     return {
         "screen_file": str(path),
-        "plan": number,
+        **facts,
         **out,
         "samples_K": K,
-        "screen_share": share,
-        "screen_level": SCREEN_LEVEL,
-        "screen_cost": cost,
-        "screen_expected": round(float(pi1.sum()), 6),
-        "screen_design": choice.name,
-        "screened": int(s1.size),
-        "cheap_runs": int(run.size),
-        "cheap_in_log": int(have.sum()),
-        "cheap_abandoned": int((gone & ~have).sum()),
         "level0_left": round(sc.confirm_budget(K, cost, int(run.size)), 6),
         "known_stratum": int(known.sum()),
         "seed": meta["seed"],
@@ -307,6 +296,7 @@ def confirm_screen(
     """
     from bams_cli.core import design as dz
     from bams_cli.core import screen as sc
+    from bams_cli.core.estimate import poisson_max_weight
     from bams_cli.core.sampling import draw_poisson
 
     table, smeta, index = read_screen(ws, number, ids)
@@ -360,10 +350,7 @@ def confirm_screen(
         dz.unseen_failure_weight(posterior.allowance_risk(p_all[U, g]), allow_pi)
         for g in range(p_all.shape[1])
     ]
-    rand = allow_pi[allow_pi < 1.0]
-    w_max = (
-        0.0 if rand.size == 0 else (math.inf if rand.min() <= 0 else (1 - rand.min()) / rand.min())
-    )
+    w_max = poisson_max_weight(allow_pi)
     return {
         "sampled_idx": S1[drawn],
         "known_idx": known_idx,
@@ -372,7 +359,6 @@ def confirm_screen(
         "w_model": w_model,
         "w_max": w_max,
         "n_unknown": int(U.size),
-        "p_unknown": p_all[U, g_plan],
         "screen": {
             "file": str(path),
             "batch": smeta.get("batch"),
