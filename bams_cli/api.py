@@ -63,7 +63,7 @@ Example: a study on the toy2d sample data, its first batch random at both fideli
         api.simulate(Path(batch["handoff_csv"]), truth, results)
         api.ingest_results(ws, results)
     api.fit(ws)
-    plan = api.estimate_plan(ws, samples=100, stages=1)
+    plan = api.estimate_plan(ws, samples=100, stages=1, screen="off")  # one stage, no screen
     api.simulate(Path(plan["handoff"]), truth, Path("results-estimate.csv"))
     api.ingest_results(ws, Path("results-estimate.csv"))
     estimate = api.estimate_compute(ws)

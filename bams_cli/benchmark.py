@@ -320,6 +320,10 @@ class RunResult:
     realised : dict or None
         The one estimate computed through ``estimate --plan`` ... ``estimate``.
     seconds : dict of phase -> wall seconds
+    screen : dict or None
+        Where the default estimate screens (``estimate --plan --screen auto``), the
+        screened design measured from the truth (``screen_default``); None where it plans
+        the staged design, or for strategies without a GP.
     """
 
     strategy: str
@@ -332,6 +336,7 @@ class RunResult:
     realised: dict[str, Any] | None
     seconds: dict[str, float]
     workspace: str | None = None
+    screen: dict[str, Any] | None = None
 
 
 # The options a user leaves at their defaults, passed from ``bams_cli.defaults`` (not
@@ -354,6 +359,7 @@ PLAN_DEFAULTS: dict[str, Any] = {
     "weighting": defaults.WEIGHTING.value,
     "stages": defaults.STAGES,
     "stage1_share": defaults.STAGE1_SHARE,
+    "screen": defaults.SCREEN,
 }
 ESTIMATE_DEFAULTS: dict[str, Any] = {
     "confidence": defaults.CONFIDENCE,
@@ -473,23 +479,29 @@ def run_one(spec: RunSpec) -> RunResult:
             scores = np.empty(len(truth_ids))
             scores[to_truth] = pool_scores
 
-        realised = None
+        realised = screen = None
         if gp:
+            t0 = time.perf_counter()
+            screen = screen_default(root, truth_path, K=spec.K, seed=spec.seed)
+            clock("screen", t0)
             # One realised estimate through the real estimate path with the default design
-            # (plan -> simulate -> ingest -> compute). The tables use the design's exact
-            # recall and variance instead (module docstring).
+            # (plan -> simulate -> ingest -> compute; a screen first where the default
+            # draws one). The tables use the design's exact recall and variance instead
+            # (module docstring).
             t0 = time.perf_counter()
             plan = pipeline.estimate_plan(root, samples=spec.K, **PLAN_DEFAULTS)
             while True:
-                est_results = root / f"estimate-results-{plan['plan']}.parquet"
-                pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
-                pipeline.ingest_results(root, est_results)
+                name = f"screen-{plan['plan']}" if "screen_file" in plan else plan["plan"]
+                if plan["handoff"] is not None:  # a screen of cheap runs all in the log has none
+                    est_results = root / f"estimate-results-{name}.parquet"
+                    pipeline.simulate(Path(plan["handoff"]), truth_path, est_results)
+                    pipeline.ingest_results(root, est_results)
                 # Each later stage wants, and estimate_compute's GP estimate too, a model
                 # fitted on the log that now holds the stage's results: condition on them
                 # with the batch-3 hyperparameters (fit --fixed-hyperparameters) rather than
                 # retrain on ~K more points, which would cost more than the whole protocol.
                 pipeline.fit(root, fixed_hyperparameters=root / "model.json", **FIT_DEFAULTS)
-                if plan["stage"] >= plan["stages"]:
+                if "screen_file" not in plan and plan["stage"] >= plan["stages"]:
                     break
                 plan = pipeline.estimate_plan(root, **PLAN_DEFAULTS)
             e = pipeline.estimate_compute(root, **ESTIMATE_DEFAULTS)["estimates"][0]
@@ -520,7 +532,103 @@ def run_one(spec: RunSpec) -> RunResult:
         realised=realised,
         seconds=seconds,
         workspace=workspace,
+        screen=screen,
     )
+
+
+#: Screens drawn per run to measure the screened default (each one a refit).
+SCREEN_TRIALS = 4
+
+
+def append_cheap_results(root: Path, ids: np.ndarray, values: np.ndarray, batch: int) -> None:
+    """Cheap-level results written straight into a workspace's observation log, as
+    ingesting a screen's results would (evaluation only: no batch, no hand-off)."""
+    import polars as pl
+
+    from bams_cli.state import schemas
+    from bams_cli.state.workspace import Workspace
+
+    ws = Workspace(root)
+    full = ws.read_observations(active_only=False)
+    n = ids.size
+    add = pl.DataFrame(
+        {
+            "segment_id": ids, "fidelity": np.ones(n, np.int64), "value": values,
+            "batch": np.full(n, batch, np.int64), "source_file": ["screen"] * n,
+            "source_sha256": ["-"] * n, "ingested_at": ["-"] * n, "active": [True] * n,
+            "extra": [None] * n,
+        },
+        schema=full.schema,
+    )  # fmt: skip
+    table = pl.concat([full, add]).to_arrow().cast(schemas.OBSERVATIONS.schema)
+    pq.write_table(table, ws.observations_path)
+
+
+def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict[str, Any] | None:
+    """The default estimate's screen, where ``estimate --plan`` draws one, from the truth.
+
+    Asks the fitted workspace what ``--screen`` at its default (``PLAN_DEFAULTS``) would
+    do; where it screens, draws the screen ``SCREEN_TRIALS`` times
+    (``core.evaluate.screen_trials``), each refit on a copy of the workspace holding S1's
+    true cheap-level values, at the discovery model's hyperparameters (as the realised
+    estimate refits).
+
+    Returns
+    -------
+    dict or None
+        share, recall (mean over the trials), var_ratio (the design's variance over a
+        uniform Poisson design's of K level-0 runs), screened (mean |S1|), trials; None
+        where the default does not screen.
+    """
+    from bams_cli.core.evaluate import screen_trials
+    from bams_cli.pipeline import screening
+    from bams_cli.state.workspace import Workspace
+
+    ws = Workspace(root)
+    settings = ws.require_initialised()
+    option = PLAN_DEFAULTS["screen"]
+    if option in (None, "off") or settings.n_levels == 1:
+        return None
+    share = screening.auto_share(ws.read_model(), settings)[0] if option == "auto" else option
+    if share is None:
+        return None
+    ids = _column(root / "scores.parquet", "segment_id").astype(str)
+    g = int(np.argmax(settings.gammas))
+    p = _column(root / "scores.parquet", f"p_{g}").astype(np.float64)
+    truth_ids = _column(truth_path, "segment_id").astype(str)
+    pos = {s_: i for i, s_ in enumerate(truth_ids)}
+    rows = np.array([pos[s_] for s_ in ids], np.int64)
+    fail = _column(truth_path, "value_0").astype(np.float64)[rows] <= settings.gammas[g]
+    cheap = _column(truth_path, "value_1").astype(np.float64)[rows]
+    obs = ws.read_observations()
+    seen = [
+        np.isin(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
+    ]
+    next_batch = int(obs["batch"].max() or 0) + 1
+
+    def refit(s1: np.ndarray) -> np.ndarray:
+        scratch = Path(tempfile.mkdtemp(prefix="screen-", dir=root.parent))
+        copy = scratch / "workspace"
+        try:
+            shutil.copytree(root, copy)
+            run = s1[~seen[1][s1]]
+            append_cheap_results(copy, ids[run], cheap[run], next_batch)
+            pipeline.fit(copy, fixed_hyperparameters=copy / "model.json", **FIT_DEFAULTS)
+            return _column(copy / "scores.parquet", f"p_{g}").astype(np.float64)[s1]
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+    t = screen_trials(
+        p, fail, K=K, cost=settings.costs[1], share=float(share), refit=refit, known=seen[0],
+        cheap_known=seen[1], n_trials=SCREEN_TRIALS, rng=np.random.default_rng([seed, 2027]),
+    )  # fmt: skip
+    return {
+        "share": float(share),
+        "recall": float(t.recall.mean()),
+        "var_ratio": float(t.var / t.var_uniform),
+        "screened": float(t.screened.mean()),
+        "trials": SCREEN_TRIALS,
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -656,9 +764,10 @@ def _run_designs(
 STAGED_TRIALS = 100
 
 
-def _staged_recall(r: RunResult, is_failure: np.ndarray, K: float) -> float | None:
-    """Expected recall of the tool's default estimate, the staged design (``estimate
-    --plan`` twice), over ``STAGED_TRIALS`` draws from the truth (``staged_trials``).
+def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[float, float] | None:
+    """Expected recall of the staged estimate design (``estimate --plan`` twice) and its
+    variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
+    draws from the truth (``staged_trials``).
 
     GP strategies plan it from their p_n; a strategy without a model (MC) from a constant
     p_n, which makes both stages uniform. DS and CE have scores, not probabilities: None.
@@ -677,7 +786,7 @@ def _staged_recall(r: RunResult, is_failure: np.ndarray, K: float) -> float | No
             p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS,
             rng=np.random.default_rng([r.seed, 2026]),
         )  # fmt: skip
-    return float(t.recall.mean())
+    return float(t.recall.mean()), float(t.var / t.var_uniform)
 
 
 def trial_spread(
@@ -835,12 +944,24 @@ def evaluate_runs(
             continue
         stats = [_run_designs(r, is_failure, K, estimator) for r in mine]
         entry = _summary([s["default"][0] for s in stats], [s["default"][1] for s in stats])
-        maybe = [_staged_recall(r, is_failure, K) for r in mine]
+        maybe = [_staged_design(r, is_failure, K) for r in mine]
         staged = [v for v in maybe if v is not None]
         if len(staged) == len(maybe):
-            entry["recall_staged"] = float(np.mean(staged))
-            entry["recall_staged_se"] = _se(staged)
-            entry["per_seed_recall_staged"] = staged
+            entry["recall_staged"] = float(np.mean([v[0] for v in staged]))
+            entry["recall_staged_se"] = _se([v[0] for v in staged])
+            entry["per_seed_recall_staged"] = [v[0] for v in staged]
+            # The default estimate: the screen where ``--screen auto`` draws one, else the
+            # staged design.
+            default = [
+                (r.screen["recall"], r.screen["var_ratio"]) if r.screen else v
+                for r, v in zip(mine, staged, strict=True)
+            ]
+            entry["recall_default"] = float(np.mean([v[0] for v in default]))
+            entry["recall_default_se"] = _se([v[0] for v in default])
+            entry["per_seed_recall_default"] = [v[0] for v in default]
+            entry["per_seed_var_default"] = [v[1] for v in default]
+            entry["screened_seeds"] = int(sum(r.screen is not None for r in mine))
+            entry["screens"] = [r.screen for r in mine]
         entry["seed_values"] = [r.seed for r in mine]
         for name in ("paper", "with_replacement"):
             entry[name] = _summary([s[name][0] for s in stats], [s[name][1] for s in stats])
@@ -1217,6 +1338,11 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
             "recall_se": e["recall_se"],
             "recall_staged": e.get("recall_staged"),
             "recall_staged_se": e.get("recall_staged_se"),
+            "recall_default": e.get("recall_default"),
+            "recall_default_se": e.get("recall_default_se"),
+            "var_default": float(np.mean(vd)) if (vd := e.get("per_seed_var_default")) else None,
+            "var_default_max": float(np.max(vd)) if vd else None,
+            "screened_seeds": e.get("screened_seeds"),
             "rv": e["rv"],
             "rv_se": e["rv_se"],
             "discrepancy_sd_fitted": float(np.mean(fitted)) if fitted else None,
@@ -1252,9 +1378,13 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "Per problem: batch 1 random (mixed fidelity for BAMS and MCM-GP), then the "
         "strategy's batches, then `estimate --plan` with K = k p N (p the true rate). "
         "recall, default: the expected share of the true failures in hand after the tool's "
-        "default estimate, the staged design (`estimate --plan` twice; "
-        f"{STAGED_TRIALS} draws per run from the truth; docs/suite/estimate_design.md), mean "
-        "± SE over seeds. Recall and RV, p^alpha: the single-stage p^alpha design's "
+        "default estimate, mean ± SE over seeds: where `estimate --plan --screen auto` "
+        f"screens (screened: seeds), the screened design ({SCREEN_TRIALS} screens per run, "
+        "each refitted on its cheap results; docs/suite/screen_design.md), elsewhere the "
+        f"staged design (`estimate --plan` twice; {STAGED_TRIALS} draws per run from the "
+        "truth; docs/suite/estimate_design.md). var / uniform, default: the same design's "
+        "exact variance over a uniform Poisson design's of K level-0 runs, mean [max] over "
+        "seeds. Recall and RV, p^alpha: the single-stage p^alpha design's "
         "(`--weighting p-alpha`, the paper's form), exact (see each problem's tables.md). "
         "disc. sd: the fitted model's sd of y1 - y0 at a segment, "
         "sqrt(outputscale_1 + noise_1 + noise_0) from the final hyperparameters, mean "
@@ -1265,9 +1395,10 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "estimate mean(p_n) after the last batch over the true rate, mean [range].",
         "",
         "| problem | N | p | corr(f0, f1) | failures unseen at level 1 | strategy | seeds "
-        "| recall, default | recall, p^alpha | 100 RV, p^alpha | disc. sd fitted "
-        "| true sd(f1 - f0) | fitted / true (within 2x) | level-0 picks per batch | GP / p |",
-        "|" + " --- |" * 15,
+        "| recall, default | var / uniform, default | screened | recall, p^alpha "
+        "| 100 RV, p^alpha | disc. sd fitted | true sd(f1 - f0) | fitted / true (within 2x) "
+        "| level-0 picks per batch | GP / p |",
+        "|" + " --- |" * 17,
     ]
     for problem, result in results.items():
         table = suite_rows(result)
@@ -1296,9 +1427,16 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
                 else "-"
             )
             level0 = " / ".join(f"{v:g}" for v in row["level0_per_batch"] or [])
+            var = (
+                f"{row['var_default']:.2f} [{row['var_default_max']:.2f}]"
+                if row.get("var_default") is not None
+                else "-"
+            )
+            screened = "-" if row.get("screened_seeds") is None else f"{row['screened_seeds']}"
             lines.append(
                 f"{head} {NAMES[s]} | {st['seeds']} | "
-                f"{_pm(row.get('recall_staged'), row.get('recall_staged_se'))} | "
+                f"{_pm(row.get('recall_default'), row.get('recall_default_se'))} | "
+                f"{var} | {screened} | "
                 f"{_pm(row['recall'], row['recall_se'])} | "
                 f"{_pm(row['rv'], row['rv_se'], 2)} | {fitted} | "
                 f"{st['true_discrepancy_sd']:.3g} | {disc} | {level0} | {ratio} |"

@@ -313,14 +313,14 @@ def _show(
 
 
 def _screen_share(value: str | None) -> float | str | None:
-    """``--screen``: a share of K, or "auto"."""
-    if value is None or value == "auto":
+    """``--screen``: a share of K, "auto" or "off" (None: not given, the default)."""
+    if value is None or value in ("auto", "off"):
         return value
     try:
         return float(value)
     except ValueError:
         raise OptionValueError(
-            f"--screen {value}: a share of K in (0, 1) such as 0.3, or auto"
+            f"--screen {value}: a share of K in (0, 1) such as 0.3, auto, or off"
         ) from None
 
 
@@ -946,12 +946,11 @@ def estimate(
         str | None,
         typer.Option(
             "--screen",
-            metavar="SHARE|auto",
-            help="With --plan: start a screened estimate, spending SHARE of K on cheap-level "
-            "runs of a sample first, then (after their results and a refit) the next --plan "
-            "confirms within the screen at level 0; auto screens 0.3 where the fitted cheap "
-            "level tracks level 0 (discrepancy sd under 0.3 of the signal's) and plans "
-            "without elsewhere \\[default: no screen].",
+            metavar="SHARE|auto|off",
+            help="With --plan: spend SHARE of K on cheap-level runs of a sample first; "
+            "after their results and a refit, the next --plan confirms within it at level "
+            "0. auto: 0.3 where the fitted cheap level tracks level 0, else the staged "
+            "plan; off: never \\[default: auto].",
         ),
     ] = None,
     plan_number: Annotated[
@@ -1041,7 +1040,7 @@ def estimate(
             stage1_share=stage1_share,
             new_series=new_series,
             seed=seed,
-            screen=_screen_share(screen),
+            screen=defaults.SCREEN if screen is None else _screen_share(screen),
             handoff_internal=handoff_internal,
             allow_pending=allow_pending,
             wait=wait,
@@ -1231,9 +1230,9 @@ def loop(
         str | None,
         typer.Option(
             "--screen",
-            metavar="SHARE|auto",
+            metavar="SHARE|auto|off",
             help="With --then-estimate: a screened estimate, this share of K (e.g. 0.3) on "
-            "cheap-level runs first, or auto (see estimate --screen) \\[default: no screen].",
+            "cheap-level runs first, auto or off (see estimate --screen) \\[default: auto].",
         ),
     ] = None,
     results_dir: Annotated[

@@ -198,6 +198,11 @@ STAGES = 2
 SCREEN_HINT_DISCREPANCY = 0.3
 #: The share of K the suggested screen spends (the share measured there).
 SCREEN_HINT_SHARE = 0.3
+#: ``estimate --plan --screen``'s default: "auto" screens SCREEN_HINT_SHARE of a new
+#: estimate's K where the fitted cheap level tracks level 0 (SCREEN_HINT_DISCREPANCY) and
+#: plans the staged design elsewhere; "off" never screens. Measured through the benchmark
+#: on the suite (README, "Defaults, and why"; docs/suite/screen_design.md).
+SCREEN = "auto"
 STAGE1_SHARE = 0.5
 
 #: Beta prior on lam, the share of the failure mass the model does not explain

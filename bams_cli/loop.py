@@ -163,10 +163,11 @@ def loop(
         Then plan the rate estimate, simulate it and compute it.
     samples : float, optional
         With ``then_estimate``: the estimate's budget K.
-    screen : float or "auto", optional
+    screen : float, "auto" or "off", optional
         With ``then_estimate``: a screened estimate (``estimate --plan --screen``): this
         share of K on cheap-level runs first, their results and a refit, then the level-0
-        confirmation; "auto" as ``estimate --plan --screen auto`` decides.
+        confirmation; "auto" as ``estimate --plan --screen auto`` decides; "off" plans the
+        staged estimate. Default ``defaults.SCREEN``.
     results_dir : Path, optional
         Where the simulator's results files go (default: ``root / "loop-results"``).
     abandon_failed : bool, default False
@@ -240,10 +241,12 @@ def loop(
     if screen is not None:  # refused now, not after the discovery batches
         if not then_estimate:
             raise OptionValueError(f"--screen {screen} screens the estimate: pass --then-estimate")
-        if isinstance(screen, str) and screen != "auto":
-            raise OptionValueError(f"--screen {screen}: a share of K in (0, 1), or auto")
+        if isinstance(screen, str) and screen not in ("auto", "off"):
+            raise OptionValueError(f"--screen {screen}: a share of K in (0, 1), auto, or off")
         if not isinstance(screen, str):
             check_share(screen, settings)
+    elif then_estimate:
+        screen = defaults.SCREEN
     opts = Options(
         simulator=simulator,
         batches=batches,

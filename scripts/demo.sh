@@ -27,18 +27,34 @@ for batch in 1 2 3; do
   step bams-cli fit -w "$WS"
 done
 
-# Rate estimate: plan the importance sample (K = 200, about 2 p N as in the paper's
-# synthetic protocol) in two stages; stage 1's results check the model before stage 2 is
-# drawn. Simulate each stage, ingest, refit, then compute.
+# Rate estimate (K = 200, about 2 p N as in the paper's synthetic protocol). By default
+# (--screen auto) a study whose fitted cheap level tracks level 0, as toy2d's does, screens
+# first: 0.3 of K buys cheap runs of a sample, a batch of the log; their results and a
+# refit let the next --plan confirm within the screen at level 0. Elsewhere the same
+# commands plan two level-0 stages, stage 1's results checking the model before stage 2.
+# Either way: plan, simulate, ingest, refit, until status names `estimate` itself.
 step bams-cli estimate -w "$WS" --plan --samples 200
-for k in 1 2; do
+if [ -e "$WS/estimates/screen-0001.parquet" ]; then
+  screen=$(ls "$WS"/batches/batch-*.parquet | tail -n 1)  # the screen's cheap runs
+  step bams-cli simulate "$screen" --truth "$TRUTH" -o "$RES/screen-results.parquet"
+  step bams-cli ingest-results -w "$WS" "$RES/screen-results.parquet"
+  step bams-cli fit -w "$WS"
+  step bams-cli estimate -w "$WS" --plan
+fi
+next_is_plan() {
+  bams-cli status -w "$WS" --json | python -c \
+    'import json, sys; c = json.load(sys.stdin)["next"]["command"] or ""; sys.exit(not c.endswith("--plan"))'
+}
+k=1
+while [ -e "$WS/estimates/plan-$(printf '%04d' "$k").parquet" ]; do
   n=$(printf '%04d' "$k")
-  if [ "$k" -gt 1 ]; then
-    step bams-cli estimate -w "$WS" --plan
-  fi
   step bams-cli simulate "$WS/estimates/plan-$n-handoff.csv" --truth "$TRUTH" -o "$RES/estimate-$n.parquet"
   step bams-cli ingest-results -w "$WS" "$RES/estimate-$n.parquet"
   step bams-cli fit -w "$WS"
+  if next_is_plan; then  # a staged estimate's next stage
+    step bams-cli estimate -w "$WS" --plan
+  fi
+  k=$((k + 1))
 done
 step bams-cli estimate -w "$WS"
 step bams-cli report -w "$WS" --truth "$TRUTH"

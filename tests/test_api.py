@@ -192,7 +192,19 @@ def _cli_study(runner: CliRunner, ws: Path, seg: Path, truth: Path, tmp: Path) -
         )
         ok(runner, "ingest-results", "-w", ws, res)
         ok(runner, "fit", "-w", ws, "--restarts", "2")
-    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "40", "--stages", "1")
+    ok(
+        runner,
+        "estimate",
+        "-w",
+        ws,
+        "--plan",
+        "--screen",
+        "off",
+        "--samples",
+        "40",
+        "--stages",
+        "1",
+    )
     res = tmp / "cli-est.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", ws, res)
@@ -211,7 +223,7 @@ def _api_study(ws: Path, seg: Path, truth: Path, tmp: Path) -> dict[str, Any]:
         api.simulate(ws / "batches" / f"batch-{b:04d}.parquet", truth, res)
         api.ingest_results(ws, res)
         api.fit(ws, restarts=2, wait=True)
-    plan = api.estimate_plan(ws, samples=40, stages=1)
+    plan = api.estimate_plan(ws, samples=40, stages=1, screen="off")
     res = tmp / "api-est.parquet"
     api.simulate(Path(plan["handoff"]), truth, res)
     api.ingest_results(ws, res)
@@ -282,7 +294,7 @@ BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsErr
     ),
     (
         "estimate-plan",
-        ["estimate", "--plan", "--stages", "0"],
+        ["estimate", "--plan", "--screen", "off", "--stages", "0"],
         api.estimate_plan,
         {"stages": 0},
         api.OptionValueError,

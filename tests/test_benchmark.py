@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from bams_cli import benchmark as B
+from bams_cli import defaults
 from bams_cli.benchmark import (
     PROTOCOLS,
     SUITE,
@@ -234,8 +236,9 @@ def test_a_suite_problem_runs_end_to_end_into_the_suite_table(tmp_path):
     assert sum(gp["level0_per_batch"]) < 20  # MCM-GP buys cheap runs too
     md = (tmp_path / "suite.md").read_text()
     header = next(line for line in md.splitlines() if line.startswith("| problem"))
-    for column in ("recall, default", "recall, p^alpha", "100 RV", "disc. sd fitted",
-                   "true sd(f1 - f0)", "level-0 picks per batch", "GP / p"):  # fmt: skip
+    for column in ("recall, default", "var / uniform, default", "screened", "recall, p^alpha",
+                   "100 RV", "disc. sd fitted", "true sd(f1 - f0)", "level-0 picks per batch",
+                   "GP / p"):  # fmt: skip
         assert column in header
     # The default (staged) design's recall: MC's model says nothing, so both its stages
     # sample U uniformly and the recall is, in expectation, the uniform single-stage
@@ -244,13 +247,27 @@ def test_a_suite_problem_runs_end_to_end_into_the_suite_table(tmp_path):
     [mc_seed] = mc["per_seed_recall_staged"]
     assert mc_seed == pytest.approx(mc["recall"], rel=0.35)
     assert 0 < gp["recall_staged"] <= 1
-    # The default design's recall comes first in a row, then p^alpha's.
+    # The default estimate: MC has no model to screen with, so its default is the staged
+    # design; MCM-GP's is the screen where its fitted cheap level tracks level 0.
+    assert mc["screened_seeds"] == 0 and mc["screens"] == [None]
+    assert mc["per_seed_recall_default"] == mc["per_seed_recall_staged"]
+    assert mc["per_seed_var_default"][0] == pytest.approx(1.0, abs=0.35)  # uniform in 2 stages
+    [screen] = gp["screens"]
+    assert gp["screened_seeds"] == (screen is not None)
+    if screen is not None:
+        assert screen["share"] == defaults.SCREEN_HINT_SHARE and screen["trials"] == B.SCREEN_TRIALS
+        assert gp["per_seed_recall_default"] == [screen["recall"]]
+        assert gp["per_seed_var_default"] == [screen["var_ratio"]]
+    # The default design's recall, variance and screened seeds come first in a row, then
+    # p^alpha's.
     cells = [c.strip() for c in header.split("|")]
-    assert cells.index("recall, default") + 1 == cells.index("recall, p^alpha")
-    mc_row = next(line for line in md.splitlines() if "| MC |" in line).split("|")
     at = cells.index("recall, default")
-    assert mc_row[at].strip().startswith(f"{mc['recall_staged']:.3f}")
-    assert mc_row[at + 1].strip().startswith(f"{mc['recall']:.3f}")
+    assert cells[at + 1 : at + 4] == ["var / uniform, default", "screened", "recall, p^alpha"]
+    mc_row = next(line for line in md.splitlines() if "| MC |" in line).split("|")
+    assert mc_row[at].strip().startswith(f"{mc['recall_default']:.3f}")
+    var = mc["per_seed_var_default"][0]
+    assert mc_row[at + 1].strip() == f"{var:.2f} [{var:.2f}]" and mc_row[at + 2].strip() == "0"
+    assert mc_row[at + 3].strip().startswith(f"{mc['recall']:.3f}")
     row = next(line for line in md.splitlines() if line.startswith("| gap_sim"))
     assert f"{fitted:.3g}" in row and "10 / 5 / 5" in md
     condensed = json.loads((tmp_path / "suite.json").read_text())
@@ -282,7 +299,13 @@ def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
         n_trials=B.STAGED_TRIALS,
         rng=np.random.default_rng([7, 2026]),
     ).recall.mean()
-    assert B._staged_recall(run, fail, 120.0) == pytest.approx(want, rel=1e-12)
+    t = staged_trials(
+        p, fail, K=120.0, known=known, n_trials=B.STAGED_TRIALS,
+        rng=np.random.default_rng([7, 2026]),
+    )  # fmt: skip
+    assert B._staged_design(run, fail, 120.0) == pytest.approx(
+        (want, t.var / t.var_uniform), rel=1e-12
+    )
     # The known stratum's failures are in hand whatever the design.
     assert want >= fail[known].sum() / fail.sum()
     flat = staged_trials(
@@ -291,9 +314,9 @@ def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
     ).recall.mean()  # fmt: skip
     assert want > flat  # this p_n ranks the failures: its design holds more of them
     mc = SimpleNamespace(p_after=[None], scores=None, known=known, seed=7)
-    assert B._staged_recall(mc, fail, 120.0) == pytest.approx(flat, rel=1e-12)
+    assert B._staged_design(mc, fail, 120.0)[0] == pytest.approx(flat, rel=1e-12)
     ds = SimpleNamespace(p_after=[None], scores=np.ones(n), known=known, seed=7)
-    assert B._staged_recall(ds, fail, 120.0) is None
+    assert B._staged_design(ds, fail, 120.0) is None
 
 
 def test_every_suite_problem_has_a_protocol_without_paper_numbers():

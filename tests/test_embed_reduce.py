@@ -281,7 +281,7 @@ def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path
         pa.table({"segment_id": ["new-1", "new-2"], "x0": [0.1, 0.2], "x1": [1.0, 2.0]}), more
     )
     assert invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply").exit_code == 0
-    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--samples", "5")
+    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--screen", "off", "--samples", "5")
     assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr
 
 

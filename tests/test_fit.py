@@ -296,7 +296,10 @@ def test_edited_gammas_make_the_model_stale_for_every_command(fitted_ws, runner)
     text = ws.settings_path.read_text()
     assert "0.56" in text
     ws.settings_path.write_text(text.replace("0.56", "0.6"))
-    for args in (["select", "--budget", "2", "--clusters", "1"], ["estimate", "--plan"]):
+    for args in (
+        ["select", "--budget", "2", "--clusters", "1"],
+        ["estimate", "--plan", "--screen", "off"],
+    ):
         r = invoke(runner, *args, "-w", fitted_ws)
         assert r.exit_code == 1
         assert "fitted for gammas [0.56]" in r.stderr and "bams-cli fit" in r.stderr

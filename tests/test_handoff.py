@@ -65,7 +65,11 @@ def test_batch_and_plan_handoffs_share_one_layout(named_ws, runner, tmp_path):
     ok(runner, "simulate", batch["handoff_csv"], "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", ws, res)
     ok(runner, "fit", "-w", ws, "--restarts", 2)
-    plan = json.loads(ok(runner, "estimate", "-w", ws, "--plan", "--samples", 8, "--json").stdout)
+    plan = json.loads(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", 8, "--json"
+        ).stdout
+    )
 
     b = _csv(Path(batch["handoff_csv"]))
     p = _csv(Path(plan["handoff"]))

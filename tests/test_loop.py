@@ -72,7 +72,9 @@ def loop_ws(tmp_path_factory):
         ok(runner, "ingest-results", "-w", ws, res)
         ok(runner, "fit", "-w", ws, "--restarts", "2")
     plan = json.loads(
-        ok(runner, "estimate", "-w", ws, "--plan", "--samples", "60", "--json").stdout
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "60", "--json"
+        ).stdout
     )
     res = tmp / "est.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
@@ -272,7 +274,18 @@ def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
     shutil.copytree(ws, copy)
     runner = CliRunner()
     ok(runner, "fit", "-w", copy, "--restarts", "1")
-    ok(runner, "estimate", "-w", copy, "--plan", "--samples", "40", "--new-series")
+    ok(
+        runner,
+        "estimate",
+        "-w",
+        copy,
+        "--plan",
+        "--screen",
+        "off",
+        "--samples",
+        "40",
+        "--new-series",
+    )
     before = tree_hash(copy)
     r = invoke(runner, "estimate", "-w", copy)
     assert r.exit_code == 3 and "planned segments have no level-0 result" in r.stderr
@@ -327,8 +340,16 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
             2,
             "--level0-share 1.5",
         ),
-        (["estimate", "--plan", "--samples", "nan"], 2, "--samples nan: must be a finite number"),
-        (["estimate", "--plan", "--alpha", "nan"], 2, "--alpha nan: must be a finite number >= 0"),
+        (
+            ["estimate", "--plan", "--screen", "off", "--samples", "nan"],
+            2,
+            "--samples nan: must be a finite number",
+        ),
+        (
+            ["estimate", "--plan", "--screen", "off", "--alpha", "nan"],
+            2,
+            "--alpha nan: must be a finite number >= 0",
+        ),
         (["fit", "--chunk-size", "0"], 2, "--chunk-size 0: must be >= 1"),
         (["fit", "--restarts", "-2"], 2, "--restarts -2: must be >= 1"),
         (["report", "--diverse", "-1"], 2, "--diverse -1: must be >= 0"),

@@ -43,14 +43,17 @@ def _study_args(ws: Path, seg: Path, gamma: str = "0.56") -> list[list[object]]:
     ]  # fmt: skip
 
 
-def _loop_args(ws: Path, truth: Path) -> list[str]:
+def _loop_args(ws: Path, truth: Path, screen: str | None = "off") -> list[str]:
+    """The loop to an estimate; ``screen``: its --screen (None: the default, auto), off
+    here so the estimate is the staged one whatever the toy's cheap level looks like."""
     # The simulation team's command: the sample simulator answering from its own table.
     sim = (
         f"{shlex.join(BAMS)} simulate {{handoff}} --truth {shlex.quote(str(truth))} -o {{results}}"
     )
     return [*BAMS, "loop", "-w", str(ws), "--simulator", sim, "--batches", "3",
             "--budget", "2", "--first-budget", "4", "--then-estimate", "--samples", "15",
-            "--clusters", "2", "--workers", "1"]  # fmt: skip
+            "--clusters", "2", "--workers", "1",
+            *(() if screen is None else ("--screen", screen))]  # fmt: skip
 
 
 def _final(ws: Path) -> dict:
@@ -125,12 +128,13 @@ def _headline(ws: Path, plan: int) -> list[str]:
 
 
 def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
-    # `loop --then-estimate --screen`: the screen's cheap runs as a batch, simulated and
-    # ingested as any, a refit, the level-0 confirmation (plan 1), its results, the estimate.
+    # `loop --then-estimate` at its default, --screen auto, on a toy whose fitted cheap
+    # level tracks level 0: the screen's cheap runs as a batch, simulated and ingested as
+    # any, a refit, the level-0 confirmation (plan 1), its results, the estimate.
     _, seg, truth, _, _ = data
     ws = _study(tmp_path, "screened", seg)
     done = subprocess.run(
-        [*_loop_args(ws, truth), "--screen", "0.3", "--json"],
+        [*_loop_args(ws, truth, screen=None), "--json"],
         capture_output=True, text=True, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -159,7 +163,7 @@ def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
     assert out["plans"] == 1 and out["estimate_file"].endswith("estimate-0001.json")
     # Run again, it has nothing left to do: the screen is neither drawn nor confirmed again.
     again = subprocess.run(
-        [*_loop_args(ws, truth), "--screen", "0.3", "--json"],
+        [*_loop_args(ws, truth, screen=None), "--json"],
         capture_output=True, text=True, check=False,
     )  # fmt: skip
     assert again.returncode == 0, again.stderr
@@ -172,7 +176,7 @@ def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
     before = tree_hash(ws)
     for extra, needle in (
         (["--screen", "1.2"], "must lie in (0, 1)"),
-        (["--screen", "half"], "or auto"),
+        (["--screen", "half"], "auto, or off"),
         (["--screen", "0.3"], "pass --then-estimate"),
         (["--screen", "auto"], "pass --then-estimate"),
     ):

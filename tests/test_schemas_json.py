@@ -66,7 +66,7 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     run("fit", "fit", "-w", ws, "--restarts", 2)
     run("report", "report", "-w", ws)  # no estimate yet
     out["summary.json"].append(json.loads((ws / "report" / "summary.json").read_text()))
-    plan = run("estimate-plan", "estimate", "-w", ws, "--plan", "--samples", 10)
+    plan = run("estimate-plan", "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", 10)
     run("status", "status", "-w", ws, code=3)
     run("ingest-results", "ingest-results", "-w", ws, answer(plan["handoff"], 3))
     run("estimate", "estimate", "-w", ws)
@@ -76,7 +76,7 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
                  "--samples", 10, "--new-series")  # fmt: skip
     run("ingest-results", "ingest-results", "-w", ws, answer(screen["handoff"], 4))
     run("fit", "fit", "-w", ws, "--restarts", 2)
-    confirm = run("estimate-plan", "estimate", "-w", ws, "--plan")
+    confirm = run("estimate-plan", "estimate", "-w", ws, "--plan", "--screen", "off")
     assert confirm["weighting"] == "screen"
     run("ingest-results", "ingest-results", "-w", ws, answer(confirm["handoff"], 5))
     run("estimate", "estimate", "-w", ws)

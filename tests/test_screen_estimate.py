@@ -228,7 +228,17 @@ def test_new_series_drops_an_open_screen_for_a_plain_plan(fitted, tmp_path):
     ok(runner, "abandon", "-w", ws, "--batch", "2", "--reason", "the cheap simulator is down")
     out = strict_json(
         ok(
-            runner, "estimate", "-w", ws, "--plan", "--new-series", "--samples", "40", "--json"
+            runner,
+            "estimate",
+            "-w",
+            ws,
+            "--plan",
+            "--new-series",
+            "--screen",
+            "off",
+            "--samples",
+            "40",
+            "--json",
         ).stdout  # fmt: skip
     )
     assert out["weighting"] != "screen" and out["plan"] == 1
@@ -276,7 +286,19 @@ def test_a_screen_is_refused_beside_pending_level0_runs(fitted, tmp_path):
 
     ws, _ = _copy(fitted, tmp_path)
     runner = CliRunner()
-    ok(runner, "estimate", "-w", ws, "--plan", "--samples", "30", "--stages", "1")
+    ok(
+        runner,
+        "estimate",
+        "-w",
+        ws,
+        "--plan",
+        "--samples",
+        "30",
+        "--stages",
+        "1",
+        "--screen",
+        "off",
+    )
     before = tree_hash(ws)
     r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--allow-pending",
                "--new-series")  # fmt: skip
@@ -320,7 +342,18 @@ def test_a_new_plain_estimate_suggests_a_screen_where_the_cheap_level_tracks_lev
     ratio = math.sqrt((hp["outputscales"][0] + hp["noise"][1]) / hp["outputscale0"])
     assert ratio < defaults.SCREEN_HINT_DISCREPANCY  # toy2d's cheap level is close
     out = strict_json(
-        ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", 40, "--json").stdout
+        ok(
+            CliRunner(),
+            "estimate",
+            "-w",
+            ws,
+            "--plan",
+            "--screen",
+            "off",
+            "--samples",
+            40,
+            "--json",
+        ).stdout  # fmt: skip
     )
     (hint,) = [n for n in out["notes"] if "tracks level 0 closely" in n]
     assert f"{ratio:.2f} of its level-0 signal's" in hint and "--screen 0.3" in hint
@@ -345,12 +378,10 @@ def test_screen_auto_screens_where_the_cheap_level_tracks_level0_and_plans_plain
 
     runner = CliRunner()
     ws, _ = _copy(fitted, tmp_path / "close")
-    # toy2d's cheap level tracks level 0 (the hint's test): auto screens 0.3 of K.
-    out = strict_json(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "auto", "--samples", K, "--json"
-        ).stdout  # fmt: skip
-    )
+    # toy2d's cheap level tracks level 0 (the hint's test): auto, the default, screens 0.3
+    # of K.
+    assert defaults.SCREEN == "auto"
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--samples", K, "--json").stdout)
     assert errors(out, schemas_json.schema("estimate-screen")) == []
     assert out["screen_share"] == defaults.SCREEN_HINT_SHARE
     assert any(n.startswith("--screen auto: screening 0.3 of K") for n in out["notes"])
@@ -371,7 +402,7 @@ def test_screen_auto_screens_where_the_cheap_level_tracks_level0_and_plans_plain
     assert not list((ws2 / "estimates").glob("screen-*.parquet"))
     # A word that is neither a share nor auto is a usage error.
     r = invoke(runner, "estimate", "-w", ws2, "--plan", "--screen", "half")
-    assert r.exit_code == 2 and "or auto" in r.stderr
+    assert r.exit_code == 2 and "auto, or off" in r.stderr
 
 
 def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
@@ -379,8 +410,19 @@ def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
 
     runner = CliRunner()
     ws = _one_level_study(runner, tmp_path)
-    out = strict_json(
-        ok(runner, "estimate", "-w", ws, "--plan", "--screen", "auto", "--json").stdout
-    )
-    assert "screen_file" not in out
-    assert any("no cheap level" in n for n in out["notes"])
+    for screen in ("auto", None):  # explicitly, and by default: no screen, and no word of one
+        out = strict_json(
+            ok(
+                runner,
+                "estimate",
+                "-w",
+                ws,
+                "--plan",
+                "--new-series",
+                "--allow-pending",
+                *(("--screen", screen) if screen else ()),
+                "--json",
+            ).stdout  # fmt: skip
+        )
+        assert "screen_file" not in out and out["weighting"] != "screen"
+        assert not any("screen" in n for n in out["notes"]), out["notes"]

@@ -70,13 +70,13 @@ def study(tmp_path_factory) -> Study:
     s.status("batch 2 in")
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("refitted")
-    s.run("estimate", "-w", ws, "--plan", "--samples", "20")
+    s.run("estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "20")
     s.status("plan pending", keep=True)
     s.ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.status("plan in")
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("stage 1 in, fitted")
-    s.run("estimate", "-w", ws, "--plan")
+    s.run("estimate", "-w", ws, "--plan", "--screen", "off")
     s.status("stage 2 pending")
     s.ingest(ws / "estimates" / "plan-0002-handoff.csv")
     s.status("stage 2 in")
@@ -235,7 +235,11 @@ def test_a_model_stale_after_a_gamma_edit_is_told_to_fit_once(study, tmp_path):
         ("plan pending", ["select", "--budget", "2", "--clusters", "1"], "estimate plan 1"),
         ("plan pending", ["estimate"], "planned segments have no level-0 result"),
         # A plan drawn beside a pending batch would miss its results, as select refuses.
-        ("batch 2 pending", ["estimate", "--plan", "--samples", "10"], "batch 2 awaits results"),
+        (
+            "batch 2 pending",
+            ["estimate", "--plan", "--screen", "off", "--samples", "10"],
+            "batch 2 awaits results",
+        ),
     ],
 )
 def test_commands_refusing_for_pending_results_exit_3(study, tmp_path, stage, args, needle):

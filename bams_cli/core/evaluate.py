@@ -9,7 +9,7 @@ failures for display (paper Figure 3).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -859,3 +859,126 @@ def exact_relative_variance(
     p = fail.mean(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         return var, np.where(p > 0, var / p**2, np.nan)
+
+
+@dataclass(frozen=True)
+class ScreenTrials:
+    """Repeated draws of the screened estimate design from a known truth (``screen_trials``).
+
+    Attributes
+    ----------
+    share : float
+        The screen's share of K.
+    recall : ndarray of shape (n_trials,)
+        The share of the pool's true failures in hand after the estimate: those known
+        before it plus the expected number the confirmation samples given the trial's
+        screen (its pi2 summed over the screened failures), over all failures.
+    screened : ndarray of shape (n_trials,)
+        |S1| of each trial.
+    var : float
+        The design's variance of p_hat: phase 1's term exact, phase 2's exact given S1 and
+        averaged over the trials' screens (``core.screen``), over N^2.
+    var_uniform : float
+        Variance of the uniform Poisson design of K level-0 runs over U.
+    rate : float
+        True failure rate.
+    """
+
+    share: float
+    recall: FloatArray
+    screened: IntArray
+    var: float
+    var_uniform: float
+    rate: float
+
+
+def screen_trials(
+    p: ArrayLike,
+    is_failure: ArrayLike,
+    *,
+    K: float,
+    cost: float,
+    share: float,
+    refit: Callable[[IntArray], FloatArray],
+    known: ArrayLike | None = None,
+    cheap_known: ArrayLike | None = None,
+    n_trials: int,
+    rng: np.random.Generator,
+) -> ScreenTrials:
+    """Draw the screened estimate design (``estimate --plan --screen``) from a known truth.
+
+    Each trial draws S1 with the screen's pi1 (``core.screen.screen_design`` over U), asks
+    ``refit`` for the model's p_n over S1 once S1's cheap results are in (the real loop
+    ingests them and fits), and plans the confirmation's pi2 from it with what is left of
+    K (``core.screen.confirm_design``), as ``estimate --plan`` does. The refit is the
+    caller's: it needs the workspace and the cheap level's truth.
+
+    Parameters
+    ----------
+    p : array_like of shape (n_pool,)
+        p_n after discovery.
+    is_failure : bool array_like of shape (n_pool,)
+        True level-0 outcomes.
+    K : float
+        The estimate's budget in level-0 runs, the screen's cheap runs included.
+    cost : float
+        One cheap run's cost in level-0 runs.
+    share : float
+        The screen's share of K.
+    refit : callable
+        S1 (pool indices) -> p_n over S1 after a fit that has S1's cheap results.
+    known : bool array_like of shape (n_pool,), optional
+        The known stratum after discovery.
+    cheap_known : bool array_like of shape (n_pool,), optional
+        Segments with a cheap result already: the screen does not run them again, and
+        they cost nothing.
+    n_trials : int
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ScreenTrials
+    """
+    from bams_cli.core import screen as sc
+    from bams_cli.core.design import risk_posterior
+
+    p = np.asarray(p, dtype=np.float64)
+    fail = np.asarray(is_failure, dtype=bool)
+    n = fail.size
+    if p.shape != (n,):
+        raise ValueError(f"p has shape {p.shape}; is_failure {fail.shape}: one each per segment")
+    kn = np.zeros(n, bool) if known is None else np.asarray(known, dtype=bool)
+    have = np.zeros(n, bool) if cheap_known is None else np.asarray(cheap_known, dtype=bool)
+    F = int(fail.sum())
+    if F == 0:
+        raise ValueError("the pool has no failure: recall and variance are undefined")
+    U = np.flatnonzero(~kn)
+    fU = fail[U]
+    posterior = risk_posterior([])  # a new study: no earlier estimate to mix in
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior).pi
+    recall = np.empty(n_trials)
+    screened = np.empty(n_trials, np.int64)
+    v2 = np.empty(n_trials)
+    for t in range(n_trials):
+        s1 = np.flatnonzero(rng.random(U.size) < pi1)
+        screened[t] = s1.size
+        if s1.size == 0:  # nothing to confirm: T = 0, E[T | S1]
+            recall[t] = float((fail & kn).sum()) / F
+            v2[t] = 0.0
+            continue
+        p2 = np.asarray(refit(U[s1]), dtype=np.float64)
+        runs = int((~have[U[s1]]).sum())
+        K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=posterior).pi
+        recall[t] = (float((fail & kn).sum()) + float(pi2[fU[s1]].sum())) / F
+        v2[t] = sc.phase2_variance(fU[s1], pi1[s1], pi2)
+    N2 = float(n) ** 2
+    k = min(float(K), float(U.size))
+    return ScreenTrials(
+        share=float(share),
+        recall=recall,
+        screened=screened,
+        var=(sc.phase1_variance(fU, pi1) + float(v2.mean())) / N2,
+        var_uniform=float(fU.sum()) * (U.size - k) / k / N2,
+        rate=F / n,
+    )

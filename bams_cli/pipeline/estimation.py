@@ -70,7 +70,7 @@ def estimate_plan(
     stage1_share: float = defaults.STAGE1_SHARE,
     new_series: bool = False,
     seed: int | None = None,
-    screen: float | str | None = None,
+    screen: float | str | None = defaults.SCREEN,
     handoff_internal: bool = False,
     allow_pending: bool = False,
 ) -> dict[str, Any]:
@@ -119,7 +119,7 @@ def estimate_plan(
         Start a new estimate although the last one has stages to go.
     seed : int, optional
         Draw a fresh plan from this seed (above).
-    screen : float or "auto", optional
+    screen : float, "auto", "off" or None, default ``defaults.SCREEN`` ("auto")
         Start a screened estimate: spend this share of K on cheap-level runs of a Poisson
         sample first (``bams_cli.pipeline.screening``); the next call, once their results
         are in and the model refitted, draws the level-0 confirmation. The summary is then
@@ -127,7 +127,9 @@ def estimate_plan(
         screens ``defaults.SCREEN_HINT_SHARE`` of a new estimate's K where the fitted
         cheap-level discrepancy is under ``defaults.SCREEN_HINT_DISCREPANCY`` of the
         level-0 signal, and otherwise plans as without it (it confirms an open screen and
-        continues a staged estimate as a plain call does), saying which in a note.
+        continues a staged estimate as a plain call does), saying which in a note; it
+        plans without a screen where none can be drawn (a design other than poisson, or
+        level-0 runs awaiting results beside --allow-pending). "off" or None: no screen.
     handoff_internal : bool, default False
         Also put the internal columns in the CSV hand-off.
     allow_pending : bool, default False
@@ -240,9 +242,26 @@ def estimate_plan(
     open_screen = screening.screen_path(ws, number).exists() and not new_series
     auto_note = None
     if screen == "auto":
-        share, auto_note = (
-            (None, None) if open_screen or continuing else screening.auto_share(model, settings)
-        )
+        if open_screen or continuing or settings.n_levels == 1 or n_unknown == 0:
+            share = None
+        elif design != "poisson":
+            share = None
+            auto_note = (
+                "--screen auto: no screen (a screen confirms with a Poisson design, not "
+                f"--design {design})"
+            )
+        elif pend.height and bool((pend["fidelity"] == 0).any()):
+            share, auto_note = (
+                None,
+                (
+                    "--screen auto: no screen (level-0 runs await results, and a screen's U "
+                    "must not change before its confirmation)"
+                ),
+            )
+        else:
+            share, auto_note = screening.auto_share(model, settings)
+    elif screen == "off" or screen is None:
+        share = None
     elif isinstance(screen, str):
         raise OptionValueError(f"--screen {screen!r}: a share of K in (0, 1) such as 0.3, or auto")
     else:

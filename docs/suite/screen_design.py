@@ -67,26 +67,9 @@ PLAIN_MC = {
 
 def _append_cheap(root: Path, ids: np.ndarray, values: np.ndarray, batch: int) -> None:
     """The screen's cheap-level results, written into the observation log."""
-    import polars as pl
-    import pyarrow.parquet as pq
+    from bams_cli.benchmark import append_cheap_results
 
-    from bams_cli.state import schemas
-    from bams_cli.state.workspace import Workspace
-
-    ws = Workspace(root)
-    full = ws.read_observations(active_only=False)
-    n = ids.size
-    add = pl.DataFrame(
-        {
-            "segment_id": ids, "fidelity": np.ones(n, np.int64), "value": values,
-            "batch": np.full(n, batch, np.int64), "source_file": ["screen"] * n,
-            "source_sha256": ["-"] * n, "ingested_at": ["-"] * n, "active": [True] * n,
-            "extra": [None] * n,
-        },
-        schema=full.schema,
-    )  # fmt: skip
-    table = pl.concat([full, add]).to_arrow().cast(schemas.OBSERVATIONS.schema)
-    pq.write_table(table, ws.observations_path)
+    append_cheap_results(root, ids, values, batch)
 
 
 def _weighted(p2: np.ndarray, pi1: np.ndarray, K2: float, posterior) -> np.ndarray:  # noqa: ANN001

@@ -138,3 +138,57 @@ def test_the_confirmation_follows_the_refitted_model_and_an_empty_screen_confirm
     assert np.all(np.diff(pi2) >= -1e-12) and pi2[-1] > 2 * pi2[0] > 0
     empty = sc.confirm_design(np.zeros(0), K2=2.0, posterior=prior)
     assert empty.pi.size == 0
+
+
+def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
+    # core.evaluate.screen_trials (the benchmark's measure of the screened default) against
+    # the design simulated end to end: draw S1, plan pi2 from a refit that sees S1's cheap
+    # values, draw S2, sum y / (pi1 pi2). Its variance (phase 1 exact, phase 2 averaged
+    # over the trials' screens) and its recall must be the simulation's, and the sum
+    # unbiased. A refit that ignored the screen, a variance without phase 1's term, or a
+    # K2 that did not pay for the cheap runs would each miss by far more than the tolerance.
+    from bams_cli.core.evaluate import screen_trials
+
+    rng = np.random.default_rng(3)
+    n = 600
+    p = rng.beta(0.4, 6.0, n)
+    fail = rng.random(n) < p
+    cheap = np.where(fail, 0.7, 0.05) + 0.1 * rng.random(n)  # what a cheap run tells
+    known = np.zeros(n, bool)
+    known[np.argsort(-p)[:15]] = True
+    have = np.zeros(n, bool)
+    have[rng.choice(n, 300, replace=False)] = True  # cheap results already in the log
+    K, cost, share = 60.0, 0.2, 0.3
+
+    def refit(s1: np.ndarray) -> np.ndarray:
+        return np.clip(0.5 * p[s1] + 0.5 * cheap[s1], 1e-6, 1.0)
+
+    t = screen_trials(
+        p, fail, K=K, cost=cost, share=share, refit=refit, known=known, cheap_known=have,
+        n_trials=3000, rng=np.random.default_rng(4),
+    )  # fmt: skip
+    U = np.flatnonzero(~known)
+    post = dz.risk_posterior([])
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post).pi
+    sims = np.empty(20_000)
+    found = np.empty(sims.size)
+    mc = np.random.default_rng(5)
+    for i in range(sims.size):
+        s1 = np.flatnonzero(mc.random(U.size) < pi1)
+        runs = int((~have[U[s1]]).sum())
+        K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
+        pi2 = sc.confirm_design(refit(U[s1]), K2=K2, posterior=post).pi
+        s2 = mc.random(s1.size) < pi2
+        y = fail[U[s1]] & s2
+        sims[i] = float((1.0 / (pi1[s1] * pi2))[y].sum())
+        found[i] = float(y.sum())
+    F_U = int(fail[U].sum())
+    se = sims.std(ddof=1) / np.sqrt(sims.size)
+    assert abs(sims.mean() - F_U) < 4 * se  # unbiased
+    assert t.var * n**2 == pytest.approx(sims.var(ddof=1), rel=0.06)
+    F = int(fail.sum())
+    assert t.recall.mean() == pytest.approx((fail[known].sum() + found.mean()) / F, rel=0.03)
+    # The uniform comparison: K level-0 runs over U, Poisson.
+    k = K / U.size
+    assert t.var_uniform * n**2 == pytest.approx(F_U * (1 - k) / k, rel=1e-12)
+    assert t.rate == F / n and t.screened.mean() == pytest.approx(pi1.sum(), rel=0.02)
