@@ -131,6 +131,29 @@ def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:
     return pi1 * pi2
 
 
+def allowance_pi(pi1: ArrayLike, screened: ArrayLike, pi2: ArrayLike) -> FloatArray:
+    """pi over U for the interval's allowance for a failure no run has seen
+    (``design.unseen_failure_weight``): pi1 pi2 on S1, and outside it pi1 times the
+    screen's smallest pi2 (a failure the screen missed would have been confirmed at most
+    that often; the "min" allowance of docs/suite/screen_design.md). An empty screen
+    prices every segment at pi1.
+
+    Parameters
+    ----------
+    pi1 : array_like of shape (n_unknown,)
+    screened : bool array_like of shape (n_unknown,)
+        S1.
+    pi2 : array_like of shape (|S1|,)
+        The confirmation's probabilities, in S1's order.
+    """
+    pi1 = np.asarray(pi1, dtype=np.float64)
+    s1 = np.asarray(screened, dtype=bool)
+    pi2 = np.asarray(pi2, dtype=np.float64)
+    out = pi1 * float(pi2.min(initial=1.0))
+    out[s1] = pi1[s1] * pi2
+    return out
+
+
 def phase1_variance(failures: ArrayLike, pi1: ArrayLike) -> float:
     """sum_U y (1 - pi1)/pi1: the variance T would have if S1's level-0 values were seen
     (``design.predicted_variance`` with the failures as the risk)."""

@@ -344,8 +344,7 @@ def confirm_screen(
     # The interval's allowance for a failure no run has seen: a segment outside S1 would
     # have been confirmed at most as often as the screen's least-confirmed one (the "min"
     # allowance, measured in docs/suite/screen_design.md).
-    allow_pi = pi1_U * float(pi2.min(initial=1.0))
-    allow_pi[in_s1] = pi
+    allow_pi = sc.allowance_pi(pi1_U, in_s1, pi2)
     w_model = [
         dz.unseen_failure_weight(posterior.allowance_risk(p_all[U, g]), allow_pi)
         for g in range(p_all.shape[1])

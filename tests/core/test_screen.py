@@ -192,3 +192,61 @@ def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
     k = K / U.size
     assert t.var_uniform * n**2 == pytest.approx(F_U * (1 - k) / k, rel=1e-12)
     assert t.rate == F / n and t.screened.mean() == pytest.approx(pi1.sum(), rel=0.02)
+
+
+def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_smallest_pi2():
+    pi1 = np.array([0.5, 0.2, 0.1, 0.8])
+    s1 = np.array([True, False, True, False])
+    got = sc.allowance_pi(pi1, s1, np.array([0.6, 0.3]))
+    np.testing.assert_allclose(got, [0.3, 0.2 * 0.3, 0.03, 0.8 * 0.3])
+    # An empty screen: pi1 alone.
+    np.testing.assert_allclose(sc.allowance_pi(pi1, np.zeros(4, bool), np.zeros(0)), pi1)
+
+
+@pytest.mark.slow
+def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
+    # Issue 12's check for the default estimate where it screens: 100 screens (S1 drawn,
+    # pi2 from a refit that sees S1's cheap runs) x 100 confirmations each, from a known
+    # truth whose model under-predicts the rate; the estimate and its 90% interval as
+    # `estimate` computes them (estimate_from_sample at pi1 pi2, the "min" allowance).
+    from bams_cli.core.estimate import estimate_from_sample
+
+    rng = np.random.default_rng(12)
+    N = 2000
+    p = rng.beta(0.05, 10, N)
+    fail = rng.random(N) < np.clip(p * 1.5, 0, 1)
+    cheap_fail = np.where(rng.random(N) < 0.85, fail, ~fail)  # a cheap level that errs
+    known = np.zeros(N, bool)
+    known[rng.choice(N, 40, replace=False)] = True
+    U = np.flatnonzero(~known)
+    K, cost, share = 5.0 * fail.sum() * 0.6, 0.1, 0.3
+    post = dz.risk_posterior([])
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post).pi
+    rate, Fk = fail.mean(), int(fail[known].sum())
+    p_hat, lo, hi = [], [], []
+    for _ in range(100):
+        s1 = rng.random(U.size) < pi1
+        idx = np.flatnonzero(s1)
+        refit = np.clip(0.3 * p[U] + 0.6 * cheap_fail[U] * s1, 1e-6, 1.0)  # sees S1's runs
+        K2 = min(sc.confirm_budget(K, cost, idx.size), float(idx.size))
+        pi2 = sc.confirm_design(refit[idx], K2=K2, posterior=post).pi
+        counts = (rng.random((idx.size, 100)) < pi2[:, None]).astype(np.int64)
+        w_model = dz.unseen_failure_weight(
+            post.allowance_risk(refit), sc.allowance_pi(pi1, s1, pi2)
+        )
+        est = estimate_from_sample(
+            sc.confirmed_pi(pi1[idx], pi2), fail[U][idx], design="poisson", n_pool=N,
+            n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk, confidence=0.9,
+            w_model=w_model,
+        )  # fmt: skip
+        p_hat.append(est.p_hat_unbiased.ravel())
+        lo.append(est.ci_low.ravel())
+        hi.append(est.ci_high.ravel())
+    ph, lo_, hi_ = (np.concatenate(a) for a in (p_hat, lo, hi))
+    assert ph.size == 10_000
+    # Draws share their screen 100 at a time: the SE is the screens' spread of their means.
+    se = ph.reshape(100, 100).mean(axis=1).std(ddof=1) / 10.0
+    assert abs(ph.mean() - rate) < 3 * se
+    cover = np.mean((lo_ <= rate) & (rate <= hi_))
+    below = np.mean(hi_ < rate)
+    assert cover >= 0.88 and below <= 0.05, (cover, below)
