@@ -19,6 +19,12 @@ from bams_cli.core import synthetic
 from bams_cli.state import schemas
 from bams_cli.state.io import transaction
 
+#: ``estimate --plan`` for the staged estimate whatever the study's cheap level looks like:
+#: the tests of the staged plan's mechanics pin ``--screen off``. The default, auto, screens
+#: where the fitted cheap level tracks level 0 (tests/test_screen_estimate.py, the loop's
+#: screened test and the demo walk that path).
+STAGED_PLAN = ("--plan", "--screen", "off")
+
 
 @pytest.fixture
 def runner() -> CliRunner:

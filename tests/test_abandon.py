@@ -24,7 +24,7 @@ from bams_cli import abandon
 from bams_cli.state.io import journal_in, recover
 from bams_cli.state.lock import workspace_lock
 from bams_cli.state.workspace import Workspace
-from tests.conftest import answer_handoff, invoke, ok, tree_hash, write_toy
+from tests.conftest import STAGED_PLAN, answer_handoff, invoke, ok, tree_hash, write_toy
 
 
 def _status(runner, ws):
@@ -116,7 +116,7 @@ def _plan_study(runner, ws, truth, tmp: Path, n_lost: int = 3):
     """From the fixture's study: batches in, a plan drawn, its results in but for the
     first ``n_lost`` requests, which are abandoned. Returns their request ids."""
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "40")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     handoff = ws / "estimates" / "plan-0001-handoff.csv"
     rids = [r["request_id"] for r in csv.DictReader(handoff.open())][:n_lost]
     res = answer_handoff(runner, handoff, truth, tmp / "p1.csv", set(rids))

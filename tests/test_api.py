@@ -19,7 +19,7 @@ from bams_cli import api
 from bams_cli.cli import app
 from bams_cli.errors import BamsError, PendingResultsError, WorkspaceError
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_toy
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_toy
 
 #: Each command that reads or writes a workspace, and the API functions it calls.
 COMMANDS: dict[str, list[Callable[..., dict[str, Any]]]] = {
@@ -192,19 +192,7 @@ def _cli_study(runner: CliRunner, ws: Path, seg: Path, truth: Path, tmp: Path) -
         )
         ok(runner, "ingest-results", "-w", ws, res)
         ok(runner, "fit", "-w", ws, "--restarts", "2")
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--stages",
-        "1",
-    )
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40", "--stages", "1")
     res = tmp / "cli-est.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", ws, res)
@@ -294,7 +282,7 @@ BAD: list[tuple[str, list[str], Callable[..., Any], dict[str, Any], type[BamsErr
     ),
     (
         "estimate-plan",
-        ["estimate", "--plan", "--screen", "off", "--stages", "0"],
+        ["estimate", *STAGED_PLAN, "--stages", "0"],
         api.estimate_plan,
         {"stages": 0},
         api.OptionValueError,

@@ -26,7 +26,15 @@ import pytest
 from typer.testing import CliRunner
 
 from bams_cli.errors import shown
-from tests.conftest import invoke, ok, simulate_and_ingest, tree_hash, write_batch, write_toy
+from tests.conftest import (
+    STAGED_PLAN,
+    invoke,
+    ok,
+    simulate_and_ingest,
+    tree_hash,
+    write_batch,
+    write_toy,
+)
 
 #: Picks of batch 2, awaiting results in every case's workspace: results for them are new.
 PENDING = ["t000100", "t000101", "t000102", "t000103"]
@@ -49,7 +57,7 @@ def template(tmp_path_factory) -> Path:
         runner, ws, ws / "batches" / "batch-0001.parquet", truth, tmp / "r1.parquet"
     )
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "4")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "4")
     plan = ws / "estimates" / "plan-0001-handoff.csv"
     simulate_and_ingest(runner, ws, plan, truth, tmp / "r-plan.parquet")
     ok(runner, "estimate", "-w", ws)
@@ -490,7 +498,7 @@ def _options(*args: object):
     return lambda ws, tmp: [args[0], "-w", ws, *args[1:]]
 
 
-PLAN = ("estimate", "--plan", "--screen", "off", "--allow-pending")
+PLAN = ("estimate", *STAGED_PLAN, "--allow-pending")
 #: Checked before the loop takes a step: the pending batch 2 would be simulated first.
 LOOP = ("loop", "--simulator", "true {handoff} {results}", "--batches", "3")
 BUDGET = "must be a finite number > 0 (cost units; one level-0 run costs 1)"

@@ -57,7 +57,7 @@ import pytest
 
 from bams_cli.state.io import journal_in, recover
 from bams_cli.state.lock import workspace_lock
-from tests.conftest import tree_hash, write_toy
+from tests.conftest import STAGED_PLAN, tree_hash, write_toy
 
 # ---- starting a command --------------------------------------------------------------------
 SERVER = r"""
@@ -253,7 +253,7 @@ def prepare(base: Path, launcher) -> list[Case]:
     step("select", cli("select", "-w", ws, "--strategy", "bams", "--budget", 5, *pool))
     step("abandon", cli("abandon", "-w", ws, "--batch", 2, "--reason", "gone"))
     ws = fitted
-    plan = cli("--plan", "--screen", "off", "--samples", 40, "--stages", 1)
+    plan = cli(*STAGED_PLAN, "--samples", 40, "--stages", 1)
     step("estimate --plan", cli("estimate", "-w", ws, *plan))
     handoff = ws / "estimates/plan-0001-handoff.csv"
     _ok(launcher, cli("simulate", handoff, "--truth", truth, "-o", p1), log)
@@ -268,7 +268,7 @@ def prepare(base: Path, launcher) -> list[Case]:
         log)  # fmt: skip
     _ok(launcher, cli("ingest-results", "-w", ws, s1), log)
     _ok(launcher, cli("fit", "-w", ws), log)
-    step("estimate --plan, confirming", cli("estimate", "-w", ws, "--plan", "--screen", "off"))
+    step("estimate --plan, confirming", cli("estimate", "-w", ws, *STAGED_PLAN))
 
     args: dict[str, Callable[[Path], list[str]]] = {
         "init": lambda w: cli("init", "-w", w, *init),
@@ -282,9 +282,7 @@ def prepare(base: Path, launcher) -> list[Case]:
         "estimate": lambda w: cli("estimate", "-w", w),
         "report": lambda w: cli("report", "-w", w, "--truth", truth),
         "estimate --plan --screen": lambda w: cli("estimate", "-w", w, *screen),
-        "estimate --plan, confirming": lambda w: cli(
-            "estimate", "-w", w, "--plan", "--screen", "off"
-        ),
+        "estimate --plan, confirming": lambda w: cli("estimate", "-w", w, *STAGED_PLAN),
     }
     keep["init"] = base / "before-init"  # never created: init starts from nothing
     return [Case(name, keep[name], args[name]) for name in args]

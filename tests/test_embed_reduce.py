@@ -15,7 +15,7 @@ from sklearn.decomposition import PCA
 from bams_cli.core import synthetic
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_batch
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
 
 
 def _av_files(folder: Path, n: int = 600, layout: str = "list") -> Path:
@@ -281,7 +281,7 @@ def test_model_is_stale_after_the_pool_grows(toy_ws, runner, toy_files, tmp_path
         pa.table({"segment_id": ["new-1", "new-2"], "x0": [0.1, 0.2], "x1": [1.0, 2.0]}), more
     )
     assert invoke(runner, "embed-reduce", "-w", toy_ws, more, "--apply").exit_code == 0
-    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--screen", "off", "--samples", "5")
+    r = invoke(runner, "estimate", "-w", toy_ws, *STAGED_PLAN, "--samples", "5")
     assert r.exit_code == 1 and "fitted on a different segment pool" in r.stderr
 
 

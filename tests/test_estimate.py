@@ -19,7 +19,7 @@ from bams_cli import cli, console, defaults, pipeline
 from bams_cli.core import estimate as core_estimate
 from bams_cli.state.io import read_metadata_json, stamp
 from bams_cli.state.schemas import SEGMENT_ID as SID
-from tests.conftest import invoke, ok, write_toy
+from tests.conftest import STAGED_PLAN, invoke, ok, write_toy
 
 
 @pytest.mark.parametrize(
@@ -82,11 +82,7 @@ def test_estimate_outputs_are_strict_json_with_null_and_reason(fitted_ws, tmp_pa
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    strict_json(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "30", "--json"
-        ).stdout
-    )
+    strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "30", "--json").stdout)
     res = tmp_path / "plan.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
     ok(runner, "ingest-results", "-w", ws, res)
@@ -134,23 +130,12 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     runner = CliRunner()
 
     def plan(*extra):
-        args = (
-            "estimate",
-            "-w",
-            ws,
-            "--plan",
-            "--screen",
-            "off",
-            "--samples",
-            "60",
-            "--json",
-            *extra,
-        )
+        args = ("estimate", "-w", ws, *STAGED_PLAN, "--samples", "60", "--json", *extra)
         return strict_json(ok(runner, *args).stdout)
 
     default = plan()
     # While plan 1 awaits results a second plan is refused with exit code 3 (waiting) ...
-    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "60")
+    r = invoke(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "60")
     assert r.exit_code == 3 and "estimate plan 1 awaits results" in r.stderr
     assert not (ws / "estimates" / "plan-0002.parquet").exists()
     # ... unless asked for: fresh plans from one fitted workspace, as a design study wants.
@@ -170,20 +155,7 @@ def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     # of one study, each from its own seed, had shared stage 2's draws (a trial study).
     for k in (1, 2, 3, 4):
         ok(runner, "abandon", "-w", ws, "--plan", str(k), "--reason", "next: a series by --seed")
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "60",
-        "--seed",
-        "5",
-        "--new-series",
-    )
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "60", "--seed", "5", "--new-series")
     _simulate_and_ingest(runner, ws, truth, 5, tmp_path)
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     stage2 = plan()
@@ -216,9 +188,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
     s1 = strict_json(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "80", "--json"
-        ).stdout
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--json").stdout
     )
     assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, 2, 1, 80)
     assert s1["samples_K"] == pytest.approx(80 * defaults.STAGE1_SHARE)
@@ -226,7 +196,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     assert s1["predicted_vs_uniform"]["uniform"] == 1.0
     assert s1["predicted_vs_uniform"][s1["weighting"]] == min(s1["predicted_vs_uniform"].values())
     # Stage 2 waits for stage 1's results (exit code 3) ...
-    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "off")
+    r = invoke(runner, "estimate", "-w", ws, *STAGED_PLAN)
     assert r.exit_code == 3
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     # ... stage 1 alone is an estimate already, and says that a stage remains ...
@@ -235,18 +205,16 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     # ... and stage 2 needs the model refitted on stage 1's results; status says so.
     nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
     assert nxt["step"] == "fit" and "before stage 2" in nxt["text"]
-    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "off")
+    r = invoke(runner, "estimate", "-w", ws, *STAGED_PLAN)
     assert r.exit_code != 0 and "fit" in r.stderr
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
     assert nxt["command"].endswith("--plan") and "for stage 2" in nxt["text"]
     # A different K for the running estimate is refused, naming the way out.
-    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "50")
+    r = invoke(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "50")
     assert r.exit_code == 1 and "--new-series" in r.stderr
     s2 = strict_json(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "80", "--json"
-        ).stdout
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--json").stdout
     )
     assert (s2["stage"], s2["series"], s2["stage_weights"]) == (2, 1, s1["stage_weights"])
     assert s2["samples_K"] == pytest.approx(80 * (1 - defaults.STAGE1_SHARE))
@@ -303,7 +271,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     assert len(capped) == len(raised) and "the rate is at most that" in capped[0]
     # The third plan starts a new estimate: the series is complete.
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    s3 = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--json").stdout)
+    s3 = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
     assert (s3["stage"], s3["series"]) == (1, 3)
     assert s3["model_check"]["plans"] == [1, 2]
     # ... and says so: the report's headline will move to it.
@@ -319,7 +287,7 @@ def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "10")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "10")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
     ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "60")
@@ -338,7 +306,7 @@ def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted
     )
     ok(runner, "ingest-results", "-w", ws, tmp_path / "extra.csv", "--allow-unselected")
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "10")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "10")
     _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
     out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
     e = out["estimates"][1]  # gamma 0.56
@@ -351,19 +319,7 @@ def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    args = (
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--stages",
-        "1",
-        "--json",
-    )
+    args = ("estimate", "-w", ws, *STAGED_PLAN, "--samples", "40", "--stages", "1", "--json")
     s1 = strict_json(ok(runner, *args).stdout)
     assert (s1["stages"], s1["samples_K"], s1["stage_weights"]) == (1, 40, [1.0])
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
@@ -405,9 +361,7 @@ def test_a_pool_known_at_level_0_everywhere_plans_nothing_and_is_exact(tmp_path)
         ok(runner, "simulate", handoff, "--truth", truth, "-o", res)
         ok(runner, "ingest-results", "-w", ws, res)
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    plan = strict_json(
-        ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--json").stdout
-    )
+    plan = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
     assert plan["to_simulate"] == 0 and plan["known_stratum"] == 24
     out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
     e = out["estimates"][0]
@@ -420,19 +374,7 @@ def test_the_fay_feuer_interval_is_a_choice_and_never_narrower(fitted_ws, tmp_pa
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--stages",
-        "1",
-    )
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40", "--stages", "1")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     gamma = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
     ff = strict_json(ok(runner, "estimate", "-w", ws, "--interval", "fay-feuer", "--json").stdout)
@@ -453,19 +395,7 @@ def test_another_confidence_keeps_the_earlier_estimate_and_says_where_each_is(fi
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--stages",
-        "1",
-    )
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40", "--stages", "1")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     path = ws / "estimates" / "estimate-0001.json"
     assert f"estimate written to {path}\n" in ok(runner, "estimate", "-w", ws).stdout
@@ -498,10 +428,10 @@ def test_fay_feuer_refuses_a_combined_staged_estimate(fitted_ws, tmp_path):
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "40")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN)
     _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
     r = invoke(runner, "estimate", "-w", ws, "--interval", "fay-feuer")
     assert r.exit_code == 1 and "--interval fay-feuer: plan 2 is stage 2" in r.stderr
@@ -516,18 +446,7 @@ def test_a_plan_stores_pi_and_q_and_no_separate_prob(fitted_ws, tmp_path, design
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    args = (
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "30",
-        "--design",
-        design,
-    )
+    args = ("estimate", "-w", ws, *STAGED_PLAN, "--samples", "30", "--design", design)
     ok(runner, *args, "--stages", "1")
     plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
     assert {"pi", "q", "draws"} <= set(plan[0]) and "prob" not in plan[0]
@@ -578,7 +497,7 @@ def test_the_default_k_has_a_floor_and_says_when_no_level0_failure_checked_the_r
     saved = tmp_path / "hp.json"
     saved.write_text(json.dumps(hp))
     ok(runner, "fit", "-w", toy_ws, "--fixed-hyperparameters", saved)
-    r = invoke(runner, "estimate", "-w", toy_ws, "--plan", "--screen", "off", "--json")
+    r = invoke(runner, "estimate", "-w", toy_ws, *STAGED_PLAN, "--json")
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout)
     n_unknown = 400 - len(ids)
@@ -607,18 +526,7 @@ def test_the_interval_s_allowance_trusts_p_n_as_little_as_the_evidence_allows(fi
 
     ws, _ = _copy(fitted_ws, tmp_path)
     s = strict_json(
-        ok(
-            CliRunner(),
-            "estimate",
-            "-w",
-            ws,
-            "--plan",
-            "--screen",
-            "off",
-            "--samples",
-            "80",
-            "--json",
-        ).stdout
+        ok(CliRunner(), "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--json").stdout
     )
     meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
     plan = pq.read_table(ws / "estimates" / "plan-0001.parquet")
@@ -650,7 +558,7 @@ def test_the_plan_names_the_gamma_its_gp_rate_and_design_are_for(fitted_ws, tmp_
     from typer.testing import CliRunner
 
     ws, _ = _copy(fitted_ws, tmp_path)
-    r = ok(CliRunner(), "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "40")
+    r = ok(CliRunner(), "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
     assert line.rstrip().endswith("at gamma 0.56, the largest, which the plan is drawn for")
 
@@ -666,7 +574,7 @@ def test_a_stage_planned_by_an_older_version_still_checks_the_model(fitted_ws, t
 
     ws, truth = _copy(fitted_ws, tmp_path)
     runner = CliRunner()
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "80")
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80")
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     now, used = stages.mix_evidence(pipeline.Workspace(ws), 0.56)
     assert used == [1] and now[0].failed.any()

@@ -12,7 +12,7 @@ from scipy.special import ndtr
 
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_batch
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
 
 
 @pytest.fixture
@@ -296,10 +296,7 @@ def test_edited_gammas_make_the_model_stale_for_every_command(fitted_ws, runner)
     text = ws.settings_path.read_text()
     assert "0.56" in text
     ws.settings_path.write_text(text.replace("0.56", "0.6"))
-    for args in (
-        ["select", "--budget", "2", "--clusters", "1"],
-        ["estimate", "--plan", "--screen", "off"],
-    ):
+    for args in (["select", "--budget", "2", "--clusters", "1"], ["estimate", *STAGED_PLAN]):
         r = invoke(runner, *args, "-w", fitted_ws)
         assert r.exit_code == 1
         assert "fitted for gammas [0.56]" in r.stderr and "bams-cli fit" in r.stderr

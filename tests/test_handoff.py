@@ -15,7 +15,7 @@ import pytest
 from bams_cli.core import synthetic
 from bams_cli.state.handoff import HANDOFF_COLUMNS, TEMPLATE_COLUMNS, request_ids
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_batch
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
 
 LEVELS = ["full", "quick"]  # the study's names for level 0 and level 1
 
@@ -66,9 +66,7 @@ def test_batch_and_plan_handoffs_share_one_layout(named_ws, runner, tmp_path):
     ok(runner, "ingest-results", "-w", ws, res)
     ok(runner, "fit", "-w", ws, "--restarts", 2)
     plan = json.loads(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", 8, "--json"
-        ).stdout
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", 8, "--json").stdout
     )
 
     b = _csv(Path(batch["handoff_csv"]))

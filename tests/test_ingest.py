@@ -12,7 +12,15 @@ import pytest
 
 from bams_cli.state.io import JOURNAL_NAME
 from bams_cli.state.workspace import Workspace
-from tests.conftest import answer_handoff, invoke, ok, tree_hash, write_batch, write_toy
+from tests.conftest import (
+    STAGED_PLAN,
+    answer_handoff,
+    invoke,
+    ok,
+    tree_hash,
+    write_batch,
+    write_toy,
+)
 
 IDS = ["t000000", "t000001", "t000002", "t000003"]
 
@@ -438,7 +446,7 @@ def test_a_batch_partly_answered_is_simulated_from_its_pending_requests_alone(
     # select's and estimate --plan's refusals name the same list (they named the whole one).
     r = invoke(runner, "select", "-w", ws, "--strategy", "random", "--budget", "2")
     assert r.exit_code == 3 and f"simulate {pending}, ingest the results" in r.stderr, r.stderr
-    r = invoke(runner, "estimate", "-w", ws, "--plan", "--screen", "off")
+    r = invoke(runner, "estimate", "-w", ws, *STAGED_PLAN)
     assert r.exit_code == 3 and f"simulate {pending}, ingest the results" in r.stderr, r.stderr
     ok(runner, "report", "-w", ws)
     notices = json.loads((ws / "report" / "summary.json").read_text())["notices"]
@@ -524,19 +532,7 @@ def test_an_estimate_plan_partly_answered_is_named_by_status_and_estimate(
         answer_handoff(runner, handoff, truth, tmp_path / "r.csv"),
     )
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        ws,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--stages",
-        "1",
-    )
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40", "--stages", "1")
     plan = ws / "estimates" / "plan-0001-handoff.csv"
     rids = [row["request_id"] for row in csv.DictReader(plan.open())][:2]
     ok(

@@ -17,7 +17,7 @@ import pytest
 from bams_cli.report import SUMMARY_KEYS
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_toy
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_toy
 
 
 @pytest.fixture(scope="module")
@@ -72,9 +72,7 @@ def loop_ws(tmp_path_factory):
         ok(runner, "ingest-results", "-w", ws, res)
         ok(runner, "fit", "-w", ws, "--restarts", "2")
     plan = json.loads(
-        ok(
-            runner, "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "60", "--json"
-        ).stdout
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "60", "--json").stdout
     )
     res = tmp / "est.parquet"
     ok(runner, "simulate", ws / "estimates" / "plan-0001-handoff.csv", "--truth", truth, "-o", res)
@@ -274,18 +272,7 @@ def test_estimate_refuses_a_missing_result(loop_ws, tmp_path):
     shutil.copytree(ws, copy)
     runner = CliRunner()
     ok(runner, "fit", "-w", copy, "--restarts", "1")
-    ok(
-        runner,
-        "estimate",
-        "-w",
-        copy,
-        "--plan",
-        "--screen",
-        "off",
-        "--samples",
-        "40",
-        "--new-series",
-    )
+    ok(runner, "estimate", "-w", copy, *STAGED_PLAN, "--samples", "40", "--new-series")
     before = tree_hash(copy)
     r = invoke(runner, "estimate", "-w", copy)
     assert r.exit_code == 3 and "planned segments have no level-0 result" in r.stderr
@@ -341,12 +328,12 @@ def test_other_strategies_write_a_batch(loop_ws, tmp_path, strategy):
             "--level0-share 1.5",
         ),
         (
-            ["estimate", "--plan", "--screen", "off", "--samples", "nan"],
+            ["estimate", *STAGED_PLAN, "--samples", "nan"],
             2,
             "--samples nan: must be a finite number",
         ),
         (
-            ["estimate", "--plan", "--screen", "off", "--alpha", "nan"],
+            ["estimate", *STAGED_PLAN, "--alpha", "nan"],
             2,
             "--alpha nan: must be a finite number >= 0",
         ),

@@ -26,7 +26,7 @@ from bams_cli.state import schemas
 from bams_cli.state.io import read_metadata
 from bams_cli.state.workspace import Workspace
 from tests import test_loop
-from tests.conftest import invoke, ok, simulate_and_ingest
+from tests.conftest import STAGED_PLAN, invoke, ok, simulate_and_ingest
 
 #: Headless Chromium, or a skip (in CI a failure): test_loop's fixture.
 chromium = test_loop.chromium
@@ -126,14 +126,14 @@ def study(tmp_path_factory) -> Study:
     s.simulate_and_ingest(ws / "batches" / "batch-0003.parquet")
     s.run("fit", "-w", ws, "--restarts", "2")
     s.report("cheap-only bams batch fitted")
-    s.run("estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "40")
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     s.report("plan 1 pending")
     s.simulate_and_ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.report("plan 1 in, not computed")
     s.run("estimate", "-w", ws)
     s.report("plan 1 computed")
     s.run("fit", "-w", ws, "--restarts", "2")
-    s.run("estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "40")
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     s.report("plan 2 pending")
     s.simulate_and_ingest(ws / "estimates" / "plan-0002-handoff.csv")
     s.run("estimate", "-w", ws)
@@ -923,7 +923,7 @@ def test_estimate_and_the_report_name_the_interval_s_kind(tmp_path):
     s.run("select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "6")
     s.simulate_and_ingest(ws / "batches" / "batch-0001.parquet")
     s.run("fit", "-w", ws, "--restarts", "2")
-    s.run("estimate", "-w", ws, "--plan", "--screen", "off", "--stages", "1", "--samples", "30")
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--stages", "1", "--samples", "30")
     s.simulate_and_ingest(ws / "estimates" / "plan-0001-handoff.csv")
     out = s.run("estimate", "-w", ws).stdout
     assert "90% gamma interval)" in out  # the table's title

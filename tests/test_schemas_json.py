@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bams_cli import schemas_json
-from tests.conftest import invoke, ok, write_toy
+from tests.conftest import STAGED_PLAN, invoke, ok, write_toy
 from tests.jsonschema_subset import check_schema, errors
 
 
@@ -66,7 +66,7 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
     run("fit", "fit", "-w", ws, "--restarts", 2)
     run("report", "report", "-w", ws)  # no estimate yet
     out["summary.json"].append(json.loads((ws / "report" / "summary.json").read_text()))
-    plan = run("estimate-plan", "estimate", "-w", ws, "--plan", "--screen", "off", "--samples", 10)
+    plan = run("estimate-plan", "estimate", "-w", ws, *STAGED_PLAN, "--samples", 10)
     run("status", "status", "-w", ws, code=3)
     run("ingest-results", "ingest-results", "-w", ws, answer(plan["handoff"], 3))
     run("estimate", "estimate", "-w", ws)
@@ -76,7 +76,7 @@ def outputs(tmp_path_factory) -> dict[str, list[dict]]:
                  "--samples", 10, "--new-series")  # fmt: skip
     run("ingest-results", "ingest-results", "-w", ws, answer(screen["handoff"], 4))
     run("fit", "fit", "-w", ws, "--restarts", 2)
-    confirm = run("estimate-plan", "estimate", "-w", ws, "--plan", "--screen", "off")
+    confirm = run("estimate-plan", "estimate", "-w", ws, *STAGED_PLAN)
     assert confirm["weighting"] == "screen"
     run("ingest-results", "ingest-results", "-w", ws, answer(confirm["handoff"], 5))
     run("estimate", "estimate", "-w", ws)

@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bams_cli import defaults
-from tests.conftest import invoke, ok, tree_hash, write_batch
+from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
 
 
 @pytest.fixture
@@ -340,7 +340,7 @@ def test_allow_pending_never_repicks_pending_pairs_and_results_land_under_their_
     assert second["j_after"] < second["j_before"]
     # With both waiting, the estimate's plan is refused naming both hand-off lists, in
     # the order they were drawn (only the last was named).
-    r = invoke(runner, "estimate", "-w", lead_ws, "--plan", "--screen", "off")
+    r = invoke(runner, "estimate", "-w", lead_ws, *STAGED_PLAN)
     assert r.exit_code == 3, r.stderr
     lists = [str(lead_ws / "batches" / f"batch-000{n}.csv") for n in (2, 3)]
     picks = len(b2["segment_id"]) + len(b3["segment_id"])

@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, simulate_and_ingest, tree_hash, write_toy
+from tests.conftest import STAGED_PLAN, invoke, ok, simulate_and_ingest, tree_hash, write_toy
 
 
 class Study:
@@ -70,13 +70,13 @@ def study(tmp_path_factory) -> Study:
     s.status("batch 2 in")
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("refitted")
-    s.run("estimate", "-w", ws, "--plan", "--screen", "off", "--samples", "20")
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--samples", "20")
     s.status("plan pending", keep=True)
     s.ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.status("plan in")
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("stage 1 in, fitted")
-    s.run("estimate", "-w", ws, "--plan", "--screen", "off")
+    s.run("estimate", "-w", ws, *STAGED_PLAN)
     s.status("stage 2 pending")
     s.ingest(ws / "estimates" / "plan-0002-handoff.csv")
     s.status("stage 2 in")
@@ -237,7 +237,7 @@ def test_a_model_stale_after_a_gamma_edit_is_told_to_fit_once(study, tmp_path):
         # A plan drawn beside a pending batch would miss its results, as select refuses.
         (
             "batch 2 pending",
-            ["estimate", "--plan", "--screen", "off", "--samples", "10"],
+            ["estimate", *STAGED_PLAN, "--samples", "10"],
             "batch 2 awaits results",
         ),
     ],
