@@ -21,6 +21,7 @@ from bams_cli.core import design as dz
 from bams_cli.core import screen as sc
 from bams_cli.state.io import read_metadata_json
 from bams_cli.state.schemas import SEGMENT_ID as SID
+from bams_cli.state.workspace import Workspace
 from tests.conftest import invoke, ok, tree_hash, write_toy
 from tests.jsonschema_subset import errors
 from tests.test_estimate import strict_json
@@ -426,3 +427,30 @@ def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
         )
         assert "screen_file" not in out and out["weighting"] != "screen"
         assert not any("screen" in n for n in out["notes"]), out["notes"]
+
+
+def test_screen_auto_does_not_screen_more_than_a_refit_conditions_on(fitted, tmp_path, monkeypatch):
+    # At a million segments the default K buys ~28,000 cheap runs: more than fit conditions
+    # on exactly (14,654 at its 2 GiB), so the confirmation would rest on a model that has
+    # not seen most of them, after minutes of scoring. auto plans the staged estimate there.
+    from typer.testing import CliRunner
+
+    from bams_cli import defaults
+    from bams_cli.core.conditioning_budget import max_conditioned
+    from bams_cli.pipeline import screening
+
+    cap = max_conditioned(defaults.FIT_CONDITION_MEMORY)
+    assert cap == 14_654
+    assert screening.refit_too_large(cap - 100, 100) is None
+    note = screening.refit_too_large(cap - 99, 100)
+    assert note is not None and f"{cap:,}" in note and "14,555 expected cheap runs" in note
+    ws, _ = _copy(fitted, tmp_path)
+    obs = Workspace(ws).read_observations().height
+    # This toy's screen at K: 0.3 K / 0.1 cheap runs; a budget one short of holding them.
+    n1 = 0.3 * float(K) / 0.1
+    monkeypatch.setattr(defaults, "FIT_CONDITION_MEMORY", 10 * int(obs + n1 - 1) ** 2)
+    out = strict_json(
+        ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", K, "--json").stdout
+    )
+    assert "screen_file" not in out and out["stage"] == 1 and out["stages"] == 2
+    assert any("exceed the" in n and "a refit conditions on exactly" in n for n in out["notes"])

@@ -161,6 +161,7 @@ def estimate_plan(
     """
     st = stages_mod  # the series and the evidence of finished plans
     from bams_cli.core import design as dz
+    from bams_cli.core import screen as sc
     from bams_cli.core.estimate import (
         DESIGNS,
         gp_estimate,
@@ -260,6 +261,16 @@ def estimate_plan(
             )
         else:
             share, auto_note = screening.auto_share(model, settings)
+            if share is not None:
+                K_auto, _ = _plan_samples(
+                    ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n,
+                    n_unknown=n_unknown, design="poisson",
+                )  # fmt: skip
+                cost = float(settings.costs[screening.SCREEN_LEVEL])
+                n1 = sc.screen_size(K_auto, cost, share, n_unknown)
+                big = screening.refit_too_large(n1, ws.read_observations().height)
+                if big is not None:
+                    share, auto_note = None, big
     elif screen == "off" or screen is None:
         share = None
     elif isinstance(screen, str):

@@ -120,6 +120,30 @@ def auto_share(model: dict[str, Any], settings: Settings) -> tuple[float | None,
     )
 
 
+def refit_too_large(n_screen: float, n_observations: int) -> str | None:
+    """``--screen auto``'s second condition: why not to screen (None: screen) when the
+    refit the confirmation rests on could not condition on every cheap run of the screen.
+
+    Above ``fit``'s exact-conditioning cap (``fitting.condition_budget``; 14,654
+    observations at the default 2 GiB) ``fit`` conditions on a subset, level-0 runs first,
+    so screened segments would be confirmed without their own cheap run in the model, and
+    scoring a large pool on that many observations takes minutes (about 90 s at 200,000
+    segments and 14,000 observations, ``bench/bench_pipeline.py``).
+    """
+    from bams_cli.core.conditioning_budget import max_conditioned
+    from bams_cli.pipeline.fitting import condition_budget
+
+    cap = max_conditioned(condition_budget())
+    total = n_observations + n_screen
+    if cap is None or total <= cap:
+        return None
+    return (
+        f"--screen auto: no screen; its {n_screen:,.0f} expected cheap runs and the log's "
+        f"{n_observations:,} observations exceed the {cap:,} a refit conditions on exactly, "
+        "and the screen's gain rests on that refit seeing every cheap run"
+    )
+
+
 def draw_screen(
     ws: Workspace,
     settings: Settings,
