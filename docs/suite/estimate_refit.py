@@ -72,10 +72,15 @@ def suite_problem(problem: str, scratch: Path) -> SuiteProblem:
     return SuiteProblem(data, truth, pos, gamma, K)
 
 
+#: The discovery strategy whose workspaces ``workspaces_before_estimate`` yields
+#: (screen_design.py ``coverage --strategy mcm-gp`` sets it).
+STRATEGY = "bams"
+
+
 def workspaces_before_estimate(
     problem: str, prob: SuiteProblem, seeds: list[int], scratch: Path
 ) -> Iterator[tuple[int, Path]]:
-    """(seed, workspace) for each seed: the suite's BAMS protocol run through the tool
+    """(seed, workspace) for each seed: the suite's protocol (``STRATEGY``) run through the tool
     (``benchmark.run_one``) and stopped where it would plan the estimate, its workspace
     copied into ``scratch`` (the caller may remove it)."""
     from bams_cli import benchmark as bm
@@ -92,7 +97,7 @@ def workspaces_before_estimate(
     for seed in seeds:
         pipeline.estimate_plan = keep
         try:
-            spec = bm.RunSpec(problem, "bams", seed, str(prob.data), str(scratch), 0.5, 6, prob.K)
+            spec = bm.RunSpec(problem, STRATEGY, seed, str(prob.data), str(scratch), 0.5, 6, prob.K)
             bm.run_one(spec)
         except _Stop:
             pass

@@ -1,7 +1,7 @@
 """The screened estimate design (``core.screen``) measured through the tool on the suite.
 
     .venv/bin/python docs/suite/screen_design.py run PROBLEM [--seeds 0-9] [--trials 4]
-    .venv/bin/python docs/suite/screen_design.py coverage PROBLEM [--seeds 0-9] [--trials 8]
+    .venv/bin/python docs/suite/screen_design.py coverage PROBLEM [--seeds 0-9] [--trials 8] [--strategy mcm-gp]
     .venv/bin/python docs/suite/screen_design.py predict PROBLEM [--seeds 0-4]
     .venv/bin/python docs/suite/screen_design.py signals PROBLEM [--seeds 0-9]
     .venv/bin/python docs/suite/screen_design.py table
@@ -305,7 +305,11 @@ def coverage(problem: str, seeds: list[int], trials: int, draws: int) -> None:
                 "coverage": hits / n, "below": below / n, "above": above / n,
                 "width_over_rate": width / n, "mean_over_rate": mean / n,
             }  # fmt: skip
-        with open(OUT / f"coverage-{problem}.jsonl", "a") as fh:
+        row["strategy"] = er.STRATEGY
+        name = (
+            f"coverage-{problem}" if er.STRATEGY == "bams" else f"coverage-{er.STRATEGY}-{problem}"
+        )
+        with open(OUT / f"{name}.jsonl", "a") as fh:
             fh.write(json.dumps(row) + "\n")
         print(json.dumps(row), flush=True)
 
@@ -656,6 +660,10 @@ def main(argv: list[str]) -> None:
     elif argv[0] == "predict":
         predict(argv[1], er.seeds_and_trials(argv, "0-4", 0)[0])
     elif argv[0] == "coverage":
+        if "--strategy" in argv:  # another discovery strategy's runs (mcm-gp)
+            i = argv.index("--strategy")
+            er.STRATEGY = argv[i + 1]
+            argv = argv[:i] + argv[i + 2 :]
         coverage(argv[1], *er.seeds_and_trials(argv, "0-9", 8), 1000)
     else:
         run(argv[1], *er.seeds_and_trials(argv, "0-9", 4))
