@@ -604,7 +604,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     seen = [
         np.isin(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
     ]
-    next_batch = int(obs["batch"].max() or 0) + 1
+    next_batch = int(obs["batch"].to_numpy().max(initial=0)) + 1
 
     def refit(s1: np.ndarray) -> np.ndarray:
         scratch = Path(tempfile.mkdtemp(prefix="screen-", dir=root.parent))
