@@ -589,10 +589,20 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     option = PLAN_DEFAULTS["screen"]
     if option in (None, "off") or settings.n_levels == 1:
         return None
-    share = screening.auto_share(ws.read_model(), settings)[0] if option == "auto" else option
+    ids = _column(root / "scores.parquet", "segment_id").astype(str)
+    obs = ws.read_observations()
+    seen = [
+        np.isin(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
+    ]
+    share = option
+    if option == "auto":  # the decision estimate --plan makes, at the run's K
+        n_unknown = int((~seen[0]).sum())
+        share, _ = screening.auto_share(
+            ws.read_model(), settings, K=min(K, n_unknown), n_unknown=n_unknown,
+            n_observations=obs.height,
+        )  # fmt: skip
     if share is None:
         return None
-    ids = _column(root / "scores.parquet", "segment_id").astype(str)
     g = int(np.argmax(settings.gammas))
     p = _column(root / "scores.parquet", f"p_{g}").astype(np.float64)
     truth_ids = _column(truth_path, "segment_id").astype(str)
@@ -600,10 +610,6 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     rows = np.array([pos[s_] for s_ in ids], np.int64)
     fail = _column(truth_path, "value_0").astype(np.float64)[rows] <= settings.gammas[g]
     cheap = _column(truth_path, "value_1").astype(np.float64)[rows]
-    obs = ws.read_observations()
-    seen = [
-        np.isin(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
-    ]
     next_batch = int(obs["batch"].to_numpy().max(initial=0)) + 1
 
     def refit(s1: np.ndarray) -> np.ndarray:
@@ -619,8 +625,9 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
             shutil.rmtree(scratch, ignore_errors=True)
 
     t = screen_trials(
-        p, fail, K=K, cost=settings.costs[1], share=float(share), refit=refit, known=seen[0],
-        cheap_known=seen[1], n_trials=SCREEN_TRIALS, rng=np.random.default_rng([seed, 2027]),
+        p, fail, K=K, cost=settings.costs[screening.SCREEN_LEVEL], share=float(share),
+        refit=refit, known=seen[0], cheap_known=seen[1], n_trials=SCREEN_TRIALS,
+        rng=np.random.default_rng([seed, 2027]),
     )  # fmt: skip
     return {
         "share": float(share),

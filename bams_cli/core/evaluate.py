@@ -954,6 +954,7 @@ def screen_trials(
         raise ValueError("the pool has no failure: recall and variance are undefined")
     U = np.flatnonzero(~kn)
     fU = fail[U]
+    in_hand = float((fail & kn).sum())  # the known stratum's failures, found whatever S1
     posterior = risk_posterior([])  # a new study: no earlier estimate to mix in
     pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior).pi
     recall = np.empty(n_trials)
@@ -963,14 +964,14 @@ def screen_trials(
         s1 = np.flatnonzero(rng.random(U.size) < pi1)
         screened[t] = s1.size
         if s1.size == 0:  # nothing to confirm: T = 0, E[T | S1]
-            recall[t] = float((fail & kn).sum()) / F
+            recall[t] = in_hand / F
             v2[t] = 0.0
             continue
         p2 = np.asarray(refit(U[s1]), dtype=np.float64)
         runs = int((~have[U[s1]]).sum())
         K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
         pi2 = sc.confirm_design(p2, K2=K2, posterior=posterior).pi
-        recall[t] = (float((fail & kn).sum()) + float(pi2[fU[s1]].sum())) / F
+        recall[t] = (in_hand + float(pi2[fU[s1]].sum())) / F
         v2[t] = sc.phase2_variance(fU[s1], pi1[s1], pi2)
     N2 = float(n) ** 2
     k = min(float(K), float(U.size))

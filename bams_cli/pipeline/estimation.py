@@ -161,7 +161,6 @@ def estimate_plan(
     """
     st = stages_mod  # the series and the evidence of finished plans
     from bams_cli.core import design as dz
-    from bams_cli.core import screen as sc
     from bams_cli.core.estimate import (
         DESIGNS,
         gp_estimate,
@@ -242,6 +241,9 @@ def estimate_plan(
     # first, whatever series came before it; --screen starts a new estimate.
     open_screen = screening.screen_path(ws, number).exists() and not new_series
     auto_note = None
+    # A level-0 result arriving between a screen and its confirmation would move a segment
+    # of U into the known stratum after pi1 was drawn for it.
+    level0_pending = pend.filter(pl.col("fidelity") == 0).height if pend.height else 0
     if screen == "auto":
         if open_screen or continuing or settings.n_levels == 1 or n_unknown == 0:
             share = None
@@ -251,26 +253,21 @@ def estimate_plan(
                 "--screen auto: no screen (a screen confirms with a Poisson design, not "
                 f"--design {design})"
             )
-        elif pend.height and bool((pend["fidelity"] == 0).any()):
-            share, auto_note = (
-                None,
-                (
-                    "--screen auto: no screen (level-0 runs await results, and a screen's U "
-                    "must not change before its confirmation)"
-                ),
+        elif level0_pending:
+            share = None
+            auto_note = (
+                "--screen auto: no screen (level-0 runs await results, and a screen's U "
+                "must not change before its confirmation)"
             )
         else:
-            share, auto_note = screening.auto_share(model, settings)
-            if share is not None:
-                K_auto, _ = _plan_samples(
-                    ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n,
-                    n_unknown=n_unknown, design="poisson",
-                )  # fmt: skip
-                cost = float(settings.costs[screening.SCREEN_LEVEL])
-                n1 = sc.screen_size(K_auto, cost, share, n_unknown)
-                big = screening.refit_too_large(n1, ws.read_observations().height)
-                if big is not None:
-                    share, auto_note = None, big
+            K_auto, _ = _plan_samples(
+                ws, settings, samples, g_plan=g_plan, gp_rate=gp_rate, n=n,
+                n_unknown=n_unknown, design="poisson",
+            )  # fmt: skip
+            share, auto_note = screening.auto_share(
+                model, settings, K=K_auto, n_unknown=n_unknown,
+                n_observations=ws.read_observations().height,
+            )  # fmt: skip
     elif screen == "off" or screen is None:
         share = None
     elif isinstance(screen, str):
@@ -298,12 +295,9 @@ def estimate_plan(
                 f"--screen: a screen confirms with a Poisson design, not --design {design}"
             )
         screening.check_share(share, settings)
-        # A level-0 result that arrives between the screen and its confirmation would move
-        # a segment of U into the known stratum after pi1 was drawn for it.
-        level0 = pend.filter(pl.col("fidelity") == 0) if pend.height else pend
-        if level0.height:
+        if level0_pending:
             raise PendingResultsError(
-                f"--screen: {level0.height} level-0 runs await results; ingest them (or "
+                f"--screen: {level0_pending} level-0 runs await results; ingest them (or "
                 f"abandon them) first: the screen's U is every segment without a level-0 "
                 "result, and must not change before the screen is confirmed"
             )

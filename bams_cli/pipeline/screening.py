@@ -99,9 +99,15 @@ def screen_hint(model: dict[str, Any], root: Path) -> str | None:
     )
 
 
-def auto_share(model: dict[str, Any], settings: Settings) -> tuple[float | None, str]:
-    """``--screen auto`` for a new estimate: the share to screen (None: no screen) and a
-    note saying why, from the fitted cheap-level discrepancy (``screen_hint``'s rule)."""
+def auto_share(
+    model: dict[str, Any], settings: Settings, *, K: float, n_unknown: int, n_observations: int
+) -> tuple[float | None, str]:
+    """``--screen auto`` for a new estimate of budget ``K``: the share to screen (None: no
+    screen) and a note saying why. It screens where the fitted cheap-level discrepancy is
+    small (``screen_hint``'s rule) and a refit can condition on every cheap run of the
+    screen besides the log's ``n_observations`` (``refit_too_large``)."""
+    from bams_cli.core.screen import screen_size
+
     limit = defaults.SCREEN_HINT_DISCREPANCY
     ratio = cheap_level_discrepancy(model) if settings.n_levels > 1 else None
     if ratio is None:
@@ -113,6 +119,10 @@ def auto_share(model: dict[str, Any], settings: Settings) -> tuple[float | None,
             "screen had up to 1.68x the variance on the suite, docs/suite/screen_design.md)"
         )
     share = defaults.SCREEN_HINT_SHARE
+    n_screen = screen_size(K, float(settings.costs[SCREEN_LEVEL]), share, n_unknown)
+    too_large = refit_too_large(n_screen, n_observations)
+    if too_large is not None:
+        return None, too_large
     return share, (
         f"--screen auto: screening {share:g} of K; the model's cheap-level discrepancy sd is "
         f"{ratio:.2f} of its level-0 signal's (under {limit:g}: the screen had 0.31 to 1.06 "
