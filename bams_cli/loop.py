@@ -61,9 +61,9 @@ from bams_cli.pipeline._common import (
     check_workers,
 )
 from bams_cli.pipeline.screening import check_share, screen_path
-from bams_cli.state import pending
+from bams_cli.state import pending, schemas
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
-from bams_cli.state.io import transaction
+from bams_cli.state.io import read_metadata_json, transaction
 from bams_cli.state.lock import LOOP_LOCK_FILE, workspace_lock
 from bams_cli.state.workspace import Workspace
 from bams_cli.status import latest_estimate
@@ -435,10 +435,21 @@ def _progress(ws: Workspace, opts: Options) -> int:
     """Lists finished: batches without pending picks (and the estimate, once written)."""
     pend = ws.pending()
     waiting = set(pend["batch"].drop_nulls().to_list())
-    done = sum(1 for b in ws.batch_numbers()[: opts.batches] if b not in waiting)
+    done = sum(1 for b in _discovery_batches(ws)[: opts.batches] if b not in waiting)
     if opts.then_estimate and any(ws.estimates_dir.glob("estimate-*.json")):
         done += 1
     return done
+
+
+def _discovery_batches(ws: Workspace) -> list[int]:
+    """The study's discovery batches, which ``--batches`` counts: every batch but a
+    screen's (``estimate --plan --screen``), whose cheap runs belong to the estimate."""
+    out = []
+    for n in ws.batch_numbers():
+        options = read_metadata_json(schemas.batch_path(ws.root, n)).get("options")
+        if not (isinstance(options, dict) and options.get("strategy") == "screen"):
+            out.append(n)
+    return out
 
 
 def _results_file(opts: Options, kind: str, number: int) -> Path:
@@ -481,7 +492,7 @@ def _next_step(
                 "`bams-cli loop` again (it draws a new random batch)"
             )
         return ("select", "batch", numbers[-1] + 1)
-    if len(numbers) < opts.batches:
+    if len(_discovery_batches(ws)) < opts.batches:
         if not numbers:
             return ("select", "batch", 1)
         if not _model_fresh(ws):

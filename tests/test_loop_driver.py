@@ -168,6 +168,17 @@ def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
     )  # fmt: skip
     assert again.returncode == 0, again.stderr
     assert [s["step"] for s in json.loads(again.stdout)["steps"]] == []
+    # The screen's batch is the estimate's, not a discovery batch: a fourth discovery
+    # batch is a new BAMS batch (5), not the screen counted as one.
+    more = [*_loop_args(ws, truth, screen=None), "--json"]
+    more[more.index("--batches") + 1] = "4"
+    more.remove("--then-estimate")
+    fourth = subprocess.run(more, capture_output=True, text=True, check=False)
+    assert fourth.returncode == 0, fourth.stderr
+    assert ("select", "batch 5") in [
+        (s["step"], s["list"]) for s in json.loads(fourth.stdout)["steps"]
+    ]
+    assert set(Workspace(ws).read_batch(5)["strategy"].to_list()) == {"bams"}
 
 
 def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
