@@ -125,6 +125,23 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     # The known stratum is the screen's: every segment with a level-0 result at the screen.
     known = planned.filter(pl.col("stratum") == "known")
     assert set(known[SID]) == set(screen.filter(pl.col("stratum") == "known")[SID])
+    # The interval's allowance for an unseen failure, per gamma, by hand: the "mean"
+    # allowance (pi1 times S1's risk-weighted mean pi2 outside S1), not the "min".
+    pmeta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    unk = screen.filter(pl.col("stratum") == "unknown").join(scores, on=SID, how="left")
+    in_s1, pi1_u = unk["screened"].to_numpy(), unk["pi1"].to_numpy()
+    post = dz.risk_posterior([])
+    p_cols = sorted((c for c in scores.columns if c.startswith("p_")), key=lambda c: int(c[2:]))
+    assert len(pmeta["w_model"]) == len(p_cols) == 2
+    for g, col in enumerate(p_cols):
+        risk = post.allowance_risk(unk[col].to_numpy())
+        stand_in = (risk[in_s1] * pi2).sum() / risk[in_s1].sum()
+        allow = np.where(in_s1, 0.0, pi1_u * stand_in)
+        allow[in_s1] = pi1_u[in_s1] * pi2
+        want = dz.unseen_failure_weight(risk, allow)
+        assert pmeta["w_model"][g] == pytest.approx(want, rel=1e-9)
+        floor = dz.unseen_failure_weight(risk, sc.min_allowance_pi(pi1_u, in_s1, pi2))
+        assert floor > 1.2 * want  # the min allowance would be another number
     # A second plan while the confirmation awaits results is refused, as any plan's.
     assert invoke(runner, "estimate", "-w", ws, "--plan").exit_code == 3
     ok(runner, "ingest-results", "-w", ws,

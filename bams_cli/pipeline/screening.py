@@ -375,15 +375,14 @@ def confirm_screen(
         K2, pi2 = 0.0, np.zeros(0)
     drawn = draw_poisson(pi2, rng)
     pi = sc.confirmed_pi(pi1_S1, pi2)
-    # The interval's allowance for a failure no run has seen: a segment outside S1 would
-    # have been confirmed at most as often as the screen's least-confirmed one (the "min"
-    # allowance, measured in docs/suite/screen_design.md).
-    allow_pi = sc.allowance_pi(pi1_U, in_s1, pi2)
-    w_model = [
-        dz.unseen_failure_weight(posterior.allowance_risk(p_all[U, g]), allow_pi)
-        for g in range(p_all.shape[1])
-    ]
-    w_max = poisson_max_weight(allow_pi)
+    # The interval's allowance for a failure no run has seen: a segment outside S1 is
+    # priced as if confirmed as often as a screened segment of its risk is on average (the
+    # "mean" allowance, ``core.screen.allowance_pi``; docs/suite/screen_design.md).
+    w_model = []
+    for g in range(p_all.shape[1]):
+        risk = posterior.allowance_risk(p_all[U, g])
+        w_model.append(dz.unseen_failure_weight(risk, sc.allowance_pi(pi1_U, in_s1, pi2, risk)))
+    w_max = poisson_max_weight(sc.min_allowance_pi(pi1_U, in_s1, pi2))
     return {
         "sampled_idx": S1[drawn],
         "known_idx": known_idx,

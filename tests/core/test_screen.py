@@ -194,13 +194,24 @@ def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
     assert t.rate == F / n and t.screened.mean() == pytest.approx(pi1.sum(), rel=0.02)
 
 
-def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_smallest_pi2():
+def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_risk_weighted_mean_pi2():
     pi1 = np.array([0.5, 0.2, 0.1, 0.8])
     s1 = np.array([True, False, True, False])
-    got = sc.allowance_pi(pi1, s1, np.array([0.6, 0.3]))
-    np.testing.assert_allclose(got, [0.3, 0.2 * 0.3, 0.03, 0.8 * 0.3])
+    risk = np.array([3.0, 9.0, 1.0, 9.0])  # S1's risks 3 and 1: mean pi2 (3 0.6 + 0.3)/4
+    got = sc.allowance_pi(pi1, s1, np.array([0.6, 0.3]), risk)
+    np.testing.assert_allclose(got, [0.3, 0.2 * 0.525, 0.03, 0.8 * 0.525])
+    # Not the plain mean (0.45), nor the smallest (0.3): the risk weights it.
+    assert not np.allclose(got[1], 0.2 * 0.45) and not np.allclose(got[1], 0.2 * 0.3)
     # An empty screen: pi1 alone.
-    np.testing.assert_allclose(sc.allowance_pi(pi1, np.zeros(4, bool), np.zeros(0)), pi1)
+    np.testing.assert_allclose(
+        sc.allowance_pi(pi1, np.zeros(4, bool), np.zeros(0), np.ones(4)), pi1
+    )
+    # The bound w_max rests on: the smallest pi2.
+    np.testing.assert_allclose(
+        sc.min_allowance_pi(pi1, s1, np.array([0.6, 0.3])), [0.3, 0.06, 0.03, 0.24]
+    )
+    with pytest.raises(ValueError, match="over U"):
+        sc.allowance_pi(pi1, s1, np.array([0.6]), risk)
 
 
 @pytest.mark.slow
@@ -208,7 +219,7 @@ def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
     # Issue 12's check for the default estimate where it screens: 100 screens (S1 drawn,
     # pi2 from a refit that sees S1's cheap runs) x 100 confirmations each, from a known
     # truth whose model under-predicts the rate; the estimate and its 90% interval as
-    # `estimate` computes them (estimate_from_sample at pi1 pi2, the "min" allowance).
+    # `estimate` computes them (estimate_from_sample at pi1 pi2, the "mean" allowance).
     from bams_cli.core.estimate import estimate_from_sample
 
     rng = np.random.default_rng(12)
@@ -231,9 +242,8 @@ def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
         K2 = min(sc.confirm_budget(K, cost, idx.size), float(idx.size))
         pi2 = sc.confirm_design(refit[idx], K2=K2, posterior=post).pi
         counts = (rng.random((idx.size, 100)) < pi2[:, None]).astype(np.int64)
-        w_model = dz.unseen_failure_weight(
-            post.allowance_risk(refit), sc.allowance_pi(pi1, s1, pi2)
-        )
+        allow = post.allowance_risk(refit)
+        w_model = dz.unseen_failure_weight(allow, sc.allowance_pi(pi1, s1, pi2, allow))
         est = estimate_from_sample(
             sc.confirmed_pi(pi1[idx], pi2), fail[U][idx], design="poisson", n_pool=N,
             n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk, confidence=0.9,
