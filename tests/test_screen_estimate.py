@@ -91,6 +91,12 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     assert scr["cheap_in_log"] == len(held) and scr["cheap_runs"] == batch.height
     assert scr["level0_left"] == pytest.approx(K - 0.1 * batch.height)
     assert not list((ws / "estimates").glob("plan-*.parquet"))  # no plan until confirmed
+    # `estimate` before the confirmation names the steps still to come, and writes nothing.
+    before = tree_hash(ws)
+    r = invoke(runner, "estimate", "-w", ws)
+    assert r.exit_code == 1 and "screen-0001.parquet awaits its level-0 confirmation" in r.stderr
+    assert "batch 2" in r.stderr and "fit" in r.stderr and "--plan" in r.stderr
+    assert tree_hash(ws) == before
     # The confirmation waits for the screen's results (exit code 3) and for the refit.
     r = invoke(runner, "estimate", "-w", ws, "--plan")
     assert r.exit_code == 3 and "batch 2 awaits results" in r.stderr

@@ -919,6 +919,17 @@ def estimate_compute(
     settings = ws.require_initialised()
     plans = plan_numbers(ws)
     if not plans:
+        screen = screening.screen_path(ws, 1)
+        if screen.exists():
+            # --screen (auto by default) drew a screen: no level-0 plan until confirmed.
+            batch = read_metadata_json(screen).get("batch")
+            runs = f"simulate and ingest batch {batch} (its cheap runs), " if batch else ""
+            raise WorkspaceError(
+                f"{ws.root}: no estimate yet: {screen.name} awaits its level-0 "
+                f"confirmation; {runs}run `bams-cli fit -w {ws.root}`, then `bams-cli "
+                f"estimate --plan -w {ws.root}` (`bams-cli status -w {ws.root}` names each "
+                "step)"
+            )
         raise WorkspaceError(
             f"{ws.root}: no estimate plan; run `bams-cli estimate --plan -w {ws.root}` first"
         )
