@@ -1197,7 +1197,12 @@ def loop(
         ),
     ],
     batches: Annotated[
-        int, typer.Option("--batches", help="Batches the study should have (the first random).")
+        int,
+        typer.Option(
+            "--batches",
+            help="Discovery batches the study should have (the first random; an estimate's "
+            "screen batch does not count).",
+        ),
     ],
     workspace: Workspace = Path(defaults.WORKSPACE),
     budget: Annotated[

@@ -7,8 +7,9 @@ killed at any point picks up where it stopped and a finished loop does nothing:
 - picks await results, no results file yet: run the simulator on the hand-off list. It
   writes to a temporary name that is renamed to the results file only once the command
   exits 0, so a killed simulator never leaves a half-written file that looks finished;
-- fewer than ``batches`` batches: a random first batch, or ``fit`` (skipped when the model
-  is up to date) then ``select --batch N``;
+- fewer than ``batches`` discovery batches (a screen's batch of cheap runs is the
+  estimate's and does not count): a random first batch, or ``fit`` (skipped when the model
+  is up to date) then ``select --batch N``; refused while a screen awaits its confirmation;
 - with ``then_estimate``: ``estimate --plan``, its simulation and ingest, ``estimate``;
 - last, ``fit`` when the model is older than the results.
 
@@ -154,7 +155,8 @@ def loop(
         Shell command answering a hand-off list: ``{handoff}`` is the list (CSV) to read,
         ``{results}`` the results file (CSV) to write.
     batches : int
-        Batches the study should have (the first random).
+        Discovery batches the study should have (the first random; a screen's batch of
+        cheap runs belongs to the estimate and does not count).
     budget : float, default ``defaults.BUDGET``
         Budget of each BAMS batch (cost units).
     first_budget : float, optional
@@ -262,6 +264,7 @@ def loop(
         workers=workers,
         wait=wait,
     )
+    _refuse_discovery_inside_a_screen(ws, batches)  # now, not after its pending lists
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
@@ -452,6 +455,25 @@ def _discovery_batches(ws: Workspace) -> list[int]:
     return out
 
 
+def _refuse_discovery_inside_a_screen(ws: Workspace, batches: int) -> None:
+    """Raise ``LoopError`` if ``--batches`` asks for discovery batches while a screen
+    awaits its confirmation (``estimate --plan --screen``, auto by default): their level-0
+    picks would land among the segments the screen counted as unknown, and the
+    confirmation would refuse them (its design no longer holds), losing the screen's cheap
+    runs."""
+    discovery = _discovery_batches(ws)
+    if len(discovery) >= batches:
+        return
+    plans = pipeline.plan_numbers(ws)
+    screen = screen_path(ws, (plans[-1] if plans else 0) + 1)
+    if screen.exists():
+        raise LoopError(
+            f"{screen} awaits its level-0 confirmation, and a new discovery batch would put "
+            "level-0 results inside it; finish the estimate first (`bams-cli loop` with "
+            f"--batches {len(discovery)} --then-estimate), then run this loop for more batches"
+        )
+
+
 def _results_file(opts: Options, kind: str, number: int) -> Path:
     return opts.results_dir / f"{kind}-{number:04d}.csv"
 
@@ -493,6 +515,7 @@ def _next_step(
             )
         return ("select", "batch", numbers[-1] + 1)
     if len(_discovery_batches(ws)) < opts.batches:
+        _refuse_discovery_inside_a_screen(ws, opts.batches)
         if not numbers:
             return ("select", "batch", 1)
         if not _model_fresh(ws):

@@ -20,6 +20,7 @@ import polars as pl
 import pytest
 
 from bams_cli import schemas_json
+from bams_cli.state.io import read_metadata_json
 from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
 from tests.conftest import process_gone, tree_hash, write_toy
@@ -156,8 +157,6 @@ def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
     batch = Workspace(ws).read_batch(4)
     assert (batch["strategy"] == "screen").all() and (batch["fidelity"] == 1).all()
     assert out["steps"][first]["to_simulate"] == batch.height
-    from bams_cli.state.io import read_metadata_json
-
     meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
     assert meta["weighting"] == "screen" and meta["screen"]["batch"] == 4
     assert out["plans"] == 1 and out["estimate_file"].endswith("estimate-0001.json")
@@ -179,6 +178,40 @@ def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
         (s["step"], s["list"]) for s in json.loads(fourth.stdout)["steps"]
     ]
     assert set(Workspace(ws).read_batch(5)["strategy"].to_list()) == {"bams"}
+
+
+def test_loop_draws_no_discovery_batch_inside_an_open_screen(data, tmp_path):
+    # A study that drew its screen by hand (`estimate --plan`, --screen auto) and then asks
+    # the loop for a fourth discovery batch: its level-0 picks would land among the
+    # segments the screen counted as unknown, and the confirmation would refuse them, so
+    # the loop refuses first (exit 1, nothing written) and names the way on; with the
+    # discovery it has, it confirms the screen and estimates.
+    _, seg, truth, _, _ = data
+    ws = _study(tmp_path, "open-screen", seg)
+    three = [a for a in _loop_args(ws, truth, screen=None) if a != "--then-estimate"]
+    subprocess.run(three, check=True, capture_output=True)
+    drawn = subprocess.run(
+        [*BAMS, "estimate", "-w", str(ws), "--plan", "--samples", "15", "--json"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert "screen_file" in json.loads(drawn.stdout)  # the toy's cheap level tracks level 0
+    more = _loop_args(ws, truth, screen=None)
+    more[more.index("--batches") + 1] = "4"
+    before = tree_hash(ws)
+    r = subprocess.run(more, capture_output=True, text=True, check=False)
+    assert r.returncode == 1, r.stderr
+    assert "screen-0001.parquet awaits its level-0 confirmation" in r.stderr
+    assert "--batches 3 --then-estimate" in r.stderr
+    assert tree_hash(ws) == before
+    done = subprocess.run(
+        [*_loop_args(ws, truth, screen=None), "--json"], capture_output=True, text=True,
+        check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    steps = [(s["step"], s["list"]) for s in json.loads(done.stdout)["steps"]]
+    assert ("select", "batch 5") not in steps and ("estimate", "plan 1") in steps
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    assert meta["weighting"] == "screen" and meta["screen"]["batch"] == 4
 
 
 def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
