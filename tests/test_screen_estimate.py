@@ -104,6 +104,9 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
        _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
     r = invoke(runner, "estimate", "-w", ws, "--plan")
     assert r.exit_code != 0 and "fit" in r.stderr
+    r = invoke(runner, "estimate", "-w", ws)  # the cheap runs are in: fit, then --plan
+    assert r.exit_code == 1 and "awaits its level-0 confirmation" in r.stderr
+    assert "batch 2" not in r.stderr and "fit" in r.stderr
     nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
     assert nxt["step"] == "fit" and "confirmation" in nxt["text"]
     ok(runner, "fit", "-w", ws, "--restarts", "1")

@@ -140,6 +140,11 @@ def allowance_pi(
     confirmed as often as a screened segment of its risk is on average: the "mean"
     allowance of docs/suite/screen_design.md). An empty screen prices every segment at pi1.
 
+    The mean is over S1 as drawn, not reweighted by 1/pi1 to stand for all of U: S1 holds
+    more of the segments phase 1 favoured, whose pi2 is larger, so this stand-in is larger
+    than U's risk-weighted mean pi2 would be (a narrower interval). It is the form
+    measured below; the reweighted one lies between it and the min and is not measured.
+
     Why the mean and not the screen's smallest pi2 (the "min" allowance, shipped until
     2026-11-27): over every suite problem and the held-out instances of the screened ones
     the two gave the same coverage where ``--screen auto`` screens (toy2d 0.973, av_like
@@ -168,6 +173,8 @@ def allowance_pi(
             f"pi1 {pi1.shape}, screened {s1.shape} and risk {r.shape} are over U; pi2 "
             f"{pi2.shape} over S1 ({int(s1.sum())} segments)"
         )
+    if not (np.all(np.isfinite(r)) and np.all(r >= 0)):
+        raise ValueError("the allowance's risk must be finite and >= 0")
     w = r[s1]
     if pi2.size == 0:
         stand_in = 1.0

@@ -923,7 +923,9 @@ def estimate_compute(
         if screen.exists():
             # --screen (auto by default) drew a screen: no level-0 plan until confirmed.
             batch = read_metadata_json(screen).get("batch")
-            runs = f"simulate and ingest batch {batch} (its cheap runs), " if batch else ""
+            pend = ws.pending()
+            waiting = batch is not None and bool((pend["batch"] == batch).any())
+            runs = f"simulate and ingest batch {batch} (its cheap runs), " if waiting else ""
             raise WorkspaceError(
                 f"{ws.root}: no estimate yet: {screen.name} awaits its level-0 "
                 f"confirmation; {runs}run `bams-cli fit -w {ws.root}`, then `bams-cli "

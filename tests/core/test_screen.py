@@ -212,6 +212,13 @@ def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_risk_weighted_mean_
     )
     with pytest.raises(ValueError, match="over U"):
         sc.allowance_pi(pi1, s1, np.array([0.6]), risk)
+    for bad in (np.nan, -1.0):
+        with pytest.raises(ValueError, match="finite and >= 0"):
+            sc.allowance_pi(pi1, s1, np.array([0.6, 0.3]), np.array([3.0, bad, 1.0, 9.0]))
+    # A screen whose risk is all zero: the plain mean of pi2.
+    np.testing.assert_allclose(
+        sc.allowance_pi(pi1, s1, np.array([0.6, 0.3]), np.zeros(4))[1], 0.2 * 0.45
+    )
 
 
 @pytest.mark.slow
