@@ -24,15 +24,19 @@ the defaults were fixed, to check them on data built another way:
 to the tool (the simulator is ``bams-cli simulate`` reading the truth file):
 ``init --costs 1,0.1 --seed S``, ``embed-reduce --columns 'e*'``, ``loop --batches 3
 --first-budget 10 --budget 5`` (a random first batch and two BAMS batches, then a fit: its
-model.json is kept aside), the same loop again with ``--then-estimate`` (the default K and
-the default two-stage estimate, with a refit between the stages), then ``estimate
---json``.
+model.json and the whole workspace are kept aside), the same loop again with
+``--then-estimate`` (the default K and the default estimate: a screen and its level-0
+confirmation where ``--screen auto`` screens, else two level-0 stages; a refit between
+the two), then ``estimate --json``.
 
-``table`` reads every run: its estimate against the true rate, and its design drawn 1,000
-times from the truth (``core.evaluate.staged_trials`` on p_n after batch 3 and the known
-stratum, stage 2 keeping stage 1's p_n): the variance against a uniform Poisson design of
-the same K, the coverage of the 90% interval and its misses on each side, and recall
-against plain Monte Carlo at the same cost (20 level-0 runs of discovery plus K).
+``table`` reads every run: its estimate against the true rate, and its design drawn from
+the truth: where the run screened, ``benchmark.screen_default`` on the kept workspace (4
+screens, each refitted on its true cheap values); elsewhere ``core.evaluate.staged_trials``
+on p_n after batch 3 and the known stratum, 1,000 times, stage 2 keeping stage 1's p_n,
+with the coverage of the 90% interval and its misses on each side. Both give the variance
+against a uniform Poisson design of the same K and recall against plain Monte Carlo at the
+same cost (20 level-0 runs of discovery plus K). Runs made before the workspace was kept
+aside (2026-11-27) need ``run`` again.
 """
 
 from __future__ import annotations
@@ -131,6 +135,10 @@ def run(out: Path, problem: str, seeds: list[int]) -> None:
             if k == 2:  # the model after batch 3 (the loop's last step fits it), kept aside
                 model = (ws / "model.json").read_text()
                 (ws.parent / f"{ws.name}.model-after-batch-3.json").write_text(model)
+                # and the whole workspace, for the screened design's evaluation (``table``)
+                kept = ws.parent / f"{ws.name}.after-batch-3"
+                shutil.rmtree(kept, ignore_errors=True)
+                shutil.copytree(ws, kept)
         est = subprocess.run(
             [BAMS, "estimate", "-w", str(ws), "--json"], check=True, capture_output=True, text=True
         )
@@ -138,10 +146,22 @@ def run(out: Path, problem: str, seeds: list[int]) -> None:
         print(f"{problem} seed {seed}: done", flush=True)
 
 
+def _series_K(ws: Path, doc: dict) -> float:
+    """The K the run's estimate was planned with: a screened estimate's plan and JSON carry
+    K2 (level-0 runs left once the screen's cheap runs are paid) as samples_K, its screen
+    the K of the whole estimate."""
+    from bams_cli.state.io import read_metadata_json
+
+    screen = ws / "estimates" / "screen-0001.parquet"
+    if screen.exists():
+        return float(read_metadata_json(screen)["series_K"])
+    return float(doc["samples_K"])
+
+
 def repeat(out: Path, problem: str, seed: int, n: int) -> None:
-    """The estimate's whole path drawn ``n`` times from one workspace after discovery:
-    stage 1 (``estimate --plan --seed R``), its results, a refit, stage 2, its results,
-    ``estimate``. Unbiasedness and coverage of what a study runs, refit included, which
+    """The estimate's whole path drawn ``n`` times from one workspace after discovery, as
+    the default draws it: ``estimate --plan --seed R``, its results, a refit, the next
+    ``estimate --plan`` (a screen's confirmation or stage 2), its results, ``estimate``. Unbiasedness and coverage of what a study runs, refit included, which
     ``staged_trials`` (stage 2 on stage 1's p_n) cannot show."""
     data = out / problem
     base = out / "repeat" / f"{problem}-s{seed}"
@@ -157,21 +177,27 @@ def repeat(out: Path, problem: str, seed: int, n: int) -> None:
              "--simulator", sim],
         ):  # fmt: skip
             subprocess.run([BAMS, *map(str, step), "-q"], check=True)
-    K = json.loads((out / "runs" / f"{problem}-s{seed}.estimate.json").read_text())["samples_K"]
+    run_ws = out / "runs" / f"{problem}-s{seed}"
+    K = _series_K(run_ws, json.loads(run_ws.with_name(f"{run_ws.name}.estimate.json").read_text()))
     lines = []
     for r in range(1, n + 1):
         ws = base / f"r{r}"
         shutil.rmtree(ws, ignore_errors=True)
         shutil.copytree(disc, ws)
-        for k, plan in enumerate((["--samples", str(K), "--seed", str(r)], []), start=1):
-            run_ = [BAMS, "estimate", "-w", str(ws), "--plan", *plan, "-q"]
-            subprocess.run(run_, check=True)
-            results = ws.parent / f"r{r}-plan{k}.csv"
-            handoff = ws / "estimates" / f"plan-{k:04d}-handoff.csv"
-            subprocess.run([*simulate, str(handoff), "-o", str(results)], check=True)
-            subprocess.run([BAMS, "ingest-results", "-w", str(ws), str(results), "-q"], check=True)
-            if k == 1:
-                subprocess.run([BAMS, "fit", "-w", str(ws), "-q"], check=True)
+        # Whichever path the default draws (``--screen auto``): a screen (its cheap runs,
+        # a refit, the confirmation) or the staged plan (stage 1, a refit, stage 2).
+        opts = ["--samples", str(K), "--seed", str(r)]
+        for k in range(1, 4):
+            run_ = [BAMS, "estimate", "-w", str(ws), "--plan", *opts, "--json"]
+            plan = json.loads(subprocess.run(run_, check=True, capture_output=True).stdout)
+            opts = []
+            results = ws.parent / f"r{r}-step{k}.csv"
+            if plan["handoff"] is not None:  # none for a screen whose cheap runs are all in
+                subprocess.run([*simulate, plan["handoff"], "-o", str(results)], check=True)
+                subprocess.run([BAMS, "ingest-results", "-w", str(ws), results, "-q"], check=True)
+            if "screen_file" not in plan and plan["stage"] >= plan["stages"]:
+                break
+            subprocess.run([BAMS, "fit", "-w", str(ws), "-q"], check=True)
         est = subprocess.run(
             [BAMS, "estimate", "-w", str(ws), "--json"], check=True, capture_output=True, text=True
         )
@@ -206,7 +232,7 @@ def _repeats(out: Path) -> list[str]:
 def _evaluate(out: Path, problem: str) -> dict[str, object]:
     import polars as pl
 
-    from bams_cli.benchmark import discrepancy_sd, true_discrepancy_sd
+    from bams_cli.benchmark import discrepancy_sd, screen_default, true_discrepancy_sd
     from bams_cli.core.evaluate import staged_trials
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
@@ -226,11 +252,23 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         levels = ids.to_frame().join(truth, on="segment_id", how="left")
         value = levels["value_0"]
         fail = value.to_numpy() <= gamma
-        rate, N, K = float(fail.mean()), len(fail), float(doc["samples_K"])
+        rate, N, K = float(fail.mean()), len(fail), _series_K(ws, doc)
         t = staged_trials(
             p.to_numpy(), fail, K=K, known=known, n_trials=1000, rng=np.random.default_rng(7)
         )
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
+        screened = (ws / "estimates" / "screen-0001.parquet").exists()
+        seed = int(ws.name.rsplit("-s", 1)[1])
+        # Where the run screened, its design is the screen's: drawn SCREEN_TRIALS times from
+        # the workspace as it stood after batch 3, each screen refitted on its true cheap
+        # values (``benchmark.screen_default``, as the suite measures it). It decides
+        # ``--screen auto`` again from that workspace: it must agree with the run.
+        sd = screen_default(
+            ws.with_name(f"{ws.name}.after-batch-3"), out / problem / "truth.parquet", K=K,
+            seed=seed,
+        )  # fmt: skip
+        if (sd is not None) != screened:
+            raise SystemExit(f"{ws}: --screen auto decided otherwise from the kept workspace")
         model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
         f1 = levels["value_1"].to_numpy()
         disc = discrepancy_sd(model["hyperparameters"]) / true_discrepancy_sd(
@@ -242,10 +280,14 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
                 "covers": e["ci_low"] <= rate <= e["ci_high"], "below": e["ci_high"] < rate,
                 "above": e["ci_low"] > rate,
                 "raised": e.get("p_hat_unbiased", e["p_hat"]) < e["p_hat"],
-                "design_var_over_uniform": t.var / t.var_uniform,
-                "design_coverage": t.coverage, "design_below": t.below,
-                "design_above": t.above, "design_mean_over_rate": float(t.p_hat.mean()) / rate,
-                "recall": float(t.recall.mean()), "recall_over_mc": float(t.recall.mean()) / mc,
+                "screened": screened,
+                "design_var_over_uniform": sd["var_ratio"] if sd else t.var / t.var_uniform,
+                # the staged design's (the screen's coverage: the runs' and ``repeat``'s)
+                "design_coverage": None if sd else t.coverage,
+                "design_below": None if sd else t.below,
+                "design_above": None if sd else t.above,
+                "recall": sd["recall"] if sd else float(t.recall.mean()),
+                "recall_over_mc": (sd["recall"] if sd else float(t.recall.mean())) / mc,
                 "discrepancy_fitted_over_true": disc,
             }
         )  # fmt: skip
@@ -260,15 +302,19 @@ def table(out: Path) -> None:
         "",
         "`docs/suite/fresh_problems.py` (its docstring says how and what each problem is): "
         "every seed run the way a study runs it, with the shipped defaults and no truth "
-        "given to the tool. *Runs*: the estimate each run reported. *Design*: the run's "
-        "design drawn 1,000 times from the truth (stage 2 keeping stage 1's p_n), mean "
-        "[worst] over runs; recall over plain MC's at the same cost (20 level-0 runs plus K). "
-        "Discrepancy: the model after batch 3, its sd of y1 - y0 over the true sd(f1 - f0).",
+        "given to the tool. *Runs*: the estimate each run reported; screened: runs whose "
+        "default estimate (`--screen auto`) screened. *Design*: the run's design drawn from "
+        "the truth, mean [worst] over runs: where it screened, 4 screens each refitted on "
+        "their true cheap values (`benchmark.screen_default`); elsewhere the staged design "
+        "1,000 times (stage 2 keeping stage 1's p_n), whose coverage and misses are shown "
+        "(over the unscreened runs). Recall over plain MC's at the same cost (20 level-0 "
+        "runs plus K). Discrepancy: the model after batch 3, its sd of y1 - y0 over the true "
+        "sd(f1 - f0).",
         "",
-        "| problem | N | rate | runs | runs: p_hat / rate, mean | runs: interval holds the "
-        "rate / below / above | design: var / uniform | design: coverage [lowest] | design: "
-        "below / above | design: mean / rate | recall / MC | discrepancy fitted / true after "
-        "batch 3, min / median / max |",
+        "| problem | N | rate | runs | screened | runs: p_hat / rate, mean | runs: interval "
+        "holds the rate / below / above | design: var / uniform | staged design: coverage "
+        "[lowest] | staged design: below / above | recall / MC | discrepancy fitted / true "
+        "after batch 3, min / median / max |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in results:
@@ -276,27 +322,32 @@ def table(out: Path) -> None:
         assert isinstance(runs, list)
 
         def col(key: str, runs: list[dict[str, float]] = runs) -> np.ndarray:
-            return np.array([x[key] for x in runs], dtype=float)
+            return np.array([x[key] for x in runs if x[key] is not None], dtype=float)
 
         v, c = col("design_var_over_uniform"), col("design_coverage")
         rec, d = col("recall_over_mc"), col("discrepancy_fitted_over_true")
+        staged = (
+            f"{c.mean():.3f} [{c.min():.3f}] | {col('design_below').mean():.3f} / "
+            f"{col('design_above').mean():.3f}"
+            if c.size
+            else "- | -"
+        )
         lines.append(
             f"| {r['problem']} | {r['n_pool']:,} | {r['rate']:.4f} | {len(runs)} | "
+            f"{int(col('screened').sum())} | "
             f"{col('p_hat_over_rate').mean():.2f} | {int(col('covers').sum())} / "
             f"{int(col('below').sum())} / {int(col('above').sum())} | {v.mean():.3f} "
-            f"[{v.max():.3f}] | {c.mean():.3f} [{c.min():.3f}] | "
-            f"{col('design_below').mean():.3f} / {col('design_above').mean():.3f} | "
-            f"{col('design_mean_over_rate').mean():.3f} | {rec.mean():.1f}x "
+            f"[{v.max():.3f}] | {staged} | {rec.mean():.1f}x "
             f"[{rec.min():.1f}x] | {d.min():.2f} / {np.median(d):.2f} / {d.max():.2f} |"
         )
     if reps := _repeats(out):
         lines += [
             "",
             "The whole estimate path drawn again and again from one workspace after discovery "
-            "(`repeat`: stage 1 with `--seed R`, its results, a refit, stage 2, its results, "
-            "`estimate`), so the refit between the stages is in every draw. p_hat_unbiased: "
-            "the stages' weighted sum (mean ± SE); raised: draws whose p_hat was raised to "
-            "the failures found.",
+            "(`repeat`: `estimate --plan --seed R`, its results, a refit, the next `estimate "
+            "--plan` (the screen's confirmation or stage 2), its results, `estimate`), so the "
+            "refit is in every draw. p_hat_unbiased: the unbiased sum (mean ± SE); raised: "
+            "draws whose p_hat was raised to the failures found.",
             "",
             "| workspace | draws | p_hat_unbiased / rate | p_hat / rate | interval holds "
             "the rate / below / above | raised |",
