@@ -480,3 +480,52 @@ def test_screen_auto_does_not_screen_more_than_a_refit_conditions_on(fitted, tmp
     )
     assert "screen_file" not in out and out["stage"] == 1 and out["stages"] == 2
     assert any("exceed the" in n and "a refit conditions on exactly" in n for n in out["notes"])
+
+
+def test_select_warns_that_level0_picks_void_an_open_screen(fitted, tmp_path):
+    # A discovery batch drawn while a screen awaits its confirmation: its level-0 results
+    # would fall among the segments the screen counted as unknown, and the confirmation
+    # would then refuse the screen. `select` draws it (the study may want it) and says so.
+    from typer.testing import CliRunner
+
+    ws, truth = _copy(fitted, tmp_path)
+    runner = CliRunner()
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    out = strict_json(
+        ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "3", "--json").stdout
+    )
+    assert out["picks_per_level"]["0"] == 3
+    said = [w for w in out["warnings"] if "screen-0001.parquet awaits" in w]
+    assert len(said) == 1 and "--new-series" in said[0] and "3 level-0 picks" in said[0]
+    # And it is what happens: once their results are in, the confirmation refuses.
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0003.csv", truth, tmp_path / "b.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    r = invoke(runner, "estimate", "-w", ws, "--plan")
+    assert r.exit_code != 0 and "--new-series" in r.stderr
+    # A batch of cheap runs alone leaves the screen be: no warning.
+    ws2, _ = _copy(fitted, tmp_path / "cheap")
+    ok(runner, "estimate", "-w", ws2, "--plan", "--screen", SHARE, "--samples", K)
+    ok(runner, "ingest-results", "-w", ws2,
+       _sim(runner, ws2 / "batches" / "batch-0002.csv", truth, tmp_path / "s2.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws2, "--restarts", "1")
+    none = strict_json(
+        ok(
+            runner,
+            "select",
+            "-w",
+            ws2,
+            "--strategy",
+            "random",
+            "--mixed-fidelity",
+            "--level0-share",
+            "0",
+            "--budget",
+            "0.3",
+            "--json",
+        ).stdout  # fmt: skip
+    )
+    assert not any("screen-0001" in w for w in none["warnings"])

@@ -48,6 +48,15 @@ def screen_path(ws: Workspace, number: int) -> Path:
     return ws.root / schemas.SCREEN.relpath.format(n=number)
 
 
+def open_screen(ws: Workspace) -> Path | None:
+    """The screen awaiting its level-0 confirmation, if any: the next plan's."""
+    from bams_cli.stages import plan_numbers
+
+    plans = plan_numbers(ws)
+    path = screen_path(ws, (plans[-1] if plans else 0) + 1)
+    return path if path.exists() else None
+
+
 def check_share(share: float, settings: Settings) -> float:
     """The cost of a screen's cheap run, once ``--screen SHARE`` is known to make sense."""
     if not 0 < share < 1:

@@ -21,6 +21,7 @@ from bams_cli.errors import (
     PendingResultsError,
     WorkspaceError,
 )
+from bams_cli.pipeline import screening
 from bams_cli.pipeline._common import (
     SID,
     Progress,
@@ -658,6 +659,13 @@ def select(
             f"{j_before:.2g}): it rules failure out everywhere, so this batch's picks rest "
             "on rounding, not on where failures may be; a random batch (--strategy random "
             "--mixed-fidelity) or more level-0 runs test that belief"
+        )
+    if per_level.get(0, 0) and (screen := screening.open_screen(ws)) is not None:
+        warnings.append(
+            f"{screen.name} awaits its level-0 confirmation: this batch's {per_level[0]} "
+            "level-0 picks, once their results are in, fall among the segments it counted "
+            "as unknown, and its confirmation will refuse it (`bams-cli estimate --plan "
+            "--new-series` plans afresh); confirm it first to keep its cheap runs"
         )
     return {
         "batch": number,
