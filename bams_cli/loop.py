@@ -61,7 +61,7 @@ from bams_cli.pipeline._common import (
     check_samples,
     check_workers,
 )
-from bams_cli.pipeline.screening import check_share, screen_path
+from bams_cli.pipeline.screening import check_share, open_screen, screen_path
 from bams_cli.state import pending, schemas
 from bams_cli.state.handoff import Kind, handoff_path, pending_path
 from bams_cli.state.io import read_metadata_json, transaction
@@ -464,9 +464,8 @@ def _refuse_discovery_inside_a_screen(ws: Workspace, batches: int) -> None:
     discovery = _discovery_batches(ws)
     if len(discovery) >= batches:
         return
-    plans = pipeline.plan_numbers(ws)
-    screen = screen_path(ws, (plans[-1] if plans else 0) + 1)
-    if screen.exists():
+    screen = open_screen(ws)
+    if screen is not None:
         raise LoopError(
             f"{screen} awaits its level-0 confirmation, and a new discovery batch would put "
             "level-0 results inside it; finish the estimate first (`bams-cli loop` with "
