@@ -481,6 +481,24 @@ def _cell(rows: list[dict], key: str, problem: str) -> str:
     )
 
 
+def _allowance_rows(lead: str, rows: list[dict]) -> list[str]:
+    """One table row per allowance of ``coverage``'s lines: coverage mean [min] over the
+    lines, below, above, width and mean p_hat over the rate; ``lead`` opens the first."""
+    out = []
+    for i, how in enumerate(ALLOWANCES):
+        cov = [r[how]["coverage"] for r in rows]
+        first = lead if i == 0 else "|" + " |" * lead.count(" |")
+        stats = [f"{statistics.mean(r[how][k] for r in rows):.3f}" for k in ("below", "above")]
+        width = statistics.mean(r[how]["width_over_rate"] for r in rows)
+        mean = statistics.mean(r[how]["mean_over_rate"] for r in rows)
+        out.append(
+            f"{first} {how} | {statistics.mean(cov):.3f} [{min(cov):.3f}] | "
+            + " | ".join(stats)
+            + f" | {width:.1f} | {mean:.3f} |"
+        )
+    return out
+
+
 def table() -> None:
     lines = [
         "# A cheap-level screen before the level-0 estimate, measured through the tool",
@@ -551,19 +569,7 @@ def table() -> None:
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
         for problem, rows in cov_rows.items():
-            for i, how in enumerate(ALLOWANCES):
-                cov = [r[how]["coverage"] for r in rows]
-                lead = f"| {problem} | {len(rows)} |" if i == 0 else "| | |"
-                stats = [
-                    f"{statistics.mean(r[how][k] for r in rows):.3f}" for k in ("below", "above")
-                ]
-                width = statistics.mean(r[how]["width_over_rate"] for r in rows)
-                mean = statistics.mean(r[how]["mean_over_rate"] for r in rows)
-                lines.append(
-                    f"{lead} {how} | {statistics.mean(cov):.3f} [{min(cov):.3f}] | "
-                    + " | ".join(stats)
-                    + f" | {width:.1f} | {mean:.3f} |"
-                )
+            lines += _allowance_rows(f"| {problem} | {len(rows)} |", rows)
     held = [
         (seed, problem, [json.loads(x) for x in path.read_text().splitlines() if x])
         for seed in (1, 2)
@@ -583,19 +589,7 @@ def table() -> None:
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
         for seed, problem, rows in held:
-            for i, how in enumerate(ALLOWANCES):
-                cov = [r[how]["coverage"] for r in rows]
-                lead = f"| {problem} | {seed} | {len(rows)} |" if i == 0 else "| | | |"
-                stats = [
-                    f"{statistics.mean(r[how][k] for r in rows):.3f}" for k in ("below", "above")
-                ]
-                width = statistics.mean(r[how]["width_over_rate"] for r in rows)
-                mean = statistics.mean(r[how]["mean_over_rate"] for r in rows)
-                lines.append(
-                    f"{lead} {how} | {statistics.mean(cov):.3f} [{min(cov):.3f}] | "
-                    + " | ".join(stats)
-                    + f" | {width:.1f} | {mean:.3f} |"
-                )
+            lines += _allowance_rows(f"| {problem} | {seed} | {len(rows)} |", rows)
     pred_rows = {
         problem: [json.loads(x) for x in path.read_text().splitlines() if x]
         for problem in PROBLEMS
@@ -700,19 +694,7 @@ def table() -> None:
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
         for problem, rows in mcm:
-            for i, how in enumerate(ALLOWANCES):
-                cov = [r[how]["coverage"] for r in rows]
-                lead = f"| {problem} | {len(rows)} |" if i == 0 else "| | |"
-                stats = [
-                    f"{statistics.mean(r[how][k] for r in rows):.3f}" for k in ("below", "above")
-                ]
-                width = statistics.mean(r[how]["width_over_rate"] for r in rows)
-                mean = statistics.mean(r[how]["mean_over_rate"] for r in rows)
-                lines.append(
-                    f"{lead} {how} | {statistics.mean(cov):.3f} [{min(cov):.3f}] | "
-                    + " | ".join(stats)
-                    + f" | {width:.1f} | {mean:.3f} |"
-                )
+            lines += _allowance_rows(f"| {problem} | {len(rows)} |", rows)
         lines += [
             "",
             "No interval lay wholly below the rate; toy2d's misses were all above it (its "
