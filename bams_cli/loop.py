@@ -196,7 +196,8 @@ def loop(
     Returns
     -------
     dict
-        The summary ``--json`` prints: ``workspace``, ``batches``, ``plans``, ``steps``
+        The summary ``--json`` prints: ``workspace``, ``batches`` (discovery batches,
+        as ``batches`` counts them: a screen's is not one), ``plans``, ``steps``
         (each step taken), ``unchanged``, ``results_dir``, ``estimate_file`` and
         ``estimate`` (the latest estimate's headline, as ``status`` gives it: per gamma
         p_hat and its interval), null before any estimate.
@@ -320,7 +321,7 @@ def loop(
     latest = latest_estimate(ws)
     return {
         "workspace": str(ws.root),
-        "batches": len(ws.batch_numbers()),
+        "batches": len(_discovery_batches(ws)),  # as --batches counts them
         "plans": len(pipeline.plan_numbers(ws)),
         "steps": steps,
         "unchanged": not steps,

@@ -160,6 +160,7 @@ def test_a_screened_loop_screens_refits_confirms_and_estimates(data, tmp_path):
     meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
     assert meta["weighting"] == "screen" and meta["screen"]["batch"] == 4
     assert out["plans"] == 1 and out["estimate_file"].endswith("estimate-0001.json")
+    assert out["batches"] == 3  # discovery batches, as --batches counts them: not the screen
     # Run again, it has nothing left to do: the screen is neither drawn nor confirmed again.
     again = subprocess.run(
         [*_loop_args(ws, truth, screen=None), "--json"],
