@@ -481,6 +481,15 @@ def _cell(rows: list[dict], key: str, problem: str) -> str:
     )
 
 
+def _by_problem(kind: str) -> dict[str, list[dict]]:
+    """The JSON lines of OUT/{kind}PROBLEM.jsonl, by problem, for the problems that have them."""
+    return {
+        problem: [json.loads(x) for x in path.read_text().splitlines() if x]
+        for problem in PROBLEMS
+        if (path := OUT / f"{kind}{problem}.jsonl").exists()
+    }
+
+
 def _allowance_rows(lead: str, rows: list[dict]) -> list[str]:
     """One table row per allowance of ``coverage``'s lines: coverage mean [min] over the
     lines, below, above, width and mean p_hat over the rate; ``lead`` opens the first."""
@@ -539,11 +548,7 @@ def table() -> None:
         for m in PHASE1:
             cells = [_cell(rows, f"{m}-plain-{x}", problem) for x in SHARES]
             lines.append(f"| | | {m} screen | " + " | ".join(cells) + " |")
-    cov_rows = {
-        problem: [json.loads(x) for x in path.read_text().splitlines() if x]
-        for problem in PROBLEMS
-        if (path := OUT / f"coverage-{problem}.jsonl").exists()
-    }
+    cov_rows = _by_problem("coverage-")
     if cov_rows:
         first = next(iter(cov_rows.values()))[0]
         lines += [
@@ -590,11 +595,7 @@ def table() -> None:
         ]
         for seed, problem, rows in held:
             lines += _allowance_rows(f"| {problem} | {seed} | {len(rows)} |", rows)
-    pred_rows = {
-        problem: [json.loads(x) for x in path.read_text().splitlines() if x]
-        for problem in PROBLEMS
-        if (path := OUT / f"predict-{problem}.jsonl").exists()
-    }
+    pred_rows = _by_problem("predict-")
     if pred_rows:
         lines += [
             "",
@@ -674,11 +675,7 @@ def table() -> None:
         "not screen (weak_cheap under an explicit screen: 0.927 against 0.948, 3.9% below "
         "against 1.9%).",
     ]
-    mcm = [
-        (problem, [json.loads(x) for x in path.read_text().splitlines() if x])
-        for problem in PROBLEMS
-        if (path := OUT / f"coverage-mcm-gp-{problem}.jsonl").exists()
-    ]
+    mcm = _by_problem("coverage-mcm-gp-")
     if mcm:
         lines += [
             "",
@@ -693,7 +690,7 @@ def table() -> None:
             "mean p_hat / rate |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
-        for problem, rows in mcm:
+        for problem, rows in mcm.items():
             lines += _allowance_rows(f"| {problem} | {len(rows)} |", rows)
         lines += [
             "",
