@@ -265,7 +265,8 @@ def loop(
         workers=workers,
         wait=wait,
     )
-    _refuse_discovery_inside_a_screen(ws, batches)  # now, not after its pending lists
+    # Now, not after its pending lists.
+    _refuse_discovery_inside_a_screen(ws, _discovery_batches(ws), batches)
     total = batches + (1 if then_estimate else 0)
     steps: list[dict[str, Any]] = []
     ingested: set[Path] = set()
@@ -456,13 +457,12 @@ def _discovery_batches(ws: Workspace) -> list[int]:
     return out
 
 
-def _refuse_discovery_inside_a_screen(ws: Workspace, batches: int) -> None:
+def _refuse_discovery_inside_a_screen(ws: Workspace, discovery: list[int], batches: int) -> None:
     """Raise ``LoopError`` if ``--batches`` asks for discovery batches while a screen
     awaits its confirmation (``estimate --plan --screen``, auto by default): their level-0
     picks would land among the segments the screen counted as unknown, and the
     confirmation would refuse them (its design no longer holds), losing the screen's cheap
-    runs."""
-    discovery = _discovery_batches(ws)
+    runs. ``discovery``: the study's discovery batches (``_discovery_batches``)."""
     if len(discovery) >= batches:
         return
     screen = open_screen(ws)
@@ -514,8 +514,9 @@ def _next_step(
                 "`bams-cli loop` again (it draws a new random batch)"
             )
         return ("select", "batch", numbers[-1] + 1)
-    if len(_discovery_batches(ws)) < opts.batches:
-        _refuse_discovery_inside_a_screen(ws, opts.batches)
+    discovery = _discovery_batches(ws)
+    if len(discovery) < opts.batches:
+        _refuse_discovery_inside_a_screen(ws, discovery, opts.batches)
         if not numbers:
             return ("select", "batch", 1)
         if not _model_fresh(ws):

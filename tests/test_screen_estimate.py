@@ -482,18 +482,25 @@ def test_screen_auto_does_not_screen_more_than_a_refit_conditions_on(fitted, tmp
     assert any("exceed the" in n and "a refit conditions on exactly" in n for n in out["notes"])
 
 
+def _screened_and_refitted(runner, fitted, tmp_path):
+    """A copy of the fitted study with its screen drawn (batch 2), simulated, ingested and
+    refitted: what its confirmation is drawn from."""
+    ws, truth = _copy(fitted, tmp_path)
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    return ws, truth
+
+
 def test_select_warns_that_level0_picks_void_an_open_screen(fitted, tmp_path):
     # A discovery batch drawn while a screen awaits its confirmation: its level-0 results
     # would fall among the segments the screen counted as unknown, and the confirmation
     # would then refuse the screen. `select` draws it (the study may want it) and says so.
     from typer.testing import CliRunner
 
-    ws, truth = _copy(fitted, tmp_path)
     runner = CliRunner()
-    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
-    ok(runner, "ingest-results", "-w", ws,
-       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ws, truth = _screened_and_refitted(runner, fitted, tmp_path / "level0")
     out = strict_json(
         ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "3", "--json").stdout
     )
@@ -507,11 +514,7 @@ def test_select_warns_that_level0_picks_void_an_open_screen(fitted, tmp_path):
     r = invoke(runner, "estimate", "-w", ws, "--plan")
     assert r.exit_code != 0 and "--new-series" in r.stderr
     # A batch of cheap runs alone leaves the screen be: no warning.
-    ws2, _ = _copy(fitted, tmp_path / "cheap")
-    ok(runner, "estimate", "-w", ws2, "--plan", "--screen", SHARE, "--samples", K)
-    ok(runner, "ingest-results", "-w", ws2,
-       _sim(runner, ws2 / "batches" / "batch-0002.csv", truth, tmp_path / "s2.parquet"))  # fmt: skip
-    ok(runner, "fit", "-w", ws2, "--restarts", "1")
+    ws2, _ = _screened_and_refitted(runner, fitted, tmp_path / "cheap")
     none = strict_json(
         ok(
             runner,

@@ -919,8 +919,8 @@ def estimate_compute(
     settings = ws.require_initialised()
     plans = plan_numbers(ws)
     if not plans:
-        screen = screening.screen_path(ws, 1)
-        if screen.exists():
+        screen = screening.open_screen(ws)
+        if screen is not None:
             # --screen (auto by default) drew a screen: no level-0 plan until confirmed.
             batch = read_metadata_json(screen).get("batch")
             pend = ws.pending()
