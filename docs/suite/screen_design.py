@@ -566,8 +566,8 @@ def table() -> None:
             "shares of intervals wholly below / above the rate; width over the rate; mean "
             "p_hat (the unbiased sum) over the rate, whose spread from 1 is that of the few "
             "screens per seed (the enumeration in tests/core/test_screen.py shows it "
-            "unbiased). The shipped default's widths, for comparison: toy2d 3.4, av_like "
-            "6.1, rare_regions 11.0 times the rate (README).",
+            "unbiased). The staged design's widths, for comparison: toy2d 3.05, av_like "
+            "6.08, rare_regions 10.85 times the rate (docs/suite/estimate_design.md, BAMS).",
             "",
             "| problem | seeds | allowance | coverage | below | above | width / rate | "
             "mean p_hat / rate |",
@@ -643,9 +643,9 @@ def table() -> None:
         "- The interval held under it: coverage 0.927 to 1.000 per problem with either "
         "allowance, wholly below the rate in at most 3.9% of draws (weak_cheap with the mean "
         "allowance; 1.9% with the min; none elsewhere but digits' 0.6%). The mean allowance "
-        "is narrower than the shipped default's interval where the model is right (toy2d "
-        "1.8 against 3.4 times the rate, av_like 4.7 against 6.1, rare_regions 8.5 against "
-        "11.0).",
+        "is narrower than the staged design's interval where the model is right (toy2d "
+        "1.8 against 3.05 times the rate, av_like 4.7 against 6.08, rare_regions 8.5 "
+        "against 10.85).",
         "- So the screen cannot be spent blindly: a study must screen where it pays. The "
         "discovery model's per-segment prediction (third table) called the screen worse on "
         "every run, while it measured better on most: a cheap run informs the refit beyond "
