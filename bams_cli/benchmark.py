@@ -627,6 +627,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     t = screen_trials(
         p, fail, K=K, cost=settings.costs[screening.SCREEN_LEVEL], share=float(share),
         refit=refit, known=seen[0], cheap_known=seen[1], n_trials=SCREEN_TRIALS,
+        prior=screening.risk_prior(ws.read_model(), settings),
         rng=np.random.default_rng([seed, 2027]),
     )  # fmt: skip
     return {
@@ -776,10 +777,14 @@ def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[floa
     variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
     draws from the truth (``staged_trials``).
 
-    GP strategies plan it from their p_n; a strategy without a model (MC) from a constant
-    p_n, which makes both stages uniform. DS and CE have scores, not probabilities: None.
+    GP strategies plan it from their p_n, under the prior on lam ``estimate --plan`` takes
+    for their last fit (``core.design.risk_prior``); a strategy without a model (MC) from a
+    constant p_n, which makes both stages uniform. DS and CE have scores, not
+    probabilities: None.
     """
+    from bams_cli.core.design import risk_prior
     from bams_cli.core.evaluate import staged_trials
+    from bams_cli.pipeline.screening import cheap_level_discrepancy
 
     if r.p_after[-1] is not None:
         p = r.p_after[-1]
@@ -789,8 +794,10 @@ def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[floa
         return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        hp = r.hyperparameters[-1] if r.hyperparameters else None
+        ratio = cheap_level_discrepancy({"hyperparameters": hp}) if hp else None
         t = staged_trials(
-            p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS,
+            p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS, prior=risk_prior(ratio),
             rng=np.random.default_rng([r.seed, 2026]),
         )  # fmt: skip
     return float(t.recall.mean()), float(t.var / t.var_uniform)

@@ -386,6 +386,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "lam_high": NUM,
                         "failures": COUNT,
                         "sampled": COUNT,
+                        "prior": array(NUM),
                         "plans": array(INT),
                     }
                 ),

@@ -290,7 +290,10 @@ def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
     fail = rng.random(n) < p
     known = np.zeros(n, bool)
     known[np.argsort(-p)[:30]] = True  # discovery ran the riskiest segments
-    run = SimpleNamespace(p_after=[None, p], scores=None, known=known, seed=7)
+    # The last fit's cheap level tracks level 0 (discrepancy sd 0.1 of the signal's).
+    close = {"outputscale0": 1.0, "outputscales": [0.005], "noise": [1e-4, 0.005]}
+    run = SimpleNamespace(p_after=[None, p], scores=None, known=known, seed=7,
+                          hyperparameters=[None, close])  # fmt: skip
     want = staged_trials(
         p,
         fail,
@@ -313,9 +316,21 @@ def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
         rng=np.random.default_rng([7, 2026]),
     ).recall.mean()  # fmt: skip
     assert want > flat  # this p_n ranks the failures: its design holds more of them
-    mc = SimpleNamespace(p_after=[None], scores=None, known=known, seed=7)
+    # A cheap level that does not track level 0 (sd 0.5 of the signal's): p_n is trusted
+    # less, as estimate --plan trusts it (core.design.risk_prior).
+    far = {"outputscale0": 1.0, "outputscales": [0.2], "noise": [1e-4, 0.05]}
+    weak_run = SimpleNamespace(**{**vars(run), "hyperparameters": [None, far]})
+    t_weak = staged_trials(
+        p, fail, K=120.0, known=known, n_trials=B.STAGED_TRIALS,
+        prior=defaults.RISK_MIX_PRIOR_WEAK_CHEAP, rng=np.random.default_rng([7, 2026]),
+    )  # fmt: skip
+    got = B._staged_design(weak_run, fail, 120.0)
+    assert got == pytest.approx((t_weak.recall.mean(), t_weak.var / t_weak.var_uniform), rel=1e-12)
+    assert got[1] != pytest.approx(t.var / t.var_uniform, rel=1e-3)
+    mc = SimpleNamespace(p_after=[None], scores=None, known=known, seed=7, hyperparameters=[None])
     assert B._staged_design(mc, fail, 120.0)[0] == pytest.approx(flat, rel=1e-12)
-    ds = SimpleNamespace(p_after=[None], scores=np.ones(n), known=known, seed=7)
+    ds = SimpleNamespace(p_after=[None], scores=np.ones(n), known=known, seed=7,
+                         hyperparameters=[None])  # fmt: skip
     assert B._staged_design(ds, fail, 120.0) is None
 
 

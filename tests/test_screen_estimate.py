@@ -432,6 +432,65 @@ def test_screen_auto_screens_where_the_cheap_level_tracks_level0_and_plans_plain
     assert r.exit_code == 2 and "auto, or off" in r.stderr
 
 
+@pytest.mark.parametrize("ratio", [0.1, 0.8])
+def test_a_plain_plan_trusts_p_n_less_where_the_cheap_level_does_not_track_level0(
+    fitted, tmp_path, monkeypatch, ratio
+):
+    """The prior on lam follows the fitted cheap-level discrepancy (core.design.risk_prior):
+    the plan records it, and its inclusion probabilities are the design chosen under it,
+    recomputed by hand from the scores (not those of the other prior)."""
+    from typer.testing import CliRunner
+
+    from bams_cli import defaults
+    from bams_cli.pipeline import screening
+
+    ws, _ = _copy(fitted, tmp_path)
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: ratio)
+    out = strict_json(
+        ok(
+            CliRunner(),
+            "estimate",
+            "-w",
+            ws,
+            "--plan",
+            "--screen",
+            "off",
+            "--samples",
+            K,
+            "--json",
+        ).stdout  # fmt: skip
+    )
+    weak = ratio >= defaults.SCREEN_HINT_DISCREPANCY
+    prior = defaults.RISK_MIX_PRIOR_WEAK_CHEAP if weak else defaults.RISK_MIX_PRIOR
+    assert defaults.RISK_MIX_PRIOR_WEAK_CHEAP != defaults.RISK_MIX_PRIOR
+    assert out["model_check"]["prior"] == list(prior)
+    plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    known = {r[SID] for r in plan if r["stratum"] == "known"}
+    scores = pl.read_parquet(ws / "scores.parquet")
+    unknown = ~scores[SID].is_in(list(known)).to_numpy()
+    assert meta["plan_gamma"] == 0.56  # p_1: the plan is drawn for the largest gamma
+    p = scores["p_1"].to_numpy()[unknown]
+    ids = scores[SID].to_numpy()[unknown]
+    by_hand = {
+        pr: dict(zip(ids, dz.choose_design(p, K=out["samples_K"],
+                                           posterior=dz.risk_posterior([], prior=pr)).pi,
+                     strict=True))
+        for pr in (defaults.RISK_MIX_PRIOR, defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
+    }  # fmt: skip
+    sampled = [r for r in plan if r["stratum"] == "sampled"]
+    assert sampled
+    got = np.array([r["pi"] for r in sampled])
+    want = np.array([by_hand[prior][r[SID]] for r in sampled])
+    other = np.array([by_hand[defaults.RISK_MIX_PRIOR if weak else
+                              defaults.RISK_MIX_PRIOR_WEAK_CHEAP][r[SID]] for r in sampled])  # fmt: skip
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert np.max(np.abs(got - other) / other) > 0.05
+    # Less trust: the lowest-p_n segments get a larger share of K.
+    lo = {pr: min(v.values()) for pr, v in by_hand.items()}
+    assert lo[defaults.RISK_MIX_PRIOR_WEAK_CHEAP] > lo[defaults.RISK_MIX_PRIOR]
+
+
 def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
     from typer.testing import CliRunner
 

@@ -141,6 +141,8 @@ class RiskPosterior:
         Posterior probabilities, summing to 1.
     failures, sampled : int
         What the posterior rests on (0 and 0: the prior).
+    prior : (float, float)
+        The Beta(a, b) prior on lam it was formed from (``risk_prior``).
     """
 
     taus: FloatArray
@@ -148,6 +150,7 @@ class RiskPosterior:
     weights: FloatArray
     failures: int
     sampled: int
+    prior: tuple[float, float] = defaults.RISK_MIX_PRIOR
 
     @property
     def lam_mean(self) -> float:
@@ -204,7 +207,7 @@ class RiskPosterior:
         """``risk_at`` the lam quantile ``defaults.RISK_MIX_UPPER`` (module docstring)."""
         return self.risk_at(p, self.lam_quantile(defaults.RISK_MIX_UPPER))
 
-    def summary(self) -> dict[str, float | int]:
+    def summary(self) -> dict[str, float | int | list[float]]:
         """lam (mean, 90% upper), tau (mean) and the evidence's size, for the plan's record."""
         return {
             "lam": round(self.lam_mean, 6),
@@ -212,6 +215,7 @@ class RiskPosterior:
             "tau": round(self.tau_mean, 6),
             "failures": self.failures,
             "sampled": self.sampled,
+            "prior": [float(self.prior[0]), float(self.prior[1])],
         }
 
 
@@ -305,7 +309,23 @@ def risk_posterior(
         log_post += top[..., 0] + np.log(np.exp(total, out=total).sum(axis=2))
     w = np.exp(log_post - log_post.max()) * np.gradient(lam)[None, :]
     w /= w.sum()
-    return RiskPosterior(taus=taus, lams=lam, weights=w, failures=n_f, sampled=n_s)
+    return RiskPosterior(
+        taus=taus, lams=lam, weights=w, failures=n_f, sampled=n_s, prior=(float(a), float(b))
+    )
+
+
+def risk_prior(cheap_discrepancy: float | None) -> tuple[float, float]:
+    """The Beta prior on lam for a study whose fitted model has this cheap-level discrepancy.
+
+    ``cheap_discrepancy`` is the level-1 discrepancy-plus-noise sd over the level-0 signal
+    sd (``pipeline.screening.cheap_level_discrepancy``; None: no cheap level). Where it is
+    at least ``defaults.SCREEN_HINT_DISCREPANCY`` the cheap level does not track level 0,
+    the model's p_n rests on its few level-0 runs, and it is trusted less
+    (``defaults.RISK_MIX_PRIOR_WEAK_CHEAP``); elsewhere ``defaults.RISK_MIX_PRIOR``.
+    """
+    if cheap_discrepancy is None or cheap_discrepancy < defaults.SCREEN_HINT_DISCREPANCY:
+        return defaults.RISK_MIX_PRIOR
+    return defaults.RISK_MIX_PRIOR_WEAK_CHEAP  # NaN too: no evidence the cheap level tracks
 
 
 #: The grid over z = log(c / mean_U p_n) of the anchored posterior (``risk_posterior``).

@@ -902,6 +902,7 @@ def screen_trials(
     refit: Callable[[IntArray], FloatArray],
     known: ArrayLike | None = None,
     cheap_known: ArrayLike | None = None,
+    prior: tuple[float, float] | None = None,
     n_trials: int,
     rng: np.random.Generator,
 ) -> ScreenTrials:
@@ -932,6 +933,10 @@ def screen_trials(
     cheap_known : bool array_like of shape (n_pool,), optional
         Segments with a cheap result already: the screen does not run them again, and
         they cost nothing.
+    prior : (float, float), optional
+        Beta prior on lam of both phases' designs; default ``defaults.RISK_MIX_PRIOR``
+        (``estimate --plan`` takes ``core.design.risk_prior`` of each phase's fit; the
+        confirmation here keeps the screen's).
     n_trials : int
     rng : numpy.random.Generator
 
@@ -955,7 +960,8 @@ def screen_trials(
     U = np.flatnonzero(~kn)
     fU = fail[U]
     in_hand = float((fail & kn).sum())  # the known stratum's failures, found whatever S1
-    posterior = risk_posterior([])  # a new study: no earlier estimate to mix in
+    # A new study: no earlier estimate to mix in.
+    posterior = risk_posterior([], prior=defaults.RISK_MIX_PRIOR if prior is None else prior)
     pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior).pi
     recall = np.empty(n_trials)
     screened = np.empty(n_trials, np.int64)

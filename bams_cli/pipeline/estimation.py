@@ -319,7 +319,8 @@ def estimate_plan(
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
             share=share,
-            posterior=dz.risk_posterior(evidence), rng=np.random.default_rng(stream),
+            posterior=dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings)),
+            rng=np.random.default_rng(stream),
             meta={"seed": stream[0], "seed_source": seed_source, "rng_stream": stream,
                   "plan_gamma": settings.gammas[g_plan],
                   "model_hash": model["observations_hash"]},
@@ -391,7 +392,7 @@ def estimate_plan(
     # What the finished plans say about trusting p_n (lam: the share of failure mass it
     # does not explain); the prior alone before any plan has results.
     evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
-    post = dz.risk_posterior(evidence)
+    post = dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings))
     choice = None
     if staged:
         with np.errstate(divide="ignore"):
@@ -676,7 +677,7 @@ def _confirm_screen(
     else:
         stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     evidence, evidence_plans = stages_mod.mix_evidence(ws, settings.gammas[g_plan])
-    post = dz.risk_posterior(evidence)
+    post = dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings))
     c = screening.confirm_screen(
         ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known_now=known,
         samples=samples, posterior=post, rng=np.random.default_rng(stream),

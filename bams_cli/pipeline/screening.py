@@ -92,6 +92,14 @@ def cheap_level_discrepancy(model: dict[str, Any]) -> float | None:
     return math.sqrt(disc / signal)
 
 
+def risk_prior(model: dict[str, Any], settings: Settings) -> tuple[float, float]:
+    """The prior on lam an estimate of this study is planned with (``core.design.risk_prior``):
+    less trust in p_n where the fitted cheap level does not track level 0."""
+    from bams_cli.core.design import risk_prior as prior_for
+
+    return prior_for(cheap_level_discrepancy(model) if settings.n_levels > 1 else None)
+
+
 def screen_hint(model: dict[str, Any], root: Path) -> str | None:
     """A note for a new unscreened estimate when the cheap level tracks level 0 closely
     (``defaults.SCREEN_HINT_DISCREPANCY``)."""

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import integrate, optimize, special, stats
 
+from bams_cli import defaults
 from bams_cli.core import design as dz
 from bams_cli.core.estimate import estimate_from_sample
 from bams_cli.core.evaluate import _capped, staged_trials
@@ -473,3 +474,19 @@ def test_a_count_far_above_what_p_n_predicts_says_the_model_misses_failures():
     # ... and a count in line with p_n leaves trust where where-they-fell puts it.
     calm = dz.StageEvidence(pool[s], failed, dz.risk_norms(pool), p_mean=30 / pool[s].sum())
     assert dz.risk_posterior([calm]).lam_mean < anchored.lam_mean - 0.2
+
+
+def test_the_prior_on_lam_trusts_p_n_less_where_the_cheap_level_does_not_track_level0():
+    t = defaults.SCREEN_HINT_DISCREPANCY
+    assert dz.risk_prior(None) == defaults.RISK_MIX_PRIOR  # no cheap level
+    assert dz.risk_prior(0.0) == dz.risk_prior(t * 0.999) == defaults.RISK_MIX_PRIOR
+    assert dz.risk_prior(t) == dz.risk_prior(5.0) == defaults.RISK_MIX_PRIOR_WEAK_CHEAP
+    assert dz.risk_prior(float("nan")) == defaults.RISK_MIX_PRIOR_WEAK_CHEAP
+    # Less trust: a larger prior mean of lam, and a wider allowance quantile.
+    strong = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR)
+    weak = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
+    a, b = defaults.RISK_MIX_PRIOR_WEAK_CHEAP
+    # The prior's mean a / (a + b), on the posterior's lam grid (its density is unbounded at 1).
+    assert weak.lam_mean == pytest.approx(a / (a + b), abs=0.03)
+    assert weak.lam_mean > strong.lam_mean + 0.2
+    assert weak.summary()["prior"] == [a, b]
