@@ -49,6 +49,17 @@ def _old_recall(p: np.ndarray, fail: np.ndarray, known: np.ndarray, K: float) ->
     return float(recall)
 
 
+def _prior(folder: Path, strategy: str, seed: int) -> tuple[float, float]:
+    """The prior on lam ``estimate --plan`` takes for this run's last fit
+    (``core.design.risk_prior``), from the benchmark's ``hyperparameters_final``."""
+    from bams_cli.core.design import risk_prior
+    from bams_cli.pipeline.screening import cheap_level_discrepancy
+
+    entry = json.loads((folder / "results.json").read_text())[strategy]
+    hp = dict(zip(entry["seed_values"], entry["hyperparameters_final"], strict=True))[seed]
+    return risk_prior(cheap_level_discrepancy({"hyperparameters": hp}) if hp else None)
+
+
 def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     from bams_cli import defaults
     from bams_cli.core.estimate import inclusion_probabilities
@@ -61,8 +72,11 @@ def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     K = float(z["K"])
     known = z[f"{'bams' if strategy == 'uniform' else strategy}-{seed}-known"]
     p = np.ones(fail.size) if strategy == "uniform" else z[f"{strategy}-{seed}-p"]
+    prior = _prior(Path(folder) / problem, "bams" if strategy == "uniform" else strategy, seed)
     t0, c0 = time.perf_counter(), time.process_time()
-    r = staged_trials(p, fail, K=K, known=known, n_trials=trials, rng=np.random.default_rng(seed))
+    r = staged_trials(
+        p, fail, K=K, known=known, n_trials=trials, prior=prior, rng=np.random.default_rng(seed)
+    )
     U = np.flatnonzero(~known)
     fu = fail[U]
     with np.errstate(divide="ignore", over="ignore"):
@@ -74,7 +88,9 @@ def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     # exact, on stage 1's design: Var = sum_U (y - m)^2 (1 - pi)/pi with m = p_n or 0.
     from bams_cli.core import design as dz
 
-    pi1 = dz.choose_design(p[U], K=K * defaults.STAGE1_SHARE, posterior=dz.risk_posterior([])).pi
+    pi1 = dz.choose_design(
+        p[U], K=K * defaults.STAGE1_SHARE, posterior=dz.risk_posterior([], prior=prior)
+    ).pi
     w1 = (1 - pi1) / pi1
     v_ht = float((fu * w1).sum())
     v_dr = float(((fu - p[U]) ** 2 * w1).sum())
