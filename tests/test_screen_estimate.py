@@ -426,6 +426,9 @@ def test_screen_auto_screens_where_the_cheap_level_tracks_level0_and_plans_plain
     assert out["weighting"] != "screen" and "screen_file" not in out
     (note,) = [n for n in out["notes"] if n.startswith("--screen auto: no screen")]
     assert "0.80 of its level-0 signal's" in note
+    assert note.endswith("the plan trusts p_n less there (prior Beta(1.0, 0.5) on the failure "
+                         "share it does not explain)")  # fmt: skip
+    assert out["model_check"]["prior"] == list(defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
     assert not list((ws2 / "estimates").glob("screen-*.parquet"))
     # A word that is neither a share nor auto is a usage error.
     r = invoke(runner, "estimate", "-w", ws2, "--plan", "--screen", "half")

@@ -133,7 +133,9 @@ def auto_share(
         return None, (
             f"--screen auto: no screen; the model's cheap-level discrepancy sd is {ratio:.2f} "
             f"of its level-0 signal's (screened below {limit:g}: where it was higher, the "
-            "screen had up to 1.68x the variance on the suite, docs/suite/screen_design.md)"
+            "screen had up to 1.68x the variance on the suite, docs/suite/screen_design.md); "
+            "the plan trusts p_n less there (prior Beta"
+            f"{defaults.RISK_MIX_PRIOR_WEAK_CHEAP} on the failure share it does not explain)"
         )
     share = defaults.SCREEN_HINT_SHARE
     n_screen = screen_size(K, float(settings.costs[SCREEN_LEVEL]), share, n_unknown)
