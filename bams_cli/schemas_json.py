@@ -386,9 +386,10 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "lam_high": NUM,
                         "failures": COUNT,
                         "sampled": COUNT,
-                        "prior": array(NUM),
                         "plans": array(INT),
-                    }
+                    },
+                    # since the prior on lam follows the fitted cheap level
+                    {"prior": array(NUM)},
                 ),
                 "notes": array(STR),
                 "warnings": array(STR),

@@ -494,6 +494,75 @@ def test_a_plain_plan_trusts_p_n_less_where_the_cheap_level_does_not_track_level
     assert lo[defaults.RISK_MIX_PRIOR_WEAK_CHEAP] > lo[defaults.RISK_MIX_PRIOR]
 
 
+def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
+    fitted, tmp_path, monkeypatch
+):
+    """A screen drawn where the cheap level does not track level 0 draws pi1 under the
+    lesser trust and records it; its confirmation keeps that prior though the refit on its
+    cheap runs says the cheap level now tracks. A staged series' stage 2 keeps stage 1's."""
+    from typer.testing import CliRunner
+
+    from bams_cli import defaults
+    from bams_cli.pipeline import screening
+
+    runner = CliRunner()
+    weak, strong = defaults.RISK_MIX_PRIOR_WEAK_CHEAP, defaults.RISK_MIX_PRIOR
+    ws, truth = _copy(fitted, tmp_path / "screen")
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)
+    ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
+    screen = pl.read_parquet(ws / "estimates" / "screen-0001.parquet")
+    smeta = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
+    assert smeta["risk_prior"] == list(weak)
+    scores = pl.read_parquet(ws / "scores.parquet")
+    unknown = screen.filter(pl.col("stratum") == "unknown").join(
+        scores.select(SID, "p_1"), on=SID, how="left"
+    )
+    pi1 = {
+        pr: sc.screen_design(unknown["p_1"].to_numpy(), K=K, cost=0.1, share=SHARE,
+                             posterior=dz.risk_posterior([], prior=pr)).pi
+        for pr in (weak, strong)
+    }  # fmt: skip
+    np.testing.assert_allclose(unknown["pi1"].to_numpy(), pi1[weak], rtol=1e-12)
+    assert np.max(np.abs(pi1[weak] - pi1[strong])) > 1e-3
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.1)
+    plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert plan["weighting"] == "screen" and plan["model_check"]["prior"] == list(weak)
+    # Stage 2 of a staged series keeps stage 1's prior.
+    ws2, truth = _copy(fitted, tmp_path / "staged")
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)
+    one = strict_json(
+        ok(
+            runner, "estimate", "-w", ws2, "--plan", "--screen", "off", "--samples", K, "--json"
+        ).stdout  # fmt: skip
+    )
+    assert (one["stage"], one["stages"], one["model_check"]["prior"]) == (1, 2, list(weak))
+    ok(runner, "ingest-results", "-w", ws2,
+       _sim(runner, one["handoff"], truth, tmp_path / "r1.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws2, "--restarts", "1")
+    monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.1)
+    two = strict_json(ok(runner, "estimate", "-w", ws2, "--plan", "--json").stdout)
+    assert (two["stage"], two["model_check"]["prior"]) == (2, list(weak))
+    # A new series takes the current model's.
+    new = strict_json(
+        ok(
+            runner,
+            "estimate",
+            "-w",
+            ws2,
+            "--plan",
+            "--new-series",
+            "--screen",
+            "off",
+            "--allow-pending",
+            "--json",
+        ).stdout  # fmt: skip
+    )
+    assert (new["stage"], new["model_check"]["prior"]) == (1, list(strong))
+
+
 def test_screen_auto_on_a_one_level_study_plans_plainly(tmp_path):
     from typer.testing import CliRunner
 

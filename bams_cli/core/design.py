@@ -23,7 +23,9 @@ not bias this), which gives the likelihood
 
     L(lam) = prod_{i in S, failed} r_i(lam) / (sum_{j in S} r_j(lam))^n_f,
 
-combined with a Beta prior on lam (``defaults.RISK_MIX_PRIOR``) on a grid. With no failure
+combined with a Beta prior on lam on a grid (``risk_prior``: ``defaults.RISK_MIX_PRIOR``,
+or ``defaults.RISK_MIX_PRIOR_WEAK_CHEAP`` where the fitted cheap level does not track level
+0; an estimate keeps the prior of its first step). With no failure
 sampled the posterior is the prior; failures at small u push lam towards 1 (uniform),
 failures where u is large towards 0.
 
@@ -325,7 +327,9 @@ def risk_prior(cheap_discrepancy: float | None) -> tuple[float, float]:
     """
     if cheap_discrepancy is None or cheap_discrepancy < defaults.SCREEN_HINT_DISCREPANCY:
         return defaults.RISK_MIX_PRIOR
-    return defaults.RISK_MIX_PRIOR_WEAK_CHEAP  # NaN too: no evidence the cheap level tracks
+    # A NaN ratio (``pipeline.screening`` passes None for a non-finite fit) is no
+    # evidence that the cheap level tracks level 0: the lesser trust.
+    return defaults.RISK_MIX_PRIOR_WEAK_CHEAP
 
 
 #: The grid over z = log(c / mean_U p_n) of the anchored posterior (``risk_posterior``).

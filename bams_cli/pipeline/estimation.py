@@ -392,7 +392,13 @@ def estimate_plan(
     # What the finished plans say about trusting p_n (lam: the share of failure mass it
     # does not explain); the prior alone before any plan has results.
     evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
-    post = dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings))
+    # A later stage keeps its series' prior; a new series takes the current model's.
+    prior = (
+        screening.recorded_prior((prev.meta.get("model_check") or {}).get("prior"))
+        if continuing and prev is not None
+        else None
+    ) or screening.risk_prior(model, settings)
+    post = dz.risk_posterior(evidence, prior=prior)
     choice = None
     if staged:
         with np.errstate(divide="ignore"):
@@ -677,7 +683,11 @@ def _confirm_screen(
     else:
         stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     evidence, evidence_plans = stages_mod.mix_evidence(ws, settings.gammas[g_plan])
-    post = dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings))
+    # The screen's prior, whatever the refit on its cheap runs says of the cheap level.
+    prior = screening.recorded_prior(smeta.get("risk_prior")) or screening.risk_prior(
+        model, settings
+    )
+    post = dz.risk_posterior(evidence, prior=prior)
     c = screening.confirm_screen(
         ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known_now=known,
         samples=samples, posterior=post, rng=np.random.default_rng(stream),

@@ -100,6 +100,18 @@ def risk_prior(model: dict[str, Any], settings: Settings) -> tuple[float, float]
     return prior_for(cheap_level_discrepancy(model) if settings.n_levels > 1 else None)
 
 
+def recorded_prior(value: Any) -> tuple[float, float] | None:
+    """The prior on lam an earlier step of the same estimate recorded (a screen's
+    ``risk_prior``, a stage's ``model_check.prior``), or None where it recorded none (a
+    version before the prior followed the cheap level): the estimate keeps one prior from
+    its first step to its last, whatever later refits say of the cheap level."""
+    try:
+        a, b = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    return (a, b) if a > 0 and b > 0 and math.isfinite(a + b) else None
+
+
 def screen_hint(model: dict[str, Any], root: Path) -> str | None:
     """A note for a new unscreened estimate when the cheap level tracks level 0 closely
     (``defaults.SCREEN_HINT_DISCREPANCY``)."""
@@ -231,6 +243,8 @@ def draw_screen(
         "cheap_in_log": int(have.sum()),
         "cheap_abandoned": int((gone & ~have).sum()),
         "batch": batch,
+        # The confirmation designs under the same prior (``recorded_prior``).
+        "risk_prior": [float(v) for v in posterior.prior],
     }
     screen_meta = {**meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size)}
     table = schemas.SCREEN.conform(
