@@ -233,7 +233,9 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
     import polars as pl
 
     from bams_cli.benchmark import discrepancy_sd, screen_default, true_discrepancy_sd
+    from bams_cli.core.design import risk_prior
     from bams_cli.core.evaluate import staged_trials
+    from bams_cli.pipeline.screening import cheap_level_discrepancy
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
     gamma = float((out / problem / "gamma").read_text())
@@ -253,9 +255,13 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         value = levels["value_0"]
         fail = value.to_numpy() <= gamma
         rate, N, K = float(fail.mean()), len(fail), _series_K(ws, doc)
+        model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
+        # The prior on lam estimate --plan takes for this model (core.design.risk_prior).
+        ratio = cheap_level_discrepancy({"hyperparameters": model.get("hyperparameters")})
         t = staged_trials(
-            p.to_numpy(), fail, K=K, known=known, n_trials=1000, rng=np.random.default_rng(7)
-        )
+            p.to_numpy(), fail, K=K, known=known, n_trials=1000, prior=risk_prior(ratio),
+            rng=np.random.default_rng(7),
+        )  # fmt: skip
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
         screened = (ws / "estimates" / "screen-0001.parquet").exists()
         seed = int(ws.name.rsplit("-s", 1)[1])
@@ -269,7 +275,6 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         )  # fmt: skip
         if (sd is not None) != screened:
             raise SystemExit(f"{ws}: --screen auto decided otherwise from the kept workspace")
-        model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
         f1 = levels["value_1"].to_numpy()
         disc = discrepancy_sd(model["hyperparameters"]) / true_discrepancy_sd(
             value.to_numpy(), f1, model.get("transform")
