@@ -236,7 +236,15 @@ not screen.
   (a cheap level blind to one failure mode) 0.26 -> 0.36 of uniform's variance. Where the
   cheap level tracks level 0 (toy2d, av_like, gap_sim, ties, blind's other runs) the prior
   is Beta(0.5, 1) as before, and the screen is the default there.
-- Beta(1, 1) lies between the two everywhere (worst 1.13)."""
+- Beta(1, 1) lies between the two everywhere (worst 1.13).
+- Through the CLI, as a study runs it (`fresh_problems.py make /tmp/s4/fresh2` and `run
+  /tmp/s4/fresh2 cancer 0 1 2 3 4 5 6 7` at 0c448d3, 2026-11-27 23:43; the same data):
+  every cancer run planned both stages under Beta(1, 0.5) (`model_check.prior`), all 8
+  reported intervals held the true rate 0.0510 (at 42801af, under Beta(0.5, 1): 7 of 8,
+  one below), mean p_hat 0.90 of the rate; the runs' staged designs drawn 1,000 times
+  from the truth had 0.90 [1.08] of uniform's variance (0.91 [1.19]) and covered 0.938
+  (lowest run 0.926), 3.0% of intervals below and 3.2% above; recall 1.29x plain MC's
+  (1.4x), the price of trusting p_n less."""
 
 
 def main(argv: list[str]) -> None:
