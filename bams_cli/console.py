@@ -526,6 +526,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
             # The plan is drawn for the largest gamma, whose failures hold every other's.
             "GP rate estimate": f"{_num(s.get('gp_rate_estimate'))} at gamma "
             f"{_num(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
+            "trust in p_n": _trust(s.get("model_check")),
             "hand-off": s["handoff"],
             "results template": s.get("results_template"),
         },
@@ -534,6 +535,20 @@ def plan_summary(s: Mapping[str, Any]) -> None:
         note(text)
     for text in s.get("warnings") or []:
         warning(text)
+
+
+def _trust(check: Mapping[str, Any] | None) -> str | None:
+    """The plan's model check in one line: the share of failures p_n does not explain (lam)
+    and what it rests on (``core.design.RiskPosterior.summary``)."""
+    if not check or check.get("lam") is None:
+        return None
+    prior = check.get("prior")
+    return (
+        f"{check['lam']:.2f} of the failure mass unexplained by p_n (up to "
+        f"{check['lam_high']:.2f}), from {plural(check['failures'], 'failure')} in "
+        f"{plural(check['sampled'], 'run')} of earlier estimate stages"
+        + (f"; prior Beta({prior[0]:g}, {prior[1]:g})" if prior else "")
+    )
 
 
 def screen_summary(s: Mapping[str, Any]) -> None:

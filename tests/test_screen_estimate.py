@@ -492,6 +492,12 @@ def test_a_plain_plan_trusts_p_n_less_where_the_cheap_level_does_not_track_level
     # Less trust: the lowest-p_n segments get a larger share of K.
     lo = {pr: min(v.values()) for pr, v in by_hand.items()}
     assert lo[defaults.RISK_MIX_PRIOR_WEAK_CHEAP] > lo[defaults.RISK_MIX_PRIOR]
+    # The plan's summary says how far p_n is trusted, and under which prior.
+    r = ok(CliRunner(), "estimate", "-w", ws, "--plan", "--new-series", "--screen", "off",
+           "--allow-pending", "--samples", K)  # fmt: skip
+    (line,) = [x for x in r.stdout.splitlines() if x.lstrip().startswith("trust in p_n")]
+    assert "of the failure mass unexplained by p_n" in line and "0 failures in 0 runs" in line
+    assert line.rstrip().endswith(f"prior Beta({prior[0]:g}, {prior[1]:g})")
 
 
 def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
