@@ -772,6 +772,16 @@ def _run_designs(
 STAGED_TRIALS = 100
 
 
+def fit_prior(hyperparameters: dict[str, Any] | None) -> tuple[float, float]:
+    """The prior on lam ``estimate --plan`` takes for a fit with these hyperparameters
+    (``core.design.risk_prior``; None, or a one-level fit: the default prior)."""
+    from bams_cli.core.design import risk_prior
+    from bams_cli.pipeline.screening import cheap_level_discrepancy
+
+    hp = hyperparameters or {}
+    return risk_prior(cheap_level_discrepancy({"hyperparameters": hp}) if hp else None)
+
+
 def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[float, float] | None:
     """Expected recall of the staged estimate design (``estimate --plan`` twice) and its
     variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
@@ -782,9 +792,7 @@ def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[floa
     constant p_n, which makes both stages uniform. DS and CE have scores, not
     probabilities: None.
     """
-    from bams_cli.core.design import risk_prior
     from bams_cli.core.evaluate import staged_trials
-    from bams_cli.pipeline.screening import cheap_level_discrepancy
 
     if r.p_after[-1] is not None:
         p = r.p_after[-1]
@@ -795,9 +803,8 @@ def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[floa
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         hp = r.hyperparameters[-1] if r.hyperparameters else None
-        ratio = cheap_level_discrepancy({"hyperparameters": hp}) if hp else None
         t = staged_trials(
-            p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS, prior=risk_prior(ratio),
+            p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS, prior=fit_prior(hp),
             rng=np.random.default_rng([r.seed, 2026]),
         )  # fmt: skip
     return float(t.recall.mean()), float(t.var / t.var_uniform)

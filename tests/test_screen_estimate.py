@@ -58,6 +58,12 @@ def _copy(fitted, tmp_path):
     return tmp_path / "ws", truth
 
 
+def _plain_plan(runner, ws, samples):
+    """`estimate --plan --screen off --samples S --json`: an unscreened stage 1, its summary."""
+    args = ["estimate", "-w", ws, "--plan", "--screen", "off", "--samples", samples, "--json"]
+    return strict_json(ok(runner, *args).stdout)
+
+
 def _sim(runner, handoff, truth, out):
     ok(runner, "simulate", handoff, "--truth", truth, "-o", out)
     return out
@@ -368,20 +374,7 @@ def test_a_new_plain_estimate_suggests_a_screen_where_the_cheap_level_tracks_lev
     hp = json.loads((ws / "model.json").read_text())["hyperparameters"]
     ratio = math.sqrt((hp["outputscales"][0] + hp["noise"][1]) / hp["outputscale0"])
     assert ratio < defaults.SCREEN_HINT_DISCREPANCY  # toy2d's cheap level is close
-    out = strict_json(
-        ok(
-            CliRunner(),
-            "estimate",
-            "-w",
-            ws,
-            "--plan",
-            "--screen",
-            "off",
-            "--samples",
-            40,
-            "--json",
-        ).stdout  # fmt: skip
-    )
+    out = _plain_plan(CliRunner(), ws, 40)
     (hint,) = [n for n in out["notes"] if "tracks level 0 closely" in n]
     assert f"{ratio:.2f} of its level-0 signal's" in hint and "--screen 0.3" in hint
     # A weak cheap level (its discrepancy as large as the signal), a one-level model, or
@@ -449,20 +442,7 @@ def test_a_plain_plan_trusts_p_n_less_where_the_cheap_level_does_not_track_level
 
     ws, _ = _copy(fitted, tmp_path)
     monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: ratio)
-    out = strict_json(
-        ok(
-            CliRunner(),
-            "estimate",
-            "-w",
-            ws,
-            "--plan",
-            "--screen",
-            "off",
-            "--samples",
-            K,
-            "--json",
-        ).stdout  # fmt: skip
-    )
+    out = _plain_plan(CliRunner(), ws, K)
     weak = ratio >= defaults.SCREEN_HINT_DISCREPANCY
     prior = defaults.RISK_MIX_PRIOR_WEAK_CHEAP if weak else defaults.RISK_MIX_PRIOR
     assert defaults.RISK_MIX_PRIOR_WEAK_CHEAP != defaults.RISK_MIX_PRIOR
@@ -539,11 +519,7 @@ def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
     # Stage 2 of a staged series keeps stage 1's prior.
     ws2, truth = _copy(fitted, tmp_path / "staged")
     monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)
-    one = strict_json(
-        ok(
-            runner, "estimate", "-w", ws2, "--plan", "--screen", "off", "--samples", K, "--json"
-        ).stdout  # fmt: skip
-    )
+    one = _plain_plan(runner, ws2, K)
     assert (one["stage"], one["stages"], one["model_check"]["prior"]) == (1, 2, list(weak))
     ok(runner, "ingest-results", "-w", ws2,
        _sim(runner, one["handoff"], truth, tmp_path / "r1.parquet"))  # fmt: skip

@@ -393,12 +393,8 @@ def estimate_plan(
     # does not explain); the prior alone before any plan has results.
     evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
     # A later stage keeps its series' prior; a new series takes the current model's.
-    prior = (
-        screening.recorded_prior((prev.meta.get("model_check") or {}).get("prior"))
-        if continuing and prev is not None
-        else None
-    ) or screening.risk_prior(model, settings)
-    post = dz.risk_posterior(evidence, prior=prior)
+    recorded = (prev.meta.get("model_check") or {}).get("prior") if continuing and prev else None
+    post = dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings, recorded))
     choice = None
     if staged:
         with np.errstate(divide="ignore"):
@@ -684,10 +680,9 @@ def _confirm_screen(
         stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     evidence, evidence_plans = stages_mod.mix_evidence(ws, settings.gammas[g_plan])
     # The screen's prior, whatever the refit on its cheap runs says of the cheap level.
-    prior = screening.recorded_prior(smeta.get("risk_prior")) or screening.risk_prior(
-        model, settings
+    post = dz.risk_posterior(
+        evidence, prior=screening.risk_prior(model, settings, smeta.get("risk_prior"))
     )
-    post = dz.risk_posterior(evidence, prior=prior)
     c = screening.confirm_screen(
         ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known_now=known,
         samples=samples, posterior=post, rng=np.random.default_rng(stream),

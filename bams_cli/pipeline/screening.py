@@ -92,24 +92,24 @@ def cheap_level_discrepancy(model: dict[str, Any]) -> float | None:
     return math.sqrt(disc / signal)
 
 
-def risk_prior(model: dict[str, Any], settings: Settings) -> tuple[float, float]:
-    """The prior on lam an estimate of this study is planned with (``core.design.risk_prior``):
-    less trust in p_n where the fitted cheap level does not track level 0."""
+def risk_prior(
+    model: dict[str, Any], settings: Settings, recorded: Any = None
+) -> tuple[float, float]:
+    """The prior on lam an estimate step of this study is planned with: the one an earlier
+    step of the same estimate ``recorded`` (a screen's ``risk_prior``, a stage's
+    ``model_check.prior``), so an estimate keeps one prior from its first step to its last
+    whatever later refits say of the cheap level; else, or where an older version recorded
+    none, the model's (``core.design.risk_prior``: less trust in p_n where the fitted cheap
+    level does not track level 0)."""
     from bams_cli.core.design import risk_prior as prior_for
 
-    return prior_for(cheap_level_discrepancy(model) if settings.n_levels > 1 else None)
-
-
-def recorded_prior(value: Any) -> tuple[float, float] | None:
-    """The prior on lam an earlier step of the same estimate recorded (a screen's
-    ``risk_prior``, a stage's ``model_check.prior``), or None where it recorded none (a
-    version before the prior followed the cheap level): the estimate keeps one prior from
-    its first step to its last, whatever later refits say of the cheap level."""
     try:
-        a, b = (float(v) for v in value)
+        a, b = (float(v) for v in recorded)
+        if a > 0 and b > 0 and math.isfinite(a + b):
+            return (a, b)
     except (TypeError, ValueError):
-        return None
-    return (a, b) if a > 0 and b > 0 and math.isfinite(a + b) else None
+        pass
+    return prior_for(cheap_level_discrepancy(model) if settings.n_levels > 1 else None)
 
 
 def screen_hint(model: dict[str, Any], root: Path) -> str | None:
@@ -243,7 +243,7 @@ def draw_screen(
         "cheap_in_log": int(have.sum()),
         "cheap_abandoned": int((gone & ~have).sum()),
         "batch": batch,
-        # The confirmation designs under the same prior (``recorded_prior``).
+        # The confirmation designs under the same prior (``risk_prior``'s ``recorded``).
         "risk_prior": [float(v) for v in posterior.prior],
     }
     screen_meta = {**meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size)}

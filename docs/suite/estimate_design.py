@@ -51,13 +51,13 @@ def _old_recall(p: np.ndarray, fail: np.ndarray, known: np.ndarray, K: float) ->
 
 def _prior(folder: Path, strategy: str, seed: int) -> tuple[float, float]:
     """The prior on lam ``estimate --plan`` takes for this run's last fit
-    (``core.design.risk_prior``), from the benchmark's ``hyperparameters_final``."""
-    from bams_cli.core.design import risk_prior
-    from bams_cli.pipeline.screening import cheap_level_discrepancy
+    (``benchmark.fit_prior``), from the benchmark's ``hyperparameters_final``."""
+    from bams_cli.benchmark import fit_prior
 
     entry = json.loads((folder / "results.json").read_text())[strategy]
-    hp = dict(zip(entry["seed_values"], entry["hyperparameters_final"], strict=True))[seed]
-    return risk_prior(cheap_level_discrepancy({"hyperparameters": hp}) if hp else None)
+    return fit_prior(
+        dict(zip(entry["seed_values"], entry["hyperparameters_final"], strict=True))[seed]
+    )
 
 
 def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:

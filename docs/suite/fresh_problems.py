@@ -232,10 +232,8 @@ def _repeats(out: Path) -> list[str]:
 def _evaluate(out: Path, problem: str) -> dict[str, object]:
     import polars as pl
 
-    from bams_cli.benchmark import discrepancy_sd, screen_default, true_discrepancy_sd
-    from bams_cli.core.design import risk_prior
+    from bams_cli.benchmark import discrepancy_sd, fit_prior, screen_default, true_discrepancy_sd
     from bams_cli.core.evaluate import staged_trials
-    from bams_cli.pipeline.screening import cheap_level_discrepancy
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
     gamma = float((out / problem / "gamma").read_text())
@@ -256,10 +254,10 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         fail = value.to_numpy() <= gamma
         rate, N, K = float(fail.mean()), len(fail), _series_K(ws, doc)
         model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
-        # The prior on lam estimate --plan takes for this model (core.design.risk_prior).
-        ratio = cheap_level_discrepancy({"hyperparameters": model.get("hyperparameters")})
+        # The prior on lam estimate --plan takes for this model.
         t = staged_trials(
-            p.to_numpy(), fail, K=K, known=known, n_trials=1000, prior=risk_prior(ratio),
+            p.to_numpy(), fail, K=K, known=known, n_trials=1000,
+            prior=fit_prior(model.get("hyperparameters")),
             rng=np.random.default_rng(7),
         )  # fmt: skip
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
