@@ -430,6 +430,42 @@ def test_random_mixed_picks_cheap_runs_only_where_the_level_is_free(
     assert json.loads(r.stdout)["picks_per_level"] == {"0": 1, "1": 4}
 
 
+def test_random_mixed_spends_a_full_cheap_level_s_share_on_level0(
+    toy_ws, runner, toy_files, tmp_path
+):
+    # Every segment holds a level-1 result. The mixed random batch gave level 0 its share
+    # and the cheap level the rest, which bought nothing: budget 3 ran one level-0 segment,
+    # and budget 1 was refused as "nothing fits budget 1.0 (cheapest level costs 0.1)".
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(400)]
+    write_batch(toy_ws, 1, ids + ids[:4], [1] * 400 + [0] * 4)
+    res = tmp_path / "r1.parquet"
+    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+
+    for budget, n in (("1", 1), ("3", 3)):
+        copy = tmp_path / f"ws{budget}"
+        shutil.copytree(toy_ws, copy)
+        r = ok(runner, "select", "-w", copy, "--strategy", "random", "--mixed-fidelity",
+               "--budget", budget, "--json")  # fmt: skip
+        summary = json.loads(r.stdout)
+        assert summary["picks_per_level"] == {"0": n, "1": 0}
+        assert summary["total_cost"] == n
+        t = pq.read_table(copy / "batches" / "batch-0002.parquet")
+        assert not set(t["segment_id"].to_pylist()) & set(ids[:4])
+
+    # A budget that buys only cheap runs, none left: the error says what would help.
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--mixed-fidelity",
+               "--budget", "0.5")  # fmt: skip
+    assert r.exit_code == 1, r.output
+    assert r.stderr.strip() == (
+        "error: select: budget 0.5 buys only level 1 (cost 0.1), where every segment has "
+        "been run; level 0 has 396 segments left at cost 1: raise --budget to at least 1"
+    )
+    assert tree_hash(toy_ws) == before
+
+
 def test_a_cheap_level_edited_dear_in_settings_is_warned_by_select(toy_ws, runner):
     # init warns of a cheap level costing a level-0 run or more; a hand edit came unwarned.
     settings = toy_ws / "settings.toml"

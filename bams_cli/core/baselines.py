@@ -63,7 +63,10 @@ def _available(n_pool: int, observed_level0_mask: BoolArray | None) -> BoolArray
 
 
 def level_split(
-    costs: Sequence[float], budget: float, shares: Sequence[float] | None = None
+    costs: Sequence[float],
+    budget: float,
+    shares: Sequence[float] | None = None,
+    capacity: Sequence[int] | None = None,
 ) -> IntArray:
     """How many picks each level gets in a mixed-fidelity random batch.
 
@@ -72,12 +75,20 @@ def level_split(
     The rounding leftover is then spent greedily, one pick at a time, on the most expensive
     level that still fits (level 0 first), so at most min_l c_l of the budget is left.
 
+    With ``capacity``, level l gets at most capacity[l] picks: a level whose segments have
+    all been run (a small pool's cheap level, after a few batches) cannot spend its share,
+    and what it leaves goes, by the same greedy rule, to the levels that can still be run.
+    Without it a batch of budget 1 on a pool whose cheap runs were all made was refused as
+    "nothing fits", and a larger one spent only level 0's share.
+
     Parameters
     ----------
     costs : sequence of float, length L + 1
     budget : float
     shares : sequence of float, length L + 1, optional
         Non-negative; normalised to sum 1.
+    capacity : sequence of int, length L + 1, optional
+        The most picks each level can take (segments still free at it).
 
     Returns
     -------
@@ -94,10 +105,22 @@ def level_split(
     if w.shape != (L1,) or np.any(w < 0) or w.sum() <= 0:
         raise ValueError(f"shares must be {L1} non-negative numbers, not all 0; got {shares}")
     w = w / w.sum()
-    counts = np.array([_n_affordable(c, share * budget) for c, share in zip(c_arr, w, strict=True)])
+    cap = (
+        np.full(L1, np.iinfo(np.int64).max)
+        if capacity is None
+        else np.asarray(capacity, dtype=np.int64)
+    )
+    if cap.shape != (L1,) or np.any(cap < 0):
+        raise ValueError(f"capacity must be {L1} non-negative counts; got {capacity}")
+    counts = np.array(
+        [
+            min(_n_affordable(c, share * budget), int(k))
+            for c, share, k in zip(c_arr, w, cap, strict=True)
+        ]
+    )
     used = [float(c) for c, k in zip(c_arr, counts, strict=True) for _ in range(k)]
     for lev in np.argsort(-c_arr, kind="stable"):
-        while math.fsum([*used, float(c_arr[lev])]) <= budget:
+        while counts[lev] < cap[lev] and math.fsum([*used, float(c_arr[lev])]) <= budget:
             used.append(float(c_arr[lev]))
             counts[lev] += 1
     return counts
@@ -161,8 +184,14 @@ def pick_uniform(
                 f"excluded_pairs must have shape {(n_pool, len(c_arr))}; got {excluded_pairs.shape}"
             )
         free0 = free0 & ~excluded_pairs[:, 0]
+    # What each level can still take: the segments free at it (with two or more cheap
+    # levels an upper bound, as they draw their unpaired picks from one pool).
+    capacity = [int(free0.sum())] + [
+        n_pool if excluded_pairs is None else int((~excluded_pairs[:, lev]).sum())
+        for lev in range(1, len(c_arr))
+    ]
     counts = (
-        level_split(costs, budget, level_shares)
+        level_split(costs, budget, level_shares, capacity)
         if mixed
         else np.array([_n_affordable(c_arr[0], budget)] + [0] * (len(c_arr) - 1))
     )

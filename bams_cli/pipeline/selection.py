@@ -12,6 +12,7 @@ from typing import Any, Literal
 import numpy as np
 import polars as pl
 import pyarrow as pa
+from numpy.typing import NDArray
 
 from bams_cli import defaults, memory
 from bams_cli.errors import (
@@ -243,6 +244,39 @@ def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
     with transaction() as tx:
         tx.write_bytes(out, data)
     return True
+
+
+def _nothing_fits(
+    budget: float,
+    costs: NDArray[np.float64],
+    seen: NDArray[np.bool_],
+    unavailable: NDArray[np.bool_],
+    include_observed: bool,
+) -> str:
+    """Why a batch came out empty: the budget, or no segment left at the levels it buys.
+
+    A level the budget buys whose every segment was run (or awaits results, or was
+    abandoned) cannot be picked; the message names the level and what would help, not the
+    cost of a level that has nothing left.
+    """
+    done = unavailable if include_observed else unavailable | seen
+    left = (~done).sum(axis=0)
+    affordable = [lev for lev in range(len(costs)) if costs[lev] <= budget]
+    open_levels = [lev for lev in range(len(costs)) if left[lev] > 0]
+    if any(lev in open_levels for lev in affordable) or not affordable:
+        return (
+            f"select: nothing fits budget {budget:g} (cheapest level costs {costs.min():g}); "
+            "raise --budget"
+        )
+    spent = " and ".join(f"level {lev} (cost {costs[lev]:g})" for lev in affordable)
+    if not open_levels:
+        return f"select: every segment has been run at every level, {spent} included"
+    cheapest = min(open_levels, key=lambda lev: costs[lev])
+    return (
+        f"select: budget {budget:g} buys only {spent}, where every segment has been run; "
+        f"level {cheapest} has {int(left[cheapest])} segments left at cost "
+        f"{costs[cheapest]:g}: raise --budget to at least {costs[cheapest]:g}"
+    )
 
 
 def _observed_pairs(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray:
@@ -596,9 +630,7 @@ def select(
 
     k = len(picks["index"])
     if k == 0:
-        raise WorkspaceError(
-            f"select: nothing fits budget {budget} (cheapest level costs {costs.min():g}); raise --budget"
-        )
+        raise WorkspaceError(_nothing_fits(budget, costs, seen, gone | waiting, include_observed))
     cols: dict[str, Any] = contract.contract_columns(
         "batch",
         number,

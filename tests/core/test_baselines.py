@@ -72,6 +72,39 @@ def test_level_split_spreads_budget_by_cost():
     assert used <= 10.0 and 10.0 - used < 0.07
 
 
+def test_level_split_gives_a_full_level_s_share_to_the_levels_that_can_still_run():
+    # Every cheap run made (capacity 0 at level 1): the whole budget goes to level 0. The
+    # split gave level 0 its half and nothing else, and at budget 1 nothing at all.
+    assert level_split([1.0, 0.1], 4.0, capacity=[100, 0]).tolist() == [4, 0]
+    assert level_split([1.0, 0.1], 1.0, capacity=[100, 0]).tolist() == [1, 0]
+    # Level 0 has one segment left: the rest of its share buys cheap runs.
+    assert level_split([1.0, 0.25], 4.0, capacity=[1, 100]).tolist() == [1, 12]
+    # A cap that does not bind changes nothing.
+    assert level_split([1.0, 5 / 32], 15.0, capacity=[7, 51]).tolist() == [7, 51]
+    with pytest.raises(ValueError, match="capacity"):
+        level_split([1.0, 0.1], 4.0, capacity=[-1, 3])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    costs=st.lists(st.floats(0.01, 1.0), min_size=1, max_size=3).map(lambda c: [1.0, *c[1:]]),
+    budget=st.floats(0.0, 30.0),
+    capacity=st.lists(st.integers(0, 20), min_size=3, max_size=3),
+    shares=st.lists(st.floats(0.01, 1.0), min_size=3, max_size=3),
+)
+def test_level_split_respects_capacity_and_leaves_nothing_it_could_spend(
+    costs, budget, capacity, shares
+):
+    cap, w = capacity[: len(costs)], shares[: len(costs)]
+    counts = level_split(costs, budget, shares=w, capacity=cap)
+    assert np.all(counts >= 0) and np.all(counts <= cap)
+    used = math.fsum(c * k for c, k in zip(costs, counts, strict=True))
+    assert used <= budget
+    # No level with a free segment could take one more run within the budget.
+    for c, k, m in zip(costs, counts, cap, strict=True):
+        assert k == m or math.fsum([used, c]) > budget
+
+
 def test_mixed_uniform_uses_all_levels_and_is_uniform():
     counts = np.zeros(N)
     for seed in range(200):
