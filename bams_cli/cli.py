@@ -594,8 +594,7 @@ def ingest_results(
         first = not_run["first"][0]
         console.note(
             f"{console.plural(not_run['count'], 'row')} not run (status {first['status']!r} ...): "
-            "not ingested (a value beside such a status is not used), their requests stay "
-            "pending"
+            "not ingested, their requests stay pending"
         )
     pend = summary["pending"]
     if pend["count"]:

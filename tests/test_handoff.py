@@ -238,6 +238,37 @@ def test_rows_marked_not_run_stay_pending(named_ws, runner, tmp_path):
     assert "not run" not in r.stdout + r.stderr
 
 
+@pytest.mark.parametrize("flags", [(), ("--abandon-failed",)])
+@pytest.mark.parametrize("word", ["failed", "PASSED", "crashed"])
+def test_a_value_beside_a_not_run_status_is_refused(named_ws, runner, tmp_path, flags, word):
+    # A team wrote status "failed" for the system's outcome beside every value. Those rows
+    # were set aside as not run with exit 0, and --abandon-failed abandoned the failures.
+    ws, truth = named_ws
+    batch = _select(runner, ws)
+    t = _fill_template(batch, truth, tmp_path / "r.csv", list(TEMPLATE_COLUMNS))
+    status = ["ok", word, "ok", word] + ["ok"] * (t.height - 4)
+    t.with_columns(pl.Series("status", status)).write_csv(tmp_path / "r.csv")
+    before = tree_hash(ws)
+    r = invoke(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", *flags)
+    assert r.exit_code == 1, r.output
+    assert r.stderr.count("\n") == 1
+    assert r.stderr.startswith(
+        f"error: {tmp_path / 'r.csv'}: column 'status', row 2: status {word!r} says the run "
+        f"made no result, but the row has value "
+    )
+    assert "(2 such rows)" in r.stderr
+    assert tree_hash(ws) == before
+    # Without the values the same statuses say the runs were not made: set aside, pending.
+    value = [t["value"][0], None, t["value"][2], None, *t["value"][4:]]
+    t.with_columns(pl.Series("status", status), pl.Series("value", value)).write_csv(
+        tmp_path / "r.csv"
+    )
+    summary = json.loads(
+        ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout
+    )
+    assert summary["ingested"] == t.height - 2 and summary["not_run"]["count"] == 2
+
+
 def test_a_not_run_row_whose_retry_came_first_is_not_pending(named_ws, runner, tmp_path):
     # The retry's results ingested before the file that first said "crashed": that file
     # then names no row as not run, since none of its requests waits any more.

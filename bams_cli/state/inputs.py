@@ -356,6 +356,25 @@ def read_results(
 
     status = pl.col("status").cast(pl.String).str.strip_chars().str.to_lowercase()
     not_run = status.is_not_null() & ~status.is_in(list(contract.STATUS_OK))
+    # A status that says the run made no result beside a value it made is a contradiction,
+    # and one a team falls into: "failed" or "passed" written for the system's outcome
+    # (a failure is a value at or below gamma). Setting such rows aside as not run lost
+    # their values, and --abandon-failed abandoned exactly the failures.
+    if "value" in df.columns:
+        value = pl.col("value").cast(pl.Float64, strict=False)
+        both = df.filter(not_run & value.is_not_null() & value.is_finite())
+        if both.height:
+            first = both.row(0, named=True)
+            raise InputError(
+                path,
+                f"status {shown(first['status'])} says the run made no result, but the row "
+                f"has value {shown(first['value'])} ({both.height} such rows); for a run "
+                "that was made leave status empty or write ok (a failure of the system is "
+                "a value at or below gamma, not a status), for one that was not leave "
+                "value empty",
+                column="status",
+                row=int(first["_row"]),
+            )
     skipped = df.filter(not_run).select(
         "_row", pl.col(rid_col).cast(pl.String), pl.col(SID).cast(pl.String),
         pl.col("fidelity").cast(pl.String), pl.col("status").cast(pl.String),
