@@ -343,6 +343,11 @@ def loop_progress(enabled: bool = True) -> Iterator[Callable[[str, int, int], No
 # --- short human summaries: the key facts of each command; --json has every detail ---
 
 
+def _gamma(g: Any) -> str:
+    """A threshold as the study set it (1.349 is not "1.35"): ``:g`` as elsewhere."""
+    return "n/a" if g is None else f"{float(g):g}"
+
+
 def _num(x: Any, digits: int = 3) -> str:
     """A number for a summary line: ``0.00413`` -> ``0.00413``, ``None`` -> ``n/a``."""
     if x is None:
@@ -405,7 +410,10 @@ def ingest_summary(s: Mapping[str, Any]) -> None:
     by_level = ", ".join(f"level {lv}: {n}" for lv, n in (s.get("by_fidelity") or {}).items())
     facts(
         f"ingested {plural(s['ingested'], 'result')} into {s['observations']} "
-        f"({s['log_rows']} rows now)",
+        f"({plural(s['log_rows'], 'row')} now)"
+        if s.get("log_active", s["log_rows"]) == s["log_rows"]
+        else f"({plural(s['log_active'], 'row')} now, beside "
+        f"{s['log_rows'] - s['log_active']} replaced)",
         {
             "by level": by_level,
             "replaced": s["replaced"] or None,
@@ -525,7 +533,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
             "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",
             # The plan is drawn for the largest gamma, whose failures hold every other's.
             "GP rate estimate": f"{_num(s.get('gp_rate_estimate'))} at gamma "
-            f"{_num(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
+            f"{_gamma(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
             "trust in p_n": _trust(s.get("model_check")),
             "hand-off": s["handoff"],
             "results template": s.get("results_template"),

@@ -257,6 +257,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "already_known": COUNT,
                 "observations": PATH,
                 "log_rows": COUNT,
+                "log_active": COUNT,
                 "by_fidelity": mapping(COUNT, "level number"),
                 "abandoned": obj(
                     {"abandoned": COUNT, "already_abandoned": COUNT, "first": array(REQUEST)}

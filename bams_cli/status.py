@@ -32,7 +32,7 @@ from bams_cli.state import schemas
 from bams_cli.state.handoff import handoff_path
 from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json, recovered_note
 from bams_cli.state.pending import to_simulate
-from bams_cli.state.workspace import Workspace
+from bams_cli.state.workspace import Workspace, stale_log
 
 #: Version of the ``status --json`` object; bump it when a key changes meaning or goes away.
 STATUS_SCHEMA_VERSION = 1
@@ -242,19 +242,6 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     }
 
 
-def stale_log(fitted: int, now: int) -> str:
-    """Why a model fitted on ``fitted`` results is stale for a log of ``now`` active ones."""
-    if fitted == now:  # as many results, other values: `ingest-results --replace`
-        return (
-            f"the observation log changed after the last fit (results replaced since: "
-            f"fitted on {fitted} results, the log holds as many, not all the same)"
-        )
-    return (
-        f"the observation log changed after the last fit (fitted on {fitted} results, "
-        f"the log now holds {now})"
-    )
-
-
 def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     """The newest estimate file's headline (``status --json`` ``latest_estimate``, ``loop
     --json`` ``estimate``): ``plan``, ``file``, ``stages_done``, ``stages`` and per gamma
@@ -362,8 +349,7 @@ def _next_step(
         # No result at all and none awaited (every request of the batches so far was
         # abandoned): nothing to fit, so a new random batch, as at the start. "run fit"
         # here sent a study whose first batch was lost round in a circle.
-        mixed = " --mixed-fidelity" if settings.n_levels > 1 else ""
-        cmd = f"bams-cli select -w {w} --strategy random{mixed} --budget {defaults.BUDGET:g}"
+        cmd = ws.first_batch_command()
         why = "no batch yet" if not batches and not plans else "no result yet (none awaited)"
         return step("select", cmd, f"{why}: run `{cmd}` for a random first batch")
     screen_for = (plans[-1]["plan"] if plans else 0) + 1

@@ -561,6 +561,14 @@ def test_the_plan_names_the_gamma_its_gp_rate_and_design_are_for(fitted_ws, tmp_
     r = ok(CliRunner(), "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
     [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
     assert line.rstrip().endswith("at gamma 0.56, the largest, which the plan is drawn for")
+    # The threshold as the study set it: 0.5612 was printed "0.561".
+    ws, _ = _copy(fitted_ws, tmp_path / "other")
+    settings = ws / "settings.toml"
+    settings.write_text(settings.read_text().replace("0.56", "0.5612"))
+    ok(CliRunner(), "fit", "-w", ws, "--restarts", "1")
+    r = ok(CliRunner(), "estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
+    [line] = [s for s in r.stdout.splitlines() if "GP rate estimate" in s]
+    assert "at gamma 0.5612, the largest" in line
 
 
 def test_a_stage_planned_by_an_older_version_still_checks_the_model(fitted_ws, tmp_path):

@@ -103,7 +103,13 @@ def test_model_is_stale_after_new_results(fitted_ws, runner, toy_files, tmp_path
         runner, "select", "-w", fitted_ws, "--budget", "2", "--clusters", "1", "--workers", "1"
     )
     assert r.exit_code == 1
-    assert "fitted on an older observation log" in r.stderr and "bams-cli fit" in r.stderr
+    # In counts, as status words it (the message gave the logs' two hashes).
+    fitted = sum(json.loads((fitted_ws / "model.json").read_text())["n_observations_per_level"])
+    assert r.stderr.splitlines() == [
+        f"error: {fitted_ws / 'model.json'}: the observation log changed after the last fit "
+        f"(fitted on {fitted} results, the log now holds {fitted + 1}); "
+        f"run `bams-cli fit -w {fitted_ws}`"
+    ]
 
 
 def test_a_model_stale_by_a_replaced_value_says_so(fitted_ws, runner, tmp_path):

@@ -40,14 +40,21 @@ def _select(runner, ws, *extra):
 
 
 def test_bams_on_a_new_study_says_how_to_get_a_first_model(toy_ws, runner):
-    # No results yet: "run fit" would send the user to a fit that needs results first.
+    # No results yet: "run fit" would send the user to a fit that needs results first. And
+    # every command names the same first batch: select and fit said `--strategy random`, a
+    # level-0 batch without the pairs the first model learns the cheap level from, while
+    # status said `--strategy random --mixed-fidelity --budget 5`.
+    first = f"bams-cli select -w {toy_ws} --strategy random --mixed-fidelity --budget 5"
     r = invoke(runner, "select", "-w", toy_ws, "--budget", "3")
     assert r.exit_code == 1
     assert r.stderr.splitlines() == [
         f"error: {toy_ws / 'model.json'}: no fitted model; select a first batch "
-        f"(`bams-cli select -w {toy_ws} --strategy random`), simulate it and ingest the "
-        "results, then fit"
+        f"(`{first}`), simulate it and ingest the results, then fit"
     ]
+    r = invoke(runner, "fit", "-w", toy_ws)
+    assert r.exit_code == 1 and f"(`{first}`)" in r.stderr
+    status = json.loads(invoke(runner, "status", "-w", toy_ws, "--json").stdout)
+    assert status["next"]["command"] == first
 
 
 def test_bams_batch_confirms_leads_at_level0_first(lead_ws, runner):
@@ -506,3 +513,22 @@ def test_a_budget_that_buys_no_run_is_refused_before_the_work(
         "--budget",
         "0.5",
     )
+
+
+@pytest.mark.parametrize(
+    "command",
+    [("select", "--budget", "3"), ("estimate", "--plan"), ("estimate",), ("fit",)],
+)
+def test_every_step_of_a_study_without_a_pool_names_embed_reduce(runner, tmp_path, command):
+    # `estimate --plan` before embed-reduce said "select a first batch", which select then
+    # refused for want of a pool.
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.5", "--costs", "1,0.1")
+    before = tree_hash(ws)
+    r = invoke(runner, command[0], "-w", ws, *command[1:])
+    assert r.exit_code == 1, r.output
+    assert r.stderr.splitlines() == [
+        f"error: {ws / 'segments.parquet'}: no segment pool yet; run "
+        f"`bams-cli embed-reduce -w {ws} SEGMENTS.parquet` first"
+    ]
+    assert tree_hash(ws) == before

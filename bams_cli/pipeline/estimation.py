@@ -938,6 +938,7 @@ def estimate_compute(
                 f"estimate --plan -w {ws.root}` (`bams-cli status -w {ws.root}` names each "
                 "step)"
             )
+        ws.require_segments()  # a study without a pool is told the step it needs first
         raise WorkspaceError(
             f"{ws.root}: no estimate plan; run `bams-cli estimate --plan -w {ws.root}` first"
         )

@@ -53,7 +53,7 @@ def _training_data(
     if obs.height == 0:
         raise WorkspaceError(
             f"{ws.observations_path}: no observations yet; select a first batch "
-            f"(`bams-cli select -w {ws.root} --strategy random`), simulate it and ingest the results"
+            f"(`{ws.first_batch_command()}`), simulate it and ingest the results"
         )
     beyond = obs.filter(pl.col("fidelity") >= n_levels)
     if beyond.height:

@@ -60,7 +60,8 @@ def ingest_results(
     -------
     dict
         The summary ``--json`` prints: ``ingested``, ``replaced``, ``already_known``,
-        ``already_ingested``, ``observations``, ``log_rows``, ``by_fidelity``; ``pending``
+        ``already_ingested``, ``observations``, ``log_rows``, ``log_active`` (the rows
+        not replaced: what ``fit`` and ``status`` count), ``by_fidelity``; ``pending``
         (``count``, ``by_batch``, ``by_plan``, ``first``), ``pending_lists`` (the batches
         and plans partly answered: ``list``, ``pending``, ``requests``, ``handoff``,
         ``pending_handoff``, the list of their pending requests alone,
@@ -212,6 +213,7 @@ def ingest_results(
         "already_ingested": False,
         "observations": str(ws.observations_path),
         "log_rows": combined.height,
+        "log_active": int(combined["active"].sum()),
         "by_fidelity": {
             int(k): int(v) for k, v in new.group_by("fidelity").len().sort("fidelity").iter_rows()
         },

@@ -34,8 +34,7 @@ from bams_cli.state.io import (
     transaction,
 )
 from bams_cli.state.pending import to_simulate
-from bams_cli.state.workspace import Workspace
-from bams_cli.status import stale_log
+from bams_cli.state.workspace import Workspace, stale_log
 
 
 # ---------------------------------------------------------------------------------------

@@ -30,7 +30,8 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli.errors import SchemaError, StaleStateError, WorkspaceError
+from bams_cli.defaults import BUDGET
+from bams_cli.errors import BamsError, SchemaError, StaleStateError, WorkspaceError
 from bams_cli.settings import SETTINGS_FILE, Settings, load_settings
 from bams_cli.state import schemas
 from bams_cli.state.handoff import REQUEST_ID, request_ids
@@ -338,12 +339,24 @@ class Workspace:
             raise StaleStateError(f"{path}: {exc}; {fix}") from None
         return doc
 
+    def first_batch_command(self) -> str:
+        """The command that draws a study's first batch: random, over every level the
+        study has, so that the first model sees level-0 and cheap runs of the same segments.
+        ``status``, ``fit`` and ``select`` name this one command."""
+        try:
+            n_levels = self.require_initialised().n_levels
+        except BamsError:  # damaged settings: their own error comes from the command
+            n_levels = 1
+        mixed = " --mixed-fidelity" if n_levels > 1 else ""
+        return f"bams-cli select -w {self.root} --strategy random{mixed} --budget {BUDGET:g}"
+
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:
         if not self.model_path.exists():
-            # fit needs results first: on a new study, say how to get them.
+            # A study without a pool needs that first; one without results, a first batch.
+            self.require_segments()
             first = (
-                f"select a first batch (`bams-cli select -w {self.root} --strategy random`), "
+                f"select a first batch (`{self.first_batch_command()}`), "
                 "simulate it and ingest the results, then fit"
                 if not self.observations_path.exists()
                 else f"run `bams-cli fit -w {self.root}`"
@@ -375,9 +388,10 @@ class Workspace:
         current = self.observations_hash()
         fresh = model.get("observations_hash") == current
         if not fresh and not allow_newer_observations:
+            fitted = int(sum(model.get("n_observations_per_level", [])))
             raise StaleStateError(
-                f"{self.model_path}: fitted on an older observation log "
-                f"({model.get('observations_hash')} != {current}); run `bams-cli fit -w {self.root}`"
+                f"{self.model_path}: {stale_log(fitted, self.read_observations().height)}; "
+                f"run `bams-cli fit -w {self.root}`"
             )
         pool = self.pool_fingerprint()
         if model.get("pool") != pool:
@@ -475,3 +489,16 @@ def _check_estimate(doc: Any) -> None:
     for i, value in enumerate(gp_exact):
         if value is not None and not _fits(value, "number"):
             raise _BadKey(f"key gp[{i}].gp_var_exact: expected a number, got {_shown(value)}")
+
+
+def stale_log(fitted: int, now: int) -> str:
+    """Why a model fitted on ``fitted`` results is stale for a log of ``now`` active ones."""
+    if fitted == now:  # as many results, other values: `ingest-results --replace`
+        return (
+            f"the observation log changed after the last fit (results replaced since: "
+            f"fitted on {fitted} results, the log holds as many, not all the same)"
+        )
+    return (
+        f"the observation log changed after the last fit (fitted on {fitted} results, "
+        f"the log now holds {now})"
+    )
