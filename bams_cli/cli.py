@@ -561,10 +561,12 @@ def ingest_results(
     """Append simulation results to the observation log.
 
     Each row is keyed by request_id (from the hand-off list), or by segment_id and fidelity
-    (the level's number or its name in settings). A row whose status is neither empty nor
-    ok (e.g. crashed) is not ingested: its request stays pending, or, with
-    --abandon-failed, is recorded as never coming back. The results template beside each
+    (the level's number or its name in settings). The results template beside each
     hand-off list has the columns to fill.
+
+    A row whose status is neither empty nor ok (e.g. crashed) is not ingested: its request
+    stays pending, or, with --abandon-failed, is recorded as never coming back. Such a row
+    leaves value empty: a failure is a value at or below gamma, not a status.
 
     [bold]Example[/]: bams-cli ingest-results -w study results-0001.parquet
     """
@@ -824,7 +826,8 @@ def select(
 ) -> None:
     """Pick the next batch of segments to simulate, at which fidelity, and write the hand-off list.
 
-    The first batch of a study needs no model: use --strategy random.
+    The first batch of a study needs no model: use --strategy random --mixed-fidelity
+    (random runs at every level, level-0 and cheap runs of the same segments among them).
 
     [bold]Example[/]: bams-cli select -w study --budget 5 --clusters 6
     """

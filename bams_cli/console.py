@@ -408,12 +408,11 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
 
 def ingest_summary(s: Mapping[str, Any]) -> None:
     by_level = ", ".join(f"level {lv}: {n}" for lv, n in (s.get("by_fidelity") or {}).items())
+    active = s.get("log_active", s["log_rows"])
+    replaced = s["log_rows"] - active
     facts(
         f"ingested {plural(s['ingested'], 'result')} into {s['observations']} "
-        f"({plural(s['log_rows'], 'row')} now)"
-        if s.get("log_active", s["log_rows"]) == s["log_rows"]
-        else f"({plural(s['log_active'], 'row')} now, beside "
-        f"{s['log_rows'] - s['log_active']} replaced)",
+        f"({plural(active, 'row')} now{f', beside {replaced} replaced' if replaced else ''})",
         {
             "by level": by_level,
             "replaced": s["replaced"] or None,

@@ -851,7 +851,8 @@ def _study_section(s: dict[str, Any]) -> list[str]:
         )
     else:
         parts.append(
-            "<p>None yet: <code>bams-cli select --strategy random</code> makes the first.</p>"
+            "<p>None yet: <code>bams-cli select --strategy random --mixed-fidelity</code> "
+            "makes the first.</p>"
         )
     return parts
 

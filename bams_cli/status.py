@@ -5,8 +5,8 @@ model was fitted on the current observation log, the latest estimate. It takes n
 writes nothing, so it runs beside any other command; run during another command's commit,
 it shows the state just before or just after it.
 
-The next step follows the loop: a pool (``embed-reduce``), a first batch (``select
---strategy random``), its results (``ingest-results``), a model of them (``fit``), the next
+The next step follows the loop: a pool (``embed-reduce``), a first batch
+(``Workspace.first_batch_command``: random, at every level), its results (``ingest-results``), a model of them (``fit``), the next
 batch (``select``) ... Once an estimate plan is newer than the newest batch the study is
 estimating: results for the plan, ``estimate``, a ``fit`` that includes them, ``report``;
 then nothing is left to do.

@@ -258,6 +258,19 @@ def test_a_value_beside_a_not_run_status_is_refused(named_ws, runner, tmp_path, 
     )
     assert "(2 such rows)" in r.stderr
     assert tree_hash(ws) == before
+    # A value the file holds as text (a decimal comma) is a value too.
+    text = [str(v) for v in t["value"]]
+    text[1] = "0,3"
+    t.with_columns(pl.Series("status", status), pl.Series("value", text)).write_csv(
+        tmp_path / "r.csv"
+    )
+    r = invoke(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", *flags)
+    assert r.exit_code == 1, r.output
+    assert (
+        f"row 2: status {word!r} says the run made no result, but the row has value '0,3'"
+        in r.stderr
+    )
+    assert tree_hash(ws) == before
     # Without the values the same statuses say the runs were not made: set aside, pending.
     value = [t["value"][0], None, t["value"][2], None, *t["value"][4:]]
     t.with_columns(pl.Series("status", status), pl.Series("value", value)).write_csv(

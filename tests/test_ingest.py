@@ -113,7 +113,9 @@ def test_conflict_needs_replace_and_keeps_history(ws, runner, tmp_path):
     assert full.height == 2  # nothing is lost: the old value stays, inactive
     assert full.filter(full["active"])["value"].to_list() == [9.0]
     # The summary counts the rows fit and status count ("2 rows now" beside their 1 said).
-    assert "(1 row now, beside 1 replaced)" in " ".join(r.stdout.split())
+    assert " ".join(r.stdout.split()).startswith(
+        f"ingested 1 result into {ws / 'observations.parquet'} (1 row now, beside 1 replaced)"
+    )
     again = _results(tmp_path / "c.parquet", [(IDS[0], 0, 9.5)])
     out = json.loads(ok(runner, "ingest-results", "-w", ws, again, "--replace", "--json").stdout)
     assert (out["log_rows"], out["log_active"]) == (3, 1)

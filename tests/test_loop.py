@@ -81,7 +81,8 @@ def loop_ws(tmp_path_factory):
     # own estimate is the one stored with the plan; only --exact-variance needs a refit.
     before = tree_hash(ws)
     r = invoke(runner, "estimate", "-w", ws, "--exact-variance")
-    assert r.exit_code == 1 and "--exact-variance needs the current one" in r.stderr
+    assert r.exit_code == 1 and "--exact-variance needs a model of the current one" in r.stderr
+    assert "the observation log changed after the last fit (fitted on " in r.stderr
     assert "--fixed-hyperparameters" in r.stderr and tree_hash(ws) == before
     stale = json.loads(ok(runner, "estimate", "-w", ws, "--json").stdout)
     assert stale["gp_model"] == "as of the plan"

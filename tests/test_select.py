@@ -55,6 +55,13 @@ def test_bams_on_a_new_study_says_how_to_get_a_first_model(toy_ws, runner):
     assert r.exit_code == 1 and f"(`{first}`)" in r.stderr
     status = json.loads(invoke(runner, "status", "-w", toy_ws, "--json").stdout)
     assert status["next"]["command"] == first
+    # A command to run as it stands: a folder with a space is quoted.
+    spaced = toy_ws.parent / "my study"
+    shutil.copytree(toy_ws, spaced)
+    status = json.loads(invoke(runner, "status", "-w", spaced, "--json").stdout)
+    assert status["next"]["command"] == (
+        f"bams-cli select -w '{spaced}' --strategy random --mixed-fidelity --budget 5"
+    )
 
 
 def test_bams_batch_confirms_leads_at_level0_first(lead_ws, runner):
@@ -467,8 +474,30 @@ def test_random_mixed_spends_a_full_cheap_level_s_share_on_level0(
                "--budget", "0.5")  # fmt: skip
     assert r.exit_code == 1, r.output
     assert r.stderr.strip() == (
-        "error: select: budget 0.5 buys only level 1 (cost 0.1), where every segment has "
-        "been run; level 0 has 396 segments left at cost 1: raise --budget to at least 1"
+        "error: select: budget 0.5 buys only level 1 (cost 0.1), where no segment is left "
+        "to run; level 0 has 396 segments left at cost 1: raise --budget to at least 1"
+    )
+    assert tree_hash(toy_ws) == before
+
+
+def test_a_level0_strategy_with_no_segment_left_names_what_would_help(
+    toy_ws, runner, toy_files, tmp_path
+):
+    # Every segment run at level 0: "nothing fits budget 3 (cheapest level costs 0.1); raise
+    # --budget" cited a level --strategy random never picks, and no budget would help.
+    _, truth = toy_files
+    ids = [f"t{i:06d}" for i in range(400)]
+    write_batch(toy_ws, 1, ids, [0] * 400)
+    res = tmp_path / "r1.parquet"
+    ok(runner, "simulate", toy_ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
+    ok(runner, "ingest-results", "-w", toy_ws, res)
+    before = tree_hash(toy_ws)
+    r = invoke(runner, "select", "-w", toy_ws, "--strategy", "random", "--budget", "3")
+    assert r.exit_code == 1, r.output
+    assert r.stderr.strip() == (
+        "error: select: no segment is left to run at level 0; ingest the pending results, "
+        "pass --include-observed to run segments again, --retry-abandoned to offer abandoned "
+        "runs, or add segments (embed-reduce --apply)"
     )
     assert tree_hash(toy_ws) == before
 

@@ -78,6 +78,7 @@ def level_split(
     With ``capacity``, level l gets at most capacity[l] picks: a level whose segments have
     all been run (a small pool's cheap level, after a few batches) cannot spend its share,
     and what it leaves goes, by the same greedy rule, to the levels that can still be run.
+    A level whose share is 0 gets nothing, leftover included.
     Without it a batch of budget 1 on a pool whose cheap runs were all made was refused as
     "nothing fits", and a larger one spent only level 0's share.
 
@@ -120,6 +121,8 @@ def level_split(
     )
     used = [float(c) for c, k in zip(c_arr, counts, strict=True) for _ in range(k)]
     for lev in np.argsort(-c_arr, kind="stable"):
+        if w[lev] == 0:  # a level given no share is not run (--level0-share 1: level 0 only)
+            continue
         while counts[lev] < cap[lev] and math.fsum([*used, float(c_arr[lev])]) <= budget:
             used.append(float(c_arr[lev]))
             counts[lev] += 1
@@ -218,7 +221,52 @@ def pick_uniform(
             level0 = pick
         idx_out.append(pick)
         lev_out.append(np.full(len(pick), lev, dtype=np.int64))
+    if mixed:
+        # Capacity is an upper bound where cheap levels share their unpaired segments: a
+        # level may have drawn fewer than it was given. What it left buys runs of the
+        # levels with segments still free, most expensive first, as level_split would.
+        _top_up(idx_out, lev_out, c_arr, budget, level_shares, free0, excluded_pairs, rng)
     return np.concatenate(idx_out), np.concatenate(lev_out)
+
+
+def _top_up(
+    idx_out: list[IntArray],
+    lev_out: list[IntArray],
+    c_arr: FloatArray,
+    budget: float,
+    level_shares: Sequence[float] | None,
+    free0: BoolArray,
+    excluded_pairs: BoolArray | None,
+    rng: np.random.Generator,
+) -> None:
+    """Spend on free segments what ``pick_uniform``'s levels could not draw (in place).
+
+    A level's new picks may be any segment free at that level and not yet picked at it.
+    Draws nothing (and takes nothing from ``rng``) when no level has a free segment the
+    leftover buys, the common case, so batches drawn before it existed are drawn again
+    unchanged.
+    """
+    used = [float(c_arr[lev]) for lev_arr in lev_out for lev in lev_arr]
+    shares = np.ones(len(c_arr)) if level_shares is None else np.asarray(level_shares, float)
+    for lev in np.argsort(-c_arr, kind="stable"):
+        if shares[lev] == 0 or math.fsum([*used, float(c_arr[lev])]) > budget:
+            continue
+        if lev == 0:
+            free = free0.copy()
+        elif excluded_pairs is None:
+            free = np.ones(free0.size, dtype=bool)
+        else:
+            free = ~excluded_pairs[:, lev]
+        for idx, lv in zip(idx_out, lev_out, strict=True):
+            free[idx[lv == lev]] = False
+        pool = np.flatnonzero(free)
+        k = 0
+        while k < len(pool) and math.fsum([*used, float(c_arr[lev])]) <= budget:
+            used.append(float(c_arr[lev]))
+            k += 1
+        if k:
+            idx_out.append(rng.choice(pool, size=k, replace=False).astype(np.int64))
+            lev_out.append(np.full(k, lev, dtype=np.int64))
 
 
 def difficulty_weights(

@@ -47,7 +47,7 @@ from bams_cli.state.io import (
     read_state,
     transaction,
 )
-from bams_cli.state.workspace import Workspace
+from bams_cli.state.workspace import Workspace, stale_log
 
 if TYPE_CHECKING:
     from bams_cli.core.estimate import RateEstimates
@@ -979,10 +979,12 @@ def estimate_compute(
     at_plan = meta.get("gp_at_plan")
     if not model["fresh"] and (exact_variance or at_plan is None):
         why = "--exact-variance" if exact_variance else f"{path} (made by an older version)"
+        fitted = int(sum(model.get("n_observations_per_level", [])))
         raise StaleStateError(
-            f"{ws.model_path}: fitted on an older observation log and {why} needs the current "
-            f"one; run `bams-cli fit -w {ws.root}` (or, faster, `bams-cli fit -w {ws.root} "
-            f"--fixed-hyperparameters {ws.model_path}`: condition only, no training)"
+            f"{ws.model_path}: {stale_log(fitted, ws.read_observations().height)}, and {why} "
+            f"needs a model of the current one; run `bams-cli fit -w {ws.root}` (or, faster, "
+            f"`bams-cli fit -w {ws.root} --fixed-hyperparameters {ws.model_path}`: condition "
+            "only, no training)"
         )
     if model["fresh"]:
         _, mu, sd, p_all = read_scores(ws, len(gammas))

@@ -39,7 +39,8 @@ def ingest_results(
     ``fidelity`` (the level's number or its name in settings). A row whose status is
     neither empty nor ok (e.g. crashed) is not ingested: its request stays pending
     (``bams_cli.abandon.ingest_results_abandoning_failed`` records it as abandoned
-    instead). Re-ingesting the same file changes nothing.
+    instead); one that carries a value anyway is refused. Re-ingesting the same file
+    changes nothing.
 
     Parameters
     ----------

@@ -249,32 +249,48 @@ def _copy_handoff_if_needed(csv: Path, out: Path) -> bool:
 def _nothing_fits(
     budget: float,
     costs: NDArray[np.float64],
-    seen: NDArray[np.bool_],
-    unavailable: NDArray[np.bool_],
-    include_observed: bool,
+    n_usable: int,
+    done: NDArray[np.bool_],
 ) -> str:
     """Why a batch came out empty: the budget, or no segment left at the levels it buys.
 
-    A level the budget buys whose every segment was run (or awaits results, or was
-    abandoned) cannot be picked; the message names the level and what would help, not the
-    cost of a level that has nothing left.
+    Parameters
+    ----------
+    budget : float
+    costs : ndarray of shape (L + 1,)
+        Every level's cost.
+    n_usable : int
+        How many levels the strategy picks from (1: level 0 only).
+    done : bool ndarray of shape (n_pool, L + 1)
+        The (segment, level) pairs select may not pick: with a result (unless
+        --include-observed), awaiting one, or abandoned (unless --retry-abandoned).
+
+    A level the budget buys with no segment left cannot be picked; the message names the
+    level and what would help, not the cost of a level that has nothing left.
     """
-    done = unavailable if include_observed else unavailable | seen
     left = (~done).sum(axis=0)
-    affordable = [lev for lev in range(len(costs)) if costs[lev] <= budget]
-    open_levels = [lev for lev in range(len(costs)) if left[lev] > 0]
+    levels = range(n_usable)
+    affordable = [lev for lev in levels if costs[lev] <= budget]
+    open_levels = [lev for lev in levels if left[lev] > 0]
     if any(lev in open_levels for lev in affordable) or not affordable:
         return (
-            f"select: nothing fits budget {budget:g} (cheapest level costs {costs.min():g}); "
-            "raise --budget"
+            f"select: nothing fits budget {budget:g} (cheapest level costs "
+            f"{costs[:n_usable].min():g}); raise --budget"
         )
+    # Every segment at the levels the budget buys has a result, awaits one or was abandoned.
+    remedy = (
+        "ingest the pending results, pass --include-observed to run segments again, "
+        "--retry-abandoned to offer abandoned runs, or add segments (embed-reduce --apply)"
+    )
     spent = " and ".join(f"level {lev} (cost {costs[lev]:g})" for lev in affordable)
     if not open_levels:
-        return f"select: every segment has been run at every level, {spent} included"
+        where = "level 0" if n_usable == 1 else "every level the strategy picks"
+        return f"select: no segment is left to run at {where}; {remedy}"
     cheapest = min(open_levels, key=lambda lev: costs[lev])
+    n = int(left[cheapest])
     return (
-        f"select: budget {budget:g} buys only {spent}, where every segment has been run; "
-        f"level {cheapest} has {int(left[cheapest])} segments left at cost "
+        f"select: budget {budget:g} buys only {spent}, where no segment is left to run; "
+        f"level {cheapest} has {n} segment{'' if n == 1 else 's'} left at cost "
         f"{costs[cheapest]:g}: raise --budget to at least {costs[cheapest]:g}"
     )
 
@@ -630,7 +646,8 @@ def select(
 
     k = len(picks["index"])
     if k == 0:
-        raise WorkspaceError(_nothing_fits(budget, costs, seen, gone | waiting, include_observed))
+        done = gone | waiting if include_observed else gone | waiting | seen
+        raise WorkspaceError(_nothing_fits(budget, costs, len(usable), done))
     cols: dict[str, Any] = contract.contract_columns(
         "batch",
         number,

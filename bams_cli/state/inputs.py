@@ -290,7 +290,8 @@ def read_results(
     ``request_id`` (segment_id and fidelity may then be left out, and must agree with the
     request when given) or by segment_id and fidelity. Rows whose ``status`` is neither
     empty nor ``ok`` (``crashed``, ``skipped``) say why there is no value: they are set
-    aside, and their requests stay pending. Every bad row is named.
+    aside, and their requests stay pending; such a row that carries a value anyway is
+    refused. Every bad row is named.
     """
     rid_col = contract.REQUEST_ID
     table = read_table(path, what="results")
@@ -360,21 +361,27 @@ def read_results(
     # and one a team falls into: "failed" or "passed" written for the system's outcome
     # (a failure is a value at or below gamma). Setting such rows aside as not run lost
     # their values, and --abandon-failed abandoned exactly the failures.
-    if "value" in df.columns:
+    # (Every file has a value column: keyed by request_id or by segment, it must.)
+    if df.schema["value"] == pl.String:  # text: any but blank or a spelling of NaN
+        text = pl.col("value").str.strip_chars().str.to_lowercase()
+        has_value = text.is_not_null() & ~text.is_in(["", "nan", "-nan", "+nan", "na", "n/a"])
+    else:
         value = pl.col("value").cast(pl.Float64, strict=False)
-        both = df.filter(not_run & value.is_not_null() & value.is_finite())
-        if both.height:
-            first = both.row(0, named=True)
-            raise InputError(
-                path,
-                f"status {shown(first['status'])} says the run made no result, but the row "
-                f"has value {shown(first['value'])} ({both.height} such rows); for a run "
-                "that was made leave status empty or write ok (a failure of the system is "
-                "a value at or below gamma, not a status), for one that was not leave "
-                "value empty",
-                column="status",
-                row=int(first["_row"]),
-            )
+        has_value = value.is_not_null() & value.is_finite()
+    both = df.filter(not_run & has_value)
+    if both.height:
+        first = both.row(0, named=True)
+        raise InputError(
+            path,
+            f"status {shown(first['status'])} says the run made no result, but the row "
+            f"has value {shown(first['value'])} ({both.height} such "
+            f"{'row' if both.height == 1 else 'rows'}); for a run "
+            "that was made leave status empty or write ok (a failure of the system is "
+            "a value at or below gamma, not a status), for one that was not leave "
+            "value empty",
+            column="status",
+            row=int(first["_row"]),
+        )
     skipped = df.filter(not_run).select(
         "_row", pl.col(rid_col).cast(pl.String), pl.col(SID).cast(pl.String),
         pl.col("fidelity").cast(pl.String), pl.col("status").cast(pl.String),

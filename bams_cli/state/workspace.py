@@ -348,7 +348,8 @@ class Workspace:
         except BamsError:  # damaged settings: their own error comes from the command
             n_levels = 1
         mixed = " --mixed-fidelity" if n_levels > 1 else ""
-        return f"bams-cli select -w {self.root} --strategy random{mixed} --budget {BUDGET:g}"
+        w = shlex.quote(str(self.root))  # a command to paste or run (status --json's next)
+        return f"bams-cli select -w {w} --strategy random{mixed} --budget {BUDGET:g}"
 
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:

@@ -85,6 +85,32 @@ def test_level_split_gives_a_full_level_s_share_to_the_levels_that_can_still_run
         level_split([1.0, 0.1], 4.0, capacity=[-1, 3])
 
 
+def test_level_split_gives_a_level_with_no_share_nothing():
+    # --level0-share 1 asks for level 0 only: a full level 0 leaves the rest unspent rather
+    # than spending it on the cheap level.
+    assert level_split([1.0, 0.1], 5.0, shares=[1, 0], capacity=[2, 100]).tolist() == [2, 0]
+    assert level_split([1.0, 0.25], 4.5, shares=[1, 0]).tolist() == [4, 0]
+
+
+def test_mixed_uniform_spends_what_a_shared_cheap_pool_could_not_take():
+    # Two cheap levels free on the same 20 segments: the split gave each 20 picks, the
+    # second drew none (its unpaired segments were the first's), and a level-0 run went
+    # unbought (cost 4 of budget 5).
+    n, costs = 400, np.array([1.0, 0.1, 0.05])
+    excluded = np.zeros((n, 3), dtype=bool)
+    excluded[20:, 1:] = True
+    idx, lev = pick_uniform(
+        n, costs, 5.0, rng=np.random.default_rng(0), mixed=True, excluded_pairs=excluded
+    )
+    assert math.fsum(costs[lev]) <= 5.0 and 5.0 - math.fsum(costs[lev]) < costs.min()
+    assert not excluded[idx, lev].any()
+    for level in range(3):  # no segment twice at one level
+        assert len(set(idx[lev == level])) == (lev == level).sum()
+    # Where every level drew its count, nothing more: the split's own counts.
+    _, lev = pick_uniform(n, [1.0, 0.1], 5.0, rng=np.random.default_rng(1), mixed=True)
+    assert np.bincount(lev).tolist() == level_split([1.0, 0.1], 5.0).tolist() == [2, 30]
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     costs=st.lists(st.floats(0.01, 1.0), min_size=1, max_size=3).map(lambda c: [1.0, *c[1:]]),
