@@ -6,10 +6,10 @@ writes nothing, so it runs beside any other command; run during another command'
 it shows the state just before or just after it.
 
 The next step follows the loop: a pool (``embed-reduce``), a first batch
-(``Workspace.first_batch_command``: random, at every level), its results (``ingest-results``), a model of them (``fit``), the next
-batch (``select``) ... Once an estimate plan is newer than the newest batch the study is
-estimating: results for the plan, ``estimate``, a ``fit`` that includes them, ``report``;
-then nothing is left to do.
+(``Workspace.first_batch_command``: random, at every level), its results
+(``ingest-results``), a model of them (``fit``), the next batch (``select``) ... Once an
+estimate plan is newer than the newest batch the study is estimating: results for the plan,
+``estimate``, a ``fit`` that includes them, ``report``; then nothing is left to do.
 """
 
 from __future__ import annotations

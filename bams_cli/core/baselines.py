@@ -78,9 +78,9 @@ def level_split(
     With ``capacity``, level l gets at most capacity[l] picks: a level whose segments have
     all been run (a small pool's cheap level, after a few batches) cannot spend its share,
     and what it leaves goes, by the same greedy rule, to the levels that can still be run.
-    A level whose share is 0 gets nothing, leftover included.
     Without it a batch of budget 1 on a pool whose cheap runs were all made was refused as
-    "nothing fits", and a larger one spent only level 0's share.
+    "nothing fits", and a larger one spent only level 0's share. A level whose share is 0
+    gets nothing, leftover included.
 
     Parameters
     ----------

@@ -519,6 +519,8 @@ def select(
     # BAMS greedy is conditioned on them. Their results land under the batch that asked.
     waiting = _pending_mask(ws, ids, settings.n_levels, pend)
     exclude = exclude | gone[:, 0] | waiting[:, 0]
+    # The (segment, level) pairs a baseline may not pick, and an empty batch's explanation.
+    done = (gone | waiting) if include_observed else (gone | waiting | seen)
     model_hash = None
     j_before = j_after = None
     timings: dict[str, float] = {}
@@ -633,7 +635,7 @@ def select(
             level_shares=shares,
             # A cheap level's picks only where that level can still be run: the picks the
             # filter below would drop are never drawn, so the batch spends its budget.
-            excluded_pairs=(gone | waiting) if include_observed else (gone | waiting | seen),
+            excluded_pairs=done,
         )
         keep = ~(gone | waiting)[np.asarray(index, np.int64), np.asarray(level, np.int64)]
         index, level = np.asarray(index)[keep], np.asarray(level)[keep]
@@ -646,7 +648,6 @@ def select(
 
     k = len(picks["index"])
     if k == 0:
-        done = gone | waiting if include_observed else gone | waiting | seen
         raise WorkspaceError(_nothing_fits(budget, costs, len(usable), done))
     cols: dict[str, Any] = contract.contract_columns(
         "batch",
