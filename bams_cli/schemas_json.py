@@ -23,7 +23,7 @@ DIALECT = "https://json-schema.org/draft/2020-12/schema"
 VERSIONS: dict[str, int] = {
     "init": 1,
     "embed-reduce": 1,
-    "ingest-results": 1,
+    "ingest-results": 2,
     "simulate": 1,
     "fit": 1,
     "select": 1,
@@ -244,7 +244,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                                 {
                                     "request_id": nullable(STR),
                                     "segment_id": nullable(STR),
-                                    "fidelity": nullable(STR),
+                                    "fidelity": nullable(COUNT),
                                 },
                             )
                         ),

@@ -223,6 +223,8 @@ def test_rows_marked_not_run_stay_pending(named_ws, runner, tmp_path):
     assert summary["not_run"]["count"] == 1
     assert summary["not_run"]["first"][0]["request_id"] == t["request_id"][0]
     assert summary["not_run"]["first"][0]["status"] == "crashed"
+    # The level as a number, as every other list of runs in --json gives it (was "1").
+    assert summary["not_run"]["first"][0]["fidelity"] == t["fidelity"][0]
     assert summary["pending"]["count"] == 1
     # The same file again is a no-op that still names the run as not run, while it is...
     again = json.loads(ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout)
@@ -280,6 +282,27 @@ def test_a_value_beside_a_not_run_status_is_refused(named_ws, runner, tmp_path, 
         ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout
     )
     assert summary["ingested"] == t.height - 2 and summary["not_run"]["count"] == 2
+
+
+def test_not_run_rows_keyed_by_segment_give_their_level_as_a_number(named_ws, runner, tmp_path):
+    # A team without request ids names each run by segment and level name; the rows it
+    # marks as not run come back with the level's number, as every other list gives it.
+    ws, truth = named_ws
+    batch = _select(runner, ws)
+    t = _fill_template(batch, truth, tmp_path / "r.csv", ["segment_id", "fidelity", "value"])
+    names = [LEVELS[f] for f in t["fidelity"]]
+    status = ["crashed"] + ["ok"] * (t.height - 1)
+    value = [None, *t["value"][1:]]
+    t.with_columns(
+        pl.Series("fidelity", names), pl.Series("status", status), pl.Series("value", value)
+    ).write_csv(tmp_path / "r.csv")
+    summary = json.loads(
+        ok(runner, "ingest-results", "-w", ws, tmp_path / "r.csv", "--json").stdout
+    )
+    (row,) = summary["not_run"]["first"]
+    assert row["segment_id"] == t["segment_id"][0]
+    assert row["fidelity"] == t["fidelity"][0] and isinstance(row["fidelity"], int)
+    assert row["request_id"] is None
 
 
 def test_a_not_run_row_whose_retry_came_first_is_not_pending(named_ws, runner, tmp_path):

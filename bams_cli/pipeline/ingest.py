@@ -228,7 +228,8 @@ def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> 
     """The rows a results file marked as not run whose (segment, level) is still pending.
 
     A row names its request by request_id, or by segment_id and fidelity (a number or a
-    level name). One whose run has a result since (its retry ingested first, or this file
+    level name); the rows come back with ``fidelity`` as a level number (null where the row
+    names no configured level). One whose run has a result since (its retry ingested first, or this file
     ingested again after it) is not reported as "stays pending": a re-ingest had said "12
     rows not run ... stay pending" beside "nothing pending". A fidelity that names no level
     compares by segment alone.
@@ -243,12 +244,17 @@ def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> 
     pairs = set(waiting.iter_rows())
     segments = set(waiting[SID].to_list())
     by_name = {lv.name: i for i, lv in enumerate(settings.levels)}
-    keep = []
+    keep, levels = [], []
     for rid, sid, fid in not_run.select(REQUEST_ID, SID, "fidelity").iter_rows():
         level: int | None
         if rid is not None and rid.strip() in req:
             sid, level = req[rid.strip()]
         else:
             level = _level_of(fid, by_name) if fid is not None else None
+            if level is not None and not 0 <= level < len(settings.levels):
+                level = None
         keep.append((sid, level) in pairs if level is not None else sid in segments)
+        levels.append(level)
+    # The level as a number, as every other list of runs gives it (null: none named).
+    not_run = not_run.with_columns(pl.Series("fidelity", levels, dtype=pl.Int64))
     return not_run.filter(pl.Series(keep, dtype=pl.Boolean))
