@@ -258,6 +258,14 @@ INGEST_CASES = [
     Case("results-no-fidelity-column", _parquet({"segment_id": [P0], "value": [1.0]}), R,
          "missing required column(s) 'fidelity'; key each result by request_id",
          column="fidelity"),
+    # A column the file spells another way is named, with the rename that fixes it.
+    Case("results-value-capitalised", _csv(f"segment_id,fidelity,Value\n{P0},0,1\n"), RC,
+         "found 'segment_id', 'fidelity', 'Value'; rename 'Value' to 'value' (column names "
+         "are exact)", column="value"),
+    Case("results-id-spaced", _csv(f"segment id,fidelity,value\n{P0},0,1\n"), RC,
+         "key each result by request_id (from the hand-off list), or by segment_id and "
+         "fidelity; rename 'segment id' to 'segment_id' (column names are exact)",
+         column="segment_id"),
     Case("results-header-only", _csv(HEADER), RC, "has no rows; nothing to ingest"),
     Case("results-zero-bytes", _csv(b""), RC, "cannot read as CSV (Empty CSV file"),
     Case("results-junk-parquet", _csv(b"PAR1 junk", name="r.parquet"),
@@ -331,6 +339,10 @@ EMBED_CASES = [
          "segment id b'a' is of type binary", column="segment_id", row=1),
     Case("segments-id-duplicate", _segments(_xy(segment_id=["a", "b", "a"]), *COLS), S,
          "segment id 'a' appears again (first at row 1)", column="segment_id", row=3),
+    Case("segments-id-column-spelled-otherwise",
+         _segments({"Segment ID": ["a", "b"], "x0": [0.0, 1.0]}, *COLS), S,
+         "no id column 'segment_id'; found Segment ID, x0 (choose it with --id-column, e.g. "
+         "--id-column 'Segment ID')", column="segment_id"),
     Case("segments-id-null", _segments(_xy(segment_id=["a", None, "c"]), *COLS), S,
          "segment id is missing", column="segment_id", row=2),
     Case("segments-id-long-duplicate", _segments(_xy(segment_id=[LONG, "b", LONG]), *COLS), S,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import shlex
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     first_valid,
+    near_miss,
+    near_misses,
     read_table,
     require_columns,
     require_id_column,
@@ -42,6 +45,12 @@ SID = schemas.SEGMENT_ID
 # ---------------------------------------------------------------------------------------
 # embed-reduce
 # ---------------------------------------------------------------------------------------
+def _id_hint(id_column: str, names: list[str]) -> str:
+    """ ", e.g. --id-column 'Segment ID'" when a column looks like the id one."""
+    like = near_miss(id_column, names)
+    return "" if like is None else f", e.g. --id-column {shlex.quote(like)}"
+
+
 def embedding_layout(
     schema: pa.Schema,
     source: Path,
@@ -59,7 +68,8 @@ def embedding_layout(
     if id_column not in schema.names:
         raise SchemaError(
             source,
-            f"no id column {id_column!r}; found {', '.join(schema.names)} (choose it with --id-column)",
+            f"no id column {id_column!r}; found {', '.join(schema.names)} (choose it with "
+            f"--id-column{_id_hint(id_column, schema.names)})",
             column=id_column,
         )
     if fitted_columns:
@@ -305,7 +315,8 @@ def read_results(
         raise SchemaError(
             path,
             f"missing required column(s) {', '.join(map(repr, missing))}; key each result by "
-            f"request_id (from the hand-off list), or by segment_id and fidelity",
+            f"request_id (from the hand-off list), or by segment_id and fidelity"
+            + near_misses([*missing, rid_col], table.column_names),
             column=missing[0],
         )
     else:

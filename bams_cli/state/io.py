@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import contextvars
 import datetime as dt
+import difflib
 import hashlib
 import json
 import os
 import shlex
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -423,9 +424,34 @@ def require_columns(table: pa.Table, columns: list[str], source: object) -> None
         raise SchemaError(
             source,
             f"missing required column(s) {', '.join(map(repr, missing))}; "
-            f"found {', '.join(map(repr, table.column_names))}",
+            f"found {', '.join(map(repr, table.column_names))}"
+            + near_misses(missing, table.column_names),
             column=missing[0],
         )
+
+
+def _plain(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def near_miss(want: str, found: list[str], taken: Sequence[str] = ()) -> str | None:
+    """The column of ``found`` that spells ``want`` another way (case, spaces, dashes, or
+    a close misspelling), if one does; ``taken`` names are never offered."""
+    other = [f for f in found if f != want and f not in taken]
+    like = [f for f in other if _plain(f) == _plain(want)]
+    like = like or difflib.get_close_matches(want, other, n=1, cutoff=0.75)
+    return like[0] if like else None
+
+
+def near_misses(wanted: list[str], found: list[str]) -> str:
+    """ "; rename 'Value' to 'value'" for each wanted column the file spells another way,
+    or "" when none looks like one."""
+    pairs = [
+        f"{like!r} to {want!r}"
+        for want in wanted
+        if (like := near_miss(want, found, wanted)) is not None
+    ]
+    return f"; rename {', '.join(pairs)} (column names are exact)" if pairs else ""
 
 
 def is_id_type(t: pa.DataType) -> bool:
