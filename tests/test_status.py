@@ -291,6 +291,24 @@ def test_a_batch_s_cost_is_summed_without_rounding_error(tmp_path):
     assert (batch["picks"], batch["cost"]) == (200, 20.0)
 
 
+@pytest.mark.parametrize(("n", "costs"), [(4, "1,0.1"), (4, "1"), (3, "1,0.3,0.07")])
+def test_the_first_batch_command_runs_on_a_pool_smaller_than_its_budget(tmp_path, n, costs):
+    # Four segments at levels of cost 1 and 0.1 buy 4.4: the named `--budget 5` was refused
+    # ("buys more simulations than the pool has").
+    seg, _ = write_toy(tmp_path / "data", n=n, seed=1)
+    ws = tmp_path / "ws"
+    runner = CliRunner()
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", costs, "--dim", "2")
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    command = json.loads(invoke(runner, "status", "-w", ws, "--json").stdout)["next"]["command"]
+    everything = n * sum(float(c) for c in costs.split(","))
+    assert command.endswith(f"--budget {everything:g}")
+    args = command.split()[1:]
+    batch = json.loads(ok(runner, *args, "--json").stdout)
+    assert batch["picks"] == n * len(costs.split(","))
+
+
 def test_a_partly_answered_list_offers_abandon_for_runs_that_never_come_back(study, tmp_path):
     # Runs that crashed for good stop the study until they are abandoned; a list with no
     # result yet is only waiting, and abandoning it is not offered.

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 import pyarrow as pa
+import pyarrow.parquet as pq
 
 from bams_cli.defaults import BUDGET
 from bams_cli.errors import BamsError, SchemaError, StaleStateError, WorkspaceError
@@ -341,15 +342,22 @@ class Workspace:
 
     def first_batch_command(self) -> str:
         """The command that draws a study's first batch: random, over every level the
-        study has, so that the first model sees level-0 and cheap runs of the same segments.
+        study has, so that the first model sees level-0 and cheap runs of the same segments;
+        on a pool too small for the default budget, every segment at every level.
         ``status``, ``fit`` and ``select`` name this one command."""
         try:
-            n_levels = self.require_initialised().n_levels
+            costs = self.require_initialised().costs
         except BamsError:  # damaged settings: their own error comes from the command
-            n_levels = 1
-        mixed = " --mixed-fidelity" if n_levels > 1 else ""
+            costs = (1.0,)
+        mixed = " --mixed-fidelity" if len(costs) > 1 else ""
+        budget = float(BUDGET)
+        try:  # a pool smaller than the budget buys: every segment at every level it has
+            n = pq.ParquetFile(self.segments_path).metadata.num_rows
+            budget = min(budget, math.floor(n * sum(costs) * 1000) / 1000)
+        except (OSError, pa.ArrowException):  # no pool yet, or a damaged one
+            pass
         w = shlex.quote(str(self.root))  # a command to paste or run (status --json's next)
-        return f"bams-cli select -w {w} --strategy random{mixed} --budget {BUDGET:g}"
+        return f"bams-cli select -w {w} --strategy random{mixed} --budget {budget:g}"
 
     # ---- model ---------------------------------------------------------------------------
     def read_model(self) -> dict[str, Any]:
