@@ -238,7 +238,14 @@ INGEST_CASES = [
     Case("results-fidelity-2^63", _csv(HEADER + f"{P0},9223372036854775808,1\n"), RC,
          "is not a configured level", column="fidelity", row=1),
     Case("results-fidelity-name", _csv(HEADER + f"{P0},ultra,1\n"), RC,
-         "fidelity must be an integer level or a level name, got 'ultra'", column="fidelity", row=1),
+         "fidelity must be an integer level or a level name, got 'ultra'; known levels: "
+         "0 = 'high', 1 = 'low1'", column="fidelity", row=1),
+    Case("results-fidelity-name-case", _csv(HEADER + f"{P0},0,1\n{P1},LOW1,1\n"), RC,
+         "got 'LOW1'; known levels: 0 = 'high', 1 = 'low1' (names are exact: 'low1')",
+         column="fidelity", row=2),
+    Case("results-id-spaced-value", _csv(HEADER + f"{P0},0,1\n {P1} ,1,1\n"), RC,
+         f"segment id ' {P1} ' is not in the pool (1 unknown in all); the pool has '{P1}' "
+         "(ids are exact: write them as in the hand-off list)", column="segment_id", row=2),
     Case("results-fidelity-half", _parquet(_rows((P0, 0.5, 1.0))), R,
          "fidelity must be an integer level or a level name, got 0.5", column="fidelity", row=1),
     Case("results-duplicate-pair", _parquet(_rows(GOOD, (P1, 0, 1.0), GOOD)), R,

@@ -125,10 +125,20 @@ def ingest_results(
     unknown = results.filter(~pl.col(SID).is_in(pool_ids.implode()))
     if unknown.height:
         first = unknown.row(0, named=True)
+        # Ids are exact; one that is a pool id but for spaces or case says so, with the fix.
+        sid = str(first[SID])
+        like = pool_ids.filter(
+            (pool_ids == sid.strip()) | (pool_ids.str.to_lowercase() == sid.strip().lower())
+        )
+        fix = (
+            f"the pool has {shown(like[0])} (ids are exact: write them as in the hand-off list)"
+            if like.len()
+            else "add segments with `bams-cli embed-reduce --apply`"
+        )
         raise InputError(
             source,
             f"segment id {shown(first[SID])} is not in the pool ({unknown.height} unknown in all); "
-            f"add segments with `bams-cli embed-reduce --apply`",
+            + fix,
             column=SID,
             row=int(first["_row"]),
         )

@@ -186,10 +186,12 @@ def resolve_fidelity(
         for value, level, row in zip(values.to_list(), found, rows.to_list(), strict=True):
             if level is None:
                 got = "nothing" if value is None or str(value).strip() == "" else shown(value)
+                like = [n for n in names if n.lower() == str(value).strip().lower()]
+                exact = f" (names are exact: {like[0]!r})" if like and value is not None else ""
                 raise InputError(
                     path,
                     f"fidelity must be an integer level or a level name, got {got}; "
-                    f"known levels: {known}",
+                    f"known levels: {known}{exact}",
                     column="fidelity",
                     row=int(row),
                 )
