@@ -26,6 +26,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bams_cli.errors import shown
+from bams_cli.state.workspace import Workspace
 from tests.conftest import (
     STAGED_PLAN,
     invoke,
@@ -457,6 +458,40 @@ def _damaged_reducer(ws: Path, tmp: Path) -> list[object]:
 
 SELECT = ("select", "--budget", "2", "--clusters", "2", "--allow-pending", "--workers", "1")
 
+
+def _nan_at(key: str):
+    def edit(hp: dict) -> None:
+        hp[key] = [float("nan"), *hp[key][1:]]
+
+    return edit
+
+
+# A hand-edited model.json is refused by every command that reads the model, not only by
+# select: estimate --plan drew a plan from a NaN lengthscale, and report reached the
+# catch-all (a NaN outputscale even made --screen auto decide there was no cheap level).
+MODEL_EDITS = {
+    "nan-lengthscale": (_nan_at("lengthscales0"), "lengthscales0 must be finite and > 0, got [nan, "),
+    "nan-outputscale": (_nan_at("outputscales"), "outputscales must be finite and > 0, got [nan]"),
+    "negative-noise": (lambda hp: hp.update(noise=[-1.0, *hp["noise"][1:]]),
+                       "noise must be finite and >= 0, got [-1, "),
+    "mean-text": (lambda hp: hp.update(mean="abc"), "could not convert string to float: 'abc'"),
+    "lengthscales-for-another-d": (
+        lambda hp: hp.update(lengthscales0=[1.0, 1.0, 1.0],
+                             lengthscales=[[1.0, 1.0, 1.0] for _ in hp["outputscales"]]),
+        "they are for d = 3, the pool has d = 2"),
+}  # fmt: skip
+MODEL_READERS = {
+    "estimate-plan": ("estimate", *STAGED_PLAN, "--allow-pending"),
+    "estimate-screen": ("estimate", "--plan", "--screen", "0.3", "--allow-pending"),
+    "select": SELECT,
+}
+MODEL_CASES = [
+    Case(f"model-{edit}-{reader}", _edit_model(change, *command), "model.json",
+         f"damaged hyperparameters ({text}", fix="run `bams-cli fit -w {ws}` to write it again")
+    for edit, (change, text) in MODEL_EDITS.items()
+    for reader, command in MODEL_READERS.items()
+]  # fmt: skip
+
 STATE_CASES = [
     Case("settings-study-a-number", _edit_file("settings.toml", b"study = 5\n", "fit"),
          "settings.toml", "'study' must be a [study] table, got int 5"),
@@ -565,7 +600,7 @@ OPTION_CASES = [
          "--batches", "0"), "", "--batches 0: must be >= 1", code=2),
 ]  # fmt: skip
 
-CASES = [*ESTIMATE_CASES, *INGEST_CASES, *EMBED_CASES, *STATE_CASES, *OPTION_CASES]
+CASES = [*ESTIMATE_CASES, *INGEST_CASES, *EMBED_CASES, *STATE_CASES, *MODEL_CASES, *OPTION_CASES]
 
 
 def test_the_table_is_large_and_its_ids_unique():
@@ -592,6 +627,36 @@ def test_bad_input_is_one_line_naming_it_and_changes_nothing(case, template, tmp
     if case.fix is not None:
         assert lines[0].endswith(case.fix.replace("{ws}", str(ws))), lines[0]
     assert tree_hash(ws) == before
+
+
+@pytest.mark.parametrize("edit", list(MODEL_EDITS))
+def test_a_report_shows_a_damaged_model_as_unusable(template, tmp_path, edit):
+    # The report does not need the model (its estimate does not): it is written, opening
+    # with the model's damage and the command that mends it. It reached the catch-all
+    # ("Input X contains NaN"), or with a negative noise drew the model's picture from it.
+    ws = tmp_path / "ws"
+    shutil.copytree(template, ws)
+    change, text = MODEL_EDITS[edit]
+    _edit_model(change, "report")(ws, tmp_path)
+    r = invoke(CliRunner(), "report", "-w", ws)
+    assert r.exit_code == 0, r.output
+    assert "(unexpected" not in r.stderr and "Traceback" not in r.output
+    summary = json.loads((ws / "report" / "summary.json").read_text())
+    [notice] = [n for n in summary["notices"] if n["kind"] == "stale_model"]
+    assert f"damaged hyperparameters ({text}" in notice["text"]
+    assert notice["text"].endswith(f"run `bams-cli fit -w {ws}` to write it again")
+
+
+def test_fit_rewrites_a_model_whose_hyperparameters_were_damaged(template, tmp_path):
+    # The command every refusal names: a damaged model is not "up to date", whatever
+    # the log it says it was fitted on.
+    ws = tmp_path / "ws"
+    shutil.copytree(template, ws)
+    change, _ = MODEL_EDITS["nan-lengthscale"]
+    _edit_model(change, "fit")(ws, tmp_path)
+    r = ok(CliRunner(), "fit", "-w", ws, "--restarts", "1", "--json")
+    assert not json.loads(r.stdout).get("up_to_date")
+    Workspace(ws).require_fresh_model()  # readable again: no error
 
 
 def test_an_estimate_of_gammas_edited_since_is_reported_by_its_own_gamma(template, tmp_path):

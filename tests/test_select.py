@@ -130,8 +130,8 @@ def test_select_batch_is_a_stable_make_target(lead_ws, runner):
 @pytest.mark.parametrize(
     ("edit", "needle"),
     [
-        (lambda hp: hp.pop("noise"), "hyperparameters: missing key 'noise'"),
-        (lambda hp: hp.clear(), "hyperparameters: missing key"),
+        (lambda hp: hp.pop("noise"), "damaged hyperparameters (missing key 'noise')"),
+        (lambda hp: hp.clear(), "damaged hyperparameters (missing key"),
         (lambda hp: hp.update(lengthscales0=[-1.0, -1.0]), "lengthscales0 must be finite and > 0"),
         (lambda hp: hp["noise"].__setitem__(0, float("nan")), "noise must be finite and >= 0"),
         (lambda hp: hp.update(lengthscales0=[1.0] * 5), "cannot reshape"),
@@ -149,7 +149,8 @@ def test_a_hand_edited_model_is_named_with_the_command_that_rewrites_it(
     before = tree_hash(lead_ws)
     r = invoke(runner, "select", "-w", lead_ws, "--budget", "2", "--clusters", "2")
     assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
-    assert "model.json" in r.stderr and needle in r.stderr and "--force" in r.stderr
+    assert "model.json" in r.stderr and needle in r.stderr
+    assert r.stderr.strip().endswith(f"run `bams-cli fit -w {lead_ws}` to write it again")
     assert "unexpected" not in r.stderr and tree_hash(lead_ws) == before
 
 

@@ -89,20 +89,7 @@ def load_posterior(ws: Workspace, settings: Settings, ids: np.ndarray, X: np.nda
 
     model = ws.require_fresh_model()
     idx, lv, y = _training_data(ws, ids, X, settings.n_levels)
-    try:
-        hp = Hyperparameters.from_dict(model["hyperparameters"])
-        if hp.n_levels != settings.n_levels or hp.d != X.shape[1]:
-            raise ValueError(
-                f"they are for {hp.n_levels} levels and d = {hp.d}, the study has "
-                f"{settings.n_levels} levels and d = {X.shape[1]}"
-            )
-    except (KeyError, ValueError, TypeError) as exc:
-        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
-        raise InputError(
-            ws.model_path,
-            f"hyperparameters: {what.removeprefix('Hyperparameters: ')}; rewrite it with "
-            f"`bams-cli fit -w {ws.root} --force`",
-        ) from None
+    hp = Hyperparameters.from_dict(model["hyperparameters"])  # checked by read_model
     g = model_transform(ws, model)
     # Condition as fit did: its memory budget decides exact or the same subset (older
     # models, without the record, conditioned exactly on all). A subset is rebuilt from

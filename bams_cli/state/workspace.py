@@ -31,6 +31,7 @@ import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from bams_cli.core.hyperparameter_values import checked_dict
 from bams_cli.defaults import BUDGET
 from bams_cli.errors import BamsError, SchemaError, StaleStateError, WorkspaceError
 from bams_cli.settings import SETTINGS_FILE, Settings, load_settings
@@ -380,7 +381,36 @@ class Workspace:
                 f"{self.model_path}: damaged (not a model written by fit); "
                 f"run `bams-cli fit -w {self.root}` to write it again"
             )
+        self._check_hyperparameters(model["hyperparameters"])
         return model
+
+    def _check_hyperparameters(self, hyperparameters: dict[str, Any]) -> None:
+        """Refuse a model.json whose hyperparameters no fit wrote (NaN, a negative noise, a
+        lengthscale per dimension the pool does not have): every reader of the model, not
+        only ``select``, names the file and the command that rewrites it."""
+        try:
+            hp = checked_dict(hyperparameters)
+            wrong = []
+            n_levels, hp_d = hp["noise"].size, hp["lengthscales0"].size
+            try:
+                levels = self.require_initialised().n_levels
+                if n_levels != levels:
+                    wrong.append(f"{n_levels} levels, the study has {levels}")
+            except BamsError:  # damaged settings: their own error comes from the command
+                pass
+            if self.segments_path.exists():
+                d = len(self.coordinate_columns())
+                if hp_d != d:
+                    wrong.append(f"d = {hp_d}, the pool has d = {d}")
+            if wrong:
+                raise ValueError(f"they are for {' and '.join(wrong)}")
+        except (KeyError, ValueError, TypeError) as exc:
+            what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise StaleStateError(
+                f"{self.model_path}: damaged hyperparameters ("
+                f"{what.removeprefix('Hyperparameters: ')}); run `bams-cli fit -w {self.root}` "
+                "to write it again"
+            ) from None
 
     def require_fresh_model(self) -> dict[str, Any]:
         """The model, refusing it if the observation log changed since it was fitted."""

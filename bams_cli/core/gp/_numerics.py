@@ -11,6 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor
 
+from bams_cli.core.hyperparameter_values import MAX_SCALE
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -23,9 +25,6 @@ class GPFitError(ValueError):
     """The GP cannot be built from these observations or hyperparameters."""
 
 
-#: Largest sd of the observed values the model accepts: natural-unit variances are
-#: sd^2 times standardised ones, and beyond this they overflow a float64.
-MAX_SCALE = 1e150
 #: Smallest non-zero sd accepted: below it the natural-unit variances (sd^2 times the
 #: standardised ones) underflow to 0 and the model has no scale at all.
 MIN_SCALE = 1e-150

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from bams_cli.core.gp._numerics import MAX_SCALE, FloatArray
+from bams_cli.core.gp._numerics import FloatArray
+from bams_cli.core.hyperparameter_values import checked, checked_dict
 
 
 @dataclass(frozen=True)
@@ -44,63 +44,20 @@ class Hyperparameters:
     offsets: FloatArray | None = None
 
     def __post_init__(self) -> None:
-        ell0 = np.array(self.lengthscales0, dtype=np.float64).reshape(-1)
-        d = ell0.size
-        s = np.array(self.outputscales, dtype=np.float64).reshape(-1)
-        ell = np.array(self.lengthscales, dtype=np.float64)
-        if ell.size != s.size * d:
-            raise ValueError(
-                f"Hyperparameters: lengthscales has shape {ell.shape}, expected (L, d) = "
-                f"({s.size}, {d}) from outputscales and lengthscales0"
-            )
-        ell = ell.reshape(s.size, d)
-        noise = np.array(self.noise, dtype=np.float64).reshape(-1)
-        if noise.size != s.size + 1:
-            raise ValueError(
-                f"Hyperparameters: noise has {noise.size} entries but outputscales has "
-                f"{s.size}; expected one noise variance per level (L + 1 = {s.size + 1})"
-            )
-        positive = {
-            "outputscale0": np.array([self.outputscale0], dtype=np.float64),
-            "lengthscales0": ell0,
-            "outputscales": s,
-            "lengthscales": ell,
-        }
-        for name, value in positive.items():
-            if not np.all(np.isfinite(value) & (value > 0)):
-                raise ValueError(f"Hyperparameters: {name} must be finite and > 0, got {value}")
-        # Noise 0 is allowed for fixed hyperparameters (tests, noise-free what-ifs); the
-        # fit never produces it.
-        if not np.all(np.isfinite(noise) & (noise >= 0)):
-            raise ValueError(f"Hyperparameters: noise must be finite and >= 0, got {noise}")
-        offsets = (
-            np.zeros(s.size)
-            if self.offsets is None
-            else np.array(self.offsets, dtype=np.float64).reshape(-1)
+        values = checked(
+            mean=self.mean,
+            outputscale0=self.outputscale0,
+            lengthscales0=self.lengthscales0,
+            outputscales=self.outputscales,
+            lengthscales=self.lengthscales,
+            noise=self.noise,
+            offsets=self.offsets,
         )
-        if offsets.size != s.size or not np.all(np.isfinite(offsets)):
-            raise ValueError(
-                f"Hyperparameters: offsets must be {s.size} finite numbers (one per level >= 1), "
-                f"got {offsets}"
-            )
-        if not (math.isfinite(float(self.mean)) and abs(float(self.mean)) <= MAX_SCALE):
-            raise ValueError(
-                f"Hyperparameters: mean must be finite and within +-{MAX_SCALE:g}, got {self.mean}"
-            )
-        if np.any(np.abs(offsets) > MAX_SCALE):
-            raise ValueError(f"Hyperparameters: offsets must be within +-{MAX_SCALE:g}")
         # Frozen means frozen: store float64 copies and make them read-only.
-        object.__setattr__(self, "mean", float(self.mean))
-        object.__setattr__(self, "outputscale0", float(self.outputscale0))
-        for name, arr in [
-            ("lengthscales0", ell0),
-            ("outputscales", s),
-            ("lengthscales", ell),
-            ("noise", noise),
-            ("offsets", offsets),
-        ]:
-            arr.setflags(write=False)
-            object.__setattr__(self, name, arr)
+        for name, value in values.items():
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
 
     @property
     def n_levels(self) -> int:
@@ -148,18 +105,7 @@ class Hyperparameters:
             As written by ``to_dict``. ``lengthscales`` may be ``[]`` when L = 0;
             ``offsets`` may be missing (models written before levels had offsets).
         """
-        ell0 = np.asarray(d["lengthscales0"], dtype=np.float64)
-        s = np.asarray(d["outputscales"], dtype=np.float64)
-        ell = np.asarray(d["lengthscales"], dtype=np.float64).reshape(s.size, ell0.size)
-        return cls(
-            mean=float(d["mean"]),
-            outputscale0=float(d["outputscale0"]),
-            lengthscales0=ell0,
-            outputscales=s,
-            lengthscales=ell,
-            noise=np.asarray(d["noise"], dtype=np.float64),
-            offsets=None if d.get("offsets") is None else np.asarray(d["offsets"], np.float64),
-        )
+        return cls(**checked_dict(d))
 
 
 def _pack(hp: Hyperparameters) -> FloatArray:
