@@ -17,16 +17,19 @@ so, then ``defaults``.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import functools
 import inspect
 import os
 import re
 import shlex
+import signal
 import sys
+import threading
 import typing
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -198,6 +201,38 @@ def _reflow(doc: str) -> str:
     return "\n\n".join(" ".join(line.strip() for line in p.splitlines()) for p in paragraphs)
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a CI job's timeout, a closed terminal) stopped a command; it
+    ends as Ctrl-C does, files being written discarded, with exit code 128 + the signal."""
+
+    def __init__(self, signum: int) -> None:
+        name = signal.Signals(signum).name
+        super().__init__(f"stopped by {name}; files being written were discarded")
+        self.exit_code = 128 + signum
+
+
+@contextlib.contextmanager
+def _stopped_by_signals() -> Iterator[None]:
+    """For a command's time, SIGTERM and SIGHUP raise ``Stopped`` where Python's default
+    would end the process on the spot: the lock left behind, no line said. A handler
+    someone else installed, or an ignored signal, is left alone (``loop`` has its own)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise Stopped(signum)
+
+    mine = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) == signal.SIG_DFL]
+    for s in mine:
+        signal.signal(s, stop)
+    try:
+        yield
+    finally:
+        for s in mine:
+            signal.signal(s, signal.SIG_DFL)
+
+
 def command(
     name: str | None = None, *, max_memory: bool = False
 ) -> Callable[[Callable[..., None]], Callable[..., None]]:
@@ -216,7 +251,7 @@ def command(
             console.set_mode(quiet=quiet or _QUIET, json_out=bool(kwargs.get("json_out")))
             try:
                 limit = None if max_memory is None else memory.parse_size(max_memory)
-                with warnings.catch_warnings(), memory.ceiling(limit, label):
+                with _stopped_by_signals(), warnings.catch_warnings(), memory.ceiling(limit, label):
                     warnings.showwarning = _one_line_warning
                     fn(*args, **kwargs)
             except BamsError as exc:

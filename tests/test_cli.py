@@ -383,3 +383,37 @@ def test_readme_documents_the_environment_variables():
     assert used >= {"BAMS_WORKSPACE", "BAMS_QUIET"}
     for name in sorted(used):
         assert name in readme, f"{name} is not in README.md"
+
+
+TERMINATED_SELECT = """
+import os, signal, sys
+from bams_cli.state import workspace
+real = workspace.Workspace.read_pool
+def read_pool(self):  # a CI job's timeout arrives while the command works
+    os.kill(os.getpid(), int(sys.argv[1]))
+    return real(self)
+workspace.Workspace.read_pool = read_pool
+from bams_cli.cli import app
+app(sys.argv[2:])
+"""
+
+
+@pytest.mark.parametrize("signum", [15, 1], ids=["TERM", "HUP"])
+def test_sigterm_and_sighup_end_a_command_as_ctrl_c_does(toy_ws, runner, signum):
+    # Python's default ended the process on the spot: no line said, exit -15, and the
+    # workspace lock left for the next command to take over with a note.
+    from tests.conftest import tree_hash
+
+    before = tree_hash(toy_ws)
+    args = ["select", "-w", str(toy_ws), "--strategy", "random", "--budget", "2"]
+    proc = subprocess.run(
+        [sys.executable, "-c", TERMINATED_SELECT, str(signum), *args],
+        capture_output=True,
+        text=True,
+    )
+    name = {15: "SIGTERM", 1: "SIGHUP"}[signum]
+    assert proc.returncode == 128 + signum, proc.stderr
+    assert proc.stderr == f"error: stopped by {name}; files being written were discarded\n"
+    assert tree_hash(toy_ws) == before
+    r = ok(runner, *args)  # the lock was released: no note of a stale one taken over
+    assert "lock" not in r.stderr
