@@ -650,10 +650,13 @@ def ingest_results(
             total=pend["count"],
         )
         console.pending_lists(summary.get("pending_lists") or [])
+    # What is still pending is part of the summary (stdout), whether a table or none.
     elif gone is not None and gone["abandoned"] + gone["already_abandoned"]:
-        console.note("nothing pending: every selected segment has a result or is abandoned")
+        console.out.print(
+            "nothing pending: every selected segment has a result or is abandoned", markup=False
+        )
     else:
-        console.note("nothing pending: every selected segment has a result")
+        console.out.print("nothing pending: every selected segment has a result", markup=False)
 
 
 @command()
@@ -1044,14 +1047,15 @@ def estimate(
     --plan draws a stage's sample and writes its hand-off list; once its results are
     ingested, estimate (no --plan) computes the estimate for every configured gamma.
 
-    By default K is spent in two stages: after stage 1's results, refit and run --plan
+    Unscreened, K is spent in two stages: after stage 1's results, refit and run --plan
     again for stage 2, whose design rests on the model as checked against stage 1's
-    outcomes.
+    outcomes. The stages' weights are fixed at stage 1, so the combined estimate stays
+    unbiased.
 
-    The stages' weights are fixed at stage 1, so the combined estimate stays unbiased.
-
-    With --screen SHARE the estimate starts with cheap-level runs of a sample (a batch of
-    the log); after their results and a refit, --plan confirms within it at level 0.
+    Screened (--screen SHARE, or the default auto where the fitted cheap level tracks
+    level 0), the first --plan writes cheap-level runs of a sample as a batch
+    (batches/batch-NNNN.csv); after their results and a refit, --plan confirms within it
+    at level 0 (estimates/plan-NNNN-handoff.csv). Each --plan says which it drew.
 
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
 
@@ -1417,6 +1421,10 @@ def schema(
         SchemaName | None,
         typer.Argument(help="Which output \\[default: all, by name]."),
     ] = None,
+    json_out: Annotated[
+        bool,
+        typer.Option("--json", help="Accepted as by every command; the output is JSON anyway."),
+    ] = False,
 ) -> None:
     """Print the JSON Schema of a command's --json output, or of report/summary.json.
 

@@ -328,9 +328,10 @@ def _img(b64: str, alt: str) -> str:
 
 
 def _sig(x: float) -> str:
+    """Three significant digits: an interval [0.01049, 0.0143] read "0.01 to 0.014"."""
     if x == 0:
         return "0"
-    return f"{x:.2g}" if x >= 1e-3 else f"{x:.1e}"
+    return f"{x:.3g}" if x >= 1e-3 else f"{x:.2e}"
 
 
 #: What each interval kind (``estimate --interval``) allows for, as the headline says it.

@@ -72,7 +72,7 @@ def test_crashed_rows_block_until_abandoned_then_the_study_goes_on(study, tmp_pa
     before = tree_hash(ws)  # a repeat changes nothing, by either command
     r = ok(runner, "ingest-results", "-w", ws, res, "--abandon-failed")
     # Nothing is pending because the failed requests were abandoned, not answered.
-    assert "nothing pending: every selected segment has a result or is abandoned" in r.stderr
+    assert "nothing pending: every selected segment has a result or is abandoned" in r.stdout
     r = ok(runner, "abandon", "-w", ws, "--batch", "1", "--json")
     assert json.loads(r.stdout)["unchanged"] is True
     assert tree_hash(ws) == before

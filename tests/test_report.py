@@ -972,6 +972,13 @@ def test_a_headline_with_no_failure_sampled_is_an_upper_limit_not_a_rate_of_zero
     assert "0.0e+00" not in h["text"]
 
 
+def test_a_headline_interval_keeps_three_significant_digits():
+    # A user's [0.01049, 0.0143] read "0.01 to 0.014": the lower end lost a twentieth.
+    e = _estimate_row(p_hat=0.01184, ci_low=0.01049, ci_high=0.0143, failures_sampled=40)
+    h = rep.headline([e], [], [], SPENT, 0.0)
+    assert "90% interval 0.0105 to 0.0143" in h["text"]
+
+
 def test_a_headline_over_abandoned_segments_is_a_range_and_says_a_stage_remains():
     note = "1 planned segments abandoned: the interval runs from ..."
     e = _estimate_row(
@@ -980,8 +987,8 @@ def test_a_headline_over_abandoned_segments_is_a_range_and_says_a_stage_remains(
     )  # fmt: skip
     h = rep.headline([e], [], [], SPENT, 0.0)
     assert h["text"].startswith(
-        "failure rate between 6.7e-05 and 0.15 per segment (the 1 abandoned segment all "
-        "passing, then all failing); 90% interval 6.7e-05 to 0.73; stage 1 of 2 only: the "
+        "failure rate between 6.67e-05 and 0.155 per segment (the 1 abandoned segment all "
+        "passing, then all failing); 90% interval 6.67e-05 to 0.733; stage 1 of 2 only: the "
         "next `estimate --plan` draws the rest; "
     )
     assert "among 3 segments sampled by plan 1 (1 of them abandoned)" in h["width"]

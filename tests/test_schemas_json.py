@@ -162,3 +162,10 @@ def test_every_field_a_loop_step_can_carry_is_in_the_loop_schema():
     written = set(re.findall(r'record\["([a-z_]+)"\]', source))
     step = schemas_json.schema("loop")["properties"]["steps"]["items"]["properties"]
     assert written and written <= set(step), sorted(written - set(step))
+
+
+def test_schema_takes_json_as_every_command_does(runner):
+    # `bams-cli schema estimate --json` was a usage error (exit 2).
+    plain = ok(runner, "schema", "estimate").stdout
+    assert ok(runner, "schema", "estimate", "--json").stdout == plain
+    assert json.loads(plain)["$id"].startswith("bams-cli/estimate/")
