@@ -23,12 +23,16 @@ demo: $(STAMP)
 
 # Installs nothing outside .venv: the report's browser test skips without Chromium
 # (.ci/run installs it and makes its absence a failure).
+# Two workers (pytest-xdist): CI has 2 cores, and most tests wait on one process at a time.
+# BLAS pinned to one thread per worker so that two workers do not fight over two cores.
+PYTEST := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -n 2
+
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(PYTEST) -q -m "not slow"
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(PYTEST) -q -m slow
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
