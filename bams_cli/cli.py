@@ -220,8 +220,18 @@ def _stopped_by_signals() -> Iterator[None]:
         yield
         return
 
+    me = os.getpid()
+    stopping = False
+
     def stop(signum: int, _frame: Any) -> None:
-        raise Stopped(signum)
+        nonlocal stopping
+        if os.getpid() != me:  # a forked child that kept the handler: die as by default
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        if not stopping:  # once: a second signal must not break the rollback it started
+            stopping = True
+            raise Stopped(signum)
 
     mine = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) == signal.SIG_DFL]
     for s in mine:

@@ -126,7 +126,13 @@ def _die_with_parent(parent: int) -> None:
     On Linux the kernel sends SIGKILL at the parent's death (``PR_SET_PDEATHSIG``), even to
     a worker busy in C code; elsewhere a thread polls ``getppid``. Either way the parent
     may have died before this ran, so check once by hand.
+
+    A forked worker inherits the command's handlers for SIGTERM and SIGHUP (``cli``,
+    ``loop``), which raise to unwind the command: in a worker they printed a traceback at
+    ``terminate()`` and kept a worker busy in C code alive. Workers take the default back.
     """
+    for s in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
     armed = False
     if sys.platform.startswith("linux"):
         try:

@@ -328,7 +328,8 @@ def _img(b64: str, alt: str) -> str:
 
 
 def _sig(x: float) -> str:
-    """Three significant digits: an interval [0.01049, 0.0143] read "0.01 to 0.014"."""
+    """``x`` to three significant digits (0.0105, 9.02e-04): with two, an interval
+    [0.01049, 0.0143] read "0.01 to 0.014", its lower end a twentieth off."""
     if x == 0:
         return "0"
     return f"{x:.3g}" if x >= 1e-3 else f"{x:.2e}"

@@ -245,6 +245,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                                     "request_id": nullable(STR),
                                     "segment_id": nullable(STR),
                                     "fidelity": nullable(COUNT),
+                                    "fidelity_given": nullable(STR),
                                 },
                             )
                         ),

@@ -231,7 +231,7 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
         model = ws.require_model(allow_newer_observations=True)
     except (StaleStateError, SchemaError) as exc:  # damaged, another pool, scores of another fit
         # The error's own "run `bams-cli fit`" goes: ``next`` names the command once.
-        reason = re.sub(r"[;:] run `bams-cli fit -w [^`]*`$", "", str(exc))
+        reason = re.sub(r"[;:] run `bams-cli fit -w [^`]*`( to write it again)?$", "", str(exc))
         return {"fresh": False, "fitted_on": None, "fitted_at": None, "reason": reason}
     fitted = int(sum(model.get("n_observations_per_level", [])))
     return {

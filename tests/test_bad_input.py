@@ -475,6 +475,7 @@ MODEL_EDITS = {
     "negative-noise": (lambda hp: hp.update(noise=[-1.0, *hp["noise"][1:]]),
                        "noise must be finite and >= 0, got [-1, "),
     "mean-text": (lambda hp: hp.update(mean="abc"), "could not convert string to float: 'abc'"),
+    "mean-huge-integer": (lambda hp: hp.update(mean=10**400), "int too large to convert to float"),
     "lengthscales-for-another-d": (
         lambda hp: hp.update(lengthscales0=[1.0, 1.0, 1.0],
                              lengthscales=[[1.0, 1.0, 1.0] for _ in hp["outputscales"]]),

@@ -302,7 +302,16 @@ def test_not_run_rows_keyed_by_segment_give_their_level_as_a_number(named_ws, ru
     (row,) = summary["not_run"]["first"]
     assert row["segment_id"] == t["segment_id"][0]
     assert row["fidelity"] == t["fidelity"][0] and isinstance(row["fidelity"], int)
-    assert row["request_id"] is None
+    assert row["fidelity_given"] == names[0] and row["request_id"] is None
+    # A level the study does not have has no number, but its text is still shown.
+    t.with_columns(
+        pl.Series("fidelity", ["ultra", *names[1:]]),
+        pl.Series("status", status),
+        pl.Series("value", value),
+    ).write_csv(tmp_path / "r2.csv")
+    again = json.loads(ok(runner, "ingest-results", "-w", ws, tmp_path / "r2.csv", "--json").stdout)
+    (row,) = again["not_run"]["first"]
+    assert row["fidelity"] is None and row["fidelity_given"] == "ultra"
 
 
 def test_a_not_run_row_whose_retry_came_first_is_not_pending(named_ws, runner, tmp_path):

@@ -562,3 +562,40 @@ def test_every_step_of_a_study_without_a_pool_names_embed_reduce(runner, tmp_pat
         f"`bams-cli embed-reduce -w {ws} SEGMENTS.parquet` first"
     ]
     assert tree_hash(ws) == before
+
+
+STOPPED_POOLED_SELECT = """
+import os, signal, sys, threading, time
+from bams_cli.core import select as core_select
+def greedy_cluster(*args, **kwargs):  # in a worker: a greedy that runs for minutes
+    time.sleep(60)
+core_select.greedy_cluster = greedy_cluster
+def stop_soon():
+    time.sleep(3.0)
+    os.kill(os.getpid(), int(sys.argv[1]))
+threading.Thread(target=stop_soon, daemon=True).start()
+from bams_cli.cli import app
+app(sys.argv[2:])
+"""
+
+
+@pytest.mark.parametrize("signum", [15, 2], ids=["TERM", "INT"])
+def test_a_pooled_select_stopped_by_a_signal_ends_in_one_line_at_once(lead_ws, signum):
+    # Forked workers inherited the command's SIGTERM handler: at terminate() each idle one
+    # (4 workers, 2 clusters) printed a traceback, and one busy in C code kept it waiting.
+    import subprocess
+    import sys
+    import time
+
+    before = tree_hash(lead_ws)
+    args = ["select", "-w", str(lead_ws), "--budget", "5", "--clusters", "2", "--workers", "4"]
+    start = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-c", STOPPED_POOLED_SELECT, str(signum), *args],
+        capture_output=True, text=True, timeout=50,
+    )  # fmt: skip
+    assert time.monotonic() - start < 45  # not the workers' 60 s
+    assert proc.returncode == 128 + signum, proc.stderr
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith("error: ")
+    assert tree_hash(lead_ws) == before

@@ -266,14 +266,24 @@ def test_a_bad_input_exits_1(study, tmp_path):
     assert r.exit_code == 1 and "bad.csv" in r.stderr
 
 
-def test_a_damaged_model_makes_fit_the_next_step(study, tmp_path):
+def _nan_lengthscale(text: str) -> str:
+    doc = json.loads(text)
+    doc["hyperparameters"]["lengthscales0"][0] = float("nan")
+    return json.dumps(doc)
+
+
+@pytest.mark.parametrize("damage", [lambda _: "{not json", _nan_lengthscale], ids=["json", "nan"])
+def test_a_damaged_model_makes_fit_the_next_step(study, tmp_path, damage):
     copy = tmp_path / "ws"
     shutil.copytree(study.ws, copy)
-    (copy / "model.json").write_text("{not json")
+    (copy / "model.json").write_text(damage((copy / "model.json").read_text()))
     r = invoke(study.runner, "status", "-w", copy, "--json")
     got = json.loads(r.stdout)
     assert r.exit_code == 0 and got["next"]["step"] == "fit"
     assert got["model"]["fresh"] is False and "damaged" in got["model"]["reason"]
+    assert "bams-cli fit" not in got["model"]["reason"]  # named once, as the next step
+    text = invoke(study.runner, "status", "-w", copy).stdout
+    assert " ".join(text.split()).count("bams-cli fit -w") == 1, text
 
 
 def test_a_batch_s_cost_is_summed_without_rounding_error(tmp_path):
@@ -291,7 +301,9 @@ def test_a_batch_s_cost_is_summed_without_rounding_error(tmp_path):
     assert (batch["picks"], batch["cost"]) == (200, 20.0)
 
 
-@pytest.mark.parametrize(("n", "costs"), [(4, "1,0.1"), (4, "1"), (3, "1,0.3,0.07")])
+@pytest.mark.parametrize(
+    ("n", "costs"), [(4, "1,0.1"), (4, "1"), (3, "1,0.3,0.07"), (3, "1,0.2"), (2, "1,0.01")]
+)
 def test_the_first_batch_command_runs_on_a_pool_smaller_than_its_budget(tmp_path, n, costs):
     # Four segments at levels of cost 1 and 0.1 buy 4.4: the named `--budget 5` was refused
     # ("buys more simulations than the pool has").

@@ -239,7 +239,7 @@ def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> 
 
     A row names its request by request_id, or by segment_id and fidelity (a number or a
     level name); the rows come back with ``fidelity`` as a level number (null where the row
-    names no configured level). One whose run has a result since (its retry ingested first, or this file
+    names no configured level) and ``fidelity_given``, the file's text. One whose run has a result since (its retry ingested first, or this file
     ingested again after it) is not reported as "stays pending": a re-ingest had said "12
     rows not run ... stay pending" beside "nothing pending". A fidelity that names no level
     compares by segment alone.
@@ -265,6 +265,9 @@ def _still_pending(ws: Workspace, settings: Settings, not_run: pl.DataFrame) -> 
                 level = None
         keep.append((sid, level) in pairs if level is not None else sid in segments)
         levels.append(level)
-    # The level as a number, as every other list of runs gives it (null: none named).
-    not_run = not_run.with_columns(pl.Series("fidelity", levels, dtype=pl.Int64))
+    # The level as a number, as every other list of runs gives it (null: none named), and
+    # the file's own text beside it, so that a level the study does not have is still seen.
+    not_run = not_run.with_columns(
+        pl.col("fidelity").alias("fidelity_given"), pl.Series("fidelity", levels, dtype=pl.Int64)
+    )
     return not_run.filter(pl.Series(keep, dtype=pl.Boolean))

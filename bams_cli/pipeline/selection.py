@@ -460,7 +460,7 @@ def select(
     # Every segment at every level costs len(ids) * sum(costs): a budget beyond it cannot be
     # spent. (The bound was budget / the cheapest cost, which refused a level-0 batch of 100
     # on 400 segments with a cheap level of cost 0.1.)
-    if budget > len(ids) * sum(settings.costs):
+    if budget > len(ids) * sum(settings.costs) * (1 + 1e-9):  # 3 x (1 + 0.2) is 3.5999...
         raise WorkspaceError(
             f"--budget {budget}: buys more simulations than the pool has "
             f"({len(ids)} segments x {settings.n_levels} levels cost "

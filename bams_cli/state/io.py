@@ -437,7 +437,16 @@ def _plain(name: str) -> str:
 def near_miss(want: str, found: list[str], taken: Sequence[str] = ()) -> str | None:
     """The column of ``found`` that spells ``want`` another way (case, spaces, dashes, or
     a close misspelling), if one does; ``taken`` names are never offered."""
-    other = [f for f in found if f != want and f not in taken]
+    # A number at the end names another thing (value_1 is level 1's value, not "value";
+    # value_2 is not value_0): never offered across one.
+    digits = _plain(want)[len(_plain(want).rstrip("0123456789")) :]
+    other = [
+        f
+        for f in found
+        if f != want
+        and f not in taken
+        and _plain(f)[len(_plain(f).rstrip("0123456789")) :] == digits
+    ]
     like = [f for f in other if _plain(f) == _plain(want)]
     like = like or difflib.get_close_matches(want, other, n=1, cutoff=0.75)
     return like[0] if like else None

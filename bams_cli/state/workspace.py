@@ -354,7 +354,7 @@ class Workspace:
         budget = float(BUDGET)
         try:  # a pool smaller than the budget buys: every segment at every level it has
             n = pq.ParquetFile(self.segments_path).metadata.num_rows
-            budget = min(budget, math.floor(n * sum(costs) * 1000) / 1000)
+            budget = min(budget, round(n * sum(costs), 6))  # select allows for the rounding
         except (OSError, pa.ArrowException):  # no pool yet, or a damaged one
             pass
         w = shlex.quote(str(self.root))  # a command to paste or run (status --json's next)
@@ -404,7 +404,7 @@ class Workspace:
                     wrong.append(f"d = {hp_d}, the pool has d = {d}")
             if wrong:
                 raise ValueError(f"they are for {' and '.join(wrong)}")
-        except (KeyError, ValueError, TypeError) as exc:
+        except (KeyError, ValueError, TypeError, OverflowError) as exc:  # 1e400 as an int
             what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
             raise StaleStateError(
                 f"{self.model_path}: damaged hyperparameters ("

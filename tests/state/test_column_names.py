@@ -55,3 +55,11 @@ def test_names_that_are_wanted_or_unlike_are_not_offered():
     assert near_misses(["value", "fidelity"], ["segment_id", "fidelity", "metric"]) == ""
     assert near_miss("request_id", ["rid", "req"]) is None
     assert near_miss("value", ["val"]) == "val"
+
+
+def test_a_name_is_never_offered_across_a_number_at_its_end():
+    # A truth file without value_0 is not told to rename value_2 (level 2's values), nor a
+    # results file to rename value_1 to value.
+    assert near_miss("value_0", ["segment_id", "value_1", "value_2"]) is None
+    assert near_miss("value", ["segment_id", "fidelity", "value_1"]) is None
+    assert near_miss("value_0", ["segment_id", "Value 0"]) == "Value 0"
