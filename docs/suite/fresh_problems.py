@@ -1,10 +1,11 @@
-"""Four problems unlike the suite's, run through the CLI the way a study runs it.
+"""Five problems unlike the suite's, run through the CLI the way a study runs it.
 
     .venv/bin/python docs/suite/fresh_problems.py make /tmp/fresh            # the problems
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh cancer 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh blind 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh ties 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh classif 0 1 2 3 4 5 6 7
+    .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh braking 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py repeat /tmp/fresh blind 4 20  # (after run)
     .venv/bin/python docs/suite/fresh_problems.py table /tmp/fresh           # the .md/.json
 
@@ -25,6 +26,11 @@ the defaults were fixed, to check them on data built another way:
   pure noise beside them as the embedding; f = the 5-fold cross-validated log-margin of
   the true label under gradient boosting, the cheap level a logistic regression's
   (corr(f0, f1) about 0.5); failure: the lowest 2% of f0.
+* ``braking`` (added 2026-11-28, the simulator a second new user wrote): a vehicle braking
+  for an obstacle, f = the gap left in metres (tens of metres away from failure, fractions
+  of one at it); the cheap level integrates coarsely with instant brakes: corr(f0, f1)
+  0.999, but it is optimistic where the system is stressed and misses about 40% of the
+  failures. N 20,000, rate about 1.2%, a 48-d embedding of 16 parameters.
 
 ``run`` drives each seed as a Makefile would, with the shipped defaults and no truth given
 to the tool (the simulator is ``bams-cli simulate`` reading the truth file):
@@ -59,7 +65,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 BAMS = str(ROOT / ".venv" / "bin" / "bams-cli")
-PROBLEMS = ("cancer", "ties", "blind", "classif")
+PROBLEMS = ("cancer", "ties", "blind", "classif", "braking")
 DISCOVERY_COST = 10 + 5 + 5  # the loop's three batches, in level-0 runs
 
 
@@ -121,6 +127,7 @@ def make(out: Path, data_seed: int = 0) -> None:
     f1 = np.minimum(fa + 0.2 * rng.standard_normal(n), fb + 1.5)
     _save(out, "blind", X, f0, f1, float(np.quantile(f0, 0.01)))
     _make_classif(out, data_seed)
+    _make_braking(out, data_seed)
 
 
 def _make_classif(out: Path, data_seed: int) -> None:
@@ -154,6 +161,59 @@ def _make_classif(out: Path, data_seed: int) -> None:
     f1 = margin(cross_val_predict(cheap, X, y, cv=cv, method="predict_proba"))
     noise = np.random.default_rng(2000 + data_seed).standard_normal((n, 8))
     _save(out, "classif", np.hstack([X, noise]), f0, f1, float(np.quantile(f0, 0.02)))
+
+
+def _make_braking(out: Path, data_seed: int) -> None:
+    """``braking``: the simulator a second new user wrote (2026-11-28): a vehicle braking
+    for an obstacle, f = the gap left in metres. Level 0 integrates at dt = 1 ms with brake
+    pressure building over 0.25 s, a tyre whose grip falls with speed on low friction, and
+    drag; the cheap level at dt = 50 ms with instant brakes and plain friction. It tracks
+    level 0 (corr about 0.999) but is optimistic where the system is stressed: it misses
+    about 40% of the failures. The embedding is a 48-d tanh map of the 16 parameters
+    (10 of them nuisances)."""
+    g, n = 9.81, 20_000
+    rng = np.random.default_rng(20261128 + data_seed)
+    names = ["v0", "dist", "mu", "delay", "snoise", "slope"]
+    P = {
+        "v0": rng.uniform(8, 36, n),  # m/s
+        "dist": rng.uniform(115, 280, n),  # m to the obstacle at detection
+        "mu": rng.beta(5, 2, n) * 0.95 + 0.1,  # road friction
+        "delay": rng.lognormal(np.log(0.6), 0.35, n),  # s
+        "snoise": rng.gamma(2.0, 0.15, n),  # sensor noise level
+        "slope": rng.normal(0, 0.03, n),  # rad, downhill positive
+        **{f"nuisance{k}": rng.normal(0, 1, n) for k in range(10)},
+    }
+
+    def gap(dt: float, fine: bool) -> np.ndarray:
+        v0, dist, mu, delay, sn, slope = (P[c] for c in names)
+        t_react = delay + (0.4 if fine else 0.2) * sn
+        v, x, t = v0.copy(), np.zeros(n), 0.0
+        active = np.ones(n, bool)
+        while active.any() and t < 40.0:
+            i = np.nonzero(active)[0]
+            vi, tb = v[i], t - t_react[i]
+            braking = tb > 0
+            if fine:
+                ramp = np.clip(tb / 0.25, 0, 1)
+                loss = 1.0 - 0.35 * (1.1 - mu[i]) * np.tanh(vi / 25.0) ** 2
+                m = mu[i] * loss * (0.92 + 0.06 * np.tanh((mu[i] - 0.5) * 4)) * ramp
+                drag = 0.0004 * vi**2
+            else:
+                m, drag = mu[i] * 0.95, 0.0
+            a = np.where(braking, -m * g * np.cos(slope[i]), 0.0) + g * np.sin(slope[i]) - drag
+            vn = np.maximum(vi + a * dt, 0.0)
+            x[i] += vn * dt if fine else 0.5 * (vi + vn) * dt
+            v[i] = vn
+            active[i[(vn <= 0) & braking]] = False
+            t += dt
+        return dist - x
+
+    f1, f0 = gap(0.05, fine=False), gap(0.001, fine=True)
+    Z = np.column_stack(list(P.values()))
+    Z = (Z - Z.mean(0)) / Z.std(0)
+    W = rng.normal(0, 1, (Z.shape[1], 48)) / np.sqrt(Z.shape[1]) * 1.5
+    X = np.tanh(Z @ W + rng.normal(0, 0.3, 48)) + rng.normal(0, 0.03, (n, 48))
+    _save(out, "braking", X, f0, f1, 0.0)
 
 
 def run(out: Path, problem: str, seeds: list[int]) -> None:
@@ -353,14 +413,32 @@ on the asinh scale, with a fitted slope), the model reads it as weak, and discov
 11-15 level-0 runs (plain MC's 20) found 2 failures in all 8 runs, both confirming
 cheap-level leads (2 of the 16 leads confirmed). The screened path drawn 20 times from blind seed 4's
 workspace (the refit in every draw): p_hat 1.020 ± 0.020 of the rate, all 20 intervals
-holding it."""
+holding it. braking added 2026-11-28 (runs 06:58-07:17 at fdd8bdd, the other four
+problems' rows as measured before): --screen auto screened all 8 runs (the cheap level
+tracks level 0 globally, corr 0.999), all 8 intervals held the rate, the design had 0.250
+[0.372] of uniform's variance and recall 12.5x plain MC, though the cheap level misses 39%
+of the failures. But the fitted discrepancy after batch 3 is 1.6-5.3 times the pool's
+sd(f1 - f0), outside issue 11's factor 2 on most runs, on the side that trusts the cheap
+level less: the discrepancy is heteroscedastic (sd 2.85 m over the pool, 5.6 m with a mean
+of +8.8 m where |f0| < 20 m), batch 1's six or seven pairs show sd 3.0-8.9 m, and one
+stationary discrepancy kernel cannot hold both; after the estimate, with about 400 pairs,
+fit's check warns that level 1 differs from level 0 more than the model allows near the
+pairs it has (seed 0: sd 5.87 against the model's 3.74). The screened path drawn 12 times from
+braking seed 3's workspace (07:20-07:33): p_hat 0.980 ± 0.057 of the rate, all 12
+intervals holding it, 1.35 times the rate wide."""
 
 
 def table(out: Path) -> None:
-    results = [_evaluate(out, p) for p in PROBLEMS]
+    """The .md and .json from every problem's runs in ``out``; a problem with no runs
+    there keeps its row from fresh_problems.json (measured earlier, as NOTES says)."""
+    kept = {r["problem"]: r for r in json.loads((HERE / "fresh_problems.json").read_text())}
+    results = [
+        _evaluate(out, p) if any((out / "runs").glob(f"{p}-s*.estimate.json")) else kept[p]
+        for p in PROBLEMS
+    ]
     (HERE / "fresh_problems.json").write_text(json.dumps(results, indent=1) + "\n")
     lines = [
-        "# The defaults on four problems unlike the suite's, through the CLI",
+        "# The defaults on five problems unlike the suite's, through the CLI",
         "",
         "`docs/suite/fresh_problems.py` (its docstring says how and what each problem is): "
         "every seed run the way a study runs it, with the shipped defaults and no truth "
