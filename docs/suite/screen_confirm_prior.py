@@ -366,7 +366,14 @@ screens, Beta(0.1, 10) covers 0.920 on toy2d's data seed 2 (lowest seed 0.80) ag
 shipped prior's 0.946 (0.89), and 0.959 (0.85) against 0.969 (0.92) on data seed 0; every
 miss lies above the rate, none below, and the width falls from 2.16 to 1.83 and from 1.82
 to 1.56 times the rate. So coverage is not what keeps the lead from shipping; what does is
-av_like's worst held-out seed (0.254, above 1/5) and blind's worst run (0.235 -> 0.287)."""
+av_like's worst held-out seed (0.254, above 1/5) and blind's worst run (0.235 -> 0.287).
+
+A larger screen beside it, measured 2026-11-28 (05:55, at d1a55b6; `exact av_like
+--data-seed 2 --share S` for S = 0.4, 0.5, 0.6, seconds each): under Beta(0.1, 10) the
+worst seed falls to 0.223 at share 0.4 (mean 0.165) and rises again at 0.5 (0.230) and 0.6
+(0.308), as phase 2's budget shrinks; under the shipped prior the mean rises from 0.310 at
+0.3 to 0.331, 0.386 and 0.456. No share brings that seed's worst under 1/5, so the lead
+stays unshipped."""
 
 
 def main(argv: list[str]) -> None:
