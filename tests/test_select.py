@@ -566,14 +566,21 @@ def test_every_step_of_a_study_without_a_pool_names_embed_reduce(runner, tmp_pat
 
 STOPPED_POOLED_SELECT = """
 import os, signal, sys, threading, time
+from contextlib import contextmanager
+from bams_cli import parallel
 from bams_cli.core import select as core_select
 def greedy_cluster(*args, **kwargs):  # in a worker: a greedy that runs for minutes
     time.sleep(60)
 core_select.greedy_cluster = greedy_cluster
-def stop_soon():
-    time.sleep(3.0)
-    os.kill(os.getpid(), int(sys.argv[1]))
-threading.Thread(target=stop_soon, daemon=True).start()
+real = parallel.executor
+@contextmanager
+def executor(*args, **kwargs):  # the signal comes once the pool runs, however slow the start
+    with real(*args, **kwargs) as pool:
+        stop = threading.Timer(1.0, os.kill, (os.getpid(), int(sys.argv[1])))
+        stop.daemon = True
+        stop.start()
+        yield pool
+parallel.executor = executor
 from bams_cli.cli import app
 app(sys.argv[2:])
 """
