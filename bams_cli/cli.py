@@ -17,7 +17,6 @@ so, then ``defaults``.
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import functools
 import inspect
@@ -26,10 +25,9 @@ import re
 import shlex
 import signal
 import sys
-import threading
 import typing
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -44,7 +42,7 @@ except ImportError:  # pragma: no cover - older typer on the real click
     from click import Context  # type: ignore[assignment]
     from click.exceptions import ClickException, UsageError  # type: ignore[assignment]
 
-from bams_cli import __version__, console, defaults, memory, pipeline, schemas_json
+from bams_cli import __version__, console, defaults, memory, pipeline, schemas_json, stopping
 from bams_cli import abandon as abandon_runs
 from bams_cli import loop as study_loop
 from bams_cli.defaults import (
@@ -201,46 +199,9 @@ def _reflow(doc: str) -> str:
     return "\n\n".join(" ".join(line.strip() for line in p.splitlines()) for p in paragraphs)
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM or SIGHUP (a CI job's timeout, a closed terminal) stopped a command; it
-    ends as Ctrl-C does, files being written discarded, with exit code 128 + the signal."""
-
-    def __init__(self, signum: int) -> None:
-        name = signal.Signals(signum).name
-        super().__init__(f"stopped by {name}; files being written were discarded")
-        self.exit_code = 128 + signum
-
-
-@contextlib.contextmanager
-def _stopped_by_signals() -> Iterator[None]:
-    """For a command's time, SIGTERM and SIGHUP raise ``Stopped`` where Python's default
-    would end the process on the spot: the lock left behind, no line said. A handler
-    someone else installed, or an ignored signal, is left alone (``loop`` has its own)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    me = os.getpid()
-    stopping = False
-
-    def stop(signum: int, _frame: Any) -> None:
-        nonlocal stopping
-        if os.getpid() != me:  # a forked child that kept the handler: die as by default
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-            return
-        if not stopping:  # once: a second signal must not break the rollback it started
-            stopping = True
-            raise Stopped(signum)
-
-    mine = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) == signal.SIG_DFL]
-    for s in mine:
-        signal.signal(s, stop)
-    try:
-        yield
-    finally:
-        for s in mine:
-            signal.signal(s, signal.SIG_DFL)
+#: What stops a command where it stands (``bams_cli.stopping``): Ctrl-C, ``kill``, a closed
+#: terminal. ``loop`` installs its own handlers first, and those are left alone.
+COMMAND_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def command(
@@ -261,7 +222,11 @@ def command(
             console.set_mode(quiet=quiet or _QUIET, json_out=bool(kwargs.get("json_out")))
             try:
                 limit = None if max_memory is None else memory.parse_size(max_memory)
-                with _stopped_by_signals(), warnings.catch_warnings(), memory.ceiling(limit, label):
+                with (
+                    stopping.raising(COMMAND_STOP_SIGNALS),
+                    warnings.catch_warnings(),
+                    memory.ceiling(limit, label),
+                ):
                     warnings.showwarning = _one_line_warning
                     fn(*args, **kwargs)
             except BamsError as exc:
@@ -275,7 +240,7 @@ def command(
             except (typer.Exit, typer.Abort, ClickException):
                 raise
             except KeyboardInterrupt as exc:
-                # A stopped loop (``loop.LoopStopped``) says what it stopped, with its code.
+                # ``stopping.Stopped`` (a loop's says what it stopped) carries its exit code.
                 code = getattr(exc, "exit_code", 130)
                 console.error(str(exc) or "interrupted; files being written were discarded", code)
                 raise typer.Exit(code) from None

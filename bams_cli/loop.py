@@ -52,7 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bams_cli import abandon, defaults, memory, pipeline
+from bams_cli import abandon, defaults, memory, pipeline, stopping
 from bams_cli.errors import BamsError, InputError, OptionValueError, WorkspaceError
 from bams_cli.pipeline._common import (
     check_budget,
@@ -93,13 +93,8 @@ class SimulatorFailed(LoopError):
         self.what, self.returncode = what, returncode
 
 
-class LoopStopped(KeyboardInterrupt):
+class LoopStopped(stopping.Stopped):
     """A signal stopped the loop; ``exit_code`` is 128 + its number, as a shell reports it."""
-
-    def __init__(self, signum: int, message: str = "") -> None:
-        super().__init__(message)
-        self.signum = signum
-        self.exit_code = 128 + signum
 
 
 @dataclass(frozen=True)
@@ -380,25 +375,10 @@ def _stopped_by_signals() -> Iterator[None]:
     terminal. The loop becomes its descendants' subreaper (Linux), so that a simulator's
     children whose shell died first (Ctrl-C reaches the whole group at once) stay its
     descendants, for ``_end_tree`` to find."""
-    if threading.current_thread() is not threading.main_thread():
-        yield  # signal handlers can only be set from the main thread
-        return
-    _become_subreaper()
-    stopping = False
-
-    def stop(signum: int, _frame: Any) -> None:
-        nonlocal stopping
-        if not stopping:
-            stopping = True
-            raise LoopStopped(signum)
-
-    caught = [s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
-    previous = {s: signal.signal(s, stop) for s in caught}
-    try:
+    if threading.current_thread() is threading.main_thread():
+        _become_subreaper()
+    with stopping.raising(STOP_SIGNALS, LoopStopped, take=stopping.not_ignored):
         yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 PR_SET_CHILD_SUBREAPER = 36  # <linux/prctl.h>

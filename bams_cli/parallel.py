@@ -129,10 +129,13 @@ def _die_with_parent(parent: int) -> None:
 
     A forked worker inherits the command's handlers for SIGTERM and SIGHUP (``cli``,
     ``loop``), which raise to unwind the command: in a worker they printed a traceback at
-    ``terminate()`` and kept a worker busy in C code alive. Workers take the default back.
+    ``terminate()`` and kept a worker busy in C code alive. Workers take the default back,
+    and ignore SIGINT: Ctrl-C reaches the whole process group, and the command, stopped by
+    it, ends its workers itself.
     """
     for s in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(s, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     armed = False
     if sys.platform.startswith("linux"):
         try:
@@ -153,6 +156,15 @@ def _pool_context() -> multiprocessing.context.BaseContext:
     if sys.platform.startswith("linux"):
         return multiprocessing.get_context("fork")
     return multiprocessing.get_context("spawn")
+
+
+def _let_wind_down(manager: threading.Thread | None, timeout: float = 5.0) -> None:
+    """Wait (a little) for a stopped pool's manager thread to see its workers gone and
+    close its pipes. A command stopped at once left it closing them while the interpreter
+    exited, and ``concurrent.futures``' exit hook then wrote to a closed pipe: a 15-line
+    "Exception ignored" traceback after the command's one line."""
+    if manager is not None and manager is not threading.current_thread():
+        manager.join(timeout)
 
 
 @contextmanager
@@ -209,8 +221,10 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     except BaseException:
         # Stopped (Ctrl-C, a loop's SIGTERM, an error): the queued clusters are not waited
         # for (a select's greedies can run for minutes), and the workers end now.
+        manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it
         pool.shutdown(wait=False, cancel_futures=True)
         for worker in multiprocessing.active_children():
             worker.terminate()
+        _let_wind_down(manager)
         raise
     pool.shutdown(wait=True)
