@@ -96,17 +96,23 @@ def checked(
     }
 
 
-def checked_dict(d: dict[str, Any]) -> dict[str, Any]:
-    """``checked`` on a ``model.json`` ``hyperparameters`` dict (``to_dict``'s layout):
-    a missing key is a KeyError, a value of another type a TypeError or ValueError."""
+def parsed_dict(d: dict[str, Any]) -> dict[str, Any]:
+    """The arrays of a ``model.json`` ``hyperparameters`` dict (``to_dict``'s layout),
+    unchecked: a missing key is a KeyError, a value of another type a TypeError or
+    ValueError."""
     s = np.asarray(d["outputscales"], dtype=np.float64)
     ell0 = np.asarray(d["lengthscales0"], dtype=np.float64)
-    return checked(
-        mean=float(d["mean"]),
-        outputscale0=float(d["outputscale0"]),
-        lengthscales0=ell0,
-        outputscales=s,
-        lengthscales=np.asarray(d["lengthscales"], dtype=np.float64).reshape(s.size, ell0.size),
-        noise=np.asarray(d["noise"], dtype=np.float64),
-        offsets=None if d.get("offsets") is None else np.asarray(d["offsets"], np.float64),
-    )
+    return {
+        "mean": float(d["mean"]),
+        "outputscale0": float(d["outputscale0"]),
+        "lengthscales0": ell0,
+        "outputscales": s,
+        "lengthscales": np.asarray(d["lengthscales"], dtype=np.float64).reshape(s.size, ell0.size),
+        "noise": np.asarray(d["noise"], dtype=np.float64),
+        "offsets": None if d.get("offsets") is None else np.asarray(d["offsets"], np.float64),
+    }
+
+
+def checked_dict(d: dict[str, Any]) -> dict[str, Any]:
+    """``checked`` on a ``model.json`` ``hyperparameters`` dict (``parsed_dict``)."""
+    return checked(**parsed_dict(d))

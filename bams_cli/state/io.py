@@ -439,17 +439,19 @@ def near_miss(want: str, found: list[str], taken: Sequence[str] = ()) -> str | N
     a close misspelling), if one does; ``taken`` names are never offered."""
     # A number at the end names another thing (value_1 is level 1's value, not "value";
     # value_2 is not value_0): never offered across one.
-    digits = _plain(want)[len(_plain(want).rstrip("0123456789")) :]
     other = [
         f
         for f in found
-        if f != want
-        and f not in taken
-        and _plain(f)[len(_plain(f).rstrip("0123456789")) :] == digits
+        if f != want and f not in taken and _number_at_end(f) == _number_at_end(want)
     ]
     like = [f for f in other if _plain(f) == _plain(want)]
     like = like or difflib.get_close_matches(want, other, n=1, cutoff=0.75)
     return like[0] if like else None
+
+
+def _number_at_end(name: str) -> str:
+    plain = _plain(name)
+    return plain[len(plain.rstrip("0123456789")) :]
 
 
 def near_misses(wanted: list[str], found: list[str]) -> str:

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from bams_cli.core.gp._numerics import FloatArray
-from bams_cli.core.hyperparameter_values import checked, checked_dict
+from bams_cli.core.hyperparameter_values import checked, parsed_dict
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,7 @@ class Hyperparameters:
             As written by ``to_dict``. ``lengthscales`` may be ``[]`` when L = 0;
             ``offsets`` may be missing (models written before levels had offsets).
         """
-        return cls(**checked_dict(d))
+        return cls(**parsed_dict(d))  # checked by __post_init__
 
 
 def _pack(hp: Hyperparameters) -> FloatArray:
