@@ -477,6 +477,8 @@ def fit_summary(s: Mapping[str, Any]) -> None:
         ) + (f" (no level-{lv} result yet: no data fitted these)" if not per_level[lv] else "")
     if s.get("conditioning"):
         rows["conditioning"] = s["conditioning"]["note"]
+    if (s.get("scoring") or {}).get("method") == "bounded":
+        rows["scoring"] = s["scoring"]["note"]
     rows["files"] = f"{s['model']}, {s['scores']}"
     facts(f"model fitted on {plural(s['observations'], 'result')} ({counts})", rows)
     model_checks(s["checks"], s.get("transform"))

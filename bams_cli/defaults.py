@@ -256,6 +256,20 @@ FIT_SUBSET = 300
 #: model; under ``--max-memory`` at most half the ceiling is used.
 FIT_CONDITION_MEMORY = 2 * 2**30
 
+#: ``fit`` scores the pool exactly (mean and sd at every segment against every conditioned
+#: observation) while pool size x n^2, the flops of the sds' triangular solves, stays under
+#: this (about 5 minutes of solves on 2 cores). Above it (a million segments after an
+#: estimate stage's 12,000 level-0 runs: 1.5e14, over an hour) the mean stays exact and an
+#: eighth of this buys an upper bound on every sd (a model on fewer observations); the rest
+#: buys exact sds where a threshold is within ``SCORE_DECIDED_Z`` bound-sds of the mean,
+#: nearest first. Elsewhere p_n is 0 or 1 to within 1e-17 (``core.gp.MFGP.score``). That
+#: study's fit: 6 min 28 s at 5e12, where the bound's rows held 22% of sum p_n (warned).
+SCORE_MAX_WORK = 2e13
+
+#: Where |gamma - mu| exceeds this many (upper-bound) sds, p_n = Phi(-z) is below 1e-17
+#: from 0 or 1 whatever the exact sd (never larger than the bound) is.
+SCORE_DECIDED_Z = 8.5
+
 #: ``select`` runs the exact greedy (every row, every candidate; picks identical to the
 #: brute-force greedy) on pools up to this many segments, ``select --greedy`` overriding.
 #: Larger pools get an approximate plan (``core.select.plan_selection``) whose batch keeps

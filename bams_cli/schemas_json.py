@@ -300,6 +300,18 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         }
                     )
                 ),
+                "scoring": obj(
+                    {"method": STR, "rows": COUNT, "note": STR},
+                    {
+                        "max_work": NUM,
+                        "bound_observations": COUNT,
+                        "near_thresholds": COUNT,
+                        "exact_sd_rows": COUNT,
+                        "decided_z": NUM,
+                        "p_sum": array(NUM),
+                        "kept_bound_p_sum": array(NUM),
+                    },
+                ),
                 "up_to_date": {"const": True},
                 "message": STR,
                 # With up_to_date: warnings about the settings as they are now (also in

@@ -25,6 +25,12 @@ a low-rank model would need).
 Score (default run): the n = 200 and n = 500 models on N = 45,000 and 1,000,000 pool
 points. Memory is the tracemalloc peak during score() plus the process's peak RSS.
 
+--score-budget N_OBS,POOL: ``fit``'s scoring of a POOL-point pool against N_OBS observations
+within ``defaults.SCORE_MAX_WORK`` (a million segments after an estimate stage's 12,000
+level-0 runs: 12000,1000000): wall time, how it scored (``MFGP.score``'s ``scoring``), and
+against the exact posterior on 2,000 pool points drawn at random and on the 2,000 whose mean
+is nearest a threshold: the largest |p_n difference| and the sd's ratio to the exact one.
+
 Targets: fit n <= 200 under 5 s, 1,000 under 10 s, 5,000 under 60 s, 50,000 under 5 min;
 scoring 1,000,000 under 60 s and 2 GB. Wall and CPU seconds are both printed: the machine
 is shared.
@@ -285,6 +291,35 @@ def bench_score(models: list[MFGP], pools: list[int]) -> None:
             del X, mu, sd, p
 
 
+def bench_score_budget(n_obs: int, N: int) -> None:
+    from bams_cli import defaults
+
+    rng = np.random.default_rng(0)
+    X, levels, y = synthetic(n_obs, rng)
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=2)
+    pool = rng.normal(size=(N, D))
+    gammas = np.quantile(model.predict_theta0(pool[:20_000])[0], [0.005, 0.02])
+    t, c = time.perf_counter(), time.process_time()
+    mu, sd, p = model.score(pool, gammas, max_work=defaults.SCORE_MAX_WORK)
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    scoring = dict(model.scoring)
+    print(f"score {N:,} points against {n_obs:,} observations (d = {D}), gammas {gammas}")
+    print(f"  wall {wall:.1f} s, CPU {cpu:.1f} s, exact would cost {N * n_obs**2:.2g} flops")
+    print(f"  {json.dumps(scoring)}")
+    gap = np.min(np.abs(gammas[None, :] - mu[:, None]), axis=1)
+    for what, rows in [
+        ("random", rng.choice(N, 2000, replace=False)),
+        ("nearest a threshold", np.argsort(gap)[:2000]),
+    ]:
+        mu0, sd0, p0 = model.score(pool[rows], gammas)
+        print(
+            f"  {what:>20}: max |mu - exact| {np.max(np.abs(mu[rows] - mu0)):.1e}, "
+            f"max |p_n - exact| {np.max(np.abs(p[rows] - p0)):.1e}, sd / exact "
+            f"{np.min(sd[rows] / sd0):.4f} to {np.max(sd[rows] / sd0):.3f}",
+            flush=True,
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n <= 200, one repeat, N = 45k")
@@ -297,7 +332,15 @@ def main() -> None:
         "--local", type=int, default=None, metavar="BLOCKS",
         help="with --accuracy: block-local subsets of --keep observations, and the spectrum",
     )  # fmt: skip
+    parser.add_argument(
+        "--score-budget", type=str, default=None, metavar="N_OBS,POOL",
+        help="fit's scoring of POOL points against N_OBS observations within its flop budget",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.score_budget:
+        n_obs, pool = (int(v) for v in args.score_budget.split(","))
+        bench_score_budget(n_obs, pool)
+        return
     if args.child is not None:
         child(args.child, 0)
         return

@@ -466,3 +466,66 @@ def test_fit_says_when_an_edited_embedding_dim_has_not_been_applied(fitted_ws, r
        "--no-standardize", "--dim", "2", "--force")  # fmt: skip
     ws.settings_path.write_text(text.replace("embedding_dim = 2", "embedding_dim = 5"))
     assert stale("--force") == []
+
+
+def test_fit_over_its_scoring_budget_keeps_means_exact_and_says_so(
+    fitted_ws, runner, tmp_path, monkeypatch
+):
+    """Pool size x n^2 over ``SCORE_MAX_WORK`` (a million segments after an estimate stage's
+    12,000 level-0 runs took over an hour): means exact, sds never below the exact ones,
+    p_n from them, and model.json, --json and the summary say how."""
+    from bams_cli import defaults, schemas_json
+    from tests.jsonschema_subset import errors
+
+    ws = Workspace(fitted_ws)
+    saved = tmp_path / "model.json"
+    saved.write_text(ws.model_path.read_text())
+    assert json.loads(saved.read_text())["scoring"]["method"] == "exact"
+    exact = pq.read_table(ws.scores_path)
+    monkeypatch.setattr(defaults, "SCORE_MAX_WORK", 400 * 20 * 20 - 1)  # 400 segments, 20 obs
+    r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", saved, "--json")
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert errors(summary, schemas_json.schema("fit")) == []
+    s = summary["scoring"]
+    assert s["method"] == "bounded" and s["rows"] == 400 and s["bound_observations"] == 19
+    assert json.loads(ws.model_path.read_text())["scoring"] == s
+    # the bound costs 19^2 x 400; the rest buys (159,999 - 144,400) // 20^2 exact sds
+    assert s["exact_sd_rows"] == 38
+    assert s["near_thresholds"] > 38, s  # the others kept the bound
+    p0 = pq.read_table(ws.scores_path)["p_0"].to_numpy()
+    assert s["p_sum"] == pytest.approx([p0.sum()], rel=1e-12)
+    assert 0 < s["kept_bound_p_sum"][0] < s["p_sum"][0]
+    warned = any(w.startswith("scoring: means exact") for w in summary["warnings"])
+    assert warned == (s["kept_bound_p_sum"][0] > 0.01 * s["p_sum"][0])
+    bounded = pq.read_table(ws.scores_path)
+    np.testing.assert_allclose(bounded["mu"].to_numpy(), exact["mu"].to_numpy(), atol=1e-10)
+    assert np.all(bounded["sd"].to_numpy() >= exact["sd"].to_numpy() - 1e-12)
+    assert np.any(bounded["sd"].to_numpy() > exact["sd"].to_numpy() * 1.01)
+    mu, sd = bounded["mu"].to_numpy(), bounded["sd"].to_numpy()
+    np.testing.assert_allclose(bounded["p_0"].to_numpy(), ndtr((0.56 - mu) / sd), rtol=1e-12)
+    r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", saved)
+    assert r.exit_code == 0 and "scoring" in r.output and "upper bound" in r.output
+
+
+@pytest.mark.parametrize(("kept", "warned"), [(0.9, False), (1.1, True)])
+def test_fit_warns_when_bound_sds_hold_over_1_percent_of_the_model_s_expected_failures(
+    kept, warned
+):
+    from bams_cli.pipeline.fitting import _scoring_fell_short
+
+    s = {
+        "method": "bounded", "rows": 10**6, "max_work": 5e12, "bound_observations": 1581,
+        "near_thresholds": 64_368, "exact_sd_rows": 16_893, "decided_z": 8.5,
+        "p_sum": [4_800.0, 100.0], "kept_bound_p_sum": [3.0, kept],
+    }  # fmt: skip
+    lines = _scoring_fell_short(s)
+    assert bool(lines) == warned
+    if warned:
+        assert lines == [
+            "scoring: means exact; sds exact on the 16,893 segments nearest a threshold (within "
+            "8.5 sds), elsewhere an upper bound from 1,581 observations, where p_n is 0 or 1 "
+            "within 1e-17; 47,475 more near them kept the bound, their p_n leaning toward 1/2 "
+            "(1.10% of the pool's sum of p_n): exact sds on all 1,000,000 would cost over 5e+12 "
+            "flops"
+        ]

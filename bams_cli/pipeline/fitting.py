@@ -243,23 +243,16 @@ def fit(
     if progress:
         progress("fit", 1, 1)
 
-    n = len(ids)
-    mu = np.empty(n)
-    sd = np.empty(n)
-    p = np.empty((n, len(settings.gammas)))
-    for start in range(0, n, chunk_size):
-        stop = min(start + chunk_size, n)
-        mu[start:stop], sd[start:stop], p[start:stop] = model.score(
-            X[start:stop], model_gammas, chunk_size
-        )
-        if progress:
-            progress("score pool", stop, n)
+    mu, sd, p = model.score(
+        X, model_gammas, chunk_size, max_work=defaults.SCORE_MAX_WORK, progress=progress
+    )
 
     rows = model.conditioned_rows
     checks = check_model(model, idx if rows is None else idx[rows], names=ids)
     warnings = [
         *_no_level0(lv, settings.n_levels),
         *model.notes,
+        *_scoring_fell_short(model.scoring),
         *checks.warnings,
         *_contradicted_outcomes(ids, idx, lv, y, p, settings.gammas),
     ]
@@ -281,6 +274,8 @@ def fit(
         # Exact on all observations, or exact on a subset when they exceed the memory
         # budget (core.gp.fit.condition); load_posterior conditions the same way.
         "conditioning": {**model.conditioning, "note": conditioning_note(model.conditioning)},
+        # Exact sds everywhere, or exact where a threshold is near (core.gp.MFGP.score).
+        "scoring": {**model.scoring, "note": scoring_note(model.scoring)},
         "seed": settings.seed,
         "gammas": list(settings.gammas),
         "fitted_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -328,6 +323,7 @@ def fit(
         "jitter": doc["jitter"],
         "hyperparameters_fitted_on": doc["hyperparameters_fitted_on"],
         "conditioning": doc["conditioning"],
+        "scoring": doc["scoring"],
         "transform": doc["transform"],
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         # Segments seen failing at level 0, per gamma: without one, nothing outside the
@@ -408,8 +404,10 @@ def _fit_up_to_date(
                 "checks",
                 "jitter",
                 "conditioning",
+                "scoring",
                 "transform",
             )
+            if k in model  # scoring: models written before it was recorded
         },
         "gp_rate_estimate": {str(g): float(p[:, i].mean()) for i, g in enumerate(settings.gammas)},
         "warnings": model.get("warnings", []),
@@ -436,6 +434,43 @@ TRANSFORMS = ("auto", "none")
 #: p_n below this at an observed level-0 failure (or 1 - p_n below it at an observed
 #: non-failure) means the model contradicts what was measured.
 CONTRADICTION = 0.01
+
+
+def scoring_note(s: dict[str, Any]) -> str:
+    """One line on how ``fit`` scored the pool (``model.json``'s ``scoring``)."""
+    if s.get("method") != "bounded":
+        return "every segment's mean and sd exact"
+    rest = s["near_thresholds"] - s["exact_sd_rows"]
+    share = _kept_share(s)
+    short = (
+        f"; {rest:,} more near them kept the bound, their p_n leaning toward 1/2 "
+        f"({share:.2%} of the pool's sum of p_n)"
+        if rest
+        else ""
+    )
+    return (
+        f"means exact; sds exact on the {s['exact_sd_rows']:,} segments nearest a threshold "
+        f"(within {s['decided_z']:g} sds), elsewhere an upper bound from "
+        f"{s['bound_observations']:,} observations, where p_n is 0 or 1 within 1e-17{short}: "
+        f"exact sds on all {s['rows']:,} would cost over {s['max_work']:.0e} flops"
+    )
+
+
+def _kept_share(s: dict[str, Any]) -> float:
+    """The largest share, over gammas, of the pool's sum of p_n on rows that kept the bound."""
+    shares = [k / t for k, t in zip(s["kept_bound_p_sum"], s["p_sum"], strict=True) if t > 0]
+    return max(shares, default=0.0)
+
+
+def _scoring_fell_short(s: dict[str, Any]) -> list[str]:
+    """``scoring_note`` as a warning when rows that kept the bound sd hold over 1% of the
+    pool's sum of p_n (the model's expected failures): its rate leans high by up to that."""
+    short = s.get("method") == "bounded" and _kept_share(s) > SCORING_SHORT_SHARE
+    return [f"scoring: {scoring_note(s)}"] if short else []
+
+
+#: ``fit`` warns when the rows that kept a bound sd hold more than this share of sum p_n.
+SCORING_SHORT_SHARE = 0.01
 
 
 def _no_level0(levels: np.ndarray, n_levels: int) -> list[str]:

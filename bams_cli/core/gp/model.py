@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,7 @@ from scipy.linalg import cho_solve, solve_triangular
 from scipy.special import ndtr
 from threadpoolctl import threadpool_limits
 
+from bams_cli import defaults
 from bams_cli.core.gp._numerics import (
     LOG_2PI,
     FloatArray,
@@ -36,6 +38,8 @@ _REUSE_MIN_COLUMNS = 1024  # _obs_factor_reused: smaller sets are cheap to recom
 _THREADED_FROM = 2000  # MFGP(): factorise with every BLAS thread from this many observations
 _CHUNK_ELEMENTS = 1 << 24  # score(): at most this many (chunk x n_obs) kernel entries
 _OWN_BLOCK_ELEMENTS = 8 << 20  # own_point: n_obs x columns per block (64 MB)
+_BOUND_MIN_OBS = 500  # _score_bounded: the bound's model conditions on at least this many
+_BOUND_SHARE = 0.125  # _score_bounded: the bound's share of max_work; the rest refines
 
 
 class _FactorCache:
@@ -508,7 +512,13 @@ class MFGP:
         return np.maximum(prior - np.einsum("ij,ij->j", W, W), 0.0)
 
     def score(
-        self, X: FloatArray, gammas: Any, chunk_size: int = 50_000
+        self,
+        X: FloatArray,
+        gammas: Any,
+        chunk_size: int = 50_000,
+        *,
+        max_work: float | None = None,
+        progress: Callable[[str, int, int], None] | None = None,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Posterior mean, sd and failure probability p_n(x) = Phi((gamma - mu) / sd).
 
@@ -517,6 +527,10 @@ class MFGP:
         the (chunk, n_obs) kernel block stays bounded (at most ``chunk_size`` rows and
         2^24 kernel entries, ~128 MB, per chunk) for pools of millions.
 
+        Each row's sd costs n^2 flops (a triangular solve against the n observations).
+        When m n^2 exceeds ``max_work`` the mean stays exact and the sds are bounded
+        (``_score_bounded``); ``self.scoring`` says how the last call scored.
+
         Parameters
         ----------
         X : ndarray of shape (m, d)
@@ -524,6 +538,10 @@ class MFGP:
             Failure thresholds.
         chunk_size : int
             Maximum rows per chunk.
+        max_work : float, optional
+            Flops the sds may take (m n^2 for exact ones); None: exact whatever it costs.
+        progress : callable, optional
+            ``progress(what, done, total)`` after each chunk.
 
         Returns
         -------
@@ -537,11 +555,24 @@ class MFGP:
         g = np.atleast_1d(np.asarray(gammas, dtype=np.float64))
         if g.ndim != 1:
             raise ValueError(f"gammas must be one-dimensional, got shape {g.shape}")
-        mu, sigma2, p = self._score(self._centre(X), g, chunk_size)
+        Xc = self._centre(X)
+        n, m = self._Xt.shape[0], Xc.shape[0]
+        if max_work is not None and float(m) * n * n > max_work and g.size:
+            mu, sigma2, p = self._score_bounded(Xc, g, chunk_size, max_work, progress)
+        else:
+            mu, sigma2, p = self._score(Xc, g, chunk_size, progress)
+            self.scoring = {"method": "exact", "rows": int(m)}
         return mu, np.sqrt(sigma2), p
 
+    #: How the last ``score`` call scored: method "exact", or "bounded" with its numbers.
+    scoring: dict[str, Any] = {"method": "exact"}
+
     def _score(
-        self, X: FloatArray, gammas: FloatArray, chunk_size: int
+        self,
+        X: FloatArray,
+        gammas: FloatArray,
+        chunk_size: int,
+        progress: Callable[[str, int, int], None] | None = None,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """mu (m,), clipped sigma2 (m,), p (m, len(gammas)) for centred X, chunk by chunk."""
         m = X.shape[0]
@@ -555,6 +586,85 @@ class MFGP:
             sigma2[sl] = np.maximum(s2, 0.0)
             if gammas.size:
                 p[sl] = _failure_probability(mu[sl], np.sqrt(sigma2[sl]), gammas)
+            if progress:
+                progress("score pool", sl.stop, m)
+        return mu, sigma2, p
+
+    def _score_bounded(
+        self,
+        X: FloatArray,
+        gammas: FloatArray,
+        chunk_size: int,
+        max_work: float,
+        progress: Callable[[str, int, int], None] | None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``_score`` within ``max_work`` flops of sds, for centred X.
+
+        1. The mean, exact: k(x, X_n) alpha costs n flops a row.
+        2. An upper bound on every sd: the sd of this GP conditioned on k of its
+           observations (``fit.conditioning_subset``, level 0 first), k^2 m <= max_work / 8
+           (a loose bound is cheap to tighten where it matters, step 3).
+           Conditioning on more jointly Gaussian observations never raises a variance, so
+           the exact sd is at most this.
+        3. The exact sd where some threshold lies within ``SCORE_DECIDED_Z`` bound-sds of
+           the mean, nearest first, as many rows as the rest of the budget buys. Elsewhere
+           |gamma - mu| / sd_exact >= |gamma - mu| / sd_bound >= z, so p_n, from either
+           sd, is within Phi(-z) < 1e-17 of 0 or 1.
+        Rows of step 3 the budget does not reach keep the bound: their p_n leans toward
+        1/2, the cautious side; ``self.scoring`` counts them.
+        """
+        from bams_cli.core.gp.fit import conditioning_subset
+
+        n, m = self._Xt.shape[0], X.shape[0]
+        k = int(min(n - 1, max(_BOUND_MIN_OBS, math.isqrt(int(max_work * _BOUND_SHARE // m)))))
+        rows = conditioning_subset(self.levels_train, self.n_levels, k)
+        assert rows is not None  # k < n
+        bound = MFGP(
+            self.X_train[rows], self.levels_train[rows], self.y_train[rows], self.n_levels,
+            self.hyperparameters, priors=self.priors,
+        )  # fmt: skip
+        to_bound = self._shift - bound._shift
+        mu = np.empty(m)
+        sigma2 = np.empty(m)
+        step = self._chunk_rows(chunk_size)
+        for start in range(0, m, step):
+            sl = slice(start, min(start + step, m))
+            kx = matern52_cross(X[sl], self._Xt, self._ell[0], self._s[0])
+            mu[sl] = self.hyperparameters.mean + kx @ self._alpha
+            sigma2[sl] = np.maximum(bound._predict_block(X[sl] + to_bound)[1], 0.0)
+            if progress:
+                progress("score pool", sl.stop, m)
+        gap = np.min(np.abs(gammas[None, :] - mu[:, None]), axis=1)
+        sd = np.sqrt(sigma2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(sd > 0.0, gap / sd, np.where(gap > 0.0, np.inf, 0.0))
+        near = np.flatnonzero(z < defaults.SCORE_DECIDED_Z)
+        affordable = int(max(0.0, max_work - float(k) * k * m) // (float(n) * n))
+        exact = np.sort(near[np.argsort(z[near], kind="stable")[:affordable]])
+        step = self._chunk_rows(chunk_size)
+        for start in range(0, exact.size, step):
+            at = exact[start : start + step]
+            sigma2[at] = np.maximum(self._predict_block(X[at])[1], 0.0)
+            if progress:
+                progress("exact sd near the thresholds", start + at.size, exact.size)
+        p = np.empty((m, gammas.size))
+        for start in range(0, m, step):
+            sl = slice(start, min(start + step, m))
+            p[sl] = _failure_probability(mu[sl], np.sqrt(sigma2[sl]), gammas)
+        kept = np.setdiff1d(near, exact, assume_unique=True)
+        self.scoring = {
+            "method": "bounded",
+            "rows": int(m),
+            "max_work": float(max_work),
+            "bound_observations": int(k),
+            "near_thresholds": int(near.size),
+            "exact_sd_rows": int(exact.size),
+            "decided_z": float(defaults.SCORE_DECIDED_Z),
+            # per gamma: sum p_n over the pool, and over the near rows that kept the bound
+            # (what their leaning toward 1/2 can add to the model's expected failures)
+            "p_sum": [float(v) for v in p.sum(axis=0)],
+            "kept_bound_p_sum": [float(v) for v in p[kept].sum(axis=0)],
+        }
         return mu, sigma2, p
 
 

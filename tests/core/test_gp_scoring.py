@@ -1,0 +1,101 @@
+"""Scoring a pool within a flop budget (``MFGP.score(max_work=...)``) against exact scoring.
+
+A million segments against the 12,000 level-0 runs of an estimate stage took ``fit`` over
+an hour, nearly all of it the sds' triangular solves (m n^2 flops). Within the budget the
+mean stays exact, every sd is an upper bound of the exact one, and the sd is exact where a
+threshold is near; p_n elsewhere is 0 or 1 within 1e-17 either way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bams_cli import defaults
+from bams_cli.core.gp import MFGP, Hyperparameters
+from bams_cli.core.gp.fit import conditioning_subset
+
+N_OBS, M = 800, 4000
+
+
+@pytest.fixture(scope="module")
+def scored():
+    rng = np.random.default_rng(7)
+    d = 2
+    X = rng.uniform(-3, 3, size=(N_OBS, d))
+    levels = (rng.uniform(size=N_OBS) < 0.4).astype(np.int64)  # 60% level 0
+    y = np.sin(X).sum(1) + 0.4 * levels + 0.05 * rng.normal(size=N_OBS)
+    hp = Hyperparameters(
+        mean=0.0,
+        outputscale0=1.0,
+        lengthscales0=np.array([0.8, 1.1]),
+        outputscales=np.array([0.1]),
+        lengthscales=np.array([[1.5, 1.5]]),
+        noise=np.array([1e-3, 1e-2]),
+        offsets=np.array([0.4]),
+    )
+    model = MFGP(X, levels, y, 2, hp)
+    pool = rng.uniform(-3.5, 3.5, size=(M, d))
+    gammas = np.array([-1.2, -0.6])
+    exact = model.score(pool, gammas)
+    assert model.scoring["method"] == "exact"
+    return model, pool, gammas, exact
+
+
+def test_within_budget_the_mean_is_exact_and_every_sd_an_upper_bound(scored):
+    model, pool, gammas, (mu0, sd0, p0) = scored
+    mu, sd, p = model.score(pool, gammas, max_work=1.5e9)  # exact: M n^2 = 2.6e9
+    s = model.scoring
+    assert s["method"] == "bounded"
+    assert s["bound_observations"] == 500  # isqrt(1.5e9 / 8000) = 433, at least 500
+    np.testing.assert_allclose(mu, mu0, rtol=0, atol=1e-10)
+    assert np.all(sd >= sd0 - 1e-9)
+    assert np.any(sd > sd0 * 1.5)  # a real bound, not the exact sd everywhere
+    # the rest of the budget: (1.5e9 - 500^2 M) // n^2 rows of exact sd
+    assert s["exact_sd_rows"] == int((1.5e9 - 500**2 * M) // N_OBS**2) == 781
+    assert s["near_thresholds"] > s["exact_sd_rows"]  # some near rows kept the bound
+
+
+def test_the_exact_sds_go_to_the_rows_nearest_a_threshold(scored):
+    model, pool, gammas, (mu0, sd0, p0) = scored
+    mu, sd, p = model.score(pool, gammas, max_work=1.5e9)
+    # the bound by hand: the same GP on the 500 observations conditioning_subset picks
+    rows = conditioning_subset(model.levels_train, 2, 500)
+    bound = MFGP(
+        model.X_train[rows], model.levels_train[rows], model.y_train[rows], 2,
+        model.hyperparameters,
+    )  # fmt: skip
+    _, sd_b, _ = bound.score(pool, gammas)
+    z = np.min(np.abs(gammas[None, :] - mu0[:, None]), axis=1) / sd_b
+    refined = np.zeros(M, dtype=bool)
+    refined[np.argsort(z, kind="stable")[: model.scoring["exact_sd_rows"]]] = True
+    np.testing.assert_allclose(sd[refined], sd0[refined], rtol=1e-9)
+    np.testing.assert_allclose(sd[~refined], sd_b[~refined], rtol=1e-9)
+    np.testing.assert_allclose(p[refined], p0[refined], rtol=0, atol=1e-12)
+    far = z >= defaults.SCORE_DECIDED_Z
+    assert far.sum() > M / 3
+    # far from every threshold p_n is 0 or 1 to 1e-17 with either sd
+    assert np.max(np.abs(p[far] - p0[far])) < 1e-15
+    assert set(np.unique(np.round(p0[far]))) <= {0.0, 1.0}
+
+
+def test_a_budget_that_covers_every_near_row_gives_the_exact_failure_probabilities(scored):
+    model, pool, _, _ = scored
+    rare = np.array([-1.8])  # few segments near it
+    mu0, _, p0 = model.score(pool, rare)
+    mu, _, p = model.score(pool, rare, max_work=2.0e9)
+    s = model.scoring
+    assert s["method"] == "bounded" and 0 < s["exact_sd_rows"] == s["near_thresholds"] < M
+    np.testing.assert_allclose(p, p0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mu, mu0, rtol=0, atol=1e-10)
+
+
+def test_the_pool_rate_of_a_bounded_score_is_never_below_the_exact_one_by_more_than_rounding(
+    scored,
+):
+    # Rows that kept the bound have p_n pulled toward 1/2: for rare failures (mu above
+    # gamma) that raises p_n, the cautious side of a rate.
+    model, pool, gammas, (mu0, sd0, p0) = scored
+    _, _, p = model.score(pool, gammas, max_work=1.5e9)
+    rare = mu0 > gammas.max()
+    assert np.all(p[rare] >= p0[rare] - 1e-15)
