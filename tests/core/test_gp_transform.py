@@ -85,3 +85,36 @@ def test_evidence_chooses_a_compression_for_a_metric_with_a_wide_range():
     brier = [np.mean((p - fail) ** 2) for p in (p_g, p_id)]
     assert brier[0] < 0.7 * brier[1], brier
     assert math.isfinite(evidence[1]["log_evidence"])
+
+
+@pytest.mark.parametrize("order", ["as_given", "reversed"])
+def test_the_chosen_model_is_the_chosen_candidate_s_own_fit(order, monkeypatch):
+    """fit_transformed keeps one conditioned model at a time (each holds an n x n factor;
+    two doubled fit's peak memory) and conditions the best again unless it came last: the
+    answer is still exactly that candidate's own fit, wherever it stands in the list."""
+    from bams_cli.core.gp import fit as gp_fit
+    from bams_cli.core.gp import fit_mfgp
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-1, 1, (70, 2))
+    levels = (rng.uniform(size=70) < 0.4).astype(np.int64)
+    y = _smooth(X) + 0.2 * levels + 0.01 * rng.normal(size=70)
+    listed = candidate_transforms(y, 0.0)
+    if order == "reversed":
+        listed = listed[::-1]
+        monkeypatch.setattr(gp_fit, "candidate_transforms", lambda y, c, given=listed: given)
+    model, g, evidence = fit_transformed(X, levels, y, 2, centre=0.0, rng=np.random.default_rng(5))
+    seed = int(np.random.default_rng(5).integers(2**63))
+    fits = [fit_mfgp(X, levels, c.forward(y), 2, rng=np.random.default_rng(seed)) for c in listed]
+    scores = [f.log_posterior + c.log_jacobian(y) for f, c in zip(fits, listed, strict=True)]
+    assert [e["log_evidence"] for e in evidence] == scores
+    k = int(np.argmax(scores))
+    assert g == listed[k]
+    ref = fits[k]
+    assert model.hyperparameters.to_dict() == ref.hyperparameters.to_dict()
+    assert model.log_posterior == ref.log_posterior
+    assert (model.fitted_on, model.notes) == (ref.fitted_on, ref.notes)
+    grid = rng.uniform(-1, 1, (50, 2))
+    np.testing.assert_array_equal(model.predict_theta0(grid)[0], ref.predict_theta0(grid)[0])
+    # the two orders put the winner at different places: one of them exercised the refit
+    assert k != len(listed) - 1 or order == "reversed"
