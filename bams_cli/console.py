@@ -407,7 +407,11 @@ def embed_reduce_summary(s: Mapping[str, Any]) -> None:
 
 
 def ingest_summary(s: Mapping[str, Any]) -> None:
-    by_level = ", ".join(f"level {lv}: {n}" for lv, n in (s.get("by_fidelity") or {}).items())
+    names = s.get("level_names") or []
+    by_level = ", ".join(
+        f"level {lv}{f' ({names[int(lv)]})' if int(lv) < len(names) else ''}: {n}"
+        for lv, n in (s.get("by_fidelity") or {}).items()
+    )
     active = s.get("log_active", s["log_rows"])
     replaced = s["log_rows"] - active
     facts(

@@ -259,6 +259,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "observations": PATH,
                 "log_rows": COUNT,
                 "log_active": COUNT,
+                "level_names": array(STR),
                 "by_fidelity": mapping(COUNT, "level number"),
                 "abandoned": obj(
                     {"abandoned": COUNT, "already_abandoned": COUNT, "first": array(REQUEST)}

@@ -582,7 +582,8 @@ def test_the_by_level_counts_are_in_level_order(tmp_path, runner):
             assert list(out["by_fidelity"].items()) == [("0", 3), ("1", 2), ("2", 1)]
         else:
             r = ok(runner, "ingest-results", "-w", ws, res)
-            assert "  by level  level 0: 3, level 1: 2, level 2: 1" in r.stdout.splitlines()
+            by_level = "  by level  level 0 (high): 3, level 1 (low1): 2, level 2 (low2): 1"
+            assert by_level in r.stdout.splitlines()
 
 
 @pytest.mark.parametrize("damage", ["a pending row gone", "unparseable"])

@@ -228,6 +228,7 @@ def ingest_results(
         "by_fidelity": {
             int(k): int(v) for k, v in new.group_by("fidelity").len().sort("fidelity").iter_rows()
         },
+        "level_names": [lv.name for lv in settings.levels],
         "pending": pending_summary(ws),
         "pending_lists": pending.summary(ws),
         "not_run": not_run_summary(_still_pending(ws, settings, not_run)),
