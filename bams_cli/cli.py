@@ -200,7 +200,8 @@ def _reflow(doc: str) -> str:
 
 
 #: What stops a command where it stands (``bams_cli.stopping``): Ctrl-C, ``kill``, a closed
-#: terminal. ``loop`` installs its own handlers first, and those are left alone.
+#: terminal. A handler someone else installed is left alone; ``loop`` installs its own
+#: inside the command's for its time, and restores the command's after.
 COMMAND_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 

@@ -310,7 +310,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "exact_sd_rows": COUNT,
                         "decided_z": NUM,
                         "p_sum": array(NUM),
-                        "kept_bound_p_sum": array(NUM),
+                        "kept_bound_error": array(NUM),
                     },
                 ),
                 "up_to_date": {"const": True},

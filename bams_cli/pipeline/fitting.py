@@ -441,10 +441,9 @@ def scoring_note(s: dict[str, Any]) -> str:
     if s.get("method") != "bounded":
         return "every segment's mean and sd exact"
     rest = s["near_thresholds"] - s["exact_sd_rows"]
-    share = _kept_share(s)
     short = (
-        f"; {rest:,} more near them kept the bound, their p_n leaning toward 1/2 "
-        f"({share:.2%} of the pool's sum of p_n)"
+        f"; {rest:,} more near them kept the bound, their p_n leaning toward 1/2 (it can "
+        f"move the pool's sum of p_n by up to {_kept_share(s):.2%})"
         if rest
         else ""
     )
@@ -457,19 +456,20 @@ def scoring_note(s: dict[str, Any]) -> str:
 
 
 def _kept_share(s: dict[str, Any]) -> float:
-    """The largest share, over gammas, of the pool's sum of p_n on rows that kept the bound."""
-    shares = [k / t for k, t in zip(s["kept_bound_p_sum"], s["p_sum"], strict=True) if t > 0]
+    """The most, over gammas, that rows which kept the bound sd can move the pool's sum of
+    p_n, as a share of it (``MFGP._score_bounded``: min(p, 1 - p) per row)."""
+    shares = [e / t for e, t in zip(s["kept_bound_error"], s["p_sum"], strict=True) if t > 0]
     return max(shares, default=0.0)
 
 
 def _scoring_fell_short(s: dict[str, Any]) -> list[str]:
-    """``scoring_note`` as a warning when rows that kept the bound sd hold over 1% of the
-    pool's sum of p_n (the model's expected failures): its rate leans high by up to that."""
+    """``scoring_note`` as a warning when rows that kept the bound sd can move the pool's
+    sum of p_n (the model's expected failures) by over ``SCORING_SHORT_SHARE`` of it."""
     short = s.get("method") == "bounded" and _kept_share(s) > SCORING_SHORT_SHARE
     return [f"scoring: {scoring_note(s)}"] if short else []
 
 
-#: ``fit`` warns when the rows that kept a bound sd hold more than this share of sum p_n.
+#: ``fit`` warns when the rows that kept a bound sd can move sum p_n by more than this share.
 SCORING_SHORT_SHARE = 0.01
 
 

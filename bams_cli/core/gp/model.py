@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import math
 from collections.abc import Callable
@@ -557,8 +558,10 @@ class MFGP:
             raise ValueError(f"gammas must be one-dimensional, got shape {g.shape}")
         Xc = self._centre(X)
         n, m = self._Xt.shape[0], Xc.shape[0]
-        if max_work is not None and float(m) * n * n > max_work and g.size:
-            mu, sigma2, p = self._score_bounded(Xc, g, chunk_size, max_work, progress)
+        # Bounded where exact costs over max_work and the bound itself leaves some over.
+        k = _bound_size(n, m, max_work) if max_work is not None and g.size else n
+        if max_work is not None and k < n and float(m) * n * n > max_work > float(m) * k * k:
+            mu, sigma2, p = self._score_bounded(Xc, g, chunk_size, max_work, k, progress)
         else:
             mu, sigma2, p = self._score(Xc, g, chunk_size, progress)
             self.scoring = {"method": "exact", "rows": int(m)}
@@ -596,32 +599,37 @@ class MFGP:
         gammas: FloatArray,
         chunk_size: int,
         max_work: float,
+        k: int,
         progress: Callable[[str, int, int], None] | None,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``_score`` within ``max_work`` flops of sds, for centred X.
 
         1. The mean, exact: k(x, X_n) alpha costs n flops a row.
         2. An upper bound on every sd: the sd of this GP conditioned on k of its
-           observations (``fit.conditioning_subset``, level 0 first), k^2 m <= max_work / 8
-           (a loose bound is cheap to tighten where it matters, step 3).
+           observations (``fit.conditioning_subset``, level 0 first; ``_bound_size``:
+           k^2 m <= max_work / 8, a loose bound being cheap to tighten where it matters).
            Conditioning on more jointly Gaussian observations never raises a variance, so
-           the exact sd is at most this.
+           the exact sd is at most this, provided the subset carries the same noise: the
+           bound's noise includes the jitter this model's factorisation added to every
+           observation (more jitter of its own only raises its variance).
         3. The exact sd where some threshold lies within ``SCORE_DECIDED_Z`` bound-sds of
            the mean, nearest first, as many rows as the rest of the budget buys. Elsewhere
            |gamma - mu| / sd_exact >= |gamma - mu| / sd_bound >= z, so p_n, from either
            sd, is within Phi(-z) < 1e-17 of 0 or 1.
         Rows of step 3 the budget does not reach keep the bound: their p_n leans toward
-        1/2, the cautious side; ``self.scoring`` counts them.
+        1/2 (up for a mean above every threshold, down below one), by at most
+        min(p, 1 - p) each, since the exact p_n is on the same side of 1/2 and further
+        out; ``self.scoring`` sums that per threshold (``kept_bound_error``).
         """
         from bams_cli.core.gp.fit import conditioning_subset
 
         n, m = self._Xt.shape[0], X.shape[0]
-        k = int(min(n - 1, max(_BOUND_MIN_OBS, math.isqrt(int(max_work * _BOUND_SHARE // m)))))
         rows = conditioning_subset(self.levels_train, self.n_levels, k)
         assert rows is not None  # k < n
+        hp = self.hyperparameters
         bound = MFGP(
             self.X_train[rows], self.levels_train[rows], self.y_train[rows], self.n_levels,
-            self.hyperparameters, priors=self.priors,
+            dataclasses.replace(hp, noise=hp.noise + self.jitter), priors=self.priors,
         )  # fmt: skip
         to_bound = self._shift - bound._shift
         mu = np.empty(m)
@@ -660,12 +668,18 @@ class MFGP:
             "near_thresholds": int(near.size),
             "exact_sd_rows": int(exact.size),
             "decided_z": float(defaults.SCORE_DECIDED_Z),
-            # per gamma: sum p_n over the pool, and over the near rows that kept the bound
-            # (what their leaning toward 1/2 can add to the model's expected failures)
+            # per gamma: sum p_n over the pool, and the most the near rows that kept the
+            # bound can move it (sum of min(p, 1 - p) over them)
             "p_sum": [float(v) for v in p.sum(axis=0)],
-            "kept_bound_p_sum": [float(v) for v in p[kept].sum(axis=0)],
+            "kept_bound_error": [float(v) for v in np.minimum(p[kept], 1.0 - p[kept]).sum(axis=0)],
         }
         return mu, sigma2, p
+
+
+def _bound_size(n: int, m: int, max_work: float) -> int:
+    """Observations the sd bound of ``MFGP._score_bounded`` conditions on: k^2 m within
+    ``_BOUND_SHARE`` of ``max_work``, at least ``_BOUND_MIN_OBS``, fewer than n."""
+    return int(min(n - 1, max(_BOUND_MIN_OBS, math.isqrt(int(max_work * _BOUND_SHARE // m)))))
 
 
 def _failure_probability(mu: FloatArray, sd: FloatArray, gammas: FloatArray) -> FloatArray:
