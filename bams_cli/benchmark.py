@@ -82,6 +82,7 @@ from bams_cli.core import suite, synthetic
 from bams_cli.core.estimate import plan_sample
 from bams_cli.core.evaluate import exact_variance, expected_is_recall, retention_recall
 from bams_cli.errors import OptionError, OptionValueError
+from bams_cli.pipeline._common import ids_in
 from bams_cli.settings import Settings, levels_from_costs
 
 Progress = Callable[[str, int, int], None]
@@ -592,7 +593,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     ids = _column(root / "scores.parquet", "segment_id").astype(str)
     obs = ws.read_observations()
     seen = [
-        np.isin(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
+        ids_in(ids, obs.filter(obs["fidelity"] == lv)["segment_id"].to_numpy()) for lv in (0, 1)
     ]
     share = option
     if option == "auto":  # the decision estimate --plan makes, at the run's K

@@ -74,6 +74,21 @@ def locked(fn: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
     return run
 
 
+def ids_in(ids: np.ndarray, among: Any) -> np.ndarray:
+    """Which of the segment ids ``ids`` are in ``among``, as a boolean array: a hash lookup.
+
+    ``np.isin`` on text ids (object arrays) compares every pair: a stage-2 ``estimate
+    --plan`` at a million segments spent 245 s in it against stage 1's 11,700 results.
+    """
+    if len(ids) == 0:
+        return np.zeros(0, dtype=bool)
+    return (
+        pl.Series(np.asarray(ids), dtype=pl.String)
+        .is_in(pl.Series(np.asarray(among), dtype=pl.String).implode())
+        .to_numpy()
+    )
+
+
 def savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)  # type: ignore[arg-type]

@@ -10,7 +10,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
-from bams_cli.pipeline._common import SID
+from bams_cli.pipeline._common import SID, ids_in
 from bams_cli.state import handoff as contract
 from bams_cli.state.io import (
     read_state_schema,
@@ -20,7 +20,7 @@ from bams_cli.state.workspace import Workspace
 
 def observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     obs = ws.read_observations().filter(pl.col("fidelity") == 0)
-    return np.isin(ids, obs[SID].to_numpy())
+    return ids_in(ids, obs[SID].to_numpy())
 
 
 # Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.

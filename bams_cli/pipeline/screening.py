@@ -31,7 +31,7 @@ import pyarrow as pa
 
 from bams_cli import defaults
 from bams_cli.errors import OptionValueError, PendingResultsError, WorkspaceError
-from bams_cli.pipeline._common import SID
+from bams_cli.pipeline._common import SID, ids_in
 from bams_cli.pipeline._handoff import BATCH_INTERNAL, passthrough_columns, write_handoff
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
@@ -221,7 +221,7 @@ def draw_screen(
     pi1 = choice.pi
     s1 = unknown[draw_poisson(pi1, rng)]
     obs = ws.read_observations().filter(pl.col("fidelity") == SCREEN_LEVEL)
-    have = np.isin(ids[s1], obs[SID].to_numpy())
+    have = ids_in(ids[s1], obs[SID].to_numpy())
     gone = abandoned_mask(ws, ids, settings.n_levels)[s1, SCREEN_LEVEL]
     run = s1[~have & ~gone]
     n = len(ids)

@@ -30,6 +30,7 @@ from bams_cli.pipeline._common import (
     check_buys_a_run,
     check_clusters,
     check_workers,
+    ids_in,
     locked,
     read_scores,
 )
@@ -211,7 +212,7 @@ def _existing_batch(
 def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
     """Segments seen at or below gamma at some cheap level (a lead until level 0 confirms)."""
     obs = ws.read_observations().filter((pl.col("fidelity") > 0) & (pl.col("value") <= gamma))
-    return np.isin(ids, obs[SID].to_numpy())
+    return ids_in(ids, obs[SID].to_numpy())
 
 
 def _check_out(out: Path) -> Path:
@@ -306,7 +307,7 @@ def _observed_pairs(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray
     seen = np.zeros((len(ids), n_levels), bool)
     obs = ws.read_observations()
     for lv in range(n_levels):
-        seen[:, lv] = np.isin(ids, obs.filter(pl.col("fidelity") == lv)[SID].to_numpy())
+        seen[:, lv] = ids_in(ids, obs.filter(pl.col("fidelity") == lv)[SID].to_numpy())
     return seen
 
 
