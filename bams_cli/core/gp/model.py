@@ -333,11 +333,15 @@ class MFGP:
 
         Paper sec. 2 (GP predictions) with the constant mean; GPML Alg. 2.1.
         """
-        k = matern52_cross(Xc, self._Xt, self._ell[0], self._s[0])  # (m, n), C order
-        mu = self.hyperparameters.mean + k @ self._alpha  # GPML Alg. 2.1 line 4
+        mu, k = self._mean_block(Xc)
         v = self._solve_L(k.T)  # F-ordered view: LAPACK solves in place, no copy
         sigma2 = self._s[0] - np.einsum("ij,ij->j", v, v)  # GPML Alg. 2.1 lines 5-6
         return mu, sigma2
+
+    def _mean_block(self, Xc: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean of theta0 at centred rows Xc, and k0(Xc, X_n) of shape (m, n)."""
+        k = matern52_cross(Xc, self._Xt, self._ell[0], self._s[0])  # (m, n), C order
+        return self.hyperparameters.mean + k @ self._alpha, k  # GPML Alg. 2.1 line 4
 
     def _chunk_rows(self, chunk_size: int) -> int:
         return max(1, min(int(chunk_size), _CHUNK_ELEMENTS // max(1, self._Xt.shape[0])))
@@ -637,8 +641,7 @@ class MFGP:
         step = self._chunk_rows(chunk_size)
         for start in range(0, m, step):
             sl = slice(start, min(start + step, m))
-            kx = matern52_cross(X[sl], self._Xt, self._ell[0], self._s[0])
-            mu[sl] = self.hyperparameters.mean + kx @ self._alpha
+            mu[sl] = self._mean_block(X[sl])[0]
             sigma2[sl] = np.maximum(bound._predict_block(X[sl] + to_bound)[1], 0.0)
             if progress:
                 progress("score pool", sl.stop, m)
@@ -649,7 +652,6 @@ class MFGP:
         near = np.flatnonzero(z < defaults.SCORE_DECIDED_Z)
         affordable = int(max(0.0, max_work - float(k) * k * m) // (float(n) * n))
         exact = np.sort(near[np.argsort(z[near], kind="stable")[:affordable]])
-        step = self._chunk_rows(chunk_size)
         for start in range(0, exact.size, step):
             at = exact[start : start + step]
             sigma2[at] = np.maximum(self._predict_block(X[at])[1], 0.0)
