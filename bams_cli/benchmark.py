@@ -397,6 +397,7 @@ def run_one(spec: RunSpec) -> RunResult:
     from threadpoolctl import threadpool_limits
 
     from bams_cli.core.baselines import difficulty_weights
+    from bams_cli.core.kernels import kernel_threads
 
     protocol = PROTOCOLS[spec.protocol]
     data = Path(spec.data)
@@ -408,7 +409,7 @@ def run_one(spec: RunSpec) -> RunResult:
     def clock(key: str, t0: float) -> None:
         seconds[key] = seconds.get(key, 0.0) + time.perf_counter() - t0
 
-    with threadpool_limits(limits=1):
+    with threadpool_limits(limits=1), kernel_threads(1):
         t0 = time.perf_counter()
         pipeline.init(root, settings_from=data / "settings.toml", seed=spec.seed)
         pipeline.embed_reduce(root, data / "segments.parquet", **protocol.reduce)

@@ -264,7 +264,8 @@ FIT_CONDITION_MEMORY = 2 * 2**30
 #: buys exact sds where a threshold is within ``SCORE_DECIDED_Z`` bound-sds of the mean,
 #: nearest first. Elsewhere p_n is 0 or 1 to within 1e-17 (``core.gp.MFGP.score``). That
 #: study's fit: 7 min 14 s at 2e13, every sd within 8.5 sds of the threshold exact (64,368);
-#: 6 min 28 s at 5e12, 16,893 of them exact.
+#: 6 min 28 s at 5e12, 16,893 of them exact. ``select`` bounds the pool's sds the same
+#: way past it (``core.select._predict``), for its first gamma.
 SCORE_MAX_WORK = 2e13
 
 #: Where |gamma - mu| exceeds this many (upper-bound) sds, p_n = Phi(-z) is below 1e-17
@@ -301,6 +302,11 @@ SELECT_RANDOM_SHARE = 0.1
 SELECT_SCREEN_ROUNDS = 3
 #: ... and K-means with the merge loop runs on a sample of this many segments.
 SELECT_CLUSTER_FIT_MAX = 50_000
+#: ... and past this many observations each cluster's greedy conditions on the nearest
+#: this many to its segments (``core.gp.MFGP.nearest``): every candidate's factor costs
+#: n^2, and at a million segments after an estimate stage (14,654 observations) the screen's
+#: two million candidates took hours.
+SELECT_LOCAL_OBS = 2_000
 
 #: ``--max-memory`` of ``select``, ``fit``, ``embed-reduce`` and ``report`` when not given:
 #: this share of the machine's RAM (``bams_cli.memory``), leaving the rest to the

@@ -132,7 +132,13 @@ def _die_with_parent(parent: int) -> None:
     ``terminate()`` and kept a worker busy in C code alive. Workers take the default back,
     and ignore SIGINT: Ctrl-C reaches the whole process group, and the command, stopped by
     it, ends its workers itself.
+
+    A worker's kernels run on one thread (``core.kernels.set_kernel_threads``): its
+    siblings hold the other cores.
     """
+    from bams_cli.core.kernels import set_kernel_threads
+
+    set_kernel_threads(1)
     for s in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(s, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.SIG_IGN)

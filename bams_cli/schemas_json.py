@@ -77,6 +77,23 @@ def mapping(values: Schema, keys: str) -> Schema:
     return {"type": "object", "description": f"keys: {keys}", "additionalProperties": values}
 
 
+def _scoring(required: dict[str, Schema] | None = None) -> Schema:
+    """How a pool's sds were got (``core.gp.MFGP.moments``): fit's ``scoring``, select's
+    ``pool_sds``."""
+    return obj(
+        {"method": STR, "rows": COUNT, **(required or {})},
+        {
+            "max_work": NUM,
+            "bound_observations": COUNT,
+            "near_thresholds": COUNT,
+            "exact_sd_rows": COUNT,
+            "decided_z": NUM,
+            "p_sum": array(NUM),
+            "kept_bound_error": array(NUM),
+        },
+    )
+
+
 LEVELS: Schema = array(obj({"name": STR, "cost": NUM}))
 PENDING: Schema = obj(
     {
@@ -301,18 +318,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         }
                     )
                 ),
-                "scoring": obj(
-                    {"method": STR, "rows": COUNT, "note": STR},
-                    {
-                        "max_work": NUM,
-                        "bound_observations": COUNT,
-                        "near_thresholds": COUNT,
-                        "exact_sd_rows": COUNT,
-                        "decided_z": NUM,
-                        "p_sum": array(NUM),
-                        "kept_bound_error": array(NUM),
-                    },
-                ),
+                "scoring": _scoring({"note": STR}),
                 "up_to_date": {"const": True},
                 "message": STR,
                 # With up_to_date: warnings about the settings as they are now (also in
@@ -363,6 +369,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "workers": nullable(COUNT),
                         "workers_reason": STR,
                         "scheduler": STR,
+                        "pool_sds": _scoring(),
+                        "local_observations": nullable(COUNT),
                     },
                 ),
             },

@@ -370,7 +370,7 @@ def run_reference(post, X, obs0, gamma, labels, which: str) -> None:
     budget = float(math.ceil(BUDGET * len(rows) / len(X) - 1e-9))  # as select_batch, eta = 1
     cand = np.ones((len(rows), 2), dtype=bool)
     cand[obs0[rows], 0] = False
-    mu, sigma2 = _predict(post, X[rows])
+    mu, sigma2, _ = _predict(post, X[rows])
     args = (post, X[rows], rows, mu, sigma2, cand)
     t0, c0 = time.perf_counter(), time.process_time()
     q = greedy_cluster(*args, gamma=gamma, costs=costs, budget=budget)

@@ -506,6 +506,11 @@ def test_fit_over_its_scoring_budget_keeps_means_exact_and_says_so(
     assert np.any(bounded["sd"].to_numpy() > exact["sd"].to_numpy() * 1.01)
     mu, sd = bounded["mu"].to_numpy(), bounded["sd"].to_numpy()
     np.testing.assert_allclose(bounded["p_0"].to_numpy(), ndtr((0.56 - mu) / sd), rtol=1e-12)
+    # sd_exact says which sds are exact: the 38 rows the budget bought, and no other
+    flag = bounded["sd_exact"].to_numpy(zero_copy_only=False)
+    assert flag.sum() == 38 and exact["sd_exact"].to_numpy(zero_copy_only=False).all()
+    np.testing.assert_allclose(sd[flag], exact["sd"].to_numpy()[flag], rtol=1e-9)
+    assert np.all(sd[~flag] > exact["sd"].to_numpy()[~flag] * (1 + 1e-9))
     r = invoke(runner, "fit", "-w", fitted_ws, "--fixed-hyperparameters", saved)
     assert r.exit_code == 0 and "scoring" in r.output and "upper bound" in r.output
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from bams_cli import defaults
+from bams_cli.state.workspace import Workspace
 from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
 
 
@@ -611,3 +613,64 @@ def test_a_pooled_select_stopped_by_a_signal_ends_in_one_line_at_once(lead_ws, s
     assert len(proc.stderr.splitlines()) == 1, proc.stderr
     assert proc.stderr.startswith("error: ")
     assert tree_hash(lead_ws) == before
+
+
+def test_select_past_its_scoring_budget_bounds_the_pool_s_sds_and_says_so(
+    lead_ws, runner, monkeypatch, tmp_path
+):
+    """Pool size x n^2 over ``SCORE_MAX_WORK`` (a million segments after an estimate
+    stage: the pool's sds alone took over an hour): select takes the means and sds fit
+    wrote, which are what it would compute (bounded as fit bounds them), says how in
+    --json, and warns when segments near gamma kept the bound."""
+    from bams_cli import schemas_json
+    from bams_cli.core.select import _predict
+    from bams_cli.pipeline.fitting import load_posterior
+    from bams_cli.settings import load_settings
+    from tests.jsonschema_subset import errors
+
+    exact, _ = _select(runner, shutil.copytree(lead_ws, tmp_path / "copy"))
+    assert exact["selection_plan"]["pool_sds"] == {"method": "exact", "rows": 400}
+    # 400 segments, 36 results: the bound on 35 of them, then 7 exact sds
+    max_work = 400 * 35**2 + 7 * 36**2
+    monkeypatch.setattr(defaults, "SCORE_MAX_WORK", max_work)
+    ws = Workspace(lead_ws)
+    saved = tmp_path / "model.json"
+    saved.write_text(ws.model_path.read_text())
+    ok(runner, "fit", "-w", lead_ws, "--fixed-hyperparameters", saved)
+    scoring = json.loads(ws.model_path.read_text())["scoring"]
+    summary, batch = _select(runner, lead_ws)
+    assert errors(summary, schemas_json.schema("select")) == []
+    s = summary["selection_plan"]["pool_sds"]
+    assert s == {k: v for k, v in scoring.items() if k != "note"}
+    assert s["method"] == "bounded" and s["rows"] == 400 and s["bound_observations"] == 35
+    assert s["exact_sd_rows"] == 7 < s["near_thresholds"]  # the rest of them kept the bound
+    [warned] = summary["warnings"]
+    assert warned.startswith("the pool's posterior: means exact; sds exact on the 7 segments")
+    assert summary["picks"] == len(batch["segment_id"]) > 0
+    # what select took from scores.parquet is what it would have computed
+    settings = load_settings(lead_ws)
+    ids, X = ws.read_pool()
+    posterior, _ = load_posterior(ws, settings, ids, X)
+    mu, sigma2, how = _predict(posterior, X, settings.gammas[0], max_work)
+    scores = pq.read_table(ws.scores_path)
+    np.testing.assert_allclose(scores["mu"].to_numpy(), mu, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(scores["sd"].to_numpy() ** 2, sigma2, rtol=1e-12, atol=1e-15)
+    assert how == s
+
+
+def test_select_past_local_obs_says_its_greedies_used_the_nearest_observations(
+    lead_ws, runner, monkeypatch
+):
+    """Past ``SELECT_LOCAL_OBS`` observations the approximate plan's greedies condition on
+    the nearest to their cluster (a million segments after an estimate stage took hours
+    without it); the exact plan never does."""
+    from bams_cli import schemas_json
+    from tests.jsonschema_subset import errors
+
+    monkeypatch.setattr(defaults, "SELECT_LOCAL_OBS", 20)  # lead_ws has 36 results
+    summary, batch = _select(runner, lead_ws, "--greedy", "approximate")
+    assert errors(summary, schemas_json.schema("select")) == []
+    assert summary["selection_plan"]["local_observations"] == 20
+    assert summary["picks"] == len(batch["segment_id"]) > 0
+    exact, _ = _select(runner, lead_ws, "--greedy", "exact", "--allow-pending")
+    assert exact["selection_plan"]["local_observations"] is None

@@ -17,6 +17,10 @@ which is finite at r = 0 (it is 0 there), so no special case is needed.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 from numba import njit
@@ -27,6 +31,48 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SQRT5 = math.sqrt(5.0)
+
+#: Threads ``matern52_cross`` and ``matern52_cross_minus`` split their rows over; None:
+#: every core. Pool workers set 1 (``parallel``): their siblings hold the other cores.
+_THREADS: int | None = None
+#: Below this many output entries one thread does it (a thread pool costs ~0.1 ms).
+_THREADED_FROM = 1 << 18
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Threads the row kernels may use in this process (None: every core)."""
+    global _THREADS
+    _THREADS = n
+
+
+@contextmanager
+def kernel_threads(n: int | None) -> Iterator[None]:
+    """``set_kernel_threads(n)`` for the block's time (as ``threadpool_limits`` for BLAS)."""
+    before = _THREADS
+    set_kernel_threads(n)
+    try:
+        yield
+    finally:
+        set_kernel_threads(before)
+
+
+def _by_rows(kernel: Callable[..., None], na: int, nb: int, *args: object) -> None:
+    """``kernel(lo, hi, *args)`` over contiguous row ranges [lo, hi) of na, on threads.
+
+    The compiled kernels release the GIL (``nogil``), so plain Python threads run them side
+    by side. Not numba's own threading layer: its OpenMP threads leave a process unable to
+    fork workers that use them again (``select`` forks its cluster workers after scoring
+    the pool); these threads are joined before the call returns.
+    """
+    threads = min(_THREADS or os.cpu_count() or 1, max(1, na))
+    if threads == 1 or na * nb < _THREADED_FROM:
+        kernel(0, na, *args)
+        return
+    cuts = np.linspace(0, na, threads + 1).astype(np.int64)
+    with ThreadPoolExecutor(threads, thread_name_prefix="bams-kernel") as pool:
+        spans = zip(cuts[:-1], cuts[1:], strict=True)
+        for f in [pool.submit(kernel, int(lo), int(hi), *args) for lo, hi in spans]:
+            f.result()
 
 
 def scaled_sqdist(
@@ -195,7 +241,7 @@ def matern52_cross_minus(
         raise ValueError(f"P must be C-contiguous of shape {(A.shape[0], group.shape[0])}")
     if group.size and not (0 <= group.min() and group.max() < BT.shape[1]):
         raise ValueError("group must index the rows of XB")
-    _matern52_cross_minus(A, BT, group, float(outputscale), P)
+    _by_rows(_matern52_cross_minus, A.shape[0], P.shape[1], A, BT, group, float(outputscale), P)
     return P
 
 
@@ -206,11 +252,11 @@ def matern52_cross(
 
     The same covariance as ``matern52(..., exact=True)`` (direct differences, so exactly
     s2 on identical rows), computed row by row with one exp per entry instead of numpy's
-    ten passes over (na, nb) temporaries. Serial on purpose: numba's threads (GNU OpenMP
-    here) leave a process unable to fork workers that use them again (``select`` forks
-    its cluster workers after loading the posterior). ``MFGP.score`` builds the pool x
-    observations block with it: 0.18 CPU s for 3,355 x 5,000 entries where numpy took
-    0.83, about a quarter of all scoring's CPU time at 5,000 observations.
+    ten passes over (na, nb) temporaries, rows split over threads (``_by_rows``).
+    ``MFGP.score`` builds the pool x observations block with it: 0.18 CPU s for
+    3,355 x 5,000 entries where numpy took 0.83, about a quarter of all scoring's CPU time
+    at 5,000 observations, and nearly all of a bounded fit's first pass (a million
+    segments x 12,000 observations).
 
     Parameters
     ----------
@@ -226,7 +272,7 @@ def matern52_cross(
     A = np.ascontiguousarray(XA / lengthscales, dtype=np.float64)
     BT = np.ascontiguousarray((XB / lengthscales).T, dtype=np.float64)
     K = np.empty((A.shape[0], BT.shape[1]))
-    _matern52_cross(A, BT, float(outputscale), K)
+    _by_rows(_matern52_cross, A.shape[0], BT.shape[1], A, BT, float(outputscale), K)
     return K
 
 
@@ -248,16 +294,16 @@ def _matern52_row(A, i, BT, s2, out):  # pragma: no cover
         out[j] = s2 * (1.0 + z * (1.0 + z / 3.0)) * math.exp(-z)
 
 
-@njit(cache=True, error_model="numpy")
-def _matern52_cross(A, BT, s2, K):  # pragma: no cover
-    for i in range(A.shape[0]):
+@njit(cache=True, error_model="numpy", nogil=True)
+def _matern52_cross(lo, hi, A, BT, s2, K):  # pragma: no cover
+    for i in range(lo, hi):
         _matern52_row(A, i, BT, s2, K[i])
 
 
-@njit(cache=True, error_model="numpy")
-def _matern52_cross_minus(A, BT, group, s2, P):  # pragma: no cover
+@njit(cache=True, error_model="numpy", nogil=True)
+def _matern52_cross_minus(lo, hi, A, BT, group, s2, P):  # pragma: no cover
     krow = np.empty(BT.shape[1])
-    for i in range(A.shape[0]):
+    for i in range(lo, hi):
         _matern52_row(A, i, BT, s2, krow)
         row = P[i]
         for j in range(group.shape[0]):
@@ -277,8 +323,8 @@ def matern52_aug_lower(
     Matern-5/2 ARD kernel with direct differences (as ``matern52(..., exact=True)``:
     exactly s0 + s_l on the diagonal). The strict upper triangle is not touched. No
     temporaries: the numpy path held three (n, n) arrays at once, which set the memory
-    ceiling of exact conditioning. Serial, as ``matern52_cross``: O(n^2 d) against the
-    factorisation's O(n^3 / 3).
+    ceiling of exact conditioning. Serial: O(n^2 d) against the factorisation's
+    O(n^3 / 3).
 
     Parameters
     ----------

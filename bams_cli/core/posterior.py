@@ -8,7 +8,10 @@ One optional fast path sits outside the protocol: ``own_point(Xc, levels)``, eac
 candidate at its own point: cov_n(theta0(x_c), y_c) (the diagonal of
 ``cov_theta0_obs(Xc, Xc, levels)``) and ``obs_var(Xc, levels)``, both of shape (m,).
 Selection's first screen uses it when a posterior has it (``core.gp.MFGP`` does) and takes
-the diagonal of ``cov_theta0_obs`` blocks and ``obs_var`` otherwise.
+the diagonal of ``cov_theta0_obs`` blocks and ``obs_var`` otherwise. ``MFGP`` has three
+more that selection uses when present: ``localised`` (a cluster's factors remembered),
+``bounded_scoring`` and ``moments`` (the pool's sds within a flop budget, with
+``scoring`` saying how).
 
 Notation: a pool point ``x`` (row of ``X``) and a candidate observation ``c = (x_c, l)``:
 segment coordinates ``x_c`` simulated at fidelity level ``l`` (0 = high fidelity), whose

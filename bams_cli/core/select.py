@@ -63,6 +63,7 @@ from bams_cli import defaults
 
 from .acquisition import CHEB_DEGREE, beta, beta_poly, margin, point_variance
 from .cluster import cluster_pool
+from .kernels import kernel_threads
 from .posterior import Posterior
 
 FloatArray = NDArray[np.float64]
@@ -147,7 +148,8 @@ class SelectionResult:
         The pooling key: delta_j / cost for pooling="global", Delta J_s for "raw".
     j_before, j_after : float
         J of the whole pool before the batch and after it (all picks conditioned on jointly,
-        computed exactly).
+        computed exactly; past ``max_work``, to 1e-17 a row where the sds are exact, see
+        ``plan["pool_sds"]``).
     gamma : float
         The threshold J was computed for.
     labels : int ndarray of shape (N,)
@@ -288,6 +290,7 @@ def greedy_cluster(
     seed: int = 0,
     screen_rounds: int = 1,
     factor_bytes: int = FACTOR_CACHE_BYTES,
+    sds_from_posterior: bool = False,
 ) -> ClusterQueue:
     """Greedy selection in one cluster until its budget is spent (Algorithm 1, inner loop).
 
@@ -340,11 +343,18 @@ def greedy_cluster(
     factor_bytes : int
         Memory the posterior may keep the cluster's whitened factors in (a posterior with
         ``localised``, as ``MFGP``); over it, every factor is solved when asked for.
+    sds_from_posterior : bool
+        Replace sigma2 by the posterior's own variances at X, keeping mu: for a local
+        posterior (``select_batch``'s ``local_obs``), whose variances are not the ones
+        given, so that sigma_{n+S}^2 / sigma_n^2 stays in [0, 1].
 
     Returns
     -------
     ClusterQueue
     """
+    if sds_from_posterior:
+        with threadpool_limits(limits=1, user_api="blas"), kernel_threads(1):
+            sigma2 = np.maximum(posterior.predict_theta0(X)[1], 0.0)
     localised = getattr(posterior, "localised", None)
     if localised is not None:
         posterior = localised(X, factor_bytes)
@@ -360,8 +370,8 @@ def greedy_cluster(
     # One BLAS thread: the posterior's matrices here are (rows or candidates) x n_obs with
     # n_obs ~ 30, where OpenBLAS threads only add synchronisation; and clusters already run
     # in parallel processes. Measured on the busy 2-core box: update and exact phases 10x
-    # faster, the covariance build 4x.
-    with threadpool_limits(limits=1, user_api="blas"):
+    # faster, the covariance build 4x. The kernels' threads likewise (core.kernels).
+    with threadpool_limits(limits=1, user_api="blas"), kernel_threads(1):
         if max_rows is not None or max_candidates is not None:
             return _approximate_cluster(
                 *args,
@@ -1117,24 +1127,57 @@ def pool_queues(
 # --------------------------------------------------------------------------------------
 
 
+def _n_obs(posterior: Posterior) -> int:
+    """Observations the posterior is conditioned on (0 for one that does not say)."""
+    return len(getattr(posterior, "X_train", ()))
+
+
 def _pool_blas_threads(posterior: Posterior) -> int | None:
     """BLAS threads for the whole-pool steps in the command's own process (the posterior at
     the pool, J after the batch): one for a posterior on a few dozen observations (see
     ``greedy_cluster``), every core from ``POOL_THREADED_FROM`` on, where each step is a
     triangular solve of n_obs x pool (at 3,700 observations and 12,000 segments, 4.4 s and
     5.5 s on one core) and the workers are idle."""
-    n_obs = len(getattr(posterior, "X_train", ()))
-    return None if n_obs >= POOL_THREADED_FROM else 1
+    return None if _n_obs(posterior) >= POOL_THREADED_FROM else 1
 
 
-def _predict(posterior: Posterior, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _predict(
+    posterior: Posterior,
+    X: FloatArray,
+    gamma: float | None = None,
+    max_work: float | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[FloatArray, FloatArray, dict[str, Any] | None]:
+    """mu_n and sigma_n^2 at every pool point, and how the sds were got (None: exactly).
+
+    Exact sds cost pool size x n^2 flops. Past ``max_work`` (a million segments after an
+    estimate stage's 12,000 level-0 runs: over an hour) a posterior that can
+    (``MFGP.moments``) keeps the mean exact and bounds each sd from above, exact where
+    gamma lies within ``SCORE_DECIDED_Z`` bound-sds of the mean, nearest first, as far as
+    the budget goes. Elsewhere |s| exceeds that with either sd, so h_n and every beta
+    there are below Phi(-8.5) < 1e-17. Near rows the budget did not reach keep the bound
+    (the dict's ``exact_sd_rows`` < ``near_thresholds``; ``select`` warns as ``fit`` does): their h_n and
+    the greedy's decreases there are those of a less certain model.
+    """
+    moments = getattr(posterior, "moments", None)
+    bounded = getattr(posterior, "bounded_scoring", None)
+    if (
+        gamma is not None
+        and moments is not None
+        and bounded is not None
+        and bounded(len(X), max_work)
+    ):
+        mu, sigma2, _ = moments(X, [gamma], _PREDICT_BLOCK, max_work=max_work, progress=progress)
+        return mu, sigma2, dict(posterior.scoring)  # type: ignore[attr-defined]
     mu = np.empty(len(X))
     sigma2 = np.empty(len(X))
     for i0 in range(0, len(X), _PREDICT_BLOCK):
         m, v = posterior.predict_theta0(X[i0 : i0 + _PREDICT_BLOCK])
         mu[i0 : i0 + _PREDICT_BLOCK] = m
         sigma2[i0 : i0 + _PREDICT_BLOCK] = np.maximum(v, 0.0)
-    return mu, sigma2
+        if progress is not None:
+            progress("predict", min(i0 + _PREDICT_BLOCK, len(X)), len(X))
+    return mu, sigma2, None
 
 
 def batch_variance(
@@ -1143,8 +1186,10 @@ def batch_variance(
     sigma2: FloatArray,
     index: IntArray,
     level: IntArray,
+    at: IntArray | None = None,
 ) -> FloatArray:
-    """sigma_{n+B}^2 at every pool point after conditioning on the whole batch B jointly.
+    """sigma_{n+B}^2 at every pool point (or the rows ``at``) after conditioning on the
+    whole batch B jointly.
 
     sigma_{n+B}^2(x) = sigma_n^2(x) - c_B(x)^T Sigma_B^-1 c_B(x), with
     c_B(x) = cov_n(theta0(x), y_B) and Sigma_B = cov_n(y_B, y_B) (noise on the diagonal:
@@ -1158,17 +1203,22 @@ def batch_variance(
     sigma2 : ndarray of shape (N,)
     index, level : int ndarray of shape (r,)
 
+    at : int ndarray, optional
+        Pool rows to compute it at; default all.
+
     Returns
     -------
-    sigma2_after : ndarray of shape (N,)
+    sigma2_after : ndarray of shape (N,), or (len(at),)
     """
+    rows = np.arange(len(X)) if at is None else np.asarray(at, dtype=np.int64)
     if len(index) == 0:
-        return sigma2.copy()
+        return sigma2[rows].copy()
     given = _Given(posterior, X[index], level)
-    out = np.empty(len(X))
-    for i0 in range(0, len(X), _PREDICT_BLOCK):
-        W = given.w_theta0(X[i0 : i0 + _PREDICT_BLOCK])
-        out[i0 : i0 + _PREDICT_BLOCK] = sigma2[i0 : i0 + _PREDICT_BLOCK] - (W**2).sum(axis=0)
+    out = np.empty(len(rows))
+    for i0 in range(0, len(rows), _PREDICT_BLOCK):
+        r = rows[i0 : i0 + _PREDICT_BLOCK]
+        W = given.w_theta0(X[r])
+        out[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - (W**2).sum(axis=0)
     return np.maximum(out, 0.0)
 
 
@@ -1179,12 +1229,22 @@ def _j_given(
     sigma2: FloatArray,
     index: IntArray,
     level: IntArray,
+    decided_z: float | None = None,
 ) -> float:
-    """J(B) = mean_x beta(s(x), t_B(x)), all of B conditioned on jointly."""
+    """J(B) = mean_x beta(s(x), t_B(x)), all of B conditioned on jointly.
+
+    ``decided_z``: rows with |s| at or past it keep beta(s, 1) = h_n, which no batch can
+    raise (beta(s, t) <= beta(s, 1) for t <= 1), below Phi(-z) each; the pool-wide
+    conditioning (N x n kernel evaluations) is then done on the other rows only.
+    """
+    at = None if decided_z is None else np.flatnonzero(np.abs(s) < decided_z)
+    t_after = np.ones(len(X))
     with threadpool_limits(limits=_pool_blas_threads(posterior), user_api="blas"):
-        sigma2_after = batch_variance(posterior, X, sigma2, index, level)
+        sigma2_after = batch_variance(posterior, X, sigma2, index, level, at=at)
+    rows = slice(None) if at is None else at
+    sig2 = sigma2[rows]
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_after = np.where(sigma2 > 0, sigma2_after / np.where(sigma2 > 0, sigma2, 1.0), 1.0)
+        t_after[rows] = np.where(sig2 > 0, sigma2_after / np.where(sig2 > 0, sig2, 1.0), 1.0)
     return float(beta(s, t_after).mean())
 
 
@@ -1326,6 +1386,9 @@ def select_batch(
     pending_pairs: BoolArray | None = None,
     approximate: Literal["auto", "never", "always"] = "auto",
     plan_options: dict[str, Any] | None = None,
+    max_work: float | None = defaults.SCORE_MAX_WORK,
+    local_obs: int | None = defaults.SELECT_LOCAL_OBS,
+    moments: tuple[FloatArray, FloatArray, dict[str, Any]] | None = None,
 ) -> SelectionResult:
     """Select the next batch of (segment, level) simulations (paper Algorithm 1).
 
@@ -1386,6 +1449,23 @@ def select_batch(
     plan_options : dict, optional
         Keyword arguments for ``plan_selection`` (exact_max_pool, cluster_rows, max_rows,
         max_candidates, random_share).
+    max_work : float, optional
+        Flops the pool's posterior sds may take (N n^2 exactly); past it they are bounded
+        where |s| >= ``SCORE_DECIDED_Z`` (``_predict``), and J's pool-wide conditioning
+        skips those rows. None: exact whatever it costs. ``plan["pool_sds"]`` says which.
+    local_obs : int, optional
+        The approximate plan's greedies, past this many observations, work on the GP
+        conditioned on the ``local_obs`` observations nearest their cluster (a posterior
+        with ``nearest``), with its variances (``greedy_cluster``'s
+        ``sds_from_posterior``) and the whole model's means. Every candidate's factor then
+        costs local_obs^2 instead of n^2: a million segments after an estimate stage
+        (14,654 observations, two million candidates) took hours without it.
+        ``plan["local_observations"]`` says so. None: on the whole posterior.
+    moments : (mu, sigma2, how), optional
+        The pool's posterior means and variances when known already, and how they were
+        got (``_predict``'s third value, ``"method"`` "exact" or "bounded"): ``select``
+        passes the scores ``fit`` wrote for the same posterior at a scale where computing
+        them again costs minutes.
 
     Returns
     -------
@@ -1446,12 +1526,20 @@ def select_batch(
     # Posterior at the pool.
     t = time.perf_counter()
     report("predict", 0, 1)
-    with threadpool_limits(limits=_pool_blas_threads(posterior), user_api="blas"):
-        mu, sigma2 = _predict(posterior, X)
+    pool_sds: dict[str, Any] | None
+    if moments is not None:
+        mu, sigma2, pool_sds = moments
+        if mu.shape != (N,) or sigma2.shape != (N,):
+            raise ValueError(f"moments must hold two arrays of shape ({N},)")
+    else:
+        with threadpool_limits(limits=_pool_blas_threads(posterior), user_api="blas"):
+            mu, sigma2, pool_sds = _predict(posterior, X, gamma, max_work, report)
     s = margin(mu, sigma2, gamma)
+    bounded = pool_sds is not None and pool_sds.get("method") == "bounded"
+    decided_z = defaults.SCORE_DECIDED_Z if bounded else None
     j_before = float(point_variance(s).mean())
     if len(p_idx):
-        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev)
+        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z)
     report("predict", 1, 1)
     timings["predict"] = time.perf_counter() - t
 
@@ -1499,6 +1587,12 @@ def select_batch(
 
     # Algorithm 1, first loop: one greedy per cluster.
     t = time.perf_counter()
+    local = (
+        not plan.exact
+        and local_obs is not None
+        and hasattr(posterior, "nearest")
+        and _n_obs(posterior) > local_obs
+    )
     plan_seed = int(rng.integers(2**31 - 1)) if not plan.exact else 0
     # A worker's share is 9/4 of the covariance limit (``pipeline.selection.cluster_bytes``):
     # the covariance, as much again in temporaries, a quarter for the posterior's factors.
@@ -1511,7 +1605,13 @@ def select_batch(
         # ceil(eta m N_s / N); the 1e-9 stops float error from lifting an exact integer
         # (15 * 10000 / 30000 = 5) to the next one.
         b_k = float(math.ceil(overbudget * budget * len(r) / N - 1e-9))
-        args = (posterior, X[r], r, mu[r], sigma2[r], cand[r])
+        # A local posterior is made here, not in the worker: a worker is sent the small
+        # model only (the whole one's factor was 1.7 GB a task at 14,654 observations).
+        post_k = posterior
+        if local:
+            post_k = posterior.nearest(X[r], local_obs)  # type: ignore[attr-defined]
+            report("local models", k + 1, n_cl)
+        args = (post_k, X[r], r, mu[r], sigma2[r], cand[r])
         kwargs: dict[str, Any] = dict(
             gamma=gamma,
             costs=costs_arr,
@@ -1528,6 +1628,7 @@ def select_batch(
                 random_share=plan.random_share,
                 seed=plan_seed,
                 screen_rounds=plan.screen_rounds,
+                sds_from_posterior=local,
             )
         jobs.append((args, kwargs))
     report("greedy", 0, n_cl)
@@ -1593,7 +1694,13 @@ def select_batch(
     t = time.perf_counter()
     report("j_after", 0, 1)
     j_after = _j_given(
-        posterior, X, s, sigma2, np.concatenate([p_idx, index]), np.concatenate([p_lev, level])
+        posterior,
+        X,
+        s,
+        sigma2,
+        np.concatenate([p_idx, index]),
+        np.concatenate([p_lev, level]),
+        decided_z,
     )
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
@@ -1633,6 +1740,10 @@ def select_batch(
         "h_left_out": max((q.stats.get("h_left_out_ppb", 0) for q in queues), default=0) / 1e9
         if not plan.exact
         else None,
+        # How the pool's sds were got: exact, or bounded where gamma is decided (_predict).
+        "pool_sds": pool_sds or {"method": "exact", "rows": N},
+        # The observations each cluster's greedy conditioned on, when fewer than all.
+        "local_observations": local_obs if local else None,
     }
 
     return SelectionResult(

@@ -246,6 +246,7 @@ def fit(
     mu, sd, p = model.score(
         X, model_gammas, chunk_size, max_work=defaults.SCORE_MAX_WORK, progress=progress
     )
+    sd_exact = np.ones(len(ids), dtype=bool) if model.sd_exact is None else model.sd_exact
 
     rows = model.conditioned_rows
     checks = check_model(model, idx if rows is None else idx[rows], names=ids)
@@ -293,6 +294,7 @@ def fit(
         "warnings": warnings,
     }
     cols: dict[str, Any] = {SID: pa.array(ids, pa.string()), "mu": mu, "sd": sd}
+    cols["sd_exact"] = sd_exact
     for j in range(p.shape[1]):
         cols[f"p_{j}"] = p[:, j]
     meta = {"observations_hash": obs_hash, "gammas": list(settings.gammas), "seed": settings.seed}
@@ -443,7 +445,7 @@ def scoring_note(s: dict[str, Any]) -> str:
     rest = s["near_thresholds"] - s["exact_sd_rows"]
     short = (
         f"; {rest:,} more near them kept the bound, their p_n leaning toward 1/2 (it can "
-        f"move the pool's sum of p_n by up to {_kept_share(s):.2%})"
+        f"move the pool's sum of p_n by up to {kept_bound_share(s):.2%})"
         if rest
         else ""
     )
@@ -455,7 +457,7 @@ def scoring_note(s: dict[str, Any]) -> str:
     )
 
 
-def _kept_share(s: dict[str, Any]) -> float:
+def kept_bound_share(s: dict[str, Any]) -> float:
     """The most, over gammas, that rows which kept the bound sd can move the pool's sum of
     p_n, as a share of it (``MFGP._score_bounded``: min(p, 1 - p) per row)."""
     shares = [e / t for e, t in zip(s["kept_bound_error"], s["p_sum"], strict=True) if t > 0]
@@ -465,7 +467,7 @@ def _kept_share(s: dict[str, Any]) -> float:
 def _scoring_fell_short(s: dict[str, Any]) -> list[str]:
     """``scoring_note`` as a warning when rows that kept the bound sd can move the pool's
     sum of p_n (the model's expected failures) by over ``SCORING_SHORT_SHARE`` of it."""
-    short = s.get("method") == "bounded" and _kept_share(s) > SCORING_SHORT_SHARE
+    short = s.get("method") == "bounded" and kept_bound_share(s) > SCORING_SHORT_SHARE
     return [f"scoring: {scoring_note(s)}"] if short else []
 
 

@@ -39,7 +39,12 @@ from bams_cli.pipeline._handoff import (
     passthrough_columns,
     write_handoff,
 )
-from bams_cli.pipeline.fitting import load_posterior
+from bams_cli.pipeline.fitting import (
+    SCORING_SHORT_SHARE,
+    kept_bound_share,
+    load_posterior,
+    scoring_note,
+)
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
@@ -296,6 +301,22 @@ def _nothing_fits(
     )
 
 
+def _scored_moments(
+    ws: Workspace, settings: Any, posterior: Any, model: dict[str, Any], ids: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
+    """The pool's means and variances from the scores ``fit`` wrote for this posterior,
+    where computing them again would be bounded (``core.select._predict``): a million
+    segments after an estimate stage, 6 to 8 minutes of it. None below that scale, where
+    select computes them itself in seconds."""
+    if not posterior.bounded_scoring(len(ids), defaults.SCORE_MAX_WORK):
+        return None
+    scored, mu, sd, _ = read_scores(ws, len(settings.gammas))
+    if not np.array_equal(scored, ids):
+        return None
+    how = {k: v for k, v in (model.get("scoring") or {}).items() if k != "note"}
+    return mu, sd * sd, how or {"method": "exact", "rows": len(ids)}
+
+
 def _observed_pairs(ws: Workspace, ids: np.ndarray, n_levels: int) -> np.ndarray:
     """[i, l] True where segment i already has a result at level l (one read of the log).
 
@@ -540,6 +561,7 @@ def select(
                     p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
                 )
         rest = budget - float(costs[0]) * len(confirm)
+        moments = _scored_moments(ws, settings, posterior, model, ids)
         taken0 = observed0.copy()
         taken0[confirm] = True
         result = None
@@ -566,6 +588,9 @@ def select(
                     pending_pairs=waiting if waiting.any() else None,
                     approximate=GREEDY_PLANS[greedy],
                     plan_options={"max_cluster_bytes": cluster_bytes(workers, scheduler)},
+                    max_work=defaults.SCORE_MAX_WORK,
+                    local_obs=defaults.SELECT_LOCAL_OBS,
+                    moments=moments,
                 )
         n_greedy = 0 if result is None else len(result.index)
         picks = {
@@ -711,6 +736,10 @@ def select(
             "on rounding, not on where failures may be; a random batch (--strategy random "
             "--mixed-fidelity) or more level-0 runs test that belief"
         )
+    sds = (selection_plan or {}).get("pool_sds") or {}
+    if sds.get("method") == "bounded" and kept_bound_share(sds) > SCORING_SHORT_SHARE:
+        # Rows near gamma whose sd stayed a bound: the greedy saw a less certain model there.
+        warnings.append(f"the pool's posterior: {scoring_note(sds)}")
     if per_level.get(0, 0) and (screen := screening.open_screen(ws)) is not None:
         warnings.append(
             f"{screen.name} awaits its level-0 confirmation: this batch's {per_level[0]} "

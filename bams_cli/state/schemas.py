@@ -93,6 +93,9 @@ SCORES = StateFile(
     "scores.parquet",
     "scores.parquet",
     pa.schema([(SEGMENT_ID, pa.string()), ("mu", pa.float64()), ("sd", pa.float64())]),
+    # False where sd is an upper bound of the exact sd (a bounded fit, MFGP.score); files
+    # written before it have every sd exact.
+    optional=pa.schema([("sd_exact", pa.bool_())]),
 )
 
 # The hand-off contract's columns (state.handoff), optional in state files written before it.

@@ -136,3 +136,70 @@ def test_a_budget_the_bound_alone_would_exhaust_scores_exactly(scored):
     mu, sd, p = model.score(pool, gammas, max_work=500**2 * M)  # the bound costs it all
     assert model.scoring["method"] == "exact"
     np.testing.assert_array_equal(sd, sd0)
+
+
+def test_select_within_a_budget_picks_as_the_exact_posterior_does(scored):
+    """select_batch past ``max_work``: the pool's sds bounded where gamma is decided, J's
+    pool-wide conditioning on the other rows only. The rows that decide the picks keep
+    their exact sds, so the batch is the exact one and J moves by < 1e-17 a row."""
+    from bams_cli.core.select import select_batch
+
+    model, pool, gammas, _ = scored
+    kw = dict(gamma=-1.2, costs=[1.0, 0.1], budget=3.0, n_clusters=3, overbudget=2.0)
+    exact = select_batch(model, pool, rng=np.random.default_rng(3), max_work=None, **kw)
+    bounded = select_batch(model, pool, rng=np.random.default_rng(3), max_work=2e9, **kw)
+    assert exact.plan["pool_sds"] == {"method": "exact", "rows": M}
+    s = bounded.plan["pool_sds"]
+    assert s["method"] == "bounded" and s["exact_sd_rows"] == s["near_thresholds"] < M / 2
+    np.testing.assert_array_equal(bounded.index, exact.index)
+    np.testing.assert_array_equal(bounded.level, exact.level)
+    np.testing.assert_allclose(bounded.delta_j, exact.delta_j, rtol=1e-9, atol=1e-17 * M)
+    assert exact.j_after < exact.j_before  # a batch that teaches something
+    assert abs(bounded.j_before - exact.j_before) < 1e-17
+    assert abs(bounded.j_after - exact.j_after) < 1e-17
+
+
+def test_nearest_conditions_on_the_observations_closest_to_the_points(scored):
+    """``MFGP.nearest``: the k observations nearest the points (level 0's lengthscales, by
+    brute force here), the same hyperparameters and noise; sds never below the full GP's."""
+    model, pool, _, (mu0, sd0, _) = scored
+    region = pool[(pool[:, 0] > 1.5) & (pool[:, 1] < -1.0)]
+    local = model.nearest(region, 150)
+    ell = model.hyperparameters.lengthscales0
+    d = np.sqrt((((model.X_train[:, None, :] - region[None]) / ell) ** 2).sum(-1)).min(axis=1)
+    want = np.sort(np.argsort(d, kind="stable")[:150])
+    np.testing.assert_array_equal(local.X_train, model.X_train[want])
+    np.testing.assert_array_equal(local.y_train, model.y_train[want])
+    assert local.hyperparameters == model.hyperparameters  # no jitter was needed here
+    mu_f, s2_f = model.predict_theta0(region)
+    mu_l, s2_l = local.predict_theta0(region)
+    assert np.all(s2_l >= s2_f - 1e-12)
+    # near its region the local GP is close to the whole one, far from it it is not
+    assert np.median(np.sqrt(s2_l / s2_f)) < 1.01 and np.median(np.abs(mu_l - mu_f)) < 0.01
+    far = pool[(pool[:, 0] < -2.0) & (pool[:, 1] > 2.0)]
+    assert np.median(np.sqrt(local.predict_theta0(far)[1] / model.predict_theta0(far)[1])) > 3
+    assert model.nearest(region, N_OBS) is model
+
+
+def test_select_past_local_obs_runs_each_cluster_on_its_nearest_observations(scored):
+    """The approximate plan's greedies on a local GP (``local_obs``): J decreases by as much,
+    measured with the whole posterior, as the greedies on the whole GP."""
+    from bams_cli.core.acquisition import margin, point_variance
+    from bams_cli.core.select import _j_given, select_batch
+
+    model, pool, _, _ = scored
+    kw = dict(
+        gamma=-1.2, costs=[1.0, 0.1], budget=4.0, n_clusters=4, overbudget=2.0,
+        approximate="always", max_work=None,
+    )  # fmt: skip
+    whole = select_batch(model, pool, rng=np.random.default_rng(3), local_obs=None, **kw)
+    local = select_batch(model, pool, rng=np.random.default_rng(3), local_obs=300, **kw)
+    assert whole.plan["local_observations"] is None and local.plan["local_observations"] == 300
+    mu, sigma2 = model.predict_theta0(pool)
+    s = margin(mu, sigma2, -1.2)
+    j0 = float(point_variance(s).mean())
+    drop = {
+        name: j0 - _j_given(model, pool, s, sigma2, r.index, r.level)
+        for name, r in (("whole", whole), ("local", local))
+    }
+    assert drop["whole"] > 0 and drop["local"] >= 0.95 * drop["whole"], drop

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 
+from bams_cli.core import kernels
 from bams_cli.core.kernels import matern52_aug_lower, matern52_cross, matern52_cross_minus
 
 
@@ -91,6 +92,31 @@ def test_aug_lower_needs_a_fortran_float64_square():
             matern52_aug_lower(X, lv, np.ones((1, 2)), np.ones(1), K)
 
 
+@pytest.mark.parametrize("threads", [2, 3, 7])
+def test_rows_split_over_threads_give_the_one_thread_result_bit_for_bit(threads, monkeypatch):
+    rng = np.random.default_rng(threads)
+    A, B = rng.normal(size=(1001, 5)), rng.normal(size=(433, 5))
+    ell = rng.uniform(0.5, 2.0, size=5)
+    group = rng.integers(0, len(B), size=700)
+    P = rng.normal(size=(len(A), len(group)))
+    assert len(A) * len(B) >= kernels._THREADED_FROM  # the threaded path runs
+    monkeypatch.setattr(kernels, "_THREADS", 1)
+    one = matern52_cross(A, B, ell, 0.9), matern52_cross_minus(A, B, group, ell, 0.9, P.copy())
+    monkeypatch.setattr(kernels, "_THREADS", threads)
+    calls = []
+    real = kernels._matern52_cross
+    monkeypatch.setattr(
+        kernels, "_matern52_cross", lambda lo, hi, *a: (calls.append((lo, hi)), real(lo, hi, *a))
+    )
+    many = matern52_cross(A, B, ell, 0.9), matern52_cross_minus(A, B, group, ell, 0.9, P.copy())
+    calls.sort()  # threads append in whatever order they run
+    assert len(calls) == threads and calls[0][0] == 0 and calls[-1][1] == len(A)
+    assert all(a[1] == b[0] and a[0] < a[1] for a, b in zip(calls[:-1], calls[1:], strict=True))
+    for got, want in zip(many, one, strict=True):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(one[0], ref_matern52(A, B, ell, 0.9), rtol=1e-13, atol=1e-15)
+
+
 def _cross_sum(A):
     return float(matern52_cross(A, A, np.ones(A.shape[1]), 1.0).sum())
 
@@ -101,9 +127,10 @@ def test_a_process_that_used_the_kernels_can_fork_workers_that_use_them():
     score again. Threaded numba kernels (GNU OpenMP) kill such a worker at its first call."""
     from concurrent.futures import ProcessPoolExecutor
 
-    A = np.random.default_rng(0).normal(size=(50, 3))
-    K = np.zeros((50, 50), order="F")
-    matern52_aug_lower(A, np.zeros(50, np.int64), np.ones((1, 3)), np.ones(1), K)
+    A = np.random.default_rng(0).normal(size=(600, 3))  # 360,000 entries: on threads
+    assert len(A) ** 2 >= kernels._THREADED_FROM
+    K = np.zeros((600, 600), order="F")
+    matern52_aug_lower(A, np.zeros(600, np.int64), np.ones((1, 3)), np.ones(1), K)
     want = _cross_sum(A)
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
         assert list(pool.map(_cross_sum, [A, A])) == [want, want]

@@ -506,7 +506,7 @@ def test_approximate_batch_keeps_99_percent_of_the_exact_j_decrease(name, seed):
     assert 1800 <= approx.plan["candidates_kept"] <= 1800 * approx.plan["screen_rounds"]
     assert approx.plan["rows_in_j"] == 1200 or name == "toy2d" and approx.plan["rows_in_j"] < 1200
     np.testing.assert_array_equal(exact.labels, approx.labels)
-    mu, sigma2 = _predict(post, X)
+    mu, sigma2, _ = _predict(post, X)
     s = margin(mu, sigma2, gamma)
     j0 = float(point_variance(s).mean())
     dec_exact = j0 - _j_given(post, X, s, sigma2, exact.index, exact.level)
