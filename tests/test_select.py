@@ -668,6 +668,8 @@ def test_select_past_local_obs_says_its_greedies_used_the_nearest_observations(
     from tests.jsonschema_subset import errors
 
     monkeypatch.setattr(defaults, "SELECT_LOCAL_OBS", 20)  # lead_ws has 36 results
+    # and a screen whose factors (candidates x 36^2 flops) are "out of reach"
+    monkeypatch.setattr(defaults, "SCORE_MAX_WORK", 1e3)
     summary, batch = _select(runner, lead_ws, "--greedy", "approximate")
     assert errors(summary, schemas_json.schema("select")) == []
     assert summary["selection_plan"]["local_observations"] == 20
