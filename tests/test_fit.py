@@ -519,14 +519,14 @@ def test_fit_over_its_scoring_budget_keeps_means_exact_and_says_so(
 def test_fit_warns_when_bound_sds_can_move_the_model_s_expected_failures_over_1_percent(
     kept, warned
 ):
-    from bams_cli.pipeline.fitting import _scoring_fell_short
+    from bams_cli.pipeline.fitting import scoring_fell_short
 
     s = {
         "method": "bounded", "rows": 10**6, "max_work": 5e12, "bound_observations": 1581,
         "near_thresholds": 64_368, "exact_sd_rows": 16_893, "decided_z": 8.5,
         "p_sum": [4_800.0, 100.0], "kept_bound_error": [3.0, kept],
     }  # fmt: skip
-    lines = _scoring_fell_short(s)
+    lines = scoring_fell_short(s)
     assert bool(lines) == warned
     if warned:
         assert lines == [

@@ -352,13 +352,6 @@ def greedy_cluster(
     -------
     ClusterQueue
     """
-    if sds_from_posterior:
-        with threadpool_limits(limits=1, user_api="blas"), kernel_threads(1):
-            sigma2 = np.maximum(posterior.predict_theta0(X)[1], 0.0)
-    localised = getattr(posterior, "localised", None)
-    if localised is not None:
-        posterior = localised(X, factor_bytes)
-    args = (posterior, X, rows, mu, sigma2, candidate_mask)
     kwargs: dict[str, Any] = dict(
         gamma=gamma,
         costs=costs,
@@ -372,6 +365,12 @@ def greedy_cluster(
     # in parallel processes. Measured on the busy 2-core box: update and exact phases 10x
     # faster, the covariance build 4x. The kernels' threads likewise (core.kernels).
     with threadpool_limits(limits=1, user_api="blas"), kernel_threads(1):
+        if sds_from_posterior:
+            sigma2 = np.maximum(posterior.predict_theta0(X)[1], 0.0)
+        localised = getattr(posterior, "localised", None)
+        if localised is not None:
+            posterior = localised(X, factor_bytes)
+        args = (posterior, X, rows, mu, sigma2, candidate_mask)
         if max_rows is not None or max_candidates is not None:
             return _approximate_cluster(
                 *args,

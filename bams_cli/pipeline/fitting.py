@@ -253,7 +253,7 @@ def fit(
     warnings = [
         *_no_level0(lv, settings.n_levels),
         *model.notes,
-        *_scoring_fell_short(model.scoring),
+        *scoring_fell_short(model.scoring),
         *checks.warnings,
         *_contradicted_outcomes(ids, idx, lv, y, p, settings.gammas),
     ]
@@ -464,11 +464,12 @@ def kept_bound_share(s: dict[str, Any]) -> float:
     return max(shares, default=0.0)
 
 
-def _scoring_fell_short(s: dict[str, Any]) -> list[str]:
-    """``scoring_note`` as a warning when rows that kept the bound sd can move the pool's
-    sum of p_n (the model's expected failures) by over ``SCORING_SHORT_SHARE`` of it."""
+def scoring_fell_short(s: dict[str, Any], prefix: str = "scoring") -> list[str]:
+    """``scoring_note`` as a warning (after ``prefix``) when rows that kept the bound sd can
+    move the pool's sum of p_n (the model's expected failures) by over
+    ``SCORING_SHORT_SHARE`` of it; ``fit`` and ``select`` both warn by it."""
     short = s.get("method") == "bounded" and kept_bound_share(s) > SCORING_SHORT_SHARE
-    return [f"scoring: {scoring_note(s)}"] if short else []
+    return [f"{prefix}: {scoring_note(s)}"] if short else []
 
 
 #: ``fit`` warns when the rows that kept a bound sd can move sum p_n by more than this share.

@@ -39,12 +39,7 @@ from bams_cli.pipeline._handoff import (
     passthrough_columns,
     write_handoff,
 )
-from bams_cli.pipeline.fitting import (
-    SCORING_SHORT_SHARE,
-    kept_bound_share,
-    load_posterior,
-    scoring_note,
-)
+from bams_cli.pipeline.fitting import load_posterior, scoring_fell_short
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
 from bams_cli.state.io import (
@@ -302,15 +297,14 @@ def _nothing_fits(
 
 
 def _scored_moments(
-    ws: Workspace, settings: Any, posterior: Any, model: dict[str, Any], ids: np.ndarray
+    scores: Any, model: dict[str, Any], ids: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
-    """The pool's means and variances from the scores ``fit`` wrote for this posterior,
-    where computing them again would be bounded (``core.select._predict``): a million
-    segments after an estimate stage, 6 to 8 minutes of it. None below that scale, where
-    select computes them itself in seconds."""
-    if not posterior.bounded_scoring(len(ids), defaults.SCORE_MAX_WORK):
-        return None
-    scored, mu, sd, _ = read_scores(ws, len(settings.gammas))
+    """The pool's means and variances from the scores ``fit`` wrote for this posterior
+    (``read_scores``), for use where computing them again would be bounded
+    (``core.select._predict``): a million segments after an estimate stage, 6 to 8
+    minutes of it. Below that scale select computes them itself in seconds. None when
+    the scores are not this pool's."""
+    scored, mu, sd, _ = scores
     if not np.array_equal(scored, ids):
         return None
     how = {k: v for k, v in (model.get("scoring") or {}).items() if k != "note"}
@@ -553,15 +547,22 @@ def select(
         posterior, model = load_posterior(ws, settings, ids, X)
         model_hash = model["observations_hash"]
         confirm, is_lead = np.zeros(0, np.int64), np.zeros(0, bool)
-        if strategy == "bams" and settings.n_levels > 1:
-            k = n_confirmations(budget, float(costs[0]), confirm_share)
-            if k:
-                _, _, _, p_all = read_scores(ws, len(settings.gammas))
-                confirm, is_lead = confirmation_picks(
-                    p_all[:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
-                )
+        k = (
+            n_confirmations(budget, float(costs[0]), confirm_share)
+            if strategy == "bams" and settings.n_levels > 1
+            else 0
+        )
+        # fit's scores: the confirmations' p_n, and the pool's moments at a scale where
+        # computing them again would be bounded; read once for both.
+        bounded = posterior.bounded_scoring(len(ids), defaults.SCORE_MAX_WORK)
+        scores = read_scores(ws, len(settings.gammas)) if k or bounded else None
+        if k:
+            assert scores is not None
+            confirm, is_lead = confirmation_picks(
+                scores[3][:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
+            )
         rest = budget - float(costs[0]) * len(confirm)
-        moments = _scored_moments(ws, settings, posterior, model, ids)
+        moments = _scored_moments(scores, model, ids) if bounded else None
         taken0 = observed0.copy()
         taken0[confirm] = True
         result = None
@@ -736,10 +737,9 @@ def select(
             "on rounding, not on where failures may be; a random batch (--strategy random "
             "--mixed-fidelity) or more level-0 runs test that belief"
         )
+    # Rows near gamma whose sd stayed a bound: the greedy saw a less certain model there.
     sds = (selection_plan or {}).get("pool_sds") or {}
-    if sds.get("method") == "bounded" and kept_bound_share(sds) > SCORING_SHORT_SHARE:
-        # Rows near gamma whose sd stayed a bound: the greedy saw a less certain model there.
-        warnings.append(f"the pool's posterior: {scoring_note(sds)}")
+    warnings += scoring_fell_short(sds, "the pool's posterior")
     if per_level.get(0, 0) and (screen := screening.open_screen(ws)) is not None:
         warnings.append(
             f"{screen.name} awaits its level-0 confirmation: this batch's {per_level[0]} "

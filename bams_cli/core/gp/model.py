@@ -318,7 +318,12 @@ class MFGP:
         X = X[:: max(1, -(-len(X) // _NEAREST_POINTS))]
         reach = NearestNeighbors(n_neighbors=1, algorithm="brute").fit(X / ell)
         dist = reach.kneighbors(self.X_train / ell, return_distance=True)[0][:, 0]
-        rows = np.sort(np.argsort(dist, kind="stable")[:k])
+        return self._on_rows(np.sort(np.argsort(dist, kind="stable")[:k]))
+
+    def _on_rows(self, rows: NDArray[np.intp]) -> MFGP:
+        """This GP's hyperparameters conditioned on the observations ``rows`` only, with
+        this model's jitter added to the noise: every variance it gives is at least this
+        model's (fewer observations, no less noise), so its sds are upper bounds."""
         hp = self.hyperparameters
         return MFGP(
             self.X_train[rows], self.levels_train[rows], self.y_train[rows], self.n_levels,
@@ -686,11 +691,7 @@ class MFGP:
         n, m = self._Xt.shape[0], X.shape[0]
         rows = conditioning_subset(self.levels_train, self.n_levels, k)
         assert rows is not None  # k < n
-        hp = self.hyperparameters
-        bound = MFGP(
-            self.X_train[rows], self.levels_train[rows], self.y_train[rows], self.n_levels,
-            dataclasses.replace(hp, noise=hp.noise + self.jitter), priors=self.priors,
-        )  # fmt: skip
+        bound = self._on_rows(rows)
         to_bound = self._shift - bound._shift
         mu = np.empty(m)
         sigma2 = np.empty(m)
