@@ -371,6 +371,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "scheduler": STR,
                         "pool_sds": _scoring(),
                         "local_observations": nullable(COUNT),
+                        "j_by_cluster": BOOL,
                     },
                 ),
             },

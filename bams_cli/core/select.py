@@ -705,10 +705,20 @@ class _Given:
             keep = lam > 1e-12 * max(lam.max(), 0.0)
             P = Q[:, keep] / np.sqrt(lam[keep])
             self._whiten = lambda K: P.T @ K
+        # The pairs' data term solved once for every block of rows asked about (an MFGP's
+        # ``cov_theta0_obs_to``): 11,782 pending picks against 14,654 observations solved
+        # it again for each of a million-segment pool's blocks.
+        self._cov_theta0: Callable[[FloatArray], FloatArray] | None = None
+        self._to = getattr(posterior, "cov_theta0_obs_to", None)
 
     def w_theta0(self, X: FloatArray) -> FloatArray:
         """L^-1 cov_n(y_G, theta0(X)), shape (|G|, len(X))."""
-        K = self.posterior.cov_theta0_obs(X, self.Xg, self.levels)
+        if self._to is not None:  # first call: solve the pairs' data term, or learn it can't
+            self._cov_theta0, self._to = self._to(self.Xg, self.levels), None
+        if self._cov_theta0 is not None:
+            K = self._cov_theta0(X)
+        else:
+            K = self.posterior.cov_theta0_obs(X, self.Xg, self.levels)
         return self._whiten(np.asarray(K, dtype=np.float64).T)
 
     def w_obs(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
@@ -1229,22 +1239,55 @@ def _j_given(
     index: IntArray,
     level: IntArray,
     decided_z: float | None = None,
+    labels: IntArray | None = None,
 ) -> float:
     """J(B) = mean_x beta(s(x), t_B(x)), all of B conditioned on jointly.
 
     ``decided_z``: rows with |s| at or past it keep beta(s, 1) = h_n, which no batch can
     raise (beta(s, t) <= beta(s, 1) for t <= 1), below Phi(-z) each; the pool-wide
     conditioning (N x n kernel evaluations) is then done on the other rows only.
+
+    ``labels`` (the pool's clusters): each cluster's rows conditioned on the pairs of B in
+    that cluster only. Conditioning on fewer pairs never lowers a variance, and beta rises
+    with t, so this J is at least the joint one: an upper bound, for a B of thousands of
+    pairs (an estimate stage's pending picks) where the joint one costs rows x n x |B|.
     """
-    at = None if decided_z is None else np.flatnonzero(np.abs(s) < decided_z)
+    at = np.arange(len(X)) if decided_z is None else np.flatnonzero(np.abs(s) < decided_z)
     t_after = np.ones(len(X))
+    if labels is None:
+        groups = [(at, index, level)]
+    else:
+        groups = []
+        for k in np.unique(labels[index]):
+            mine = labels[index] == k
+            groups.append((at[labels[at] == k], index[mine], level[mine]))
     with threadpool_limits(limits=_pool_blas_threads(posterior), user_api="blas"):
-        sigma2_after = batch_variance(posterior, X, sigma2, index, level, at=at)
-    rows = slice(None) if at is None else at
-    sig2 = sigma2[rows]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_after[rows] = np.where(sig2 > 0, sigma2_after / np.where(sig2 > 0, sig2, 1.0), 1.0)
+        for rows, idx, lev in groups:
+            if len(rows) == 0:
+                continue
+            sigma2_after = batch_variance(posterior, X, sigma2, idx, lev, at=rows)
+            sig2 = sigma2[rows]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_after[rows] = np.where(
+                    sig2 > 0, sigma2_after / np.where(sig2 > 0, sig2, 1.0), 1.0
+                )
     return float(beta(s, t_after).mean())
+
+
+def _j_by_cluster(
+    posterior: Posterior,
+    s: FloatArray,
+    n_given: int,
+    decided_z: float | None,
+    max_work: float | None,
+) -> bool:
+    """Whether ``_j_given`` conditions cluster by cluster: when conditioning every row J
+    sums over on all ``n_given`` pairs jointly is over ``max_work`` flops, a row's
+    covariances with the pairs costing n x pairs and their whitening pairs^2."""
+    if max_work is None or n_given == 0:
+        return False
+    rows = len(s) if decided_z is None else int(np.count_nonzero(np.abs(s) < decided_z))
+    return float(rows) * n_given * (_n_obs(posterior) + n_given) > max_work
 
 
 # --------------------------------------------------------------------------------------
@@ -1538,7 +1581,11 @@ def select_batch(
     bounded = pool_sds is not None and pool_sds.get("method") == "bounded"
     decided_z = defaults.SCORE_DECIDED_Z if bounded else None
     j_before = float(point_variance(s).mean())
-    if len(p_idx):
+    # J given thousands of pending pairs (an estimate stage's picks, at a million segments)
+    # is conditioned cluster by cluster, an upper bound, once the clusters are made.
+    most_picks = int(budget / costs_arr.min()) if costs_arr.size else 0
+    j_by_cluster = _j_by_cluster(posterior, s, len(p_idx) + most_picks, decided_z, max_work)
+    if len(p_idx) and not j_by_cluster:
         j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z)
     report("predict", 1, 1)
     timings["predict"] = time.perf_counter() - t
@@ -1560,6 +1607,12 @@ def select_batch(
     members = [np.flatnonzero(labels == k) for k in range(n_cl)]
     report("cluster", 1, 1)
     timings["cluster"] = time.perf_counter() - t
+    if len(p_idx) and j_by_cluster:
+        t = time.perf_counter()
+        report("j_before", 0, 1)
+        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z, labels)
+        report("j_before", 1, 1)
+        timings["predict"] += time.perf_counter() - t
 
     biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
     limit = (plan_options or {}).get("max_cluster_bytes")
@@ -1709,6 +1762,7 @@ def select_batch(
         np.concatenate([p_idx, index]),
         np.concatenate([p_lev, level]),
         decided_z,
+        labels if j_by_cluster else None,
     )
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
@@ -1752,6 +1806,8 @@ def select_batch(
         "pool_sds": pool_sds or {"method": "exact", "rows": N},
         # The observations each cluster's greedy conditioned on, when fewer than all.
         "local_observations": local_obs if local else None,
+        # J before and after conditioned cluster by cluster (an upper bound, _j_given).
+        "j_by_cluster": j_by_cluster,
     }
 
     return SelectionResult(

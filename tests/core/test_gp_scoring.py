@@ -203,3 +203,103 @@ def test_select_past_local_obs_runs_each_cluster_on_its_nearest_observations(sco
         for name, r in (("whole", whole), ("local", local))
     }
     assert drop["whole"] > 0 and drop["local"] >= 0.95 * drop["whole"], drop
+
+
+def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs(scored):
+    """``MFGP.cov_theta0_obs_to``: the same covariances, block after block, as
+    ``cov_theta0_obs`` (its many-rows path, to the bit), and as the definition
+    k0(x, x_c) - k(x, X_n) K^-1 k_aug(Y_n, c) computed with a dense solve."""
+    from scipy.linalg import cho_factor, cho_solve
+
+    model, pool, _, _ = scored
+    rng = np.random.default_rng(11)
+    cols = pool[rng.choice(M, 40, replace=False)]
+    lev = rng.integers(0, 2, 40)
+    cov = model.cov_theta0_obs_to(cols, lev)
+    assert cov is not None
+    for block in (pool[:900], pool[900:2000]):
+        np.testing.assert_array_equal(cov(block), model.cov_theta0_obs(block, cols, lev))
+    # the definition, densely, with scikit-learn's Matern-5/2 as the prior covariances
+    from sklearn.gaussian_process.kernels import Matern
+
+    hp = model.hyperparameters
+
+    def k_aug(A, la, B, lb):
+        k = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)(A, B)
+        k1 = hp.outputscales[0] * Matern(hp.lengthscales[0], nu=2.5)(A, B)
+        return k + ((la[:, None] == 1) & (lb[None, :] == 1)) * k1
+
+    Xn, ln = model.X_train, model.levels_train
+    K = k_aug(Xn, ln, Xn, ln)
+    K[np.diag_indices_from(K)] += hp.noise[ln] + model.jitter
+    x = pool[:300]
+    k0 = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)
+    want = k0(x, cols) - k0(x, Xn) @ cho_solve(cho_factor(K), k_aug(Xn, ln, cols, lev))
+    np.testing.assert_allclose(cov(x), want, atol=1e-9)
+    # as many columns as observations: no saving, no callable
+    many = pool[:N_OBS]
+    assert model.cov_theta0_obs_to(many, np.zeros(N_OBS, np.int64)) is None
+
+
+def test_j_given_by_cluster_is_each_cluster_on_its_own_pairs_and_bounds_the_joint_j(scored):
+    """``_j_given(labels=)``: every cluster's rows conditioned on that cluster's pairs only
+    (brute force: one ``_j_given`` per cluster's pairs, its rows kept), never below the J
+    conditioned on every pair jointly; one cluster is the joint J itself."""
+    from bams_cli.core.acquisition import beta, margin
+    from bams_cli.core.select import _j_by_cluster, _j_given, batch_variance
+
+    model, pool, _, _ = scored
+    mu, sigma2 = model.predict_theta0(pool)
+    s = margin(mu, sigma2, -1.2)
+    rng = np.random.default_rng(5)
+    index = rng.choice(M, 60, replace=False)
+    level = rng.integers(0, 2, 60)
+    labels = (pool[:, 0] > 0).astype(np.int64) + 2 * (pool[:, 1] > 0)
+    joint = _j_given(model, pool, s, sigma2, index, level)
+    split = _j_given(model, pool, s, sigma2, index, level, labels=labels)
+    t = np.ones(M)
+    for k in range(4):
+        rows = np.flatnonzero(labels == k)
+        mine = labels[index] == k
+        after = batch_variance(model, pool, sigma2, index[mine], level[mine], at=rows)
+        t[rows] = after / sigma2[rows]
+    assert split == pytest.approx(float(beta(s, t).mean()), rel=1e-12)
+    assert split > joint * (1 + 1e-6)  # pairs across the borders taught each other's rows
+    same = _j_given(model, pool, s, sigma2, index, level, labels=np.zeros(M, np.int64))
+    assert same == pytest.approx(joint, rel=1e-12)
+    # decided rows keep h_n either way
+    z = defaults.SCORE_DECIDED_Z
+    assert _j_given(model, pool, s, sigma2, index, level, z, labels) >= _j_given(
+        model, pool, s, sigma2, index, level, z
+    )
+    # the choice: rows x pairs x (n + pairs) against the budget
+    assert _j_by_cluster(model, s, 60, None, max_work=M * 60 * (N_OBS + 60) - 1)
+    assert not _j_by_cluster(model, s, 60, None, max_work=M * 60 * (N_OBS + 60))
+    assert not _j_by_cluster(model, s, 60, None, max_work=None)
+
+
+def test_select_with_many_pending_pairs_conditions_j_by_cluster_past_the_budget(scored):
+    """Thousands of pending pairs (an estimate stage's picks) past ``max_work``: the same
+    picks as the joint conditioning (the greedies condition on their own cluster's pending
+    pairs either way), J before and after from cluster-by-cluster conditioning, each at
+    least the joint one, and the plan says so."""
+    from bams_cli.core.select import select_batch
+
+    model, pool, _, _ = scored
+    rng = np.random.default_rng(9)
+    pend = np.zeros((M, 2), bool)
+    pend[rng.choice(M, 1000, replace=False), 0] = True
+    kw = dict(
+        gamma=-1.2, costs=[1.0, 0.1], budget=3.0, n_clusters=4, overbudget=2.0,
+        pending_pairs=pend,
+    )  # fmt: skip
+    # sds exact (M n^2 = 2.6e9 is under it), J's joint conditioning M G (n + G) 7.5e9 not
+    joint = select_batch(model, pool, rng=np.random.default_rng(3), max_work=None, **kw)
+    split = select_batch(model, pool, rng=np.random.default_rng(3), max_work=2.7e9, **kw)
+    assert split.plan["pool_sds"]["method"] == "exact"
+    assert not joint.plan["j_by_cluster"] and split.plan["j_by_cluster"]
+    np.testing.assert_array_equal(split.index, joint.index)
+    np.testing.assert_array_equal(split.level, joint.level)
+    assert split.j_before > joint.j_before * (1 + 1e-6)
+    assert split.j_after > joint.j_after * (1 + 1e-6)
+    assert split.j_after < split.j_before

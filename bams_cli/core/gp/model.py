@@ -451,6 +451,34 @@ class MFGP:
             P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
         else:
             P = np.ascontiguousarray(self._theta0_factor(A).T @ W)
+        return self._k0_minus(A, B, P)
+
+    def cov_theta0_obs_to(
+        self, Xc: FloatArray, levels: IntArray
+    ) -> Callable[[FloatArray], FloatArray] | None:
+        """X -> ``cov_theta0_obs(X, Xc, levels)`` with the columns' data term
+        K^-1 k_aug(Y_n, c) solved once (n^2 per column), for a caller asking block after
+        block of pool rows about the same columns (``core.select._Given``: J given
+        thousands of pending picks, where each block solved them again). Each block then
+        costs n per row and column. None where that is no saving (as many columns as
+        observations, or a localised view, which caches its own factors)."""
+        B = self._centre(Xc, "Xc")
+        if self._local is not None or B.shape[0] >= self._Xt.shape[0]:
+            return None
+        W = self._obs_factor(B, self._levels(levels, B.shape[0]))
+        Z = solve_triangular(
+            self._L, W, lower=True, trans="T", overwrite_b=True, check_finite=False
+        )
+
+        def cov(X: FloatArray) -> FloatArray:
+            A = self._centre(X)
+            P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
+            return self._k0_minus(A, B, P)
+
+        return cov
+
+    def _k0_minus(self, A: FloatArray, B: FloatArray, P: FloatArray) -> FloatArray:
+        """k0(A, B) - P for centred A and B, in place of P."""
         # k0 depends on the coordinates only, and selection lists a point once per level in
         # consecutive columns: evaluate it once per run of identical rows.
         new = np.ones(B.shape[0], dtype=bool)
