@@ -1583,7 +1583,8 @@ def select_batch(
     j_before = float(point_variance(s).mean())
     # J given thousands of pending pairs (an estimate stage's picks, at a million segments)
     # is conditioned cluster by cluster, an upper bound, once the clusters are made.
-    most_picks = int(budget / costs_arr.min()) if costs_arr.size else 0
+    # the most picks the batch can add: the budget spent on the cheapest level it may pick
+    most_picks = int(budget / costs_arr[allowed].min()) if allowed.any() else 0
     j_by_cluster = _j_by_cluster(posterior, s, len(p_idx) + most_picks, decided_z, max_work)
     if len(p_idx) and not j_by_cluster:
         j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z)

@@ -34,10 +34,10 @@ the defaults were fixed, to check them on data built another way:
   failures. N 20,000, rate about 1.2%, a 48-d embedding of 16 parameters.
 * ``scattered`` (added 2026-11-28): rare failures with no region to find. f0 = a smooth
   background in a 10-d latent minus 20 small Gaussian dips (each on 4 of the 10
-  coordinates, centred on pool points, 1-16 failures each), and on 0.17% of the segments
-  at random a sharp negative spike with no spatial structure (about 30% of the failures).
+  coordinates, centred on pool points, 1-15 failures each), and on 0.17% of the segments
+  at random a sharp negative spike with no spatial structure (27% of the failures).
   The cheap level is f0 without the spikes, biased by a latent-dependent amount (+0.1 on
-  average) plus noise: corr(f0, f1) about 0.7, it misses about 40% of the failures (all
+  average) plus noise: corr(f0, f1) 0.69, it misses 46% of the failures (all
   the spikes' and some of the dips'). N 20,000, rate about 0.5% (gamma 0), a 32-d tanh
   embedding of the latent and 6 nuisances.
 

@@ -303,3 +303,16 @@ def test_select_with_many_pending_pairs_conditions_j_by_cluster_past_the_budget(
     assert split.j_before > joint.j_before * (1 + 1e-6)
     assert split.j_after > joint.j_after * (1 + 1e-6)
     assert split.j_after < split.j_before
+
+
+def test_j_by_cluster_counts_picks_at_the_levels_the_batch_may_pick(scored):
+    """The batch's most picks for the by-cluster decision come from the cheapest level it
+    may pick: a very cheap level ruled out by ``levels`` does not make J by cluster."""
+    from bams_cli.core.select import select_batch
+
+    model, pool, _, _ = scored
+    # joint J: M x 2 picks x (n + 2) = 6.4e6 flops; 2 / 0.1 picks would be 6.6e7
+    kw = dict(gamma=-1.2, costs=[1.0, 0.1], budget=2.0, n_clusters=4, max_work=1e7)
+    level0 = select_batch(model, pool, rng=np.random.default_rng(3), levels=[0], **kw)
+    both = select_batch(model, pool, rng=np.random.default_rng(3), **kw)
+    assert not level0.plan["j_by_cluster"] and both.plan["j_by_cluster"]
