@@ -1241,7 +1241,7 @@ def _j_given(
     decided_z: float | None = None,
     labels: IntArray | None = None,
 ) -> float:
-    """J(B) = mean_x beta(s(x), t_B(x)), all of B conditioned on jointly.
+    """J(B) = mean_x beta(s(x), t_B(x)): B conditioned on jointly, or per cluster (``labels``).
 
     ``decided_z``: rows with |s| at or past it keep beta(s, 1) = h_n, which no batch can
     raise (beta(s, t) <= beta(s, 1) for t <= 1), below Phi(-z) each; the pool-wide
@@ -1580,14 +1580,6 @@ def select_batch(
     s = margin(mu, sigma2, gamma)
     bounded = pool_sds is not None and pool_sds.get("method") == "bounded"
     decided_z = defaults.SCORE_DECIDED_Z if bounded else None
-    j_before = float(point_variance(s).mean())
-    # J given thousands of pending pairs (an estimate stage's picks, at a million segments)
-    # is conditioned cluster by cluster, an upper bound, once the clusters are made.
-    # the most picks the batch can add: the budget spent on the cheapest level it may pick
-    most_picks = int(budget / costs_arr[allowed].min()) if allowed.any() else 0
-    j_by_cluster = _j_by_cluster(posterior, s, len(p_idx) + most_picks, decided_z, max_work)
-    if len(p_idx) and not j_by_cluster:
-        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z)
     report("predict", 1, 1)
     timings["predict"] = time.perf_counter() - t
 
@@ -1608,12 +1600,6 @@ def select_batch(
     members = [np.flatnonzero(labels == k) for k in range(n_cl)]
     report("cluster", 1, 1)
     timings["cluster"] = time.perf_counter() - t
-    if len(p_idx) and j_by_cluster:
-        t = time.perf_counter()
-        report("j_before", 0, 1)
-        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z, labels)
-        report("j_before", 1, 1)
-        timings["predict"] += time.perf_counter() - t
 
     biggest = max((len(r) * int((cand | pending)[r].sum()) * 8 for r in members), default=0)
     limit = (plan_options or {}).get("max_cluster_bytes")
@@ -1752,19 +1738,24 @@ def select_batch(
     report("pool", 1, 1)
     timings["pool"] = time.perf_counter() - t
 
-    # Exact J after the whole batch.
+    # J before and after the batch, given the pending pairs: exact, or past max_work (an
+    # estimate stage's thousands of pending picks at a million segments) conditioned
+    # cluster by cluster, an upper bound, both the same way so that they compare.
+    # Decided on the pairs actually given, once the batch is known.
+    after_idx = np.concatenate([p_idx, index])
+    after_lev = np.concatenate([p_lev, level])
+    j_by_cluster = _j_by_cluster(posterior, s, len(after_idx), decided_z, max_work)
+    by = labels if j_by_cluster else None
+    t = time.perf_counter()
+    report("j_before", 0, 1)
+    j_before = float(point_variance(s).mean())
+    if len(p_idx):
+        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z, by)
+    report("j_before", 1, 1)
+    timings["j_before"] = time.perf_counter() - t
     t = time.perf_counter()
     report("j_after", 0, 1)
-    j_after = _j_given(
-        posterior,
-        X,
-        s,
-        sigma2,
-        np.concatenate([p_idx, index]),
-        np.concatenate([p_lev, level]),
-        decided_z,
-        labels if j_by_cluster else None,
-    )
+    j_after = _j_given(posterior, X, s, sigma2, after_idx, after_lev, decided_z, by)
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

@@ -236,9 +236,14 @@ def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs
     k0 = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)
     want = k0(x, cols) - k0(x, Xn) @ cho_solve(cho_factor(K), k_aug(Xn, ln, cols, lev))
     np.testing.assert_allclose(cov(x), want, atol=1e-9)
-    # as many columns as observations: no saving, no callable
-    many = pool[:N_OBS]
-    assert model.cov_theta0_obs_to(many, np.zeros(N_OBS, np.int64)) is None
+    # more columns than observations: still solved once, the same covariances
+    many, lev_many = pool[: N_OBS + 50], np.zeros(N_OBS + 50, np.int64)
+    x = pool[-200:]
+    np.testing.assert_allclose(
+        model.cov_theta0_obs_to(many, lev_many)(x),
+        model.cov_theta0_obs(x, many, lev_many),
+        atol=1e-10,
+    )
 
 
 def test_j_given_by_cluster_is_each_cluster_on_its_own_pairs_and_bounds_the_joint_j(scored):
@@ -252,26 +257,36 @@ def test_j_given_by_cluster_is_each_cluster_on_its_own_pairs_and_bounds_the_join
     mu, sigma2 = model.predict_theta0(pool)
     s = margin(mu, sigma2, -1.2)
     rng = np.random.default_rng(5)
-    index = rng.choice(M, 60, replace=False)
-    level = rng.integers(0, 2, 60)
+    # four quadrants and a fifth cluster (a strip at x0 > 3) that holds no pair
     labels = (pool[:, 0] > 0).astype(np.int64) + 2 * (pool[:, 1] > 0)
+    labels[pool[:, 0] > 3.0] = 4
+    index = rng.choice(np.flatnonzero(labels < 4), 60, replace=False)
+    level = rng.integers(0, 2, 60)
+    z = defaults.SCORE_DECIDED_Z
+
+    def brute(decided_z):
+        t = np.ones(M)  # cluster 4's rows, and decided rows, keep beta(s, 1) = h_n
+        for k in range(4):
+            rows = np.flatnonzero(labels == k)
+            if decided_z is not None:
+                rows = rows[np.abs(s[rows]) < decided_z]
+            mine = labels[index] == k
+            after = batch_variance(model, pool, sigma2, index[mine], level[mine], at=rows)
+            t[rows] = after / sigma2[rows]
+        return float(beta(s, t).mean())
+
+    assert np.count_nonzero(labels == 4) > 100
+    assert 0 < np.count_nonzero(np.abs(s) >= z) < M  # some rows decided, some not
     joint = _j_given(model, pool, s, sigma2, index, level)
     split = _j_given(model, pool, s, sigma2, index, level, labels=labels)
-    t = np.ones(M)
-    for k in range(4):
-        rows = np.flatnonzero(labels == k)
-        mine = labels[index] == k
-        after = batch_variance(model, pool, sigma2, index[mine], level[mine], at=rows)
-        t[rows] = after / sigma2[rows]
-    assert split == pytest.approx(float(beta(s, t).mean()), rel=1e-12)
+    assert split == pytest.approx(brute(None), rel=1e-12)
     assert split > joint * (1 + 1e-6)  # pairs across the borders taught each other's rows
     same = _j_given(model, pool, s, sigma2, index, level, labels=np.zeros(M, np.int64))
     assert same == pytest.approx(joint, rel=1e-12)
-    # decided rows keep h_n either way
-    z = defaults.SCORE_DECIDED_Z
-    assert _j_given(model, pool, s, sigma2, index, level, z, labels) >= _j_given(
-        model, pool, s, sigma2, index, level, z
-    )
+    # decided rows keep h_n, by cluster as jointly
+    decided = _j_given(model, pool, s, sigma2, index, level, z, labels)
+    assert decided == pytest.approx(brute(z), rel=1e-12)
+    assert decided >= _j_given(model, pool, s, sigma2, index, level, z)
     # the choice: rows x pairs x (n + pairs) against the budget
     assert _j_by_cluster(model, s, 60, None, max_work=M * 60 * (N_OBS + 60) - 1)
     assert not _j_by_cluster(model, s, 60, None, max_work=M * 60 * (N_OBS + 60))
@@ -283,6 +298,7 @@ def test_select_with_many_pending_pairs_conditions_j_by_cluster_past_the_budget(
     picks as the joint conditioning (the greedies condition on their own cluster's pending
     pairs either way), J before and after from cluster-by-cluster conditioning, each at
     least the joint one, and the plan says so."""
+    from bams_cli.core.acquisition import margin, point_variance
     from bams_cli.core.select import select_batch
 
     model, pool, _, _ = scored
@@ -303,16 +319,30 @@ def test_select_with_many_pending_pairs_conditions_j_by_cluster_past_the_budget(
     assert split.j_before > joint.j_before * (1 + 1e-6)
     assert split.j_after > joint.j_after * (1 + 1e-6)
     assert split.j_after < split.j_before
+    # the bound still conditions on the pending pairs: below J given nothing pending
+    mu, sigma2 = model.predict_theta0(pool)
+    h_n = float(point_variance(margin(mu, sigma2, -1.2)).mean())
+    assert split.j_before < 0.95 * h_n
 
 
-def test_j_by_cluster_counts_picks_at_the_levels_the_batch_may_pick(scored):
-    """The batch's most picks for the by-cluster decision come from the cheapest level it
-    may pick: a very cheap level ruled out by ``levels`` does not make J by cluster."""
+def test_j_by_cluster_is_decided_on_the_picks_the_batch_made(scored):
+    """Nothing pending: J is conditioned by cluster only when the batch's own picks are
+    past the budget, not when the most picks the budget could buy would be (7 at level 1's
+    cost 0.7, where the batch mixed levels and made 5)."""
     from bams_cli.core.select import select_batch
 
     model, pool, _, _ = scored
-    # joint J: M x 2 picks x (n + 2) = 6.4e6 flops; 2 / 0.1 picks would be 6.6e7
-    kw = dict(gamma=-1.2, costs=[1.0, 0.1], budget=2.0, n_clusters=4, max_work=1e7)
-    level0 = select_batch(model, pool, rng=np.random.default_rng(3), levels=[0], **kw)
-    both = select_batch(model, pool, rng=np.random.default_rng(3), **kw)
-    assert not level0.plan["j_by_cluster"] and both.plan["j_by_cluster"]
+    kw = dict(gamma=-1.2, costs=[1.0, 0.7], budget=5.0, n_clusters=4)
+    exact = select_batch(model, pool, rng=np.random.default_rng(3), max_work=None, **kw)
+    made = len(exact.index)
+    assert made == 5 and set(exact.level) == {0, 1}
+    work = M * made * (N_OBS + made)  # 1.6e7 flops; 7 picks would be 2.3e7
+    under = select_batch(model, pool, rng=np.random.default_rng(3), max_work=work, **kw)
+    over = select_batch(model, pool, rng=np.random.default_rng(3), max_work=work - 1, **kw)
+    for r in (under, over):
+        assert r.plan["pool_sds"]["method"] == "exact"
+        np.testing.assert_array_equal(r.index, exact.index)
+    assert not under.plan["j_by_cluster"] and over.plan["j_by_cluster"]
+    assert under.j_after == pytest.approx(exact.j_after, rel=1e-12)
+    assert over.j_after > exact.j_after * (1 + 1e-6)
+    assert under.j_before == over.j_before == exact.j_before  # nothing pending: h_n

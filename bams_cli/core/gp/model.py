@@ -445,12 +445,8 @@ class MFGP:
             # Many rows, few columns (J after a batch over the whole pool): the data term
             # as k0(x, X_n) (K^-1 k_aug(Y_n, c)), n^2 per column, instead of a solve of
             # n^2 per row. At 45,000 segments and 3,700 observations, 18 s -> about 2 s.
-            Z = solve_triangular(
-                self._L, W, lower=True, trans="T", overwrite_b=True, check_finite=False
-            )
-            P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
-        else:
-            P = np.ascontiguousarray(self._theta0_factor(A).T @ W)
+            return self._cov_solved(A, B, self._solve_data_term(W))
+        P = np.ascontiguousarray(self._theta0_factor(A).T @ W)
         return self._k0_minus(A, B, P)
 
     def cov_theta0_obs_to(
@@ -460,22 +456,26 @@ class MFGP:
         K^-1 k_aug(Y_n, c) solved once (n^2 per column), for a caller asking block after
         block of pool rows about the same columns (``core.select._Given``: J given
         thousands of pending picks, where each block solved them again). Each block then
-        costs n per row and column. None where that is no saving (as many columns as
-        observations, or a localised view, which caches its own factors)."""
+        costs n per row and column, and the solve saves n^2 per row of every block after
+        it, whatever the number of columns. None for a localised view, which caches its
+        own factors."""
         B = self._centre(Xc, "Xc")
-        if self._local is not None or B.shape[0] >= self._Xt.shape[0]:
+        if self._local is not None:
             return None
-        W = self._obs_factor(B, self._levels(levels, B.shape[0]))
-        Z = solve_triangular(
+        Z = self._solve_data_term(self._obs_factor(B, self._levels(levels, B.shape[0])))
+        return lambda X: self._cov_solved(self._centre(X), B, Z)
+
+    def _solve_data_term(self, W: FloatArray) -> FloatArray:
+        """K^-1 k_aug(Y_n, c) = L^-T W from the columns' factor W = L^-1 k_aug(Y_n, c)."""
+        return solve_triangular(
             self._L, W, lower=True, trans="T", overwrite_b=True, check_finite=False
         )
 
-        def cov(X: FloatArray) -> FloatArray:
-            A = self._centre(X)
-            P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
-            return self._k0_minus(A, B, P)
-
-        return cov
+    def _cov_solved(self, A: FloatArray, B: FloatArray, Z: FloatArray) -> FloatArray:
+        """cov_n(theta0(A), y_B) = k0(A, B) - k0(A, X_n) Z for centred A, B and the
+        columns' solved data term Z."""
+        P = np.ascontiguousarray(matern52_cross(A, self._Xt, self._ell[0], self._s[0]) @ Z)
+        return self._k0_minus(A, B, P)
 
     def _k0_minus(self, A: FloatArray, B: FloatArray, P: FloatArray) -> FloatArray:
         """k0(A, B) - P for centred A and B, in place of P."""
