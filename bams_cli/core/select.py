@@ -147,15 +147,18 @@ class SelectionResult:
     score : ndarray of shape (r,)
         The pooling key: delta_j / cost for pooling="global", Delta J_s for "raw".
     j_before, j_after : float
-        J of the whole pool before the batch and after it (all picks conditioned on jointly,
-        computed exactly; past ``max_work``, to 1e-17 a row where the sds are exact, see
-        ``plan["pool_sds"]``).
+        J of the whole pool before the batch and after it, given the pending pairs: all
+        pairs conditioned on jointly, computed exactly (past ``max_work``, to 1e-17 a row
+        where the sds are exact, see ``plan["pool_sds"]``); or, where the pending pairs
+        and the picks together are past ``max_work``, each cluster on its own pairs, an
+        upper bound (``plan["j_by_cluster"]``).
     gamma : float
         The threshold J was computed for.
     labels : int ndarray of shape (N,)
         Cluster of every pool point.
     timings : dict of str -> float
-        Wall seconds per phase ("predict", "cluster", "greedy", "pool", "j_after", "total")
+        Wall seconds per phase ("predict", "cluster", "greedy", "pool", "j_before",
+        "j_after", "total")
         plus seconds summed over clusters inside the greedy ("greedy.build", "greedy.screen",
         "greedy.exact", "greedy.update", and "greedy.cpu", their CPU time).
     stats : dict of str -> int
@@ -1441,7 +1444,9 @@ def select_batch(
        - pooling="global" (default): (N_s / N) Delta J_s / c_l, the cost-normalised
          decrease of the whole pool's J (J is the N_s/N-weighted sum of the clusters' J);
        - pooling="raw": Delta J_s as in the paper's Algorithm 1.
-    4. Recompute J for the chosen batch exactly, all picks conditioned on jointly.
+    4. Recompute J before and after the chosen batch, given the pending pairs: exactly,
+       all pairs conditioned on jointly, or past ``max_work`` each cluster on its own
+       pairs, an upper bound (``plan["j_by_cluster"]``).
 
     Parameters
     ----------
@@ -1747,11 +1752,11 @@ def select_batch(
     j_by_cluster = _j_by_cluster(posterior, s, len(after_idx), decided_z, max_work)
     by = labels if j_by_cluster else None
     t = time.perf_counter()
-    report("j_before", 0, 1)
     j_before = float(point_variance(s).mean())
     if len(p_idx):
+        report("j_before", 0, 1)
         j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z, by)
-    report("j_before", 1, 1)
+        report("j_before", 1, 1)
     timings["j_before"] = time.perf_counter() - t
     t = time.perf_counter()
     report("j_after", 0, 1)
