@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 import pytest
 
@@ -29,16 +30,18 @@ from tests.jsonschema_subset import errors
 BAMS = [sys.executable, "-m", "bams_cli"]
 
 
-def _study(tmp: Path, name: str, seg: Path, gamma: str = "0.56") -> Path:
+def _study(tmp: Path, name: str, seg: Path, gamma: str = "0.56", costs: str = "1,0.1") -> Path:
     ws = tmp / name
-    for args in _study_args(ws, seg, gamma):
+    for args in _study_args(ws, seg, gamma, costs):
         subprocess.run([*BAMS, *map(str, args)], check=True, capture_output=True)
     return ws
 
 
-def _study_args(ws: Path, seg: Path, gamma: str = "0.56") -> list[list[object]]:
+def _study_args(
+    ws: Path, seg: Path, gamma: str = "0.56", costs: str = "1,0.1"
+) -> list[list[object]]:
     return [
-        ["init", "-w", ws, "--gamma", gamma, "--costs", "1,0.1", "--dim", "2", "--seed", "4"],
+        ["init", "-w", ws, "--gamma", gamma, "--costs", costs, "--dim", "2", "--seed", "4"],
         ["embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
          "--no-standardize"],
     ]  # fmt: skip
@@ -259,6 +262,54 @@ def test_a_loop_that_ends_with_the_estimate_prints_it(data, tmp_path):
     again = subprocess.run(args, capture_output=True, text=True)
     assert again.returncode == 0 and "nothing to do" in again.stderr
     assert lines[0] in again.stdout.splitlines()
+
+
+@pytest.mark.parametrize(
+    "screen",
+    [None, pytest.param("off", marks=pytest.mark.slow)],  # 40-50 s each under load
+    ids=["screen-auto", "screen-off"],
+)
+def test_a_three_level_study_runs_to_an_estimate(data, tmp_path, screen):
+    """Two cheap simulators beside level 0 (costs 1, 0.3, 0.05): the loop's mixed-fidelity
+    first batch, BAMS batches, the estimate (screened or staged) and its files, the model
+    with a discrepancy for each cheap level, and `status` and `report` reading them."""
+    _, seg, truth2, _, _ = data
+    rng = np.random.default_rng(0)
+    two = pl.read_parquet(truth2)
+    f0 = two["value_0"].to_numpy()
+    truth = tmp_path / "truth3.parquet"
+    two.with_columns(  # level 2 biased by 0.3 and noisier than level 1
+        value_2=pl.Series(f0 + 0.3 + 0.2 * rng.standard_normal(len(f0)))
+    ).write_parquet(truth)
+    ws = _study(tmp_path, "three", seg, costs="1,0.3,0.05")
+    done = subprocess.run(
+        [*_loop_args(ws, truth, screen=screen), "--json"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert errors(out, schemas_json.schema("loop")) == []
+    w = Workspace(ws)
+    picked = pl.concat([w.read_batch(n) for n in w.batch_numbers()])
+    assert set(picked["fidelity"].to_list()) == {0, 1, 2}
+    model = json.loads(w.model_path.read_text())
+    assert len(model["hyperparameters"]["offsets"]) == 2  # one discrepancy per cheap level
+    r = subprocess.run([*BAMS, "estimate", "-w", str(ws), "--json"], capture_output=True,
+                       text=True)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    est = json.loads(r.stdout)
+    assert errors(est, schemas_json.schema("estimate")) == []
+    (e,) = est["estimates"]
+    assert 0 <= e["ci_low"] <= e["p_hat"] <= e["ci_high"] <= 1
+    weighting = read_metadata_json(ws / "estimates" / "plan-0001.parquet")["weighting"]
+    if screen is None:  # level 1 tracks level 0 on the toy: --screen auto screens with it
+        assert weighting == "screen"
+        assert (w.read_batch(4)["fidelity"] == 1).all()
+    else:
+        assert weighting != "screen" and out["plans"] == 2
+    for cmd in (["status", "-w", ws, "--json"], ["report", "-w", ws, "--json"]):
+        r = subprocess.run([*BAMS, *map(str, cmd)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
 
 
 def test_a_finished_loop_does_nothing(data):
