@@ -48,7 +48,8 @@ to the tool (the simulator is ``bams-cli simulate`` reading the truth file):
 model.json and the whole workspace are kept aside), the same loop again with
 ``--then-estimate`` (the default K and the default estimate: a screen and its level-0
 confirmation where ``--screen auto`` screens, else two level-0 stages; a refit between
-the two), then ``estimate --json``.
+the two), then ``estimate --json``. A seed whose estimate is written is kept when ``run`` is
+called again; one stopped part-way is started again from ``init``.
 
 ``table`` reads every run: its estimate against the true rate, and its design drawn from
 the truth: where the run screened, ``benchmark.screen_default`` on the kept workspace (4
@@ -263,6 +264,13 @@ def run(out: Path, problem: str, seeds: list[int]) -> None:
     sim = f"{BAMS} simulate {{handoff}} --truth {shlex.quote(str(truth))} -o {{results}}"
     for seed in seeds:
         ws = out / "runs" / f"{problem}-s{seed}"
+        done = ws.parent / f"{ws.name}.estimate.json"
+        if done.exists():  # a run that finished: kept, so that a stopped study resumes
+            print(f"{problem} seed {seed}: done already ({done})", flush=True)
+            continue
+        if ws.exists():  # a run stopped part-way: started again from its first step
+            print(f"{problem} seed {seed}: {ws} unfinished, started again", flush=True)
+            shutil.rmtree(ws)
         steps = [
             ["init", "-w", ws, "--gamma", (data / "gamma").read_text(), "--costs", "1,0.1",
              "--seed", str(seed)],
