@@ -17,19 +17,27 @@ gamma the pool mean's 2% quantile. Timed, each --runs times (median):
 * ``by cluster``: each cluster's rows conditioned on its own pairs (``_j_given(labels=)``,
   what ``select`` does once rows x pairs x (n + pairs) exceeds ``defaults.SCORE_MAX_WORK``), with the
   ratio of its J to the joint one (>= 1: an upper bound);
-* with ``--select``, the whole ``select_batch``, budget 10, its greedies inline in one
-  process (``select`` runs them on the cores' worker processes).
+* J before and after a batch of 100 level-1 picks, by cluster: two passes (``_j_given``
+  twice, as ``select`` did before 2026-11-29) against one conditioning on the pending pairs
+  and the picks together (``_j_nested``: Cholesky whitening is nested);
+* with ``--select`` (``--select-only``: it alone), the whole ``select_batch``, budget 10,
+  its greedies inline in one process (``select`` runs them on the cores' worker
+  processes). ``--moments FILE`` keeps the pool's moments between runs (at a million
+  segments and 14,000 observations they take minutes).
 
     .venv/bin/python bench/bench_pending.py                         # N 200k, n 4,000, G 3,000, d 4
-    .venv/bin/python bench/bench_pending.py --pool 1000000 --obs 8000 --pending 8000 --runs 1
+    .venv/bin/python bench/bench_pending.py --pool 1000000 --obs 14000 --pending 12000 \
+        --runs 1 --select-only --moments /tmp/moments-1m.npz
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -37,7 +45,7 @@ from bams_cli import defaults
 from bams_cli.core.acquisition import margin
 from bams_cli.core.cluster import cluster_pool
 from bams_cli.core.gp import MFGP, Hyperparameters
-from bams_cli.core.select import _j_given, select_batch
+from bams_cli.core.select import _j_given, _j_nested, select_batch
 
 
 class _PerBlock:
@@ -93,16 +101,28 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-per-block", action="store_true", help="skip the slowest variant")
+    ap.add_argument(
+        "--skip-joint", action="store_true", help="by cluster only (at a million segments)"
+    )
     ap.add_argument("--select", action="store_true", help="also time the whole select_batch")
+    ap.add_argument("--select-only", action="store_true", help="time select_batch alone")
+    ap.add_argument("--moments", type=Path, help="an .npz keeping the pool's moments between runs")
     a = ap.parse_args()
 
     model, pool, pend = _problem(a.pool, a.obs, a.pending, a.dim, a.seed)
     # gamma from a sample; the pool's moments as select gets them (bounded past the budget)
     gamma = float(np.quantile(model.predict_theta0(pool[:5000])[0], 0.02))
     t = time.perf_counter()
-    mu, sigma2, _ = model.moments(pool, [gamma], max_work=defaults.SCORE_MAX_WORK)
-    how = dict(model.scoring)
-    print(f"pool moments: {time.perf_counter() - t:.1f} s ({how['method']})")
+    if a.moments is not None and a.moments.exists():
+        kept = np.load(a.moments, allow_pickle=False)
+        mu, sigma2, how = kept["mu"], kept["sigma2"], json.loads(str(kept["how"]))
+        print(f"pool moments: read from {a.moments}")
+    else:
+        mu, sigma2, _ = model.moments(pool, [gamma], max_work=defaults.SCORE_MAX_WORK)
+        how = dict(model.scoring)
+        print(f"pool moments: {time.perf_counter() - t:.1f} s ({how['method']})")
+        if a.moments is not None:
+            np.savez(a.moments, mu=mu, sigma2=sigma2, how=json.dumps(how))
     s = margin(mu, sigma2, gamma)
     z = defaults.SCORE_DECIDED_Z
     near = int(np.count_nonzero(np.abs(s) < z))
@@ -112,24 +132,60 @@ def main() -> None:
         f"{near:,}; rows x pairs x (n + pairs) {near * a.pending * (a.obs + a.pending):.2g} "
         f"(SCORE_MAX_WORK {defaults.SCORE_MAX_WORK:.0e}); load {os.getloadavg()[0]:.1f}"
     )
+    if not a.select_only:
+        _j_variants(a, model, pool, s, sigma2, idx, lev, z)
+    if a.select or a.select_only:
+        _select(model, pool, gamma, pend, mu, sigma2, how)
+
+
+def _j_variants(a, model, pool, s, sigma2, idx, lev, z) -> None:  # type: ignore[no-untyped-def]
     res: dict[str, float] = {}
-    if not a.skip_per_block:
+    per_block = not (a.skip_per_block or a.skip_joint)
+    if per_block:
         res["joint, per block"], j_old = _timed(
             lambda: _j_given(_PerBlock(model), pool, s, sigma2, idx, lev, z), a.runs
         )
-    res["joint"], j_joint = _timed(lambda: _j_given(model, pool, s, sigma2, idx, lev, z), a.runs)
+    if not a.skip_joint:
+        res["joint"], j_joint = _timed(
+            lambda: _j_given(model, pool, s, sigma2, idx, lev, z), a.runs
+        )
     labels = cluster_pool(pool, model.lengthscales0, a.clusters, rng=np.random.default_rng(0))
     res["by cluster"], j_split = _timed(
         lambda: _j_given(model, pool, s, sigma2, idx, lev, z, labels), a.runs
     )
     for k, v in res.items():
-        ratio = f"  ({v / res['joint']:.2f}x joint)" if k != "joint" else ""
+        ratio = f"  ({v / res['joint']:.2f}x joint)" if k != "joint" and "joint" in res else ""
         print(f"{k:>18}: {v:8.1f} s{ratio}", flush=True)
-    if not a.skip_per_block:
+    if per_block:
         print(f"J joint per block {j_old:.6g} vs joint {j_joint:.6g} (the same J)")
-    print(f"J by cluster / joint: {j_split / j_joint:.4f} (an upper bound: >= 1)", flush=True)
-    if not a.select:
-        return
+    if a.skip_joint:
+        print(f"J by cluster {j_split:.6g}", flush=True)
+    else:
+        print(f"J by cluster / joint: {j_split / j_joint:.4f} (an upper bound: >= 1)", flush=True)
+    # J before and after a batch of 100 level-1 picks, by cluster: two passes (before
+    # 2026-11-29) against one conditioning on the pending pairs and the picks
+    rng = np.random.default_rng(a.seed + 1)
+    picks = rng.choice(np.setdiff1d(np.arange(len(pool)), idx), 100, replace=False)
+    b_idx, b_lev = np.concatenate([idx, picks]), np.concatenate([lev, np.ones(100, np.int64)])
+    two, (jb2, ja2) = _timed(
+        lambda: (
+            _j_given(model, pool, s, sigma2, idx, lev, z, labels),
+            _j_given(model, pool, s, sigma2, b_idx, b_lev, z, labels),
+        ),
+        a.runs,
+    )
+    one, (jb1, ja1) = _timed(
+        lambda: _j_nested(model, pool, s, sigma2, b_idx, b_lev, len(idx), z, labels), a.runs
+    )
+    print(
+        f"J before and after 100 picks, by cluster: two passes {two:.1f} s, one pass "
+        f"{one:.1f} s ({one / two:.2f}x); J {jb1:.6g} -> {ja1:.6g} (two passes "
+        f"{jb2:.6g} -> {ja2:.6g})",
+        flush=True,
+    )
+
+
+def _select(model, pool, gamma, pend, mu, sigma2, how) -> None:  # type: ignore[no-untyped-def]
     t = time.perf_counter()
     r = select_batch(
         model, pool, gamma=gamma, costs=[1.0, 0.1], budget=10.0, pending_pairs=pend,

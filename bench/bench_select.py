@@ -434,7 +434,7 @@ def report_run(n, args, totals, cpus, peaks, loads, results) -> None:
         else "  runs differ in their batch (K-means seeds differ per run)"
     )
     print(f"  phases of run {k_med + 1} ({totals[k_med]:.1f} s):")
-    for phase in ("predict", "cluster", "greedy", "pool", "j_before", "j_after"):
+    for phase in ("predict", "cluster", "greedy", "pool", "j_after"):
         v = res.timings[phase]
         print(f"  {phase:<14} {v:7.2f} s  {100 * v / res.timings['total']:5.1f} %")
     g = sum(res.timings[f"greedy.{p}"] for p in ("build", "screen", "exact", "update", "plan"))

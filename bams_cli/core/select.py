@@ -157,8 +157,8 @@ class SelectionResult:
     labels : int ndarray of shape (N,)
         Cluster of every pool point.
     timings : dict of str -> float
-        Wall seconds per phase ("predict", "cluster", "greedy", "pool", "j_before",
-        "j_after", "total")
+        Wall seconds per phase ("predict", "cluster", "greedy", "pool", "j_after": J
+        before and after the batch, "total")
         plus seconds summed over clusters inside the greedy ("greedy.build", "greedy.screen",
         "greedy.exact", "greedy.update", and "greedy.cpu", their CPU time).
     stats : dict of str -> int
@@ -699,11 +699,15 @@ class _Given:
             dtype=np.float64,
         )
         S = 0.5 * (S + S.T)
+        # Cholesky whitening is nested: the first g rows of L^-1 cov_n(y_G, .) whiten
+        # against G's first g pairs alone (L's leading block is their factor).
+        self.nested = True
         try:
             L, _ = cho_factor(S, lower=True)
             L = np.tril(L)
             self._whiten = lambda K: solve_triangular(L, K, lower=True)
         except np.linalg.LinAlgError:
+            self.nested = False
             lam, Q = eigh(S)
             keep = lam > 1e-12 * max(lam.max(), 0.0)
             P = Q[:, keep] / np.sqrt(lam[keep])
@@ -1222,16 +1226,39 @@ def batch_variance(
     -------
     sigma2_after : ndarray of shape (N,), or (len(at),)
     """
+    return _variances_given(posterior, X, sigma2, index, level, at, 0)[1]
+
+
+def _variances_given(
+    posterior: Posterior,
+    X: FloatArray,
+    sigma2: FloatArray,
+    index: IntArray,
+    level: IntArray,
+    at: IntArray | None,
+    first: int,
+) -> tuple[FloatArray, FloatArray]:
+    """``batch_variance`` given B's ``first`` pairs and given all of B, from one
+    conditioning on B where its whitening is nested (``_Given.nested``): J before and
+    after a batch given thousands of pending pairs cost one pass, not two."""
     rows = np.arange(len(X)) if at is None else np.asarray(at, dtype=np.int64)
     if len(index) == 0:
-        return sigma2[rows].copy()
+        return sigma2[rows].copy(), sigma2[rows].copy()
     given = _Given(posterior, X[index], level)
-    out = np.empty(len(rows))
+    before = None
+    if first == 0:
+        before = sigma2[rows].copy()
+    elif not given.nested:
+        before = _variances_given(posterior, X, sigma2, index[:first], level[:first], rows, 0)[1]
+    after = np.empty(len(rows))
+    nested = np.empty(len(rows)) if before is None else before
     for i0 in range(0, len(rows), _PREDICT_BLOCK):
         r = rows[i0 : i0 + _PREDICT_BLOCK]
-        W = given.w_theta0(X[r])
-        out[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - (W**2).sum(axis=0)
-    return np.maximum(out, 0.0)
+        W2 = given.w_theta0(X[r]) ** 2
+        after[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - W2.sum(axis=0)
+        if before is None:
+            nested[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - W2[:first].sum(axis=0)
+    return np.maximum(nested, 0.0), np.maximum(after, 0.0)
 
 
 def _j_given(
@@ -1255,26 +1282,46 @@ def _j_given(
     with t, so this J is at least the joint one: an upper bound, for a B of thousands of
     pairs (an estimate stage's pending picks) where the joint one costs rows x n x |B|.
     """
+    return _j_nested(posterior, X, s, sigma2, index, level, 0, decided_z, labels)[1]
+
+
+def _j_nested(
+    posterior: Posterior,
+    X: FloatArray,
+    s: FloatArray,
+    sigma2: FloatArray,
+    index: IntArray,
+    level: IntArray,
+    first: int,
+    decided_z: float | None = None,
+    labels: IntArray | None = None,
+) -> tuple[float, float]:
+    """``_j_given`` of B's ``first`` pairs and of all of B (J before and after a batch:
+    the pending pairs first, then the picks), from one conditioning on B per group of rows
+    (``_variances_given``)."""
     at = np.arange(len(X)) if decided_z is None else np.flatnonzero(np.abs(s) < decided_z)
-    t_after = np.ones(len(X))
+    t_first, t_all = np.ones(len(X)), np.ones(len(X))
     if labels is None:
-        groups = [(at, index, level)]
+        groups = [(at, index, level, first)]
     else:
         groups = []
         for k in np.unique(labels[index]):
-            mine = labels[index] == k
-            groups.append((at[labels[at] == k], index[mine], level[mine]))
+            mine = labels[index] == k  # keeps B's order: a cluster's first pairs lead
+            groups.append((at[labels[at] == k], index[mine], level[mine], int(mine[:first].sum())))
     with threadpool_limits(limits=_pool_blas_threads(posterior), user_api="blas"):
-        for rows, idx, lev in groups:
+        for rows, idx, lev, g in groups:
             if len(rows) == 0:
                 continue
-            sigma2_after = batch_variance(posterior, X, sigma2, idx, lev, at=rows)
             sig2 = sigma2[rows]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t_after[rows] = np.where(
-                    sig2 > 0, sigma2_after / np.where(sig2 > 0, sig2, 1.0), 1.0
-                )
-    return float(beta(s, t_after).mean())
+            ok = sig2 > 0
+            for t, v in zip(
+                (t_first, t_all),
+                _variances_given(posterior, X, sigma2, idx, lev, rows, g),
+                strict=True,
+            ):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t[rows] = np.where(ok, v / np.where(ok, sig2, 1.0), 1.0)
+    return float(beta(s, t_first).mean()), float(beta(s, t_all).mean())
 
 
 def _j_by_cluster(
@@ -1752,15 +1799,12 @@ def select_batch(
     j_by_cluster = _j_by_cluster(posterior, s, len(after_idx), decided_z, max_work)
     by = labels if j_by_cluster else None
     t = time.perf_counter()
-    j_before = float(point_variance(s).mean())
-    if len(p_idx):
-        report("j_before", 0, 1)
-        j_before = _j_given(posterior, X, s, sigma2, p_idx, p_lev, decided_z, by)
-        report("j_before", 1, 1)
-    timings["j_before"] = time.perf_counter() - t
-    t = time.perf_counter()
     report("j_after", 0, 1)
-    j_after = _j_given(posterior, X, s, sigma2, after_idx, after_lev, decided_z, by)
+    j_before, j_after = _j_nested(
+        posterior, X, s, sigma2, after_idx, after_lev, len(p_idx), decided_z, by
+    )
+    if not len(p_idx):
+        j_before = float(point_variance(s).mean())
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

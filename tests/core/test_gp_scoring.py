@@ -346,3 +346,39 @@ def test_j_by_cluster_is_decided_on_the_picks_the_batch_made(scored):
     assert under.j_after == pytest.approx(exact.j_after, rel=1e-12)
     assert over.j_after > exact.j_after * (1 + 1e-6)
     assert under.j_before == over.j_before == exact.j_before  # nothing pending: h_n
+
+
+@pytest.mark.parametrize("whitening", ["cholesky", "eigh"])
+def test_j_before_and_after_from_one_conditioning_equal_each_conditioned_alone(
+    scored, whitening, monkeypatch
+):
+    """``_j_nested``: J given B's first pairs (the pending ones) and J given all of B, from
+    one conditioning on B (Cholesky whitening is nested), equal ``_j_given`` of each, joint
+    and by cluster, with decided rows; through the eigh whitening (a singular Sigma_B) the
+    first J is conditioned on its own."""
+    import bams_cli.core.select as sel
+    from bams_cli.core.acquisition import margin
+
+    model, pool, _, _ = scored
+    mu, sigma2 = model.predict_theta0(pool)
+    s = margin(mu, sigma2, -1.2)
+    rng = np.random.default_rng(12)
+    index = rng.choice(M, 90, replace=False)
+    level = rng.integers(0, 2, 90)
+    first = 70
+    labels = (pool[:, 0] > 0).astype(np.int64) + 2 * (pool[:, 1] > 0)
+    if whitening == "eigh":
+
+        def singular(*a, **k):
+            raise np.linalg.LinAlgError("as for a repeated noise-free pair")
+
+        monkeypatch.setattr(sel, "cho_factor", singular)
+    for z, by in ((None, None), (defaults.SCORE_DECIDED_Z, None), (None, labels)):
+        before, after = sel._j_nested(model, pool, s, sigma2, index, level, first, z, by)
+        assert before == pytest.approx(
+            sel._j_given(model, pool, s, sigma2, index[:first], level[:first], z, by), rel=1e-10
+        )
+        assert after == pytest.approx(
+            sel._j_given(model, pool, s, sigma2, index, level, z, by), rel=1e-10
+        )
+        assert after < before
