@@ -37,7 +37,9 @@ import json
 import os
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -46,6 +48,9 @@ from bams_cli.core.acquisition import margin
 from bams_cli.core.cluster import cluster_pool
 from bams_cli.core.gp import MFGP, Hyperparameters
 from bams_cli.core.select import _j_given, _j_nested, select_batch
+
+T = TypeVar("T")
+_PHASE = {"j_after": "J before and after"}  # select_batch's one pass for both
 
 
 class _PerBlock:
@@ -82,8 +87,8 @@ def _problem(N: int, n: int, G: int, d: int, seed: int):  # type: ignore[no-unty
     return model, pool, pend
 
 
-def _timed(fn, runs: int) -> tuple[float, object]:  # type: ignore[no-untyped-def]
-    times, out = [], None
+def _timed(fn: Callable[[], T], runs: int) -> tuple[float, T]:
+    times = []
     for _ in range(runs):
         t = time.perf_counter()
         out = fn()
@@ -113,8 +118,14 @@ def main() -> None:
     # gamma from a sample; the pool's moments as select gets them (bounded past the budget)
     gamma = float(np.quantile(model.predict_theta0(pool[:5000])[0], 0.02))
     t = time.perf_counter()
+    problem = json.dumps([a.pool, a.obs, a.pending, a.dim, a.seed])
     if a.moments is not None and a.moments.exists():
         kept = np.load(a.moments, allow_pickle=False)
+        if "problem" not in kept.files or str(kept["problem"]) != problem:
+            raise SystemExit(
+                f"{a.moments} does not hold the moments of --pool --obs --pending --dim "
+                f"--seed {problem}: remove it or name another file"
+            )
         mu, sigma2, how = kept["mu"], kept["sigma2"], json.loads(str(kept["how"]))
         print(f"pool moments: read from {a.moments}")
     else:
@@ -122,7 +133,7 @@ def main() -> None:
         how = dict(model.scoring)
         print(f"pool moments: {time.perf_counter() - t:.1f} s ({how['method']})")
         if a.moments is not None:
-            np.savez(a.moments, mu=mu, sigma2=sigma2, how=json.dumps(how))
+            np.savez(a.moments, mu=mu, sigma2=sigma2, how=json.dumps(how), problem=problem)
     s = margin(mu, sigma2, gamma)
     z = defaults.SCORE_DECIDED_Z
     near = int(np.count_nonzero(np.abs(s) < z))
@@ -196,7 +207,7 @@ def _select(model, pool, gamma, pend, mu, sigma2, how) -> None:  # type: ignore[
         f"select_batch (greedies inline, one process): {time.perf_counter() - t:.1f} s, "
         f"{len(r.index)} picks, J {r.j_before:.4g} -> {r.j_after:.4g}, j_by_cluster "
         f"{r.plan['j_by_cluster']}; "
-        + ", ".join(f"{k} {v:.1f}" for k, v in r.timings.items() if "." not in k)
+        + ", ".join(f"{_PHASE.get(k, k)} {v:.1f}" for k, v in r.timings.items() if "." not in k)
     )
 
 

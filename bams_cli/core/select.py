@@ -1248,7 +1248,7 @@ def _variances_given(
     before = None
     if first == 0:
         before = sigma2[rows].copy()
-    elif not given.nested:
+    elif not given.nested and first < len(index):  # (all of B: W[:first] is all of W)
         before = _variances_given(posterior, X, sigma2, index[:first], level[:first], rows, 0)[1]
     after = np.empty(len(rows))
     nested = np.empty(len(rows)) if before is None else before

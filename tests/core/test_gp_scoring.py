@@ -363,17 +363,22 @@ def test_j_before_and_after_from_one_conditioning_equal_each_conditioned_alone(
     mu, sigma2 = model.predict_theta0(pool)
     s = margin(mu, sigma2, -1.2)
     rng = np.random.default_rng(12)
-    index = rng.choice(M, 90, replace=False)
-    level = rng.integers(0, 2, 90)
-    first = 70
     labels = (pool[:, 0] > 0).astype(np.int64) + 2 * (pool[:, 1] > 0)
+    # 70 pending pairs outside cluster 3, then 20 picks outside cluster 0: one cluster
+    # holds pending pairs only, one picks only
+    first = 70
+    pending = rng.choice(np.flatnonzero(labels != 3), first, replace=False)
+    rest = np.setdiff1d(np.flatnonzero(labels != 0), pending)
+    index = np.concatenate([pending, rng.choice(rest, 20, replace=False)])
+    level = rng.integers(0, 2, 90)
     if whitening == "eigh":
 
         def singular(*a, **k):
             raise np.linalg.LinAlgError("as for a repeated noise-free pair")
 
         monkeypatch.setattr(sel, "cho_factor", singular)
-    for z, by in ((None, None), (defaults.SCORE_DECIDED_Z, None), (None, labels)):
+    dz = defaults.SCORE_DECIDED_Z
+    for z, by in ((None, None), (dz, None), (None, labels), (dz, labels)):
         before, after = sel._j_nested(model, pool, s, sigma2, index, level, first, z, by)
         assert before == pytest.approx(
             sel._j_given(model, pool, s, sigma2, index[:first], level[:first], z, by), rel=1e-10
@@ -382,3 +387,7 @@ def test_j_before_and_after_from_one_conditioning_equal_each_conditioned_alone(
             sel._j_given(model, pool, s, sigma2, index, level, z, by), rel=1e-10
         )
         assert after < before
+        # nothing picked: before is after
+        both = sel._j_nested(model, pool, s, sigma2, index, level, len(index), z, by)
+        assert both[0] == pytest.approx(both[1], rel=1e-12)
+        assert both[1] == pytest.approx(after, rel=1e-12)
