@@ -1245,20 +1245,24 @@ def _variances_given(
     if len(index) == 0:
         return sigma2[rows].copy(), sigma2[rows].copy()
     given = _Given(posterior, X[index], level)
-    before = None
+    # J before from the leading rows of the whitened covariances, unless nothing precedes
+    # the picks or the whitening is not nested (then J before is conditioned on its own;
+    # with nothing picked, W[:first] is all of W either way)
+    from_rows = first > 0 and (given.nested or first == len(index))
     if first == 0:
         before = sigma2[rows].copy()
-    elif not given.nested and first < len(index):  # (all of B: W[:first] is all of W)
+    elif from_rows:
+        before = np.empty(len(rows))
+    else:
         before = _variances_given(posterior, X, sigma2, index[:first], level[:first], rows, 0)[1]
     after = np.empty(len(rows))
-    nested = np.empty(len(rows)) if before is None else before
     for i0 in range(0, len(rows), _PREDICT_BLOCK):
         r = rows[i0 : i0 + _PREDICT_BLOCK]
         W2 = given.w_theta0(X[r]) ** 2
         after[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - W2.sum(axis=0)
-        if before is None:
-            nested[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - W2[:first].sum(axis=0)
-    return np.maximum(nested, 0.0), np.maximum(after, 0.0)
+        if from_rows:
+            before[i0 : i0 + _PREDICT_BLOCK] = sigma2[r] - W2[:first].sum(axis=0)
+    return np.maximum(before, 0.0), np.maximum(after, 0.0)
 
 
 def _j_given(
@@ -1803,7 +1807,7 @@ def select_batch(
     j_before, j_after = _j_nested(
         posterior, X, s, sigma2, after_idx, after_lev, len(p_idx), decided_z, by
     )
-    if not len(p_idx):
+    if not len(p_idx):  # J given nothing: h_n itself, as select has always reported it
         j_before = float(point_variance(s).mean())
     report("j_after", 1, 1)
     timings["j_after"] = time.perf_counter() - t
