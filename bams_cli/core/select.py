@@ -75,6 +75,10 @@ ProgressFn = Callable[[str, int, int], None]
 #: candidate variance in its cluster is determined already (a noise-free repeat of data or of
 #: a pick): it can teach nothing, and C / V would be 0 / 0 in rounding noise.
 V_TINY_REL = 1e-12
+#: Floats of each of the three blocks (rows x pairs, dropped rows x pairs, pairs x
+#: candidates) in which the greedy conditions on the pairs already in the batch (at most 64
+#: pairs a block).
+FORCED_CHUNK_ELEMENTS = 2**22
 #: Bytes of rows x candidates float64 one cluster may hold before ``select_batch`` refuses.
 MAX_CLUSTER_BYTES = 4 * 2**30
 #: Per cluster, the most the posterior may keep of its points' whitened factors
@@ -263,6 +267,16 @@ def _compact_columns(C: FloatArray, keep: IntArray) -> FloatArray:
     return flat[: n_rows * len(keep)].reshape(n_rows, len(keep))
 
 
+def _room(a: FloatArray, k: int) -> FloatArray:
+    """``a`` (of whose rows the first k are in use) with room for row k: the capacity is
+    doubled when full, so appending n rows one at a time copies O(n) rows in all."""
+    if k < len(a):
+        return a
+    out = np.empty((max(2 * len(a), 8), *a.shape[1:]))
+    out[:k] = a[:k]
+    return out
+
+
 # --------------------------------------------------------------------------------------
 # Per-cluster greedy
 # --------------------------------------------------------------------------------------
@@ -445,7 +459,7 @@ def _greedy_cluster(
     )
     columns = np.asarray(candidate_mask, dtype=bool) | forced_mask
     cand_row, cand_level = np.nonzero(columns)  # row-major: by pool index, then level
-    forced = [int(c) for c in np.flatnonzero(forced_mask[cand_row, cand_level])]
+    forced_cols = np.flatnonzero(forced_mask[cand_row, cand_level]).astype(np.int64)
     cand_level = cand_level.astype(np.int64)
     n_c = n_c0 = len(cand_row)
     Xc = np.ascontiguousarray(X[cand_row])
@@ -479,30 +493,42 @@ def _greedy_cluster(
     sS_D = sig2_D.copy()
     tS_D = np.ones(len(D))
     b_D = beta(s_D, tS_D)
-    A_D: list[FloatArray] = []  # C_{k-1}(D, s_k) for each pick k
     XD = X[D]
 
-    G_rows: list[FloatArray] = []  # G_{k-1}(s_k, .) for each pick k
-    V_picks: list[float] = []
-    used: list[float] = []
+    # The rank-1 steps so far, k of them, step j conditioning on pair s_j: rows of G_rows are
+    # G_{j-1}(s_j, .), V_steps the V_{j-1}(s_j), rows of A_D C_{j-1}(D, s_j), and rows of A_K
+    # C_{j-1}(K, s_j) / V_{j-1}(s_j) for the forced pairs, whose steps reach C only when
+    # the picking starts (one matrix product for all of them instead of one pass over C each).
+    k = 0
+    G_rows = np.empty((0, n_c))
+    V_steps = np.empty(0)
+    A_D = np.empty((0, len(D)))
+    A_K = np.empty((0, len(K)))
+    n_forced = 0  # steps of forced pairs, all before the first pick's
     out_idx: list[int] = []
     out_lev: list[int] = []
     out_dj: list[float] = []
     out_cost: list[float] = []
+    used: list[float] = []
     a_vec = np.zeros(len(K))
     g_vec = np.zeros(n_c)
-    pend_a: list[FloatArray] = []  # forced pairs' rank-1 steps not yet applied to C
-    pend_g: list[FloatArray] = []
     acc = np.zeros(n_c)
     n_exact = 0
     arange_c = np.arange(n_c)
+    # Forced pairs come in chunks: each chunk's columns of C(K, .), C(D, .) and G(., all)
+    # are computed and brought up to date with the steps before it in three products; in the
+    # chunk, each pair needs only the steps taken since. (One pair at a time, the work and
+    # the copying grew with the square of a cluster's pending pairs.)
+    chunk = int(np.clip(FORCED_CHUNK_ELEMENTS // max(len(K), len(D), n_c, 1), 1, 64))
+    fi = chunk_start = chunk_end = k0 = 0
+    CKF = CDF = GF = np.empty((0, 0))
     timings["build"] += time.perf_counter() - t0
 
     def dropped_columns(B: IntArray) -> FloatArray:
-        """C_S(D, B): the data-conditioned covariance minus the picks' rank-1 steps."""
+        """C_S(D, B): the data-conditioned covariance minus the steps' rank-1 terms."""
         CD = np.asarray(posterior.cov_theta0_obs(XD, Xc[B], cand_level[B]), dtype=np.float64)
-        if A_D:
-            CD = CD - np.column_stack(A_D) @ (np.vstack(G_rows)[:, B] / np.array(V_picks)[:, None])
+        if k:
+            CD = CD - A_D[:k].T @ (G_rows[:k][:, B] / V_steps[:k, None])
         return CD
 
     def exact_decrease(B: IntArray, invV: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -519,32 +545,43 @@ def _greedy_cluster(
         return dec, CD
 
     while True:
-        if forced:
-            # A pair already in the batch: bring C up to date (the pending rank-1 step, in
-            # place; the screened sums it also computes are not needed) and condition on it.
-            s = forced.pop(0)
+        t3 = time.perf_counter()
+        if fi < len(forced_cols):
+            # A pair already in the batch: condition on it.
+            if fi == chunk_end:  # a new chunk: its columns, up to date with the steps so far
+                chunk_start, chunk_end, k0 = fi, min(fi + chunk, len(forced_cols)), k
+                f_chunk = forced_cols[chunk_start:chunk_end]
+                Gf = G_rows[:k][:, f_chunk]
+                CKF = C[:, f_chunk] - A_K[:k].T @ Gf
+                CDF = dropped_columns(f_chunk) if len(D) else np.zeros((0, len(f_chunk)))
+                GF = np.asarray(
+                    posterior.cov_obs_obs(
+                        Xc[f_chunk], cand_level[f_chunk], Xc, cand_level,
+                        same=arange_c[None, :] == f_chunk[:, None],
+                    ),
+                    dtype=np.float64,
+                ) - (Gf / V_steps[:k, None]).T @ G_rows[:k]  # fmt: skip
+            s, j = int(forced_cols[fi]), fi - chunk_start
+            fi += 1
             if not alive[s]:  # determined already: conditioning on it changes nothing
                 picked[s] = True
                 continue
-            # The rank-1 steps are kept pending (one matrix product for all of them once
-            # the picking starts, instead of one pass over C each); only column s is needed.
-            t3 = time.perf_counter()
-            pend_a.append(a_vec)
-            pend_g.append(g_vec)
-            a_vec = np.zeros(len(K))
-            colK = C[:, s] - np.column_stack(pend_a) @ np.array([gk[s] for gk in pend_g])
-            best_CD = dropped_columns(np.array([s]))[:, 0] if len(D) else np.zeros(0)
+            w = G_rows[k0:k, s] / V_steps[k0:k]
+            colK = CKF[:, j] - A_K[k0:k].T @ G_rows[k0:k, s]
+            best_CD = CDF[:, j] - A_D[k0:k].T @ w if len(D) else np.zeros(0)
+            g = GF[j] - w @ G_rows[k0:k]
+            pair_forced = True
         else:
+            pair_forced = False
             if stop_cost is not None and math.fsum([*spent, *used]) >= stop_cost:
                 break
-            if pend_a:  # the forced pairs' steps, and the last one, in row blocks
+            if n_forced:  # the forced pairs' steps, in row blocks
                 t1 = time.perf_counter()
-                A = np.column_stack([*pend_a, a_vec])
-                Gp = np.vstack([*pend_g, g_vec])
                 for i0 in range(0, len(K), blk):
-                    C[i0 : i0 + blk] -= A[i0 : i0 + blk] @ Gp
-                pend_a, pend_g = [], []
-                a_vec = np.zeros(len(K))
+                    C[i0 : i0 + blk] -= A_K[:n_forced, i0 : i0 + blk].T @ G_rows[:n_forced]
+                n_forced = 0
+                A_K = np.empty((0, len(K)))
+                CKF = CDF = GF = np.empty((0, 0))
                 timings["update"] += time.perf_counter() - t1
             eligible = alive & ~picked & _level_fits([*spent, *used], costs, budget)[cand_level]
             if not eligible.any():
@@ -559,7 +596,7 @@ def _greedy_cluster(
                 C = _compact_columns(C, keep)
                 cand_row, cand_level, Xc, cc = cand_row[keep], cand_level[keep], Xc[keep], cc[keep]
                 V, alive, picked, g_vec = V[keep], alive[keep], picked[keep], g_vec[keep]
-                G_rows = [gk[keep] for gk in G_rows]
+                G_rows = G_rows[:k][:, keep]
                 eligible = eligible[keep]
                 n_c = len(keep)
                 acc = np.zeros(n_c)
@@ -590,9 +627,9 @@ def _greedy_cluster(
                 dec, CD = exact_decrease(B, invV)
                 n_exact += len(B)
                 sc = dec / norm[B]
-                for k, c in enumerate(B):
-                    if sc[k] > best_score or (sc[k] == best_score and c < best):
-                        best, best_score, best_dec, best_CD = int(c), sc[k], dec[k], CD[:, k]
+                for kk, c in enumerate(B):
+                    if sc[kk] > best_score or (sc[kk] == best_score and c < best):
+                        best, best_score, best_dec, best_CD = int(c), sc[kk], dec[kk], CD[:, kk]
                 pos += len(B)
                 nb = min(2 * nb, 64)
             t3 = time.perf_counter()
@@ -604,32 +641,37 @@ def _greedy_cluster(
             out_dj.append(float(best_dec) / n_s)
             out_cost.append(float(cc[s]))
             used.append(float(cc[s]))
-
-        # Conditioning on y_s: one rank-1 step for everything we keep.
-        Vs = V[s]
-        if not pend_a:
             colK = C[:, s].copy()
-        g = np.asarray(
-            posterior.cov_obs_obs(
-                Xc[s : s + 1], cand_level[s : s + 1], Xc, cand_level, same=(arange_c == s)[None, :]
-            ),
-            dtype=np.float64,
-        )[0]
-        for gk, vk in zip(G_rows, V_picks, strict=True):
-            g = g - (gk[s] / vk) * gk  # G_S(s, .) kept conditional on the earlier picks
-        G_rows.append(g)
-        V_picks.append(float(Vs))
+            g = np.asarray(
+                posterior.cov_obs_obs(
+                    Xc[s : s + 1], cand_level[s : s + 1], Xc, cand_level,
+                    same=(arange_c == s)[None, :],
+                ),
+                dtype=np.float64,
+            )[0] - (G_rows[:k, s] / V_steps[:k]) @ G_rows[:k]  # fmt: skip
+
+        # Conditioning on y_s: one rank-1 step for everything we keep. g is G_S(s, .),
+        # conditional on the earlier steps.
+        Vs = V[s]
+        G_rows, V_steps = _room(G_rows, k), _room(V_steps, k)
+        G_rows[k], V_steps[k] = g, Vs
         sS_K = sS_K - colK**2 / Vs
         tS_K = np.clip(sS_K * inv_sig2_K, 0.0, 1.0)
         b_K = beta(s_K, tS_K)
         E = float(err_K.sum() + (len(K) + 2) * 2.0 * _EPS * (b_K + err_K).sum())
         if len(D):
-            A_D.append(best_CD)
+            A_D = _room(A_D, k)
+            A_D[k] = best_CD
             sS_D = sS_D - best_CD**2 / Vs
             tS_D = np.clip(sS_D * inv_sig2_D, 0.0, 1.0)
             b_D = beta(s_D, tS_D)
-        a_vec = colK / Vs
-        g_vec = g
+        if pair_forced:  # its step reaches C when the picking starts
+            A_K = _room(A_K, k)
+            A_K[k] = colK / Vs
+            n_forced = k + 1
+        else:
+            a_vec, g_vec = colK / Vs, g
+        k += 1
         V = V - g**2 / Vs
         picked[s] = True
         alive &= V > v_floor

@@ -681,6 +681,62 @@ def test_greedy_started_from_pending_picks_matches_brute_force(
     assert math.fsum(q.cost.tolist()) <= budget  # pending picks cost this batch nothing
 
 
+@pytest.mark.parametrize("chunk_elements", [1, 7 * 150, 2**22])  # 1, 7 and 64 pairs a block
+@pytest.mark.parametrize("rtol", [1e-4, 0.5])
+def test_greedy_started_from_many_pending_picks_matches_brute_force(
+    monkeypatch, chunk_elements, rtol
+):
+    # An estimate stage leaves hundreds of pending pairs in a cluster: the greedy conditions
+    # on them in blocks (each block brought up to date with the steps before it in one
+    # product, then pair by pair within it). Sixty pairs at both levels, in blocks of 1, 7
+    # (which the pairs do not fill evenly) and all at once, with and without dropped rows.
+    from bams_cli.core import select as sel
+
+    monkeypatch.setattr(sel, "FORCED_CHUNK_ELEMENTS", chunk_elements)
+    prob = make_problem(n_pool=150, n_obs=8, n_levels=2, d=2, seed=7)
+    costs, budget = [1.0, 0.25], 2.0
+    _, cand = _run_greedy(prob, costs, budget)
+    pend = _pending(prob, cand, 60, 7)
+    assert 0 < pend[:, 0].sum() < 60
+    q, _ = _run_greedy(prob, costs, budget, forced_mask=pend, row_drop_rtol=rtol)
+    assert rtol < 0.1 or q.stats["rows_dropped"] > 0
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    p_idx, p_lev = np.nonzero(pend)
+    idx, lev, dj, js = bf.greedy(
+        np.arange(150), cand & ~pend, np.asarray(costs), budget, start=(p_idx, p_lev)
+    )
+    assert len(idx) >= 3
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
+
+
+@pytest.mark.parametrize("chunk_elements", [1, 7 * 240, 2**22])
+def test_a_pending_pair_the_data_determine_is_passed_over(monkeypatch, chunk_elements):
+    # A pending level-0 pair whose segment repeats an observed level-0 point (noise 1e-14):
+    # its variance is below the floor, it is passed over, and the batch is the one the
+    # other pending pairs give, with the pairs after it in its block still in place.
+    from bams_cli.core import select as sel
+
+    monkeypatch.setattr(sel, "FORCED_CHUNK_ELEMENTS", chunk_elements)
+    prob = make_problem(n_pool=120, n_obs=8, n_levels=2, d=2, seed=3, noise0=1e-14)
+    post = prob.posterior
+    obs0 = post.X_obs[post.levels_obs == 0]
+    assert len(obs0)
+    twin = int(np.flatnonzero((prob.X == obs0[0]).all(axis=1))[0])
+    costs, budget = [1.0, 0.25], 2.0
+    _, cand = _run_greedy(prob, costs, budget, exclude_obs0=False)
+    pend = _pending(prob, cand, 20, 3)
+    pend[twin, 0] = False
+    with_twin = pend.copy()
+    with_twin[twin, 0] = True
+    q0, _ = _run_greedy(prob, costs, budget, exclude_obs0=False, forced_mask=pend)
+    q1, _ = _run_greedy(prob, costs, budget, exclude_obs0=False, forced_mask=with_twin)
+    np.testing.assert_array_equal(q1.index, q0.index)
+    np.testing.assert_array_equal(q1.level, q0.level)
+    np.testing.assert_allclose(q1.delta_j, q0.delta_j, rtol=1e-9)
+
+
 def test_select_batch_with_pending_picks_is_the_greedy_started_with_them(pool_problem):
     prob = pool_problem
     N = len(prob.X)
