@@ -759,6 +759,10 @@ class _Given:
         # it again for each of a million-segment pool's blocks.
         self._cov_theta0: Callable[[FloatArray], FloatArray] | None = None
         self._to = getattr(posterior, "cov_theta0_obs_to", None)
+        # Likewise against candidates (an MFGP's ``cov_obs_obs_from``): the screen asks
+        # about every candidate of a cluster, in blocks.
+        self._cov_obs: Callable[[FloatArray, IntArray], FloatArray] | None = None
+        self._from = getattr(posterior, "cov_obs_obs_from", None)
 
     def w_theta0(self, X: FloatArray) -> FloatArray:
         """L^-1 cov_n(y_G, theta0(X)), shape (|G|, len(X))."""
@@ -772,9 +776,15 @@ class _Given:
 
     def w_obs(self, Xc: FloatArray, levels: IntArray) -> FloatArray:
         """L^-1 cov_n(y_G, y_c), shape (|G|, len(Xc)); no c is one of G's observations."""
-        K = self.posterior.cov_obs_obs(
-            self.Xg, self.levels, Xc, levels, same=np.zeros((len(self.Xg), len(Xc)), dtype=bool)
-        )
+        if self._from is not None:  # first call: solve the pairs' data term, or learn it can't
+            self._cov_obs, self._from = self._from(self.Xg, self.levels), None
+        if self._cov_obs is not None:
+            K = self._cov_obs(Xc, levels)
+        else:
+            K = self.posterior.cov_obs_obs(
+                self.Xg, self.levels, Xc, levels,
+                same=np.zeros((len(self.Xg), len(Xc)), dtype=bool),
+            )  # fmt: skip
         return self._whiten(np.asarray(K, dtype=np.float64))
 
 
@@ -881,19 +891,35 @@ def screen_candidates(
     M_r, _ = beta_poly(s_r)
     Xr = np.ascontiguousarray(X[rows_j])
 
+    from_rows = getattr(posterior, "cov_theta0_obs_from", None)
+
+    def rows_cov(r: IntArray) -> Callable[[FloatArray, IntArray], FloatArray]:
+        """(Xc, levels) -> cov_n(theta0(Xr[r]), y_c): the rows' data term solved once
+        where the posterior can (``MFGP.cov_theta0_obs_from``, not localised), since stage
+        1 asks about the same rows for every block of candidates."""
+        Xr_r = np.ascontiguousarray(Xr[r])
+        solved = None if from_rows is None else from_rows(Xr_r)
+        if solved is not None:
+            return solved
+        return lambda Xc, lc: posterior.cov_theta0_obs(Xr_r, Xc, lc)
+
     def decrease(
-        r: IntArray, Xb: FloatArray, lb: IntArray, invV: FloatArray, wb: Any
+        r: IntArray,
+        cov_r: Callable[[FloatArray, IntArray], FloatArray],
+        Xb: FloatArray,
+        lb: IntArray,
+        invV: FloatArray,
+        wb: Any,
     ) -> FloatArray:
-        """Screened sum over rows r (indices into rows_j) of the decrease each of Xb, lb
-        causes, given the pairs (w_r, wb); blocks of ~64 MB of C."""
+        """Screened sum over rows r (indices into rows_j; ``cov_r`` their covariances)
+        of the decrease each of Xb, lb causes, given the pairs (w_r, wb); blocks of ~64 MB
+        of C."""
         out = np.zeros(len(Xb))
         wr = None if w_r is None else np.ascontiguousarray(w_r[:, r])
         cblk = max(1, (8 * 2**20) // max(len(r), 1))
         for j0 in range(0, len(Xb), cblk):
             J = slice(j0, j0 + cblk)
-            Cb = np.ascontiguousarray(
-                posterior.cov_theta0_obs(Xr[r], Xb[J], lb[J]), dtype=np.float64
-            )
+            Cb = np.ascontiguousarray(cov_r(Xb[J], lb[J]), dtype=np.float64)
             if wr is not None and wb is not None:
                 Cb -= wr.T @ wb[:, J]
             acc = np.zeros(Cb.shape[1])
@@ -916,6 +942,7 @@ def screen_candidates(
     # candidate where the model is sure (p_n (1 - p_n) = 0) between unsure rows: at 45,000
     # av_like segments the exact greedy picks such candidates.
     r1 = np.sort(by_b[:SCREEN_ROWS_FIRST])
+    cov_r1 = rows_cov(r1)
     score = np.empty(n_c)
     v_data = np.empty(n_c)  # var_n(y_c) given the data only; stage 2 reads it too
     blk = 8192
@@ -943,7 +970,8 @@ def screen_candidates(
         at_own = b_c[B] - beta(s_c[B], np.clip(t_b, 0.0, 1.0))
         invV = np.zeros(len(B))
         np.divide(1.0, V, out=invV, where=ok)
-        score[B] = (at_own + decrease(r1, Xb, cand_level[B], invV, wc)) / costs[cand_level[B]]
+        near = decrease(r1, cov_r1, Xb, cand_level[B], invV, wc)
+        score[B] = (at_own + near) / costs[cand_level[B]]
     pre = np.lexsort((np.arange(n_c), -score))[:n_pre]  # best first, then lowest index
 
     # Stage 2: the next-step decrease over the SCREEN_ROWS rows, screened like the
@@ -959,7 +987,8 @@ def screen_candidates(
         Vp = Vp - (w_p * w_p).sum(axis=0)
     invV = np.zeros(n_pre)
     np.divide(1.0, Vp, out=invV, where=Vp > floor)
-    first = decrease(np.arange(len(rows_j)), Xp, lp, invV, w_p) / costs[lp]
+    all_r = np.arange(len(rows_j))
+    first = decrease(all_r, rows_cov(all_r), Xp, lp, invV, w_p) / costs[lp]
     top = pre[np.lexsort((pre, -first))[:n_top]]
     others = np.setdiff1d(np.arange(n_c), top)
     chosen = np.concatenate([top, rng.choice(others, size=min(n_rand, len(others)), replace=False)])

@@ -246,6 +246,61 @@ def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs
     )
 
 
+def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
+    """``MFGP.cov_theta0_obs_from`` and ``cov_obs_obs_from``: the rows' data term solved
+    once, then the same covariances as ``cov_theta0_obs`` / ``cov_obs_obs`` for block after
+    block of columns at both levels, and as the definitions computed with a dense solve
+    (scikit-learn's Matern-5/2 as the prior covariances); None for a localised view."""
+    from scipy.linalg import cho_factor, cho_solve
+    from sklearn.gaussian_process.kernels import Matern
+
+    model, pool, _, _ = scored
+    rng = np.random.default_rng(12)
+    rows = pool[rng.choice(M, 60, replace=False)]
+    lev_rows = rng.integers(0, 2, 60)
+    theta0 = model.cov_theta0_obs_from(rows)
+    obs = model.cov_obs_obs_from(rows, lev_rows)
+    assert theta0 is not None and obs is not None
+    hp = model.hyperparameters
+
+    def k_aug(A, la, B, lb):
+        k = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)(A, B)
+        k1 = hp.outputscales[0] * Matern(hp.lengthscales[0], nu=2.5)(A, B)
+        return k + ((la[:, None] == 1) & (lb[None, :] == 1)) * k1
+
+    Xn, ln = model.X_train, model.levels_train
+    K = k_aug(Xn, ln, Xn, ln)
+    K[np.diag_indices_from(K)] += hp.noise[ln] + model.jitter
+    Kf = cho_factor(K)
+    zeros = np.zeros(60, np.int64)
+    for cols in (pool[:500], pool[500:1700]):
+        lev = rng.integers(0, 2, len(cols))
+        none_same = np.zeros((60, len(cols)), dtype=bool)
+        np.testing.assert_allclose(
+            theta0(cols, lev), model.cov_theta0_obs(rows, cols, lev), rtol=0, atol=1e-10
+        )
+        np.testing.assert_allclose(
+            obs(cols, lev),
+            model.cov_obs_obs(rows, lev_rows, cols, lev, same=none_same),
+            rtol=0,
+            atol=1e-10,
+        )
+        want0 = k_aug(rows, zeros, cols, lev) - k_aug(rows, zeros, Xn, ln) @ cho_solve(
+            Kf, k_aug(Xn, ln, cols, lev)
+        )
+        want = k_aug(rows, lev_rows, cols, lev) - k_aug(rows, lev_rows, Xn, ln) @ cho_solve(
+            Kf, k_aug(Xn, ln, cols, lev)
+        )
+        np.testing.assert_allclose(theta0(cols, lev), want0, atol=1e-9)
+        np.testing.assert_allclose(obs(cols, lev), want, atol=1e-9)
+        # the level-1 rows differ from theta0's: the discrepancy's covariance enters
+        assert np.abs(want - want0).max() > 1e-3
+    local = model.localised(pool[:200], 2**30)
+    assert local is not model
+    assert local.cov_theta0_obs_from(rows) is None
+    assert local.cov_obs_obs_from(rows, lev_rows) is None
+
+
 def test_j_given_by_cluster_is_each_cluster_on_its_own_pairs_and_bounds_the_joint_j(scored):
     """``_j_given(labels=)``: every cluster's rows conditioned on that cluster's pairs only
     (brute force: one ``_j_given`` per cluster's pairs, its rows kept), never below the J

@@ -888,6 +888,54 @@ def test_screen_keeps_a_sure_candidate_whose_value_is_in_its_unsure_neighbours()
     assert np.flatnonzero(keep[:, 0]).tolist() == [20, 21, 22]
 
 
+class _Unsolved:
+    """A posterior without the MFGP's solved-once forms (``cov_theta0_obs_from``,
+    ``cov_obs_obs_from``, ``cov_theta0_obs_to``): every covariance asked for afresh."""
+
+    def __init__(self, model):
+        self._m = model
+
+    def __getattr__(self, name):
+        if name in ("cov_theta0_obs_from", "cov_obs_obs_from", "cov_theta0_obs_to"):
+            raise AttributeError(name)
+        return getattr(self._m, name)
+
+
+@pytest.mark.parametrize("name", ["av_like", "gap_sim"])
+def test_screen_given_pairs_keeps_the_same_candidates_with_the_rows_solved_once(name):
+    # The screen given pairs already in the batch, on an MFGP that is not localised: the
+    # rows' and the pairs' data terms solved once (cov_theta0_obs_from, cov_obs_obs_from)
+    # keep the candidates that asking the posterior afresh for every block keeps.
+    from bams_cli.core.select import _Given, screen_candidates
+
+    post, X, observed0, gamma, costs = _problem(name, 3000, 4)
+    mu, sigma2 = post.predict_theta0(X)
+    cand = np.ones((len(X), 2), dtype=bool)
+    cand[observed0, 0] = False
+    rng = np.random.default_rng(4)
+    g_rows = rng.choice(np.flatnonzero(cand[:, 1]), 25, replace=False)
+    g_lev = np.r_[np.zeros(10, np.int64), np.ones(15, np.int64)]
+    cand[g_rows, g_lev] = False
+    given = (X[g_rows], g_lev)
+    kw = dict(gamma=gamma, costs=np.asarray(costs), max_candidates=200, random_share=0.0)
+    keep = screen_candidates(
+        post, X, mu, sigma2, cand, rng=np.random.default_rng(0), given=given, **kw
+    )
+    plain = screen_candidates(
+        _Unsolved(post), X, mu, sigma2, cand, rng=np.random.default_rng(0), given=given, **kw
+    )
+    assert keep.sum() == 200
+    np.testing.assert_array_equal(keep, plain)
+    # and the whitened pair covariances themselves
+    c_row, c_lev = np.nonzero(cand)
+    np.testing.assert_allclose(
+        _Given(post, *given).w_obs(X[c_row], c_lev),
+        _Given(_Unsolved(post), *given).w_obs(X[c_row], c_lev),
+        rtol=0,
+        atol=1e-9,
+    )
+
+
 @pytest.mark.parametrize("name, seed", [("gap_sim", 0), ("gap_sim", 1), ("av_like", 2)])
 def test_screening_again_as_the_greedy_goes_keeps_99_percent_of_the_exact_j_decrease(name, seed):
     # Limits that bite hard (each of 6 clusters keeps 200 of its ~500 rows for J and 60 of

@@ -465,6 +465,48 @@ class MFGP:
         Z = self._solve_data_term(self._obs_factor(B, self._levels(levels, B.shape[0])))
         return lambda X: self._cov_solved(self._centre(X), B, Z)
 
+    def cov_theta0_obs_from(
+        self, X: FloatArray
+    ) -> Callable[[FloatArray, IntArray], FloatArray] | None:
+        """(Xc, levels) -> ``cov_theta0_obs(X, Xc, levels)`` with the rows' data term
+        K^-1 k0(Y_n, x) solved once, for a caller asking about the same few rows against
+        block after block of candidates (``core.select.screen_candidates``): each block
+        then costs n per row and column instead of n^2 per column for the columns'
+        factor. None for a localised view, which caches its own factors."""
+        if self._local is not None:
+            return None
+        A = self._centre(X)
+        Z = self._solve_data_term(self._theta0_factor(A))
+
+        def cov(Xc: FloatArray, levels: IntArray) -> FloatArray:
+            B = self._centre(Xc, "Xc")
+            kb = self._k_aug(self._Xt, self.levels_train, B, self._levels(levels, B.shape[0]))
+            return self._k0_minus(A, B, np.ascontiguousarray(Z.T @ kb))
+
+        return cov
+
+    def cov_obs_obs_from(
+        self, Xa: FloatArray, levels_a: IntArray
+    ) -> Callable[[FloatArray, IntArray], FloatArray] | None:
+        """(Xb, levels_b) -> ``cov_obs_obs(Xa, levels_a, Xb, levels_b)`` for observations b
+        none of which is one of a's (no noise term), with a's data term
+        K^-1 k_aug(Y_n, a) solved once: pairs already in a batch against block after block
+        of candidates (``core.select._Given.w_obs``), n per pair and candidate instead of
+        n^2 per candidate. None for a localised view."""
+        if self._local is not None:
+            return None
+        A = self._centre(Xa, "Xa")
+        la = self._levels(levels_a, A.shape[0], "levels_a")
+        Z = self._solve_data_term(self._obs_factor(A, la))
+
+        def cov(Xb: FloatArray, levels_b: IntArray) -> FloatArray:
+            B = self._centre(Xb, "Xb")
+            lb = self._levels(levels_b, B.shape[0], "levels_b")
+            kb = self._k_aug(self._Xt, self.levels_train, B, lb)
+            return self._k_aug(A, la, B, lb) - Z.T @ kb
+
+        return cov
+
     def _solve_data_term(self, W: FloatArray) -> FloatArray:
         """K^-1 k_aug(Y_n, c) = L^-T W from the columns' factor W = L^-1 k_aug(Y_n, c)."""
         return solve_triangular(
