@@ -205,21 +205,10 @@ def test_select_past_local_obs_runs_each_cluster_on_its_nearest_observations(sco
     assert drop["whole"] > 0 and drop["local"] >= 0.95 * drop["whole"], drop
 
 
-def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs(scored):
-    """``MFGP.cov_theta0_obs_to``: the same covariances, block after block, as
-    ``cov_theta0_obs`` (its many-rows path, to the bit), and as the definition
-    k0(x, x_c) - k(x, X_n) K^-1 k_aug(Y_n, c) computed with a dense solve."""
-    from scipy.linalg import cho_factor, cho_solve
-
-    model, pool, _, _ = scored
-    rng = np.random.default_rng(11)
-    cols = pool[rng.choice(M, 40, replace=False)]
-    lev = rng.integers(0, 2, 40)
-    cov = model.cov_theta0_obs_to(cols, lev)
-    assert cov is not None
-    for block in (pool[:900], pool[900:2000]):
-        np.testing.assert_array_equal(cov(block), model.cov_theta0_obs(block, cols, lev))
-    # the definition, densely, with scikit-learn's Matern-5/2 as the prior covariances
+def _dense_reference(model):
+    """The model's prior k_aug, written with scikit-learn's Matern-5/2, and the Cholesky
+    factor of its observations' covariance (noise and jitter on the diagonal)."""
+    from scipy.linalg import cho_factor
     from sklearn.gaussian_process.kernels import Matern
 
     hp = model.hyperparameters
@@ -232,9 +221,29 @@ def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs
     Xn, ln = model.X_train, model.levels_train
     K = k_aug(Xn, ln, Xn, ln)
     K[np.diag_indices_from(K)] += hp.noise[ln] + model.jitter
+    return k_aug, cho_factor(K)
+
+
+def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs(scored):
+    """``MFGP.cov_theta0_obs_to``: the same covariances, block after block, as
+    ``cov_theta0_obs`` (its many-rows path, to the bit), and as the definition
+    k0(x, x_c) - k(x, X_n) K^-1 k_aug(Y_n, c) computed with a dense solve."""
+    from scipy.linalg import cho_solve
+
+    model, pool, _, _ = scored
+    rng = np.random.default_rng(11)
+    cols = pool[rng.choice(M, 40, replace=False)]
+    lev = rng.integers(0, 2, 40)
+    cov = model.cov_theta0_obs_to(cols, lev)
+    assert cov is not None
+    for block in (pool[:900], pool[900:2000]):
+        np.testing.assert_array_equal(cov(block), model.cov_theta0_obs(block, cols, lev))
+    # the definition, densely, with scikit-learn's Matern-5/2 as the prior covariances
+    k_aug, Kf = _dense_reference(model)
+    Xn, ln = model.X_train, model.levels_train
     x = pool[:300]
-    k0 = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)
-    want = k0(x, cols) - k0(x, Xn) @ cho_solve(cho_factor(K), k_aug(Xn, ln, cols, lev))
+    z = np.zeros(len(x), np.int64)
+    want = k_aug(x, z, cols, lev) - k_aug(x, z, Xn, ln) @ cho_solve(Kf, k_aug(Xn, ln, cols, lev))
     np.testing.assert_allclose(cov(x), want, atol=1e-9)
     # more columns than observations: still solved once, the same covariances
     many, lev_many = pool[: N_OBS + 50], np.zeros(N_OBS + 50, np.int64)
@@ -251,8 +260,7 @@ def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
     once, then the same covariances as ``cov_theta0_obs`` / ``cov_obs_obs`` for block after
     block of columns at both levels, and as the definitions computed with a dense solve
     (scikit-learn's Matern-5/2 as the prior covariances); None for a localised view."""
-    from scipy.linalg import cho_factor, cho_solve
-    from sklearn.gaussian_process.kernels import Matern
+    from scipy.linalg import cho_solve
 
     model, pool, _, _ = scored
     rng = np.random.default_rng(12)
@@ -261,17 +269,8 @@ def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
     theta0 = model.cov_theta0_obs_from(rows)
     obs = model.cov_obs_obs_from(rows, lev_rows)
     assert theta0 is not None and obs is not None
-    hp = model.hyperparameters
-
-    def k_aug(A, la, B, lb):
-        k = hp.outputscale0 * Matern(hp.lengthscales0, nu=2.5)(A, B)
-        k1 = hp.outputscales[0] * Matern(hp.lengthscales[0], nu=2.5)(A, B)
-        return k + ((la[:, None] == 1) & (lb[None, :] == 1)) * k1
-
+    k_aug, Kf = _dense_reference(model)
     Xn, ln = model.X_train, model.levels_train
-    K = k_aug(Xn, ln, Xn, ln)
-    K[np.diag_indices_from(K)] += hp.noise[ln] + model.jitter
-    Kf = cho_factor(K)
     zeros = np.zeros(60, np.int64)
     for cols in (pool[:500], pool[500:1700]):
         lev = rng.integers(0, 2, len(cols))
