@@ -198,10 +198,19 @@ def _j_variants(a, model, pool, s, sigma2, idx, lev, z) -> None:  # type: ignore
 
 def _select(model, pool, gamma, pend, mu, sigma2, how) -> None:  # type: ignore[no-untyped-def]
     t = time.perf_counter()
+    shown: dict[str, int] = {}
+
+    def progress(phase: str, done: int, total: int) -> None:
+        """Each phase's start and end, and every tenth of the greedies, with the time."""
+        step = max(1, total // 10) if phase == "greedy" else total
+        if done in (0, total) or done // step > shown.get(phase, -1):
+            shown[phase] = done // step
+            print(f"  {time.perf_counter() - t:7.1f} s  {phase} {done}/{total}", flush=True)
+
     r = select_batch(
         model, pool, gamma=gamma, costs=[1.0, 0.1], budget=10.0, pending_pairs=pend,
         rng=np.random.default_rng(1), max_work=defaults.SCORE_MAX_WORK,
-        moments=(mu, sigma2, how),
+        moments=(mu, sigma2, how), progress=progress,
     )  # fmt: skip
     print(
         f"select_batch (greedies inline, one process): {time.perf_counter() - t:.1f} s, "
