@@ -711,6 +711,34 @@ def test_greedy_started_from_many_pending_picks_matches_brute_force(
     np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
 
 
+@pytest.mark.parametrize("chunk_elements", [1, 5 * 240, 2**22])
+def test_pending_picks_at_repeated_segments_are_separate_observations(monkeypatch, chunk_elements):
+    # A pool with 20 repeated segments, both copies of each pending at level 1: two runs of
+    # the same segment are two observations, each with its own noise (the noise goes on a
+    # pair's own entry, not on every pair at the same coordinates).
+    from bams_cli.core import select as sel
+
+    monkeypatch.setattr(sel, "FORCED_CHUNK_ELEMENTS", chunk_elements)
+    prob = make_problem(n_pool=120, n_obs=8, n_levels=2, d=2, seed=5, duplicates=20)
+    costs, budget = [1.0, 0.25], 2.0
+    _, cand = _run_greedy(prob, costs, budget)
+    X = prob.X
+    twins = [(i, j) for i in range(100) for j in range(100, 120) if np.array_equal(X[i], X[j])]
+    assert len(twins) == 20
+    pend = np.zeros_like(cand)
+    for i, j in twins[:12]:
+        pend[[i, j], 1] = True
+    q, _ = _run_greedy(prob, costs, budget, forced_mask=pend, row_drop_rtol=1e-4)
+    bf = BruteForce(prob.posterior, prob.X, prob.gamma)
+    p_idx, p_lev = np.nonzero(pend)
+    idx, lev, dj, _ = bf.greedy(
+        np.arange(120), cand & ~pend, np.asarray(costs), budget, start=(p_idx, p_lev)
+    )
+    np.testing.assert_array_equal(q.index, idx)
+    np.testing.assert_array_equal(q.level, lev)
+    np.testing.assert_allclose(q.delta_j, dj, rtol=1e-8, atol=1e-15)
+
+
 @pytest.mark.parametrize("chunk_elements", [1, 7 * 240, 2**22])
 def test_a_pending_pair_the_data_determine_is_passed_over(monkeypatch, chunk_elements):
     # A pending level-0 pair whose segment repeats an observed level-0 point (noise 1e-14):
@@ -918,9 +946,21 @@ def test_screen_given_pairs_keeps_the_same_candidates_with_the_rows_solved_once(
     cand[g_rows, g_lev] = False
     given = (X[g_rows], g_lev)
     kw = dict(gamma=gamma, costs=np.asarray(costs), max_candidates=200, random_share=0.0)
+    calls = {"cov_theta0_obs": 0, "cov_obs_obs": 0}
+
+    class Counted(_Unsolved):
+        """The MFGP itself, its solved-once forms included, counting the per-block calls."""
+
+        def __getattr__(self, name):
+            if name in calls:
+                calls[name] += 1
+            return getattr(self._m, name)
+
     keep = screen_candidates(
-        post, X, mu, sigma2, cand, rng=np.random.default_rng(0), given=given, **kw
+        Counted(post), X, mu, sigma2, cand, rng=np.random.default_rng(0), given=given, **kw
     )
+    # the pairs' own covariance once (_Given); no block asked afresh
+    assert calls == {"cov_theta0_obs": 0, "cov_obs_obs": 1}
     plain = screen_candidates(
         _Unsolved(post), X, mu, sigma2, cand, rng=np.random.default_rng(0), given=given, **kw
     )
