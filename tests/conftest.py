@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import random
+import signal
 from collections.abc import Collection
 from pathlib import Path
 
@@ -85,6 +86,15 @@ def process_gone(pid: int) -> bool:
             return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
     except FileNotFoundError:
         return True
+
+
+def default_signals() -> None:
+    """``preexec_fn`` for a child a test stops by a signal: SIGINT, SIGTERM and SIGHUP at
+    their defaults. The tool leaves an inherited SIG_IGN alone (``nohup`` means it), so a
+    test suite run under ``nohup``, or as a background job of a shell (SIGINT ignored),
+    would otherwise see the signal ignored and the command finish."""
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
 
 
 def tree_hash(root: Path) -> dict[str, str]:

@@ -402,7 +402,7 @@ app(sys.argv[2:])
 def test_sigterm_and_sighup_end_a_command_as_ctrl_c_does(toy_ws, runner, signum):
     # Python's default ended the process on the spot: no line said, exit -15, and the
     # workspace lock left for the next command to take over with a note.
-    from tests.conftest import tree_hash
+    from tests.conftest import default_signals, tree_hash
 
     before = tree_hash(toy_ws)
     args = ["select", "-w", str(toy_ws), "--strategy", "random", "--budget", "2"]
@@ -410,6 +410,7 @@ def test_sigterm_and_sighup_end_a_command_as_ctrl_c_does(toy_ws, runner, signum)
         [sys.executable, "-c", TERMINATED_SELECT, str(signum), *args],
         capture_output=True,
         text=True,
+        preexec_fn=default_signals,
     )
     name = {15: "SIGTERM", 1: "SIGHUP"}[signum]
     assert proc.returncode == 128 + signum, proc.stderr

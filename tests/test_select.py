@@ -12,7 +12,7 @@ import pytest
 
 from bams_cli import defaults
 from bams_cli.state.workspace import Workspace
-from tests.conftest import STAGED_PLAN, invoke, ok, tree_hash, write_batch
+from tests.conftest import STAGED_PLAN, default_signals, invoke, ok, tree_hash, write_batch
 
 
 @pytest.fixture
@@ -607,6 +607,7 @@ def test_a_pooled_select_stopped_by_a_signal_ends_in_one_line_at_once(lead_ws, s
     proc = subprocess.run(
         [sys.executable, "-c", STOPPED_POOLED_SELECT, str(signum), to, *args],
         capture_output=True, text=True, timeout=50, start_new_session=True,
+        preexec_fn=default_signals,
     )  # fmt: skip
     assert time.monotonic() - start < 45  # not the workers' 60 s
     assert proc.returncode == 128 + signum, proc.stderr
