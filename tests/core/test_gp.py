@@ -236,9 +236,9 @@ def test_a_localised_posterior_answers_as_the_dense_reference(n_levels, monkeypa
         if _ == 0:
             first = sum(solved)
     # Second round: only the points outside the set were solved again, 2 + 2 columns per
-    # query that holds them (cov_theta0_obs: 2 + 2, cov_theta0: 2 + 2, cov_obs_obs: 2 + 2,
-    # obs_var: 2, own_point: 2 + 2).
-    assert sum(solved) - first == 18
+    # query that holds them (cov_theta0_obs: 2 + 2, cov_theta0: 2 + 2, cov_obs_obs: 2, the
+    # pairs against themselves from one factor, obs_var: 2, own_point: 2 + 2).
+    assert sum(solved) - first == 16
     # First round: at most once per (point, level) of the set, plus the outside points.
     n_set_pairs = len(
         {(tuple(x), 0) for x in Xp[:4]}

@@ -300,6 +300,31 @@ def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
     assert local.cov_obs_obs_from(rows, lev_rows) is None
 
 
+def test_a_set_of_pairs_against_itself_is_its_covariance_from_one_factor(scored):
+    """``cov_obs_obs(A, A)`` (one factor, reused) is the covariance the two-factor path
+    gives for the same pairs in another column order, and the dense definition (noise
+    on the diagonal, repeated points at both levels)."""
+    from scipy.linalg import cho_solve
+
+    model, pool, _, _ = scored
+    rng = np.random.default_rng(13)
+    A = np.vstack([pool[rng.choice(M, 70, replace=False)], pool[:5]])
+    la = np.r_[rng.integers(0, 2, 70), np.ones(5, np.int64)]
+    A = np.vstack([A, pool[:5]])  # the same 5 points again, at level 0
+    la = np.r_[la, np.zeros(5, np.int64)]
+    same = np.eye(len(A), dtype=bool)
+    S = model.cov_obs_obs(A, la, A, la, same=same)
+    r = rng.permutation(len(A))
+    np.testing.assert_allclose(
+        S[:, r], model.cov_obs_obs(A, la, A[r], la[r], same=same[:, r]), rtol=0, atol=1e-12
+    )
+    k_aug, Kf = _dense_reference(model)
+    Xn, ln = model.X_train, model.levels_train
+    want = k_aug(A, la, A, la) - k_aug(A, la, Xn, ln) @ cho_solve(Kf, k_aug(Xn, ln, A, la))
+    want[np.diag_indices_from(want)] += model.hyperparameters.noise[la]
+    np.testing.assert_allclose(S, want, atol=1e-9)
+
+
 def test_j_given_by_cluster_is_each_cluster_on_its_own_pairs_and_bounds_the_joint_j(scored):
     """``_j_given(labels=)``: every cluster's rows conditioned on that cluster's pairs only
     (brute force: one ``_j_given`` per cluster's pairs, its rows kept), never below the J

@@ -596,7 +596,13 @@ class MFGP:
                 raise ValueError(
                     f"same must have shape ({A.shape[0]}, {B.shape[0]}), got {same.shape}"
                 )
-        G = self._k_aug(A, la, B, lb) - self._obs_factor(A, la).T @ self._obs_factor_reused(B, lb)
+        Wa = self._obs_factor(A, la)
+        if A.shape == B.shape and np.array_equal(A, B) and np.array_equal(la, lb):
+            # A set against itself (``core.select._Given``: the pending pairs' covariance,
+            # once per cluster in J before and after): one factor, not the same one twice.
+            G = self._k_aug(A, la, A, la) - Wa.T @ Wa
+        else:
+            G = self._k_aug(A, la, B, lb) - Wa.T @ self._obs_factor_reused(B, lb)
         ia, ib = np.nonzero(same)
         G[ia, ib] += self.hyperparameters.noise[la[ia]]
         return G
