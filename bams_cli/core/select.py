@@ -891,14 +891,15 @@ def screen_candidates(
     M_r, _ = beta_poly(s_r)
     Xr = np.ascontiguousarray(X[rows_j])
 
-    from_rows = getattr(posterior, "cov_theta0_obs_from", None)
+    solve_rows = getattr(posterior, "cov_obs_obs_from", None)
 
     def rows_cov(r: IntArray) -> Callable[[FloatArray, IntArray], FloatArray]:
         """(Xc, levels) -> cov_n(theta0(Xr[r]), y_c): the rows' data term solved once
-        where the posterior can (``MFGP.cov_theta0_obs_from``, not localised), since stage
-        1 asks about the same rows for every block of candidates."""
+        where the posterior can (``MFGP.cov_obs_obs_from`` at level 0, not localised),
+        since stage 1 asks about the same rows for every block of candidates."""
         Xr_r = np.ascontiguousarray(Xr[r])
-        solved = None if from_rows is None else from_rows(Xr_r)
+        level0 = np.zeros(len(r), dtype=np.int64)
+        solved = None if solve_rows is None else solve_rows(Xr_r, level0)
         if solved is not None:
             return solved
         return lambda Xc, lc: posterior.cov_theta0_obs(Xr_r, Xc, lc)

@@ -256,7 +256,7 @@ def test_cov_theta0_obs_to_solves_the_columns_once_and_answers_as_cov_theta0_obs
 
 
 def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
-    """``MFGP.cov_theta0_obs_from`` and ``cov_obs_obs_from``: the rows' data term solved
+    """``MFGP.cov_obs_obs_from``, at level 0 the rows' cov_n(theta0, y): the data term solved
     once, then the same covariances as ``cov_theta0_obs`` / ``cov_obs_obs`` for block after
     block of columns at both levels, and as the definitions computed with a dense solve
     (scikit-learn's Matern-5/2 as the prior covariances); None for a localised view."""
@@ -266,7 +266,7 @@ def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
     rng = np.random.default_rng(12)
     rows = pool[rng.choice(M, 60, replace=False)]
     lev_rows = rng.integers(0, 2, 60)
-    theta0 = model.cov_theta0_obs_from(rows)
+    theta0 = model.cov_obs_obs_from(rows, np.zeros(60, np.int64))
     obs = model.cov_obs_obs_from(rows, lev_rows)
     assert theta0 is not None and obs is not None
     k_aug, Kf = _dense_reference(model)
@@ -296,7 +296,6 @@ def test_solved_rows_answer_as_cov_theta0_obs_and_cov_obs_obs(scored):
         assert np.abs(want - want0).max() > 1e-3
     local = model.localised(pool[:200], 2**30)
     assert local is not model
-    assert local.cov_theta0_obs_from(rows) is None
     assert local.cov_obs_obs_from(rows, lev_rows) is None
 
 

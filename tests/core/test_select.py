@@ -916,14 +916,14 @@ def test_screen_keeps_a_sure_candidate_whose_value_is_in_its_unsure_neighbours()
 
 
 class _Unsolved:
-    """A posterior without the MFGP's solved-once forms (``cov_theta0_obs_from``,
-    ``cov_obs_obs_from``, ``cov_theta0_obs_to``): every covariance asked for afresh."""
+    """A posterior without the MFGP's solved-once forms (``cov_obs_obs_from``,
+    ``cov_theta0_obs_to``): every covariance asked for afresh."""
 
     def __init__(self, model):
         self._m = model
 
     def __getattr__(self, name):
-        if name in ("cov_theta0_obs_from", "cov_obs_obs_from", "cov_theta0_obs_to"):
+        if name in ("cov_obs_obs_from", "cov_theta0_obs_to"):
             raise AttributeError(name)
         return getattr(self._m, name)
 
@@ -931,7 +931,7 @@ class _Unsolved:
 @pytest.mark.parametrize("name", ["av_like", "gap_sim"])
 def test_screen_given_pairs_keeps_the_same_candidates_with_the_rows_solved_once(name):
     # The screen given pairs already in the batch, on an MFGP that is not localised: the
-    # rows' and the pairs' data terms solved once (cov_theta0_obs_from, cov_obs_obs_from)
+    # rows' and the pairs' data terms solved once (cov_obs_obs_from)
     # keep the candidates that asking the posterior afresh for every block keeps.
     from bams_cli.core.select import _Given, screen_candidates
 

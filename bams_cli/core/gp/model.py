@@ -465,26 +465,6 @@ class MFGP:
         Z = self._solve_data_term(self._obs_factor(B, self._levels(levels, B.shape[0])))
         return lambda X: self._cov_solved(self._centre(X), B, Z)
 
-    def cov_theta0_obs_from(
-        self, X: FloatArray
-    ) -> Callable[[FloatArray, IntArray], FloatArray] | None:
-        """(Xc, levels) -> ``cov_theta0_obs(X, Xc, levels)`` with the rows' data term
-        K^-1 k0(Y_n, x) solved once, for a caller asking about the same few rows against
-        block after block of candidates (``core.select.screen_candidates``): each block
-        then costs n per row and column instead of n^2 per column for the columns'
-        factor. None for a localised view, which caches its own factors."""
-        if self._local is not None:
-            return None
-        A = self._centre(X)
-        Z = self._solve_data_term(self._theta0_factor(A))
-
-        def cov(Xc: FloatArray, levels: IntArray) -> FloatArray:
-            B = self._centre(Xc, "Xc")
-            kb = self._k_aug(self._Xt, self.levels_train, B, self._levels(levels, B.shape[0]))
-            return self._k0_minus(A, B, np.ascontiguousarray(Z.T @ kb))
-
-        return cov
-
     def cov_obs_obs_from(
         self, Xa: FloatArray, levels_a: IntArray
     ) -> Callable[[FloatArray, IntArray], FloatArray] | None:
@@ -492,7 +472,8 @@ class MFGP:
         none of which is one of a's (no noise term), with a's data term
         K^-1 k_aug(Y_n, a) solved once: pairs already in a batch against block after block
         of candidates (``core.select._Given.w_obs``), n per pair and candidate instead of
-        n^2 per candidate. None for a localised view."""
+        n^2 per candidate. At level 0 these are cov_n(theta0(x_a), y_b) (theta0 is
+        noise-free): the candidate screen's rows. None for a localised view."""
         if self._local is not None:
             return None
         A = self._centre(Xa, "Xa")
