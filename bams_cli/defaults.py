@@ -229,6 +229,18 @@ RISK_MIX_PRIOR = (0.5, 1.0)
 #: problem whose cheap level is blind to one failure mode) went from 0.26 to 0.36.
 RISK_MIX_PRIOR_WEAK_CHEAP = (1.0, 0.5)
 
+#: The prior on lam of a screen's level-0 confirmation (pi2 over S1,
+#: ``core.design.confirm_prior``) where the fitted cheap level tracks level 0 (its
+#: discrepancy sd under SCREEN_HINT_DISCREPANCY of the level-0 signal's, which is where
+#: ``--screen auto`` screens): Beta(0.1, 10), mean 0.01, trusting the refitted p_n almost
+#: wholly. After the screen every segment of S1 has its own cheap run, so p_n there is
+#: close to a measurement, not a prediction from distant level-0 runs; a failure the
+#: refit misses is one its cheap level misses too. The screen's pi1 and the interval's
+#: allowance keep the study's prior (RISK_MIX_PRIOR). Where the cheap level does not track
+#: level 0 (an explicit --screen), the confirmation keeps RISK_MIX_PRIOR_WEAK_CHEAP.
+#: Chosen against Beta(0.5, 1) and Beta(0.25, 4) (docs/suite/screen_confirm_prior.md).
+RISK_MIX_PRIOR_CONFIRM = (0.1, 10.0)
+
 #: Posterior quantile of lam at which the interval's allowance for an unseen failure is
 #: computed: the least trust in p_n that the earlier stages cannot rule out.
 RISK_MIX_UPPER = 0.9

@@ -430,6 +430,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "screened": COUNT,
                         "cheap_runs": COUNT,
                         "level0_budget": NUM,
+                        # Beta(a, b) on lam that planned pi2, as the screen recorded it
+                        "confirm_prior": array(NUM),
                         "seed": nullable(INT),
                     }
                 )
@@ -455,6 +457,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "cheap_runs": COUNT,
                 "cheap_in_log": COUNT,
                 "cheap_abandoned": COUNT,
+                # Beta(a, b) priors on lam: pi1's, and the confirmation's pi2's
+                "risk_prior": array(NUM),
+                "confirm_prior": array(NUM),
                 "level0_left": NUM,
                 "known_stratum": COUNT,
                 "seed": INT,

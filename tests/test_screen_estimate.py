@@ -9,6 +9,7 @@ estimate is the two-phase Horvitz-Thompson sum computed by hand from the files a
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -16,9 +17,10 @@ import polars as pl
 import pyarrow.parquet as pq
 import pytest
 
-from bams_cli import schemas_json
+from bams_cli import defaults, schemas_json
 from bams_cli.core import design as dz
 from bams_cli.core import screen as sc
+from bams_cli.pipeline import screening
 from bams_cli.state.io import read_metadata_json
 from bams_cli.state.schemas import SEGMENT_ID as SID
 from bams_cli.state.workspace import Workspace
@@ -75,6 +77,7 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     ws, truth = _copy(fitted, tmp_path)
     runner = CliRunner()
     cheap_before = pl.read_parquet(ws / "observations.parquet").filter(pl.col("fidelity") == 1)
+    model_at_screen = json.loads((ws / "model.json").read_text())
     scr = strict_json(
         ok(
             runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K, "--json"
@@ -129,7 +132,15 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     p_col = [c for c in scores.columns if c.startswith("p_")][-1]  # the largest gamma's
     s1p = s1.join(scores.select(SID, p_col), on=SID, how="left")
     K2 = min(sc.confirm_budget(K, 0.1, scr["cheap_runs"]), float(s1.height))
-    pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=dz.risk_posterior([])).pi
+    # Under the prior the screen recorded for it, from the model the screen was drawn on:
+    # this toy's cheap level tracks level 0, so near-full trust in the refitted p_n.
+    ratio = screening.cheap_level_discrepancy(model_at_screen)
+    assert ratio is not None and ratio < defaults.SCREEN_HINT_DISCREPANCY
+    assert smeta["confirm_prior"] == list(defaults.RISK_MIX_PRIOR_CONFIRM)
+    assert smeta["risk_prior"] == list(defaults.RISK_MIX_PRIOR)
+    assert plan["screen"]["confirm_prior"] == smeta["confirm_prior"]
+    post2 = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR_CONFIRM)
+    pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=post2).pi
     assert plan["samples_K"] == pytest.approx(K2)
     pi_by_id = dict(zip(s1[SID].to_list(), (s1["pi1"].to_numpy() * pi2).tolist(), strict=True))
     planned = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
@@ -498,7 +509,9 @@ def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
     ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K)
     screen = pl.read_parquet(ws / "estimates" / "screen-0001.parquet")
     smeta = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
-    assert smeta["risk_prior"] == list(weak)
+    # An explicit screen where the cheap level does not track: its confirmation is planned
+    # as its pi1 was, not at the near-full trust of a tracking cheap level.
+    assert smeta["risk_prior"] == smeta["confirm_prior"] == list(weak)
     scores = pl.read_parquet(ws / "scores.parquet")
     unknown = screen.filter(pl.col("stratum") == "unknown").join(
         scores.select(SID, "p_1"), on=SID, how="left"
@@ -516,6 +529,14 @@ def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
     monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.1)
     plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
     assert plan["weighting"] == "screen" and plan["model_check"]["prior"] == list(weak)
+    assert plan["screen"]["confirm_prior"] == list(weak)
+    # A screen written before the confirmation had a prior of its own: pi1's plans pi2.
+    settings = Workspace(ws).require_initialised()
+    for recorded, expected in (
+        ({"risk_prior": list(weak)}, weak),
+        ({"risk_prior": list(weak), "confirm_prior": [0.1, 10.0]}, (0.1, 10.0)),
+    ):
+        assert screening.recorded_confirm_prior({}, settings, recorded) == expected
     # Stage 2 of a staged series keeps stage 1's prior.
     ws2, truth = _copy(fitted, tmp_path / "staged")
     monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)

@@ -332,6 +332,19 @@ def risk_prior(cheap_discrepancy: float | None) -> tuple[float, float]:
     return defaults.RISK_MIX_PRIOR_WEAK_CHEAP
 
 
+def confirm_prior(cheap_discrepancy: float | None) -> tuple[float, float]:
+    """The Beta prior on lam of a screen's level-0 confirmation (pi2 over S1).
+
+    Where the cheap level tracks level 0 (``cheap_discrepancy`` under
+    ``defaults.SCREEN_HINT_DISCREPANCY``) the refitted p_n over S1 rests on each segment's
+    own cheap run and is trusted almost wholly (``defaults.RISK_MIX_PRIOR_CONFIRM``);
+    elsewhere the confirmation is planned as the screen was (``risk_prior``).
+    """
+    if cheap_discrepancy is not None and cheap_discrepancy < defaults.SCREEN_HINT_DISCREPANCY:
+        return defaults.RISK_MIX_PRIOR_CONFIRM
+    return risk_prior(cheap_discrepancy)
+
+
 #: The grid over z = log(c / mean_U p_n) of the anchored posterior (``risk_posterior``).
 _Z_GRID = np.linspace(-6.0, 6.0, 97)
 

@@ -903,6 +903,7 @@ def screen_trials(
     known: ArrayLike | None = None,
     cheap_known: ArrayLike | None = None,
     prior: tuple[float, float] | None = None,
+    confirm_prior: tuple[float, float] | None = None,
     n_trials: int,
     rng: np.random.Generator,
 ) -> ScreenTrials:
@@ -934,9 +935,11 @@ def screen_trials(
         Segments with a cheap result already: the screen does not run them again, and
         they cost nothing.
     prior : (float, float), optional
-        Beta prior on lam of both phases' designs; default ``defaults.RISK_MIX_PRIOR``
-        (``estimate --plan`` takes ``core.design.risk_prior`` of each phase's fit; the
-        confirmation here keeps the screen's).
+        Beta prior on lam of the screen's pi1; default ``defaults.RISK_MIX_PRIOR``
+        (``estimate --plan`` takes ``core.design.risk_prior`` of the screen's fit).
+    confirm_prior : (float, float), optional
+        Beta prior on lam of the confirmation's pi2; default ``prior`` (``estimate --plan``
+        takes ``core.design.confirm_prior`` of the screen's fit and keeps it).
     n_trials : int
     rng : numpy.random.Generator
 
@@ -962,6 +965,7 @@ def screen_trials(
     in_hand = float((fail & kn).sum())  # the known stratum's failures, found whatever S1
     # A new study: no earlier estimate to mix in.
     posterior = risk_posterior([], prior=defaults.RISK_MIX_PRIOR if prior is None else prior)
+    confirm = posterior if confirm_prior is None else risk_posterior([], prior=confirm_prior)
     pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior).pi
     recall = np.empty(n_trials)
     screened = np.empty(n_trials, np.int64)
@@ -976,7 +980,7 @@ def screen_trials(
         p2 = np.asarray(refit(U[s1]), dtype=np.float64)
         runs = int((~have[U[s1]]).sum())
         K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=posterior).pi
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm).pi
         recall[t] = (in_hand + float(pi2[fU[s1]].sum())) / F
         v2[t] = sc.phase2_variance(fU[s1], pi1[s1], pi2)
     N2 = float(n) ** 2

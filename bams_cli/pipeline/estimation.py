@@ -320,6 +320,7 @@ def estimate_plan(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
             share=share,
             posterior=dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings)),
+            confirm_prior=screening.confirm_prior(model, settings),
             rng=np.random.default_rng(stream),
             meta={"seed": stream[0], "seed_source": seed_source, "rng_stream": stream,
                   "plan_gamma": settings.gammas[g_plan],
@@ -679,13 +680,17 @@ def _confirm_screen(
     else:
         stream, seed_source = [settings.seed, 10_000 + number], "study settings"
     evidence, evidence_plans = stages_mod.mix_evidence(ws, settings.gammas[g_plan])
-    # The screen's prior, whatever the refit on its cheap runs says of the cheap level.
+    # The screen's priors, whatever the refit on its cheap runs says of the cheap level.
     post = dz.risk_posterior(
         evidence, prior=screening.risk_prior(model, settings, smeta.get("risk_prior"))
     )
+    post_confirm = dz.risk_posterior(
+        evidence, prior=screening.recorded_confirm_prior(model, settings, smeta)
+    )
     c = screening.confirm_screen(
         ws, settings, number=number, ids=ids, p_all=p_all, g_plan=g_plan, known_now=known,
-        samples=samples, posterior=post, rng=np.random.default_rng(stream),
+        samples=samples, posterior=post, confirm_posterior=post_confirm,
+        rng=np.random.default_rng(stream),
     )  # fmt: skip
     p = p_all[:, g_plan]
     K2 = float(c["K2"])

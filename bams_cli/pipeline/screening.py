@@ -109,7 +109,31 @@ def risk_prior(
             return (a, b)
     except (TypeError, ValueError):
         pass
-    return prior_for(cheap_level_discrepancy(model) if settings.n_levels > 1 else None)
+    return prior_for(_study_discrepancy(model, settings))
+
+
+def confirm_prior(model: dict[str, Any], settings: Settings) -> tuple[float, float]:
+    """The prior on lam a screen drawn on this model records for its confirmation
+    (``core.design.confirm_prior``: near-full trust in the refitted p_n where the fitted
+    cheap level tracks level 0)."""
+    from bams_cli.core.design import confirm_prior as prior_for
+
+    return prior_for(_study_discrepancy(model, settings))
+
+
+def recorded_confirm_prior(
+    model: dict[str, Any], settings: Settings, screen_meta: dict[str, Any]
+) -> tuple[float, float]:
+    """The prior a screen's confirmation plans pi2 under: the one the screen recorded; a
+    screen written before the confirmation had one of its own planned it as pi1."""
+    return risk_prior(
+        model, settings, screen_meta.get("confirm_prior", screen_meta.get("risk_prior"))
+    )
+
+
+def _study_discrepancy(model: dict[str, Any], settings: Settings) -> float | None:
+    """``cheap_level_discrepancy`` of a study with a cheap level; None without one."""
+    return cheap_level_discrepancy(model) if settings.n_levels > 1 else None
 
 
 def screen_hint(model: dict[str, Any], root: Path) -> str | None:
@@ -138,7 +162,7 @@ def auto_share(
     from bams_cli.core.screen import screen_size
 
     limit = defaults.SCREEN_HINT_DISCREPANCY
-    ratio = cheap_level_discrepancy(model) if settings.n_levels > 1 else None
+    ratio = _study_discrepancy(model, settings)
     if ratio is None:
         return None, "--screen auto: no screen (the model has no cheap level to screen with)"
     if ratio >= limit:
@@ -196,6 +220,7 @@ def draw_screen(
     K: float,
     share: float,
     posterior: Any,
+    confirm_prior: tuple[float, float],
     rng: np.random.Generator,
     meta: dict[str, Any],
     handoff_internal: bool,
@@ -203,7 +228,9 @@ def draw_screen(
     """Draw S1, write the screen and the batch of its cheap runs (one transaction).
 
     ``p``: p_n over the pool at the plan's gamma; ``known``: which segments have a level-0
-    result; ``meta``: what the screen's metadata shares with a plan's (seed, gamma ...).
+    result; ``posterior``: what pi1 is planned under; ``confirm_prior``: the prior on lam
+    the confirmation's pi2 will be planned under (recorded, so a refit cannot change it);
+    ``meta``: what the screen's metadata shares with a plan's (seed, gamma ...).
     Returns the summary ``estimate --plan --screen --json`` prints.
     """
     from bams_cli.abandon import abandoned_mask
@@ -243,8 +270,10 @@ def draw_screen(
         "cheap_in_log": int(have.sum()),
         "cheap_abandoned": int((gone & ~have).sum()),
         "batch": batch,
-        # The confirmation designs under the same prior (``risk_prior``'s ``recorded``).
+        # The prior of pi1, which the confirmation's allowance keeps (``risk_prior``'s
+        # ``recorded``), and the prior of the confirmation's pi2.
         "risk_prior": [float(v) for v in posterior.prior],
+        "confirm_prior": [float(v) for v in confirm_prior],
     }
     screen_meta = {**meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size)}
     table = schemas.SCREEN.conform(
@@ -353,9 +382,13 @@ def confirm_screen(
     known_now: np.ndarray,
     samples: float | None,
     posterior: Any,
+    confirm_posterior: Any,
     rng: np.random.Generator,
 ) -> dict[str, Any]:
     """pi2 over S1 from the refitted p_n and the confirmation's draw.
+
+    ``confirm_posterior`` plans pi2; ``posterior`` (the screen's prior) prices the
+    interval's allowance for a failure no run has seen.
 
     Returns what ``estimation.estimate_plan`` writes as plan ``number``: ``sampled_idx``,
     ``known_idx``, ``pi`` (pi1 pi2 of the sampled), ``K2``, ``w_model``, ``w_max``,
@@ -403,7 +436,7 @@ def confirm_screen(
     p2 = p_all[S1, g_plan]
     if S1.size:
         K2 = min(sc.confirm_budget(K, cost, int(smeta["cheap_runs"])), float(S1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=posterior).pi
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm_posterior).pi
     else:  # an empty screen has nothing to confirm: T = 0, its conditional mean
         K2, pi2 = 0.0, np.zeros(0)
     drawn = draw_poisson(pi2, rng)
@@ -434,6 +467,7 @@ def confirm_screen(
             "screened": int(S1.size),
             "cheap_runs": int(smeta["cheap_runs"]),
             "level0_budget": K2,
+            "confirm_prior": [float(v) for v in confirm_posterior.prior],
             "seed": smeta.get("seed"),
         },
     }

@@ -12,6 +12,7 @@ from scipy import integrate, optimize, special, stats
 
 from bams_cli import defaults
 from bams_cli.core import design as dz
+from bams_cli.core import screen as sc
 from bams_cli.core.estimate import estimate_from_sample
 from bams_cli.core.evaluate import _capped, staged_trials
 from bams_cli.core.sampling import inclusion_probabilities
@@ -474,6 +475,26 @@ def test_a_count_far_above_what_p_n_predicts_says_the_model_misses_failures():
     # ... and a count in line with p_n leaves trust where where-they-fell puts it.
     calm = dz.StageEvidence(pool[s], failed, dz.risk_norms(pool), p_mean=30 / pool[s].sum())
     assert dz.risk_posterior([calm]).lam_mean < anchored.lam_mean - 0.2
+
+
+def test_a_screens_confirmation_trusts_the_refitted_p_n_only_where_the_cheap_level_tracks():
+    t = defaults.SCREEN_HINT_DISCREPANCY
+    assert dz.confirm_prior(0.0) == dz.confirm_prior(t * 0.999) == defaults.RISK_MIX_PRIOR_CONFIRM
+    # Where the cheap level does not track level 0 (an explicit --screen), or there is no
+    # evidence that it does, the confirmation is planned as the screen was.
+    for ratio in (t, 5.0, float("nan"), None):
+        assert dz.confirm_prior(ratio) == dz.risk_prior(ratio)
+    # More trust than the screen's own prior: a smaller posterior mean of lam, so pi2
+    # follows the refitted p_n more closely (a failure p_n puts at high risk gets a larger
+    # pi2, one at low risk a smaller).
+    confirm = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR_CONFIRM)
+    screen = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR)
+    assert confirm.lam_mean < 0.05 < 0.25 < screen.lam_mean
+    p2 = np.r_[np.full(5, 0.5), np.full(195, 1e-4)]
+    pi_c = sc.confirm_design(p2, K2=20.0, posterior=confirm).pi
+    pi_s = sc.confirm_design(p2, K2=20.0, posterior=screen).pi
+    assert pi_c.sum() == pytest.approx(20.0) and pi_s.sum() == pytest.approx(20.0)
+    assert pi_c[0] >= pi_s[0] and pi_c[-1] < pi_s[-1]
 
 
 def test_the_prior_on_lam_trusts_p_n_less_where_the_cheap_level_does_not_track_level0():
