@@ -62,7 +62,7 @@ level 0, docs/suite/weak_cheap_prior.md): their worst seeds 0.96-1.21 -> 0.94-1.
 uniform's variance (rare_regions' data seed 2: 1.21 -> 1.08), recall 1.3-1.6x plain MC on
 weak_cheap and digits (1.3-1.8x before) and 0.8x and 2.2x on rare_regions (0.9x, 2.3x); 29
 of 30 realised intervals held the rate, the miss (digits, data seed 1) above it. Rerun for
-av_like on data seed 2 on 2026-11-29 (08:15-08:20, 5 seeds) once the screen's confirmation
+av_like on data seed 2 on 2026-11-29 (06:52-06:54, 5 seeds) once the screen's confirmation
 planned pi2 under Beta(0.1, 10) where the cheap level tracks level 0
 (docs/suite/screen_confirm_prior.md): 0.49 [1.12] -> 0.21 [0.38] of uniform's variance (4
 screens per run; conditioned on each failure the same change is 0.31 [0.41] -> 0.19 [0.25]),

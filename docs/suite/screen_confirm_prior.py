@@ -386,7 +386,7 @@ level 0** (`defaults.RISK_MIX_PRIOR_CONFIRM`, `core.design.confirm_prior`; the s
 records it, so a refit cannot change it; an explicit screen where the cheap level does not
 track level 0 keeps the study's prior). New that day (at f1a46f2's code with this script's
 variance column): braking (a fresh problem, 8 runs after batch 3, `fresh_problems.py run`
-07:00-07:10, `fresh braking` 07:12-07:35), and the screens' variance beside the coverage of
+06:35-06:41, `fresh braking` 06:42-06:45), and the screens' variance beside the coverage of
 toy2d and gap_sim (data seed 0) and av_like (data seed 2), 5 seeds each. Against the
 prior it replaces, Beta(0.5, 1):
 
