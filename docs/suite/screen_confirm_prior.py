@@ -401,10 +401,14 @@ prior it replaces, Beta(0.5, 1):
   its share wholly below the rate 4.2% -> 1.8%); lower on toy2d with 20 screens per seed
   (0.969 -> 0.959 on data seed 0, 0.946 -> 0.920 on data seed 2), every miss above the rate.
 - What it does not fix: av_like's data seed 2 still has one seed above 1/5 of uniform's
-  variance (0.254 exact; phase 1 alone is 0.20 there), and braking's run s3 covers 0.87 with
-  13% of its intervals wholly below the rate under every prior (0.871 under the old one):
-  a screen that misses failures the cheap level does not see (the cheap level misses about
-  40% of braking's) leaves the estimate low, and the allowance does not always reach up.
+  variance (0.254 exact; phase 1 alone is 0.20 there). Braking's run s3 covers 0.87, 13%
+  of its intervals wholly below the rate, under every prior (0.871 under the old one). That
+  is one of its 4 screens (`/tmp/s12/diag_s3.py`, a diagnostic run beside this script): its
+  S1 held 61 of the 235 unknown failures (69.7 expected) and E[T | S1] is 0.66 of the rate,
+  a phase-1 draw about 1.4 sd low; each confirmation then lands near 0.66, and its
+  estimated variance, low with it, puts the upper limit under the rate in 32% of them (old
+  prior) or 55% (new: pi2 near 1 adds less spread). The other three screens held the rate
+  in 93-100%. Over braking's 8 runs the misses are 1.8% below and 0.7% above.
 
 Measured 2026-11-27 (23:30-23:40, at 52b26ec; 5 seeds per problem and data seed, 8
 runs of ties and 7 of blind, the screened ones), as a lead for issue 12's remaining gap
