@@ -403,7 +403,7 @@ prior it replaces, Beta(0.5, 1):
 - What it does not fix: av_like's data seed 2 still has one seed above 1/5 of uniform's
   variance (0.254 exact; phase 1 alone is 0.20 there). Braking's run s3 covers 0.87, 13%
   of its intervals wholly below the rate, under every prior (0.871 under the old one). That
-  is one of its 4 screens (`/tmp/s12/diag_s3.py`, a diagnostic run beside this script): its
+  is one of its 4 screens (the same screens drawn again and printed one by one): its
   S1 held 61 of the 235 unknown failures (69.7 expected) and E[T | S1] is 0.66 of the rate,
   a phase-1 draw about 1.4 sd low; each confirmation then lands near 0.66, and its
   estimated variance, low with it, puts the upper limit under the rate in 32% of them (old
