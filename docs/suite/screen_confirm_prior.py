@@ -403,7 +403,7 @@ prior it replaces, Beta(0.5, 1):
   its share wholly below the rate 4.2% -> 1.8%); lower on toy2d with 20 screens per seed
   (0.969 -> 0.959 on data seed 0, 0.946 -> 0.920 on data seed 2), every miss above the rate.
 - MCM-GP's runs (`coverage PROBLEM --strategy mcm-gp`, data seed 0, 5 seeds x 4 screens,
-  07:08-07:16): coverage 0.957 -> 0.950 on toy2d (lowest seed 0.83 -> 0.75), 1.000 on
+  06:57-07:02): coverage 0.957 -> 0.950 on toy2d (lowest seed 0.83 -> 0.75), 1.000 on
   av_like and gap_sim under both, every miss above the rate; variance 0.074 -> 0.062,
   0.126 -> 0.123 and 0.348 -> 0.326 of uniform's.
 - What it does not fix: av_like's data seed 2 still has one seed above 1/5 of uniform's
