@@ -666,3 +666,49 @@ def test_select_warns_that_level0_picks_void_an_open_screen(fitted, tmp_path):
         ).stdout  # fmt: skip
     )
     assert not any("screen-0001" in w for w in none["warnings"])
+
+
+def test_a_screen_written_before_the_confirmation_prior_confirms_as_it_did(fitted, tmp_path):
+    """A screen drawn by an older bams-cli (no ``confirm_prior`` in its metadata) is
+    confirmed under the prior it drew pi1 with, as that version would have: pi = pi1 pi2
+    with pi2 planned under Beta(0.5, 1), not the near-full trust of the new default."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    ws, truth = _copy(fitted, tmp_path)
+    scr = strict_json(
+        ok(
+            runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", K, "--json"
+        ).stdout  # fmt: skip
+    )
+    path = ws / "estimates" / "screen-0001.parquet"
+    table = pq.read_table(path)
+    old = {k: v for k, v in table.schema.metadata.items() if k != b"bams.confirm_prior"}
+    pq.write_table(table.replace_schema_metadata(old), path)
+    assert "confirm_prior" not in read_metadata_json(path)
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
+    assert plan["screen"]["confirm_prior"] == list(defaults.RISK_MIX_PRIOR)
+    s1 = pl.read_parquet(path).filter(pl.col("screened"))
+    scores = pl.read_parquet(ws / "scores.parquet")
+    p_col = [c for c in scores.columns if c.startswith("p_")][-1]
+    p2 = s1.join(scores.select(SID, p_col), on=SID, how="left")[p_col].to_numpy()
+    K2 = min(sc.confirm_budget(K, 0.1, scr["cheap_runs"]), float(s1.height))
+    pi2 = {
+        pr: sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([], prior=pr)).pi
+        for pr in (defaults.RISK_MIX_PRIOR, defaults.RISK_MIX_PRIOR_CONFIRM)
+    }
+    assert (
+        np.max(np.abs(pi2[defaults.RISK_MIX_PRIOR] - pi2[defaults.RISK_MIX_PRIOR_CONFIRM])) > 0.05
+    )
+    pi_old = s1["pi1"].to_numpy() * pi2[defaults.RISK_MIX_PRIOR]
+    want = dict(zip(s1[SID].to_list(), pi_old.tolist(), strict=True))
+    sampled = pl.read_parquet(ws / "estimates" / "plan-0001.parquet").filter(
+        pl.col("stratum") == "sampled"
+    )
+    assert sampled.height > 0
+    np.testing.assert_allclose(
+        sampled["pi"].to_numpy(), [want[s] for s in sampled[SID].to_list()], rtol=1e-12
+    )

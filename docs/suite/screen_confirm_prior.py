@@ -399,7 +399,7 @@ prior it replaces, Beta(0.5, 1):
   worst run rose on two problems whose cheap level misses failures (blind 0.235 -> 0.287,
   braking forced 0.462 -> 0.489; over the screens braking's fell, 0.422 -> 0.336), far
   under uniform's variance.
-- Coverage: the same or higher with 4 screens per seed everywhere (braking 0.950 -> 0.975,
+- Coverage: the same or higher with 4 screens per seed on BAMS's runs (braking 0.950 -> 0.975,
   its share wholly below the rate 4.2% -> 1.8%); lower on toy2d with 20 screens per seed
   (0.969 -> 0.959 on data seed 0, 0.946 -> 0.920 on data seed 2), every miss above the rate.
 - MCM-GP's runs (`coverage PROBLEM --strategy mcm-gp`, data seed 0, 5 seeds x 4 screens,

@@ -267,3 +267,34 @@ def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
     cover = np.mean((lo_ <= rate) & (rate <= hi_))
     below = np.mean(hi_ < rate)
     assert cover >= 0.88 and below <= 0.05, (cover, below)
+
+
+def test_screen_trials_plan_pi1_and_pi2_under_their_own_priors(monkeypatch):
+    # The benchmark measures the screen as `estimate --plan` draws it: pi1 under the
+    # study's prior, pi2 under the confirmation's (``benchmark.screen_default`` passes both).
+    from bams_cli import defaults
+    from bams_cli.core.evaluate import screen_trials
+
+    seen: dict[str, list[tuple[float, float]]] = {"screen": [], "confirm": []}
+    real_s, real_c = sc.screen_design, sc.confirm_design
+
+    def spy_s(*a, posterior, **k):
+        seen["screen"].append(tuple(posterior.prior))
+        return real_s(*a, posterior=posterior, **k)
+
+    def spy_c(*a, posterior, **k):
+        seen["confirm"].append(tuple(posterior.prior))
+        return real_c(*a, posterior=posterior, **k)
+
+    monkeypatch.setattr(sc, "screen_design", spy_s)
+    monkeypatch.setattr(sc, "confirm_design", spy_c)
+    rng = np.random.default_rng(3)
+    p = rng.beta(0.4, 6.0, 300)
+    fail = rng.random(300) < p
+    screen_trials(
+        p, fail, K=30.0, cost=0.2, share=0.3, refit=lambda s1: p[s1], n_trials=3,
+        prior=defaults.RISK_MIX_PRIOR, confirm_prior=defaults.RISK_MIX_PRIOR_CONFIRM,
+        rng=np.random.default_rng(4),
+    )  # fmt: skip
+    assert set(seen["screen"]) == {defaults.RISK_MIX_PRIOR}
+    assert set(seen["confirm"]) == {defaults.RISK_MIX_PRIOR_CONFIRM} and len(seen["confirm"]) == 3
