@@ -540,6 +540,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
             "GP rate estimate": f"{_num(s.get('gp_rate_estimate'))} at gamma "
             f"{_gamma(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
             "trust in p_n": _trust(s.get("model_check")),
+            "confirmation": _confirm_prior((s.get("screen") or {}).get("confirm_prior")),
             "hand-off": s["handoff"],
             "results template": s.get("results_template"),
         },
@@ -561,6 +562,17 @@ def _trust(check: Mapping[str, Any] | None) -> str | None:
         f"{check['lam_high']:.2f}), from {plural(check['failures'], 'failure')} in "
         f"{plural(check['sampled'], 'run')} of earlier estimate stages"
         + (f"; prior Beta({prior[0]:g}, {prior[1]:g})" if prior else "")
+    )
+
+
+def _confirm_prior(prior: Any) -> str | None:
+    """A screen's confirmation: the prior its pi2 was planned under (the trust line above
+    is the interval's allowance's)."""
+    if not prior:
+        return None
+    return (
+        f"pi2 within the screen planned under Beta({prior[0]:g}, {prior[1]:g}), as the "
+        "screen recorded; the trust above prices the interval's allowance"
     )
 
 

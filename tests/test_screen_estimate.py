@@ -689,8 +689,11 @@ def test_a_screen_written_before_the_confirmation_prior_confirms_as_it_did(fitte
     ok(runner, "ingest-results", "-w", ws,
        _sim(runner, ws / "batches" / "batch-0002.csv", truth, tmp_path / "s.parquet"))  # fmt: skip
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    plan = strict_json(ok(runner, "estimate", "-w", ws, "--plan", "--json").stdout)
-    assert plan["screen"]["confirm_prior"] == list(defaults.RISK_MIX_PRIOR)
+    r = ok(runner, "estimate", "-w", ws, "--plan")
+    (line,) = [x for x in r.stdout.splitlines() if x.lstrip().startswith("confirmation")]
+    assert "pi2 within the screen planned under Beta(0.5, 1)" in line
+    plan_meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    assert plan_meta["screen"]["confirm_prior"] == list(defaults.RISK_MIX_PRIOR)
     s1 = pl.read_parquet(path).filter(pl.col("screened"))
     scores = pl.read_parquet(ws / "scores.parquet")
     p_col = [c for c in scores.columns if c.startswith("p_")][-1]
