@@ -509,7 +509,18 @@ prior would have carried phase 2's spread into the interval. Drawn from the trut
 screened design's intervals lay wholly below the rate less often under the new prior (ties
 0.001 -> 0.000, braking 0.042 -> 0.018 of draws, docs/suite/screen_confirm_prior.md), so
 this run is a phase-1 tail draw, not a measured shift; an interval that allows for phase
-1's unseen low-pi1 failures better is not built."""
+1's unseen low-pi1 failures better is not built. Why braking's fitted discrepancy is 1.6-5.3
+times the pool's sd (read 2026-11-29 from the 8 runs' workspaces after batch 3): each run
+has 6 or 7 pairs, 5 or 6 from the random first batch, far from failure (f0 > 20 m), whose
+differences have sd 0.7-1.8 m, and one or two from a cheap-level lead that batch 2 or 3
+confirmed at a failure, whose difference is 10-25 m. The fit (4.6-15.2 m, the pairs' sd
+3.0-8.9 m) follows that pair. Over the pool, f1 - f0 has mean 3.2 m and sd 2.7 m far from
+failure but mean 8.8 m and sd 5.6 m where |f0| < 20 m (RMS 7.9 m about the far mean, which
+the offset takes), and mean 14.2 m, sd 7.6 m at the failures themselves. One stationary
+discrepancy cannot hold both; the fit holds the region where failure is decided, and the
+pool's sd (2.85 m) is the wrong yardstick there. A discrepancy whose scale grows near
+failure (heteroscedastic in x or in f0) is what issue 11's factor 2 would need here; it is
+not built."""
 
 
 def table(out: Path) -> None:
