@@ -107,6 +107,12 @@ def _tally(
     return out, v2
 
 
+def _var_uniform(fU: np.ndarray, K: float) -> float:
+    """A uniform Poisson design's variance of K level-0 runs over U (``fU``: U's failures)."""
+    k = min(K, fU.size)
+    return int(fU.sum()) * (fU.size - k) / k
+
+
 def _coverage_row(
     tallies: list[tuple[dict, dict]], n: int, V1: float, var_u: float
 ) -> dict[str, Any]:
@@ -129,8 +135,7 @@ def exact(problem: str, share: float) -> None:
     posts = _posts()
     for seed, base, st in sd._seed_states(su, SEEDS):
         U, fU = st.U, st.fU
-        k = min(K, U.size)
-        var_u = int(fU.sum()) * (U.size - k) / k
+        var_u = _var_uniform(fU, K)
         fpos = np.flatnonzero(fU)
         pi1 = sc.screen_design(st.p[U], K=K, cost=c, share=share, posterior=prior).pi
         rng = np.random.default_rng(seed * 100 + 13)
@@ -182,11 +187,8 @@ def coverage(problem: str, share: float) -> None:
                 "share": share,
                 "screens": SCREENS,
                 **_coverage_row(
-                    tallies,
-                    SCREENS * DRAWS,
-                    sc.phase1_variance(fU, pi1),
-                    int(fU.sum()) * (U.size - min(K, U.size)) / min(K, U.size),
-                ),  # fmt: skip
+                    tallies, SCREENS * DRAWS, sc.phase1_variance(fU, pi1), _var_uniform(fU, K)
+                ),
             },  # fmt: skip
         )
 
@@ -268,8 +270,7 @@ def fresh(problem: str, folder: Path, share: float) -> None:
             n_cheap = int((~seen[1][U[s1]]).sum())
             K2 = min(sc.confirm_budget(K, c, n_cheap), float(s1.size))
             tallies.append(_tally(pi1, s1, p2_all, fU, N=N, K2=K2, Fk=Fk, prior=prior, rng=rng))
-        k = min(K, U.size)
-        var_u = int(fU.sum()) * (U.size - k) / k
+        var_u = _var_uniform(fU, K)
         v2 = {pr: np.zeros((TRIALS, fpos.size)) for pr in PRIORS}
         for t in range(TRIALS):
             s1 = rng.random(U.size) < pi1
