@@ -401,6 +401,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "stage": INT,
                 "stages": INT,
                 "series_K": NUM,
+                "stage_shares": array(NUM),
                 "stage_weights": array(NUM),
                 "weighting": {"enum": ["calibrated", "uniform", "p^alpha", "screen"]},
                 "predicted_vs_uniform": nullable({"type": "object"}),

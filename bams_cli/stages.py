@@ -1,11 +1,14 @@
 """Staged rate estimates: which stage the next plan is, and what earlier stages showed.
 
 A *series* is the set of estimate plans that make one estimate: stage 1 fixes the total
-budget K, the number of stages and their weights (w_s = K_s / K) before anything is drawn;
-each later ``estimate --plan`` draws the next stage once the previous one's results are in
-(``core.design``). The plans' metadata carries the series: ``series`` (the plan number of
-its stage 1), ``stage``, ``stages``, ``series_K`` and ``stage_weights``. Plans written
-before stages existed are single-stage series of their own.
+budget K, the number of stages, each stage's share of K and the stages' weights in the
+estimate (``core.design.stage_weights``) before anything is drawn; each later ``estimate
+--plan`` draws the next stage once the previous one's results are in (``core.design``). The
+plans' metadata carries the series: ``series`` (the plan number of its stage 1), ``stage``,
+``stages``, ``series_K``, ``stage_shares`` and ``stage_weights``. Plans written before
+stages existed are single-stage series of their own; plans written before the weights were
+set apart from the shares (2026-11-29) have no ``stage_shares``: their weights were the
+shares (w_s = K_s / K), and their series keeps them.
 
 Every finished plan is also evidence on how far the model's p_n can be trusted: its sampled
 segments are a random sample with their planning-time p_n stored beside them
@@ -40,6 +43,7 @@ class PlanInfo:
     stages: int
     series_K: float
     weights: list[float]
+    shares: list[float]
     meta: dict[str, Any]
 
 
@@ -59,13 +63,15 @@ def plan_info(ws: Workspace, number: int) -> PlanInfo:
     """Series, stage and weights of plan ``number``; a plan without them is its own series."""
     meta = read_metadata_json(ws.estimates_dir / f"plan-{number:04d}.parquet")
     stages = int(meta.get("stages") or 1)
+    weights = [float(w) for w in meta.get("stage_weights") or [1.0]]
     return PlanInfo(
         number=number,
         series=int(meta.get("series") or number),
         stage=int(meta.get("stage") or 1),
         stages=stages,
         series_K=float(meta.get("series_K") or meta["samples"]),
-        weights=[float(w) for w in meta.get("stage_weights") or [1.0]],
+        weights=weights,
+        shares=[float(w) for w in meta.get("stage_shares") or weights],
         meta=meta,
     )
 

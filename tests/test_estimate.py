@@ -16,6 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bams_cli import cli, console, defaults, pipeline
+from bams_cli.core import design as dz
 from bams_cli.core import estimate as core_estimate
 from bams_cli.state.io import read_metadata_json, stamp
 from bams_cli.state.schemas import SEGMENT_ID as SID
@@ -123,6 +124,31 @@ def _plan_ids(ws, number: int) -> list[str]:
     return sorted(t.filter(pc.equal(t["stratum"], "sampled"))["segment_id"].to_pylist())
 
 
+def test_a_series_drawn_before_the_weights_left_the_shares_keeps_its_weights(fitted_ws, tmp_path):
+    """Stage 1 written by an older bams-cli (its weights were its shares of K, and it has
+    no ``stage_shares``): stage 2 spends the rest of K and the estimate combines the stages
+    with the weights stage 1 fixed, as that version would have."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    ws, truth = _copy(fitted_ws, tmp_path)
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--stage1-share", "0.3")
+    path = ws / "estimates" / "plan-0001.parquet"
+    table = pq.read_table(path)
+    old = {k: v for k, v in table.schema.metadata.items() if k != b"bams.stage_shares"}
+    old[b"bams.stage_weights"] = b"[0.3, 0.7]"
+    pq.write_table(table.replace_schema_metadata(old), path)
+    assert "stage_shares" not in read_metadata_json(path)
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    s2 = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
+    assert s2["samples_K"] == pytest.approx(80 * 0.7)
+    assert s2["stage_weights"] == [0.3, 0.7] and s2["stage_shares"] == [0.3, 0.7]
+    _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    assert out["staging"]["weights"] == [0.3, 0.7]
+
+
 def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
     from typer.testing import CliRunner
 
@@ -192,6 +218,12 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     )
     assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, 2, 1, 80)
     assert s1["samples_K"] == pytest.approx(80 * defaults.STAGE1_SHARE)
+    # The estimate's weights are set apart from the budget's shares: 80 of the 375 unknown
+    # segments puts a little more weight on stage 2, which samples from fewer.
+    shares = [defaults.STAGE1_SHARE, 1 - defaults.STAGE1_SHARE]
+    assert s1["stage_shares"] == shares
+    assert s1["stage_weights"] == pytest.approx(dz.stage_weights(shares, 80, 375), rel=1e-12)
+    assert s1["stage_weights"][0] < 0.49 and sum(s1["stage_weights"]) == pytest.approx(1)
     assert s1["model_check"]["sampled"] == 0  # the prior alone: nothing checked yet
     assert s1["predicted_vs_uniform"]["uniform"] == 1.0
     assert s1["predicted_vs_uniform"][s1["weighting"]] == min(s1["predicted_vs_uniform"].values())

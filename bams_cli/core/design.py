@@ -33,9 +33,16 @@ The estimate is staged (``estimate --plan``, DESIGN.md): stage 1 spends a share 
 design at the current posterior mean of lam; once its results are in, the posterior is
 updated and stage 2 spends the rest. Each stage's HT estimate T_s counts what is known at
 its planning exactly and is unbiased given the past, so T = sum_s w_s T_s with weights fixed
-when stage 1 is planned (w_s = K_s / K) is unbiased, and its stages are uncorrelated
+when stage 1 is planned is unbiased, and its stages are uncorrelated
 (E[(T_1 - T)(T_2 - T)] = E[(T_1 - T) E[T_2 - T | stage 1]] = 0):
-Var(T) = sum_s w_s^2 Var(T_s), estimated by sum_s w_s^2 v_s (``combine_stages``).
+Var(T) = sum_s w_s^2 Var(T_s), estimated by sum_s w_s^2 v_s (``combine_stages``). The
+weights (``stage_weights``) are those that minimise Var(T) were every stage uniform: w_s
+proportional to 1 / (N_s (1 - pi_s) / pi_s), N_s the segments left to stage s and
+pi_s = K_s / N_s. While K is a small share of U that is K_s / K to a percent or two; as K
+nears U, stage 2 samples most of what stage 1 left, its variance falls towards 0, and
+K_s / K would have kept a quarter of stage 1's (a trial study with K = 0.93 |U| measured
+3.1x a one-stage uniform design's variance; these weights give exactly uniform's there,
+before stage 2's refit gains anything).
 
 The interval's upper limit allows for a failure no stage sampled, of the mean weight
 (1 - pi)/pi that a failure placed as the risk says would carry (``unseen_failure_weight``).
@@ -488,6 +495,47 @@ def unseen_failure_weight(risk: ArrayLike, pi: ArrayLike) -> float:
     return float(r @ ((1.0 - pi) / np.where(rand, pi, 1.0))) / mass
 
 
+def stage_weights(shares: ArrayLike, K: float, n_unknown: float) -> list[float]:
+    """The weights of T = sum_s w_s T_s, fixed when stage 1 is planned (module docstring).
+
+    Parameters
+    ----------
+    shares : array_like of shape (n_stages,)
+        Each stage's share of K (summing to 1); stage s spends K_s = share_s K, at most
+        the N_s segments left to it (N_1 = ``n_unknown``, N_{s+1} = N_s - K_s, the
+        expected size of what a Poisson stage leaves).
+    K : float
+        The estimate's budget.
+    n_unknown : float
+        |U| when stage 1 is planned.
+
+    Returns
+    -------
+    list of float
+        w_s proportional to pi_s / (N_s (1 - pi_s)), pi_s = K_s / N_s: inverse to stage s's
+        variance were its design uniform (the failure rate, the same in every stage's U,
+        cancels). A stage that takes every segment left (pi_s = 1, a census of the rest)
+        is exact: it gets weight 1 and the stages before it 0. One stage, or no budget:
+        the shares.
+    """
+    sh = np.asarray(shares, dtype=np.float64)
+    if sh.size <= 1 or K <= 0 or n_unknown <= 0:
+        return [float(x) for x in sh]
+    left, inv = float(n_unknown), np.zeros(sh.size)
+    for s, share in enumerate(sh):
+        k = min(float(share) * K, left)
+        if left <= 0 or k <= 0:
+            continue
+        if k >= left * (1.0 - 1e-12):  # a census of what is left: exact
+            return [float(s == j) for j in range(sh.size)]
+        pi = k / left
+        inv[s] = pi / (left * (1.0 - pi))
+        left -= k
+    if inv.sum() <= 0:
+        return [float(x) for x in sh]
+    return [float(x) for x in inv / inv.sum()]
+
+
 def combine_stages(
     stages: list[RateEstimates], weights: ArrayLike, *, n_pool: int
 ) -> RateEstimates:
@@ -598,6 +646,7 @@ __all__ = [
     "combine_stages",
     "predicted_variance",
     "relative_risk",
+    "stage_weights",
     "risk_posterior",
     "unseen_failure_weight",
 ]

@@ -437,7 +437,7 @@ def _stage1(
     pi1 = c1.pi
     return _Stage1(
         N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, K1=K1, K2=(1.0 - share) * K,
-        weights=[share, 1.0 - share], p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
+        weights=dz.stage_weights([share, 1.0 - share], K, n1), p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
         order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(post1.allowance_risk(p1), pi1),
         V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
         n_fail=int(fail.sum()),
@@ -624,7 +624,6 @@ def _staged_trials_fast(
     p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
     p_mean1 = float(p1.mean())
     n_certain1 = int(np.count_nonzero(pi1 >= 1.0))
-    weights = [share, 1.0 - share]
     taus = np.asarray(dz.TAUS, dtype=np.float64)
     pos = p1 > 0
     # Rows: p^tau for each tau (the risk), p^alpha (the paper-form candidate), over U.

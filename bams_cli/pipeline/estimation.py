@@ -348,8 +348,8 @@ def estimate_plan(
                 "--new-series to start a new estimate instead"
             )
         series, stage, n_stages = prev.series, prev.stage + 1, prev.stages
-        series_K, weights = prev.series_K, prev.weights
-        K_stage = series_K * weights[stage - 1]
+        series_K, shares, weights = prev.series_K, prev.shares, prev.weights
+        K_stage = series_K * shares[stage - 1]
     else:
         if prev is not None:
             # Said, since the report and status then show this newest estimate: a trial
@@ -369,8 +369,9 @@ def estimate_plan(
         n_stages = stages if staged and samples >= 2 * stages else 1
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
-        weights = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
-        K_stage = series_K * weights[0]
+        shares = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
+        weights = dz.stage_weights(shares, series_K, n_unknown)
+        K_stage = series_K * shares[0]
     K_stage = min(K_stage, float(n_unknown))
     # A later stage of a series whose stage 1 was drawn with --seed draws from that seed
     # too (its own stream per stage): fresh plans of one study, each from its own --seed,
@@ -452,6 +453,7 @@ def estimate_plan(
         "stage": stage,
         "stages": n_stages,
         "series_K": series_K,
+        "stage_shares": shares,
         "stage_weights": weights,
     }
     check = {**post.summary(), "plans": evidence_plans}
@@ -697,7 +699,8 @@ def _confirm_screen(
     sampled_idx, pi = c["sampled_idx"], c["pi"]
     check = {**post.summary(), "plans": evidence_plans}
     stage_info = {
-        "series": number, "stage": 1, "stages": 1, "series_K": K2, "stage_weights": [1.0],
+        "series": number, "stage": 1, "stages": 1, "series_K": K2, "stage_shares": [1.0],
+        "stage_weights": [1.0],
     }  # fmt: skip
     meta = {
         "plan": number,

@@ -511,3 +511,56 @@ def test_the_prior_on_lam_trusts_p_n_less_where_the_cheap_level_does_not_track_l
     assert weak.lam_mean == pytest.approx(a / (a + b), abs=0.03)
     assert weak.lam_mean > strong.lam_mean + 0.2
     assert weak.summary()["prior"] == [a, b]
+
+
+@pytest.mark.parametrize(
+    ("n", "K", "shares"),
+    [(10, 9, [0.5, 0.5]), (20_000, 200, [0.5, 0.5]), (5_000, 4_600, [0.3, 0.7]),
+     (1_000, 600, [0.5, 0.25, 0.25])],
+)  # fmt: skip
+def test_stage_weights_make_uniform_stages_as_precise_as_one_uniform_sample(n, K, shares):
+    # Uniform stages: stage s samples pi_s = K_s / N_s of the N_s segments left, its HT
+    # variance per failure (1 - pi_s) / pi_s over N_s. Weighted inversely, the stages add
+    # up to one uniform Poisson sample of K: 1 / sum_s (1 / V_s) = n (1 - K/n) / (K/n).
+    w = np.asarray(dz.stage_weights(shares, K, n))
+    left, V = float(n), []
+    for sh in shares:
+        k = sh * K
+        V.append(left * (1 - k / left) / (k / left))
+        left -= k
+    assert w.sum() == pytest.approx(1.0, rel=1e-12)
+    assert float(w**2 @ V) == pytest.approx(n * (1 - K / n) / (K / n), rel=1e-9)
+    # and no other weights do better (Cauchy-Schwarz): the shares are worse or equal
+    assert float(w**2 @ V) <= float(np.asarray(shares) ** 2 @ V) * (1 + 1e-12)
+
+
+def test_stage_weights_a_census_of_the_rest_takes_all_the_weight():
+    assert dz.stage_weights([0.5, 0.5], 100, 100) == [0.0, 1.0]  # stage 2 takes all 50 left
+    assert dz.stage_weights([0.5, 0.5], 250, 100) == [1.0, 0.0]  # stage 1 takes all 100
+    assert dz.stage_weights([1.0], 50, 100) == [1.0]
+    assert dz.stage_weights([0.5, 0.5], 0, 100) == [0.5, 0.5]
+
+
+def test_staged_uniform_draws_with_these_weights_match_one_uniform_sample():
+    # Monte Carlo over the real two-stage draw (stage 2's pi over the U it actually
+    # leaves), K = 0.9 of the pool: the weighted HT sum is unbiased, its variance is one
+    # uniform sample's, and the shares' weights (K_s / K) give about 3x it.
+    rng = np.random.default_rng(11)
+    n, K, reps = 400, 360.0, 40_000
+    fail = np.zeros(n, bool)
+    fail[:40] = True
+    w = dz.stage_weights([0.5, 0.5], K, n)
+    T = np.empty((reps, 2))
+    for r in range(reps):
+        s1 = rng.random(n) < 0.5 * K / n
+        t1 = fail[s1].sum() / (0.5 * K / n)
+        u2 = ~s1
+        pi2 = min(1.0, 0.5 * K / u2.sum())
+        s2 = u2 & (rng.random(n) < pi2)
+        t2 = fail[s1].sum() + fail[s2].sum() / pi2
+        T[r] = (t1, t2)
+    est = T @ np.asarray(w)
+    var_one = 40 * (1 - K / n) / (K / n)
+    assert abs(est.mean() - 40) < 4 * est.std() / np.sqrt(reps)
+    assert est.var() == pytest.approx(var_one, rel=0.1)
+    assert (T @ np.array([0.5, 0.5])).var() > 2.5 * var_one
