@@ -204,6 +204,10 @@ SCREEN_HINT_SHARE = 0.3
 #: on the suite (README, "Defaults, and why"; docs/suite/screen_design.md).
 SCREEN = "auto"
 STAGE1_SHARE = 0.5
+#: ``estimate --plan`` says so when its default K (5 p N) is at least this share of the
+#: segments without a level-0 result: a common failure, or a model that overstates it,
+#: asks for nearly a census.
+PLAN_LARGE_SHARE = 0.5
 
 #: Beta prior on lam, the share of the failure mass the model does not explain
 #: (``core.design.risk_posterior``); its mean (1/3 here) is the trust the first stage places

@@ -533,6 +533,7 @@ def _plan_samples(
     level-0 failure has checked the model's rate that the default rests on."""
     warnings: list[str] = []
     unchecked = None  # the default K's 5 p N when no level-0 failure has checked p
+    defaulted = samples is None
     if samples is None:
         # The paper's K = 5 p N with the GP's own p; a GP that explains failures away
         # can put p N near 0, so the failures already seen at level 0 set a floor, and
@@ -563,6 +564,14 @@ def _plan_samples(
             f"({gp_rate:.2g}); {why}: pass --samples K sized for the smallest rate "
             "the estimate must rule out (with no failure among K uniform samples the "
             "90% interval's upper limit is about 3.0/K)"
+        )
+    elif defaulted and n_unknown > 0 and samples >= defaults.PLAN_LARGE_SHARE * n_unknown:
+        # Said, since a trial study with a 6% rate and a model that put it at 19% was
+        # handed K = 9,265 of 9,991 segments without a word: nearly a census.
+        warnings.append(
+            f"the default K = {samples:g} (5 x the model's rate {gp_rate:.2g} x N) is "
+            f"{samples / n_unknown:.0%} of the {n_unknown:,} segments without a level-0 "
+            "result; pass --samples K to spend less (the estimate stays unbiased at any K)"
         )
     return float(samples), warnings
 
