@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from typing import Any
 
@@ -525,6 +525,13 @@ def select_summary(s: Mapping[str, Any]) -> None:
         warning(text)
 
 
+def _stage_weights(w: Sequence[float] | None) -> str | None:
+    """A staged plan's weights in the combined estimate (None for one stage)."""
+    if not w or len(w) < 2:
+        return None
+    return f"{' / '.join(f'{x:.3g}' for x in w)} in the combined estimate, fixed at stage 1"
+
+
 def plan_summary(s: Mapping[str, Any]) -> None:
     head = (
         f"estimate plan {s['plan']} (stage {s['stage']} of {s['stages']}): "
@@ -534,6 +541,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
         head,
         {
             "budget": f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate",
+            "stage weights": _stage_weights(s.get("stage_weights")),
             "design": f"{s['design']}, weighting {s['weighting']}",
             "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",
             # The plan is drawn for the largest gamma, whose failures hold every other's.

@@ -186,6 +186,13 @@ def test_a_default_k_near_a_census_is_said_and_a_given_k_is_not(tmp_path):
         ).stdout  # fmt: skip
     )
     assert not [w for w in given["warnings"] if "without a level-0 result" in w]
+    # The plan's summary names the stages' weights, which K near U sets far from the shares.
+    assert given["stage_weights"][1] > 0.9
+    shown = ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--new-series", "--allow-pending",
+               "--samples", "150").stdout  # fmt: skip
+    (line,) = [x for x in shown.splitlines() if x.lstrip().startswith("stage weights")]
+    w = dz.stage_weights([0.5, 0.5], 150, n_unknown)
+    assert f"{w[0]:.3g} / {w[1]:.3g} in the combined estimate" in line
 
 
 def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):
