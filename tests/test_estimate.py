@@ -62,11 +62,15 @@ def fitted_ws(tmp_path_factory):
     anywhere (f >= 0.094), so its estimate is p_hat = 0 and its relative variance undefined."""
     from typer.testing import CliRunner
 
-    runner = CliRunner()
-    tmp = tmp_path_factory.mktemp("est")
+    return _toy_study(CliRunner(), tmp_path_factory.mktemp("est"), "0.05,0.56")
+
+
+def _toy_study(runner, tmp: Path, gammas: str) -> tuple[Path, Path]:
+    """400 toy2d segments at ``gammas``, one random level-0 batch of 25, fitted:
+    (workspace, truth)."""
     seg, truth = write_toy(tmp / "data", n=400, seed=0)
     ws = tmp / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.05,0.56", "--costs", "1,0.1", "--dim", "2",
+    ok(runner, "init", "-w", ws, "--gamma", gammas, "--costs", "1,0.1", "--dim", "2",
        "--seed", str(STUDY_SEED))  # fmt: skip
     ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
        "--no-standardize")  # fmt: skip
@@ -155,17 +159,7 @@ def test_a_default_k_near_a_census_is_said_and_a_given_k_is_not(tmp_path):
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
-    ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "2.5", "--costs", "1,0.1", "--dim", "2",
-       "--seed", str(STUDY_SEED))  # fmt: skip
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--budget", "25")
-    res = tmp_path / "r1.parquet"
-    ok(runner, "simulate", ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
-    ok(runner, "ingest-results", "-w", ws, res)
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ws, _ = _toy_study(runner, tmp_path, "2.5")
     plan = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
     n_unknown = 400 - 25
     assert plan["series_K"] >= defaults.PLAN_LARGE_SHARE * n_unknown
