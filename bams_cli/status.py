@@ -14,6 +14,7 @@ estimate plan is newer than the newest batch the study is estimating: results fo
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import math
 import re
@@ -271,10 +272,35 @@ def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
 
 
 def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
-    """Whether the study is estimating: an estimate plan is newer than the newest batch."""
+    """Whether the study is estimating: an estimate plan is newer than the newest batch.
+
+    By the times the files record (``written_at``), which a copy keeps: a workspace
+    copied with ``cp -r`` or restored from a CI artifact has every file's modification
+    time reset, and status then took a finished estimate for discovery. Files of an older
+    bams-cli without the record are ordered by modification time, as before."""
     if not plans:
         return False
+    plan_files = sorted(ws.root.glob("estimates/plan-*.parquet"))
+    batch_files = sorted(ws.root.glob("batches/batch-*.parquet"))
+    plan_at, batch_at = _written(plan_files), _written(batch_files)
+    if plan_at is not None and batch_at is not None:
+        return max(plan_at, default=_EPOCH) >= max(batch_at, default=_EPOCH)
     return _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet")
+
+
+_EPOCH = dt.datetime.min.replace(tzinfo=dt.UTC)
+
+
+def _written(paths: list[Path]) -> list[dt.datetime] | None:
+    """Each file's recorded ``written_at``; None if any lacks it or cannot be read."""
+    out = []
+    for path in paths:
+        try:
+            at = read_metadata(path).get("written_at")
+            out.append(dt.datetime.fromisoformat(at) if at else None)
+        except (OSError, SchemaError, ValueError):
+            return None
+    return None if any(a is None for a in out) else out  # type: ignore[return-value]
 
 
 def _next_step(

@@ -207,6 +207,23 @@ def test_status_reports_batches_plans_model_and_estimate(study):
     assert done["pool_size"] == 400 and done["pending"] == 0
 
 
+def test_a_copied_study_whose_files_lost_their_times_is_still_where_it_was(study, tmp_path):
+    # A workspace copied with `cp -r` or restored from a CI artifact: every file's
+    # modification time is the copy's, so the batches can look newer than the estimate
+    # plans. Status orders them by the times the files record and still says "done".
+    import os
+    import time
+
+    copy = tmp_path / "ws"
+    shutil.copytree(study.ws, copy)
+    later = time.time() + 60
+    for path in (copy / "batches").iterdir():
+        os.utime(path, (later, later))
+    r = invoke(study.runner, "status", "-w", copy, "--json")
+    got = json.loads(r.stdout)
+    assert (got["phase"], got["next"]["step"]) == ("done", "done")
+
+
 def test_status_reads_only(study, tmp_path):
     copy = tmp_path / "ws"
     shutil.copytree(study.copies["batch 1 pending"], copy)

@@ -46,7 +46,9 @@ def stamp(table: pa.Table, schema_version: int, extra: dict[str, Any] | None = N
         "schema_version": str(schema_version),
         "tool_version": __version__,
         "command": command_line(),
-        "written_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        # To the microsecond: status orders a study's lists by it (a copied workspace's
+        # modification times are the copy's), and a loop writes several in one second.
+        "written_at": dt.datetime.now(dt.UTC).isoformat(timespec="microseconds"),
     }
     for key, value in (extra or {}).items():
         # allow_nan=False: metadata is JSON; an undefined number must be written as null.
