@@ -165,28 +165,56 @@ def test_a_default_k_near_a_census_is_said_and_a_given_k_is_not(tmp_path):
     assert plan["series_K"] >= defaults.PLAN_LARGE_SHARE * n_unknown
     (said,) = [w for w in plan["warnings"] if "without a level-0 result" in w]
     assert f"of the {n_unknown:,} segments" in said and "--samples" in said
-    given = strict_json(
-        ok(
-            runner,
-            "estimate",
-            "-w",
-            ws,
-            *STAGED_PLAN,
-            "--new-series",
-            "--allow-pending",
-            "--samples",
-            str(plan["series_K"]),
-            "--json",
-        ).stdout  # fmt: skip
-    )
+    again = ["--new-series", "--allow-pending", "--samples", str(plan["series_K"]), "--json"]
+    given = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, *again).stdout)
     assert not [w for w in given["warnings"] if "without a level-0 result" in w]
+    assert (given["stages"], given["stage_weights"]) == (1, [1.0])  # K = |U|: a census
     # The plan's summary names the stages' weights, which K near U sets far from the shares.
-    assert given["stage_weights"][1] > 0.9
     shown = ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--new-series", "--allow-pending",
                "--samples", "150").stdout  # fmt: skip
     (line,) = [x for x in shown.splitlines() if x.lstrip().startswith("stage weights")]
     w = dz.stage_weights([0.5, 0.5], 150, n_unknown)
     assert f"{w[0]:.3g} / {w[1]:.3g} in the combined estimate" in line
+
+
+def test_k_that_takes_every_unknown_segment_is_one_stage_a_census(fitted_ws, tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    ws, truth = _copy(fitted_ws, tmp_path)
+    s1 = strict_json(
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "375", "--json").stdout
+    )
+    assert (s1["stages"], s1["stage_weights"], s1["to_simulate"]) == (1, [1.0], 375)
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    fails = pq.read_table(truth)["value_0"].to_numpy() <= 0.56
+    assert out["estimates"][1]["p_hat"] == pytest.approx(fails.mean(), rel=1e-12)
+    assert (
+        out["estimates"][1]["se"] == 0
+        and out["estimates"][1]["ci_high"] == out["estimates"][1]["p_hat"]
+    )
+
+
+def test_stages_done_that_weigh_nothing_in_the_whole_report_by_their_shares(fitted_ws, tmp_path):
+    # Weights fixed at stage 1 can give the stages done so far no weight (a later stage
+    # that takes every segment left): the estimate between the stages must not divide 0
+    # by 0. (K below |U| cannot make such a stage any more; a plan written so still reads.)
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    ws, truth = _copy(fitted_ws, tmp_path)
+    ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80")
+    path = ws / "estimates" / "plan-0001.parquet"
+    table = pq.read_table(path)
+    meta = dict(table.schema.metadata)
+    meta[b"bams.stage_weights"] = b"[0.0, 1.0]"
+    pq.write_table(table.replace_schema_metadata(meta), path)
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
+    one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
+    assert out["staging"]["stages_done"] == 1
+    assert out["estimates"][1]["p_hat_unbiased"] == pytest.approx(one.p_hat_unbiased[1])
 
 
 def test_plan_seed_draws_a_fresh_reproducible_plan(fitted_ws, tmp_path):

@@ -333,7 +333,8 @@ def staged_trials(
     is_failure : bool array_like of shape (n_pool,)
         True level-0 outcomes.
     K : float
-        Total expected sample size over both stages.
+        Total expected sample size over both stages, below |U|: at |U| or above,
+        ``estimate --plan`` plans one stage, a census, which this does not draw.
     known : bool array_like of shape (n_pool,), optional
         The known stratum after discovery.
     share : float, optional

@@ -366,7 +366,9 @@ def estimate_plan(
             design=design,
         )  # fmt: skip
         warnings += warned
-        n_stages = stages if staged and samples >= 2 * stages else 1
+        # K that takes every unknown segment is a census: one stage, exact. Split, stage 2
+        # would be a census only in expectation (of what stage 1 happened to leave).
+        n_stages = stages if staged and 2 * stages <= samples < n_unknown else 1
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
         shares = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
@@ -975,6 +977,11 @@ def estimate_compute(
     samples = [_plan_sample(ws, k.number, gammas, confidence, failed_as, interval) for k in series]
     meta = series[-1].meta
     weights = np.asarray([series[-1].weights[k.stage - 1] for k in series], np.float64)
+    if weights.sum() <= 0:
+        # The stages done so far weigh nothing in the whole (a later one takes every
+        # segment left, ``core.design.stage_weights``): until it is in, they are reported
+        # by their shares of K.
+        weights = np.asarray([series[-1].shares[k.stage - 1] for k in series], np.float64)
     weights /= weights.sum()
     splits = np.cumsum([len(x.sampled_ids) for x in samples])[:-1]
     fails = np.concatenate([x.fails for x in samples])

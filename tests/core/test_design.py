@@ -331,6 +331,18 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
 
 
+def test_the_staged_design_near_a_census_is_as_precise_as_one_uniform_sample():
+    # A model that says nothing (p_n flat: both stages uniform) and K = 0.9 of U: the
+    # design the benchmark draws has one uniform sample's variance (the stages' weights,
+    # core.design.stage_weights), where weighting them by their shares of K gave ~2.7x.
+    rng = np.random.default_rng(4)
+    N = 2000
+    fail = rng.random(N) < 0.05
+    res = staged_trials(np.full(N, 0.05), fail, K=0.9 * N, n_trials=400, rng=rng)
+    assert res.var / res.var_uniform == pytest.approx(1.0, abs=0.08)
+    assert abs(res.p_hat_unbiased.mean() - res.rate) < 3 * res.p_hat_unbiased.std() / 20
+
+
 def _pool(rng, n, kind):
     p = rng.beta(0.05, 10, n)
     p[: n // 8] = p[n // 8 : n // 4]  # ties
