@@ -186,6 +186,7 @@ def test_k_that_takes_every_unknown_segment_is_one_stage_a_census(fitted_ws, tmp
         ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "375", "--json").stdout
     )
     assert (s1["stages"], s1["stage_weights"], s1["to_simulate"]) == (1, [1.0], 375)
+    assert any("one stage, a census" in n for n in s1["notes"])
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
     fails = pq.read_table(truth)["value_0"].to_numpy() <= 0.56

@@ -225,6 +225,7 @@ def estimate_plan(
 
     warnings: list[str] = []
     new_estimate = None  # the note that this plan starts a new estimate beside an earlier one
+    census = None  # the note that K takes every unknown segment, so one stage
     # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
     staged = design == "poisson"
     prev = st.plan_info(ws, number - 1) if number > 1 else None
@@ -369,6 +370,11 @@ def estimate_plan(
         # K that takes every unknown segment is a census: one stage, exact. Split, stage 2
         # would be a census only in expectation (of what stage 1 happened to leave).
         n_stages = stages if staged and 2 * stages <= samples < n_unknown else 1
+        if staged and stages > 1 and samples >= n_unknown:
+            census = (
+                f"K = {samples:g} takes every segment without a level-0 result: one stage, "
+                "a census (the estimate is exact once its results are in)"
+            )
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
         shares = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
@@ -493,7 +499,7 @@ def estimate_plan(
     )  # fmt: skip
     # A new estimate where a screen measured better: said, not done (it is not the default).
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
-    notes = [n for n in [new_estimate, design_note(meta), auto_note or hint] if n]
+    notes = [n for n in [new_estimate, census, design_note(meta), auto_note or hint] if n]
     return {
         "plan": number,
         "plan_file": str(path),
