@@ -284,7 +284,11 @@ def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
     batch_files = sorted(ws.root.glob("batches/batch-*.parquet"))
     plan_at, batch_at = _written(plan_files), _written(batch_files)
     if plan_at is not None and batch_at is not None:
-        return max(plan_at, default=_EPOCH) >= max(batch_at, default=_EPOCH)
+        last_plan, last_batch = max(plan_at, default=_EPOCH), max(batch_at, default=_EPOCH)
+        # Equal records (an older bams-cli's, to the second, in one loop's second) say
+        # nothing of which came last: the modification times, to the nanosecond, do.
+        if last_plan != last_batch:
+            return last_plan > last_batch
     return _newest(ws, "estimates/plan-*.parquet") >= _newest(ws, "batches/batch-*.parquet")
 
 
@@ -292,15 +296,19 @@ _EPOCH = dt.datetime.min.replace(tzinfo=dt.UTC)
 
 
 def _written(paths: list[Path]) -> list[dt.datetime] | None:
-    """Each file's recorded ``written_at``; None if any lacks it or cannot be read."""
+    """Each file's recorded ``written_at``; None if any lacks it, cannot be read, or has
+    no time zone (not one this tool wrote)."""
     out = []
     for path in paths:
         try:
             at = read_metadata(path).get("written_at")
-            out.append(dt.datetime.fromisoformat(at) if at else None)
+            when = dt.datetime.fromisoformat(at) if at else None
         except (OSError, SchemaError, ValueError):
             return None
-    return None if any(a is None for a in out) else out  # type: ignore[return-value]
+        if when is None or when.tzinfo is None:
+            return None
+        out.append(when)
+    return out
 
 
 def _next_step(

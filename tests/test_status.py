@@ -381,3 +381,42 @@ def test_a_study_whose_every_request_was_abandoned_selects_a_new_random_batch(
     record = loop._run(Workspace(toy_ws), opts, "select", "batch", 2, set())
     assert record["picks"] > 0  # a random batch: BAMS would need a model
     assert Workspace(toy_ws).read_batch(2)["strategy"].unique().to_list() == ["random"]
+
+
+def _list_file(path: Path, written_at: str | None, mtime: float) -> None:
+    import os
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {} if written_at is None else {b"bams.written_at": written_at.encode()}
+    pq.write_table(pa.table({"x": [1]}).replace_schema_metadata(meta), path)
+    os.utime(path, (mtime, mtime))
+
+
+@pytest.mark.parametrize(
+    ("plan_at", "batch_at", "plan_newer_on_disk", "estimating"),
+    [
+        # the records decide, whatever the copy did to the modification times
+        ("2026-11-29T09:20:22.500000+00:00", "2026-11-29T09:20:22.100000+00:00", False, True),
+        ("2026-11-29T09:20:22.100000+00:00", "2026-11-29T09:20:22.500000+00:00", True, False),
+        # an older bams-cli's record (to the second) against a newer one's
+        ("2026-11-29T09:20:23.000001+00:00", "2026-11-29T09:20:23+00:00", False, True),
+        # equal records, a record without a time zone, or none: the modification times
+        ("2026-11-29T09:20:22+00:00", "2026-11-29T09:20:22+00:00", False, False),
+        ("2026-11-29T09:20:22+00:00", "2026-11-29T09:20:22+00:00", True, True),
+        ("2026-11-29T09:20:25", "2026-11-29T09:20:22+00:00", False, False),
+        (None, "2026-11-29T09:20:22+00:00", True, True),
+    ],
+)  # fmt: skip
+def test_plans_and_batches_are_ordered_by_their_records_then_their_times(
+    tmp_path, plan_at, batch_at, plan_newer_on_disk, estimating
+):
+    from bams_cli import status as status_mod
+    from bams_cli.state.workspace import Workspace
+
+    t0 = 1_800_000_000.0
+    _list_file(tmp_path / "estimates" / "plan-0001.parquet", plan_at, t0 + plan_newer_on_disk)
+    _list_file(tmp_path / "batches" / "batch-0001.parquet", batch_at, t0 + 0.5)
+    assert status_mod._estimating(Workspace(tmp_path), [{"plan": 1}]) is estimating

@@ -370,7 +370,7 @@ def estimate_plan(
         # K that takes every unknown segment is a census: one stage, exact. Split, stage 2
         # would be a census only in expectation (of what stage 1 happened to leave).
         n_stages = stages if staged and 2 * stages <= samples < n_unknown else 1
-        if staged and stages > 1 and samples >= n_unknown:
+        if staged and stages > 1 and samples >= n_unknown > 0:
             census = (
                 f"K = {samples:g} takes every segment without a level-0 result: one stage, "
                 "a census (the estimate is exact once its results are in)"
