@@ -433,7 +433,12 @@ def _next_step(
         if stale:
             return step("fit", fit, f"{why_fit}; run `{fit}` so the report shows the current model")
         report = ws.report_dir / "summary.json"
-        if _mtime(report) < max(_mtime(Path(plans[-1]["estimate"])), _mtime(ws.model_path)):
+        current = _report_current(ws, Path(plans[-1]["estimate"]))
+        if current is None:  # a report or model of an older bams-cli: by modification time
+            current = _mtime(report) >= max(
+                _mtime(Path(plans[-1]["estimate"])), _mtime(ws.model_path)
+            )
+        if not current:
             cmd = f"bams-cli report -w {w}"
             return step("report", cmd, f"plan {k}'s estimate is computed: run `{cmd}`")
         return step(
@@ -474,6 +479,38 @@ def _to_simulate(entry: dict[str, Any]) -> str:
         return f"{entry['pending_handoff']} ({those} {name} without a result)"
     # No current list of them (a workspace an older bams-cli wrote): say which.
     return f"{those} {entry['handoff']} without a result"
+
+
+def _report_current(ws: Workspace, estimate: Path) -> bool | None:
+    """Whether the report shows the current model and ``estimate``, by what the files
+    record (which a copy keeps, unlike modification times): the model's fit time and
+    observations, and the estimate's plan, gammas, rates and intervals. None when a file
+    does not say (missing, unreadable, or written without those records)."""
+    try:
+        summary = json.loads((ws.report_dir / "summary.json").read_text())
+        model = json.loads(ws.model_path.read_text())
+        est = json.loads(estimate.read_text())
+    except (OSError, ValueError):
+        return None
+    if not all(isinstance(d, dict) for d in (summary, model, est)):
+        return None
+    fit = ("fitted_at", "observations_hash")
+    shown_model = summary.get("model")
+    if not isinstance(shown_model, dict) or any(
+        k not in shown_model or k not in model for k in fit
+    ):
+        return None
+    if any(shown_model[k] != model[k] for k in fit):
+        return False
+    keys = ("gamma", "p_hat", "ci_low", "ci_high", "confidence")
+    shown, latest = summary.get("estimates"), est.get("estimates")
+    if not (isinstance(shown, list) and isinstance(latest, list)):
+        return None
+    if not all(isinstance(e, dict) and "plan" in e for e in shown):
+        return None
+    return [(e["plan"], *(e.get(k) for k in keys)) for e in shown] == [
+        (est.get("plan"), *(e.get(k) for k in keys)) for e in latest if isinstance(e, dict)
+    ]
 
 
 def _mtime(path: Path) -> int:

@@ -219,9 +219,28 @@ def test_a_copied_study_whose_files_lost_their_times_is_still_where_it_was(study
     later = time.time() + 60
     for path in (copy / "batches").iterdir():
         os.utime(path, (later, later))
+    # and the report's older than the estimate and the model it shows
+    for path in (copy / "estimates").iterdir():
+        os.utime(path, (later, later))
+    os.utime(copy / "model.json", (later, later))
     r = invoke(study.runner, "status", "-w", copy, "--json")
     got = json.loads(r.stdout)
     assert (got["phase"], got["next"]["step"]) == ("done", "done")
+
+
+def test_a_report_that_no_longer_shows_the_estimate_is_stale_whatever_its_time(study, tmp_path):
+    # The estimate recomputed at another confidence after the report: the report shows
+    # the old interval, so `report` is next, though its file is the newest in the copy.
+    import os
+    import time
+
+    copy = tmp_path / "ws"
+    shutil.copytree(study.ws, copy)
+    assert invoke(study.runner, "estimate", "-w", copy, "--confidence", "0.8").exit_code == 0
+    later = time.time() + 60
+    os.utime(copy / "report" / "summary.json", (later, later))
+    got = json.loads(invoke(study.runner, "status", "-w", copy, "--json").stdout)
+    assert got["next"]["step"] == "report"
 
 
 def test_status_reads_only(study, tmp_path):
