@@ -546,7 +546,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "abandoned": COUNT,
                             "handoff": PATH,
                             "pending_handoff": nullable(PATH),
-                        }
+                        },
+                        {"written_at": nullable(STR)},
                     )
                 ),
                 "plans": array(
@@ -559,7 +560,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                             "handoff": PATH,
                             "pending_handoff": nullable(PATH),
                             "estimate": nullable(PATH),
-                        }
+                        },
+                        {"written_at": nullable(STR)},
                     )
                 ),
                 "pending": COUNT,

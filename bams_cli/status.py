@@ -102,7 +102,7 @@ def status(root: Path) -> dict[str, Any]:
     plans = _plans(ws, observed)
     model = _model(ws, obs) if has_pool else None
     latest = latest_estimate(ws)
-    estimating = _estimating(ws, plans)
+    estimating = _estimating(ws, plans, batches)
     step = _next_step(
         ws, settings, has_pool, batches, plans, model, estimating, has_results=obs.height > 0
     )
@@ -170,7 +170,8 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
         gone = ws.abandoned_open("batch", n)
         open_ = df.join(observed, on=[SID, "fidelity"], how="anti")
         pending = open_.join(gone, on=[SID, "fidelity"], how="anti").height
-        options = _json(read_metadata(schemas.batch_path(ws.root, n)).get("options"))
+        meta = read_metadata(schemas.batch_path(ws.root, n))
+        options = _json(meta.get("options"))
         # Partly answered: the list of the pending requests alone, while it is current.
         simulate = to_simulate(ws, "batch", n) if 0 < pending < df.height else None
         out.append(
@@ -184,6 +185,7 @@ def _batches(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "abandoned": gone.height,
                 "handoff": str(batch_handoff(ws, n)),
                 "pending_handoff": _pending_list(simulate, batch_handoff(ws, n)),
+                "written_at": meta.get("written_at"),
             }
         )
     return out
@@ -214,6 +216,7 @@ def _plans(ws: Workspace, observed: pl.DataFrame) -> list[dict[str, Any]]:
                 "handoff": str(plan_handoff(ws, k)),
                 "pending_handoff": _pending_list(simulate, plan_handoff(ws, k)),
                 "estimate": str(estimate) if estimate.exists() else None,
+                "written_at": meta.get("written_at"),
             }
         )
     return out
@@ -271,7 +274,7 @@ def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     }
 
 
-def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
+def _estimating(ws: Workspace, plans: list[dict[str, Any]], batches: list[dict[str, Any]]) -> bool:
     """Whether the study is estimating: an estimate plan is newer than the newest batch.
 
     By the times the files record (``written_at``), which a copy keeps: a workspace
@@ -280,9 +283,7 @@ def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
     bams-cli without the record are ordered by modification time, as before."""
     if not plans:
         return False
-    plan_files = sorted(ws.root.glob("estimates/plan-*.parquet"))
-    batch_files = sorted(ws.root.glob("batches/batch-*.parquet"))
-    plan_at, batch_at = _written(plan_files), _written(batch_files)
+    plan_at, batch_at = _written(plans), _written(batches)
     if plan_at is not None and batch_at is not None:
         last_plan, last_batch = max(plan_at, default=_EPOCH), max(batch_at, default=_EPOCH)
         # Equal records (an older bams-cli's, to the second, in one loop's second) say
@@ -295,15 +296,15 @@ def _estimating(ws: Workspace, plans: list[dict[str, Any]]) -> bool:
 _EPOCH = dt.datetime.min.replace(tzinfo=dt.UTC)
 
 
-def _written(paths: list[Path]) -> list[dt.datetime] | None:
-    """Each file's recorded ``written_at``; None if any lacks it, cannot be read, or has
-    no time zone (not one this tool wrote)."""
+def _written(lists: list[dict[str, Any]]) -> list[dt.datetime] | None:
+    """Each batch's or plan's recorded ``written_at`` (``_batches``, ``_plans``); None if
+    any lacks it, or it is not a time with a zone (not one this tool wrote)."""
     out = []
-    for path in paths:
+    for entry in lists:
+        at = entry.get("written_at")
         try:
-            at = read_metadata(path).get("written_at")
-            when = dt.datetime.fromisoformat(at) if at else None
-        except (OSError, SchemaError, ValueError):
+            when = dt.datetime.fromisoformat(at) if isinstance(at, str) else None
+        except ValueError:
             return None
         if when is None or when.tzinfo is None:
             return None

@@ -438,4 +438,5 @@ def test_plans_and_batches_are_ordered_by_their_records_then_their_times(
     t0 = 1_800_000_000.0
     _list_file(tmp_path / "estimates" / "plan-0001.parquet", plan_at, t0 + plan_newer_on_disk)
     _list_file(tmp_path / "batches" / "batch-0001.parquet", batch_at, t0 + 0.5)
-    assert status_mod._estimating(Workspace(tmp_path), [{"plan": 1}]) is estimating
+    plans, batches = [{"plan": 1, "written_at": plan_at}], [{"batch": 1, "written_at": batch_at}]
+    assert status_mod._estimating(Workspace(tmp_path), plans, batches) is estimating
