@@ -523,8 +523,8 @@ def stage_weights(shares: ArrayLike, K: float, n_unknown: float) -> list[float]:
         return [float(x) for x in sh]
     left, inv = float(n_unknown), np.zeros(sh.size)
     for s, share in enumerate(sh):
-        k = min(float(share) * K, left)
-        if left <= 0 or k <= 0:
+        k = min(float(share) * K, left)  # left stays > 0: a census returns below
+        if k <= 0:
             continue
         if k >= left * (1.0 - 1e-12):  # a census of what is left: exact
             return [float(s == j) for j in range(sh.size)]
