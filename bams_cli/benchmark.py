@@ -923,22 +923,28 @@ def mc_explanation(
 
 
 def true_discrepancy_sd(
-    f0: np.ndarray, f1: np.ndarray, transform: dict[str, Any] | None = None
+    f0: np.ndarray, f1: np.ndarray, transform: dict[str, Any] | None = None, scale: float = 1.0
 ) -> float:
-    """sd(g(f1) - g(f0)) over the pool, g the model's output transform (identity if None).
+    """sd(g(f1) - rho g(f0)) over the pool, g the model's output transform (identity if
+    None) and rho the model's scale of the cheap level (``Hyperparameters.scales``).
 
-    The discrepancy a model of g(y) should find; with the identity, sd(f1 - f0).
+    The discrepancy a model of g(y) should find; with the identity and rho = 1, sd(f1 - f0).
     """
     from bams_cli.core.gp import OutputTransform
 
     g = OutputTransform.from_dict(transform)
-    return float(np.std(g.forward(f1) - g.forward(f0)))
+    return float(np.std(g.forward(f1) - scale * g.forward(f0)))
+
+
+def level_scale(hyperparameters: dict[str, Any]) -> float:
+    """The model's scale rho_1 of the cheap level (1 in a model written before scales)."""
+    return float((hyperparameters.get("scales") or [1.0])[0])
 
 
 def discrepancy_sd(hyperparameters: dict[str, Any]) -> float:
-    """The model's sd of y1 - y0 at one segment (``checks.fitted_discrepancy_sd``), in the
-    model's units. Set beside the true sd(f1 - f0) over the pool, it shows whether the fit
-    trusts the cheap level more than it deserves."""
+    """The model's sd of y1 - rho y0 at one segment (``checks.fitted_discrepancy_sd``), in
+    the model's units. Set beside the true sd(f1 - rho f0) over the pool, it shows whether
+    the fit trusts the cheap level more than it deserves."""
     from bams_cli.core.gp import Hyperparameters
     from bams_cli.core.gp.checks import fitted_discrepancy_sd
 
@@ -1021,7 +1027,12 @@ def evaluate_runs(
         if f1 is not None:
             entry["discrepancy_sd_ratio"] = [
                 discrepancy_sd(r.hyperparameters[-1])
-                / true_discrepancy_sd(f0, f1, r.hyperparameters[-1].get("transform"))
+                / true_discrepancy_sd(
+                    f0,
+                    f1,
+                    r.hyperparameters[-1].get("transform"),
+                    level_scale(r.hyperparameters[-1]),
+                )
                 for r in mine
                 if r.hyperparameters[-1]
             ]

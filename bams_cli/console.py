@@ -475,8 +475,10 @@ def fit_summary(s: Mapping[str, Any]) -> None:
         f"{_num(hp['noise'][0] ** 0.5)}, lengthscales {ells(hp['lengthscales0'])}",
     }
     for lv, (scale, ell) in enumerate(zip(hp["outputscales"], hp["lengthscales"], strict=True), 1):
+        rho = float((hp.get("scales") or [1.0] * len(hp["outputscales"]))[lv - 1])
         rows[f"level {lv}"] = (
-            f"discrepancy sd {_num(scale**0.5)}, noise sd {_num(hp['noise'][lv] ** 0.5)}, "
+            (f"{_num(rho)} x level 0 (scale), " if rho != 1.0 else "")
+            + f"discrepancy sd {_num(scale**0.5)}, noise sd {_num(hp['noise'][lv] ** 0.5)}, "
             f"lengthscales {ells(ell)}"
         ) + (f" (no level-{lv} result yet: no data fitted these)" if not per_level[lv] else "")
     if s.get("conditioning"):

@@ -799,12 +799,14 @@ def _study_section(s: dict[str, Any]) -> list[str]:
                 hp["noise"][0] ** 0.5,
             ]
         ]
+        scales = hp.get("scales") or [1.0] * len(hp["outputscales"])
         for lv, (sc, ells) in enumerate(
             zip(hp["outputscales"], hp["lengthscales"], strict=True), 1
         ):
+            rho = float(scales[lv - 1])
             rows.append(
                 [
-                    f"{lv} (discrepancy)",
+                    f"{lv} (discrepancy{'' if rho == 1.0 else f'; {rho:.3g} x level 0'})",
                     model["n_observations_per_level"][lv],
                     sc**0.5,
                     ", ".join(f"{v:.3g}" for v in ells),

@@ -117,7 +117,7 @@ HYPERPARAMETERS: Schema = obj(
         "lengthscales": array(array(NUM)),
         "noise": array(NUM),
     },
-    {"offsets": array(NUM)},
+    {"offsets": array(NUM), "scales": array(NUM)},
 )
 CHECKS: Schema = obj(
     {

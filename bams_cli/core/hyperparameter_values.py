@@ -37,9 +37,11 @@ def checked(
     lengthscales: Any,
     noise: Any,
     offsets: Any = None,
+    scales: Any = None,
 ) -> dict[str, Any]:
     """The hyperparameters as float64: ``mean`` and ``outputscale0`` floats, the rest
-    arrays (lengthscales of shape (L, d), offsets zeros when None), or a ValueError."""
+    arrays (lengthscales of shape (L, d), offsets zeros and scales ones when None), or a
+    ValueError."""
     ell0 = np.array(lengthscales0, dtype=np.float64).reshape(-1)
     d = ell0.size
     s = np.array(outputscales, dtype=np.float64).reshape(-1)
@@ -85,6 +87,12 @@ def checked(
         )
     if np.any(np.abs(offsets_) > MAX_SCALE):
         raise ValueError(f"Hyperparameters: offsets must be within +-{MAX_SCALE:g}")
+    scales_ = np.ones(s.size) if scales is None else np.array(scales, dtype=np.float64).reshape(-1)
+    if scales_.size != s.size or not np.all(np.isfinite(scales_) & (scales_ > 0)):
+        raise ValueError(
+            f"Hyperparameters: scales must be {s.size} finite numbers > 0 (one per level "
+            f">= 1), got {one_line(scales_)}"
+        )
     return {
         "mean": float(mean),
         "outputscale0": float(outputscale0),
@@ -93,6 +101,7 @@ def checked(
         "lengthscales": ell,
         "noise": noise_,
         "offsets": offsets_,
+        "scales": scales_,
     }
 
 
@@ -110,6 +119,7 @@ def parsed_dict(d: dict[str, Any]) -> dict[str, Any]:
         "lengthscales": np.asarray(d["lengthscales"], dtype=np.float64).reshape(s.size, ell0.size),
         "noise": np.asarray(d["noise"], dtype=np.float64),
         "offsets": None if d.get("offsets") is None else np.asarray(d["offsets"], np.float64),
+        "scales": None if d.get("scales") is None else np.asarray(d["scales"], np.float64),
     }
 
 

@@ -149,7 +149,9 @@ def run_setting(problem: str, priors: dict[str, Any], select_kw: dict[str, Any])
             r["p"], fail, K=K, known=r["known"], alpha=est["alpha"],
             defensive=est["defensive"], design=est["design"],
         )  # fmt: skip
-        disc = B.discrepancy_sd(r["hp"]) / B.true_discrepancy_sd(f0, f1, r["hp"].get("transform"))
+        disc = B.discrepancy_sd(r["hp"]) / B.true_discrepancy_sd(
+            f0, f1, r["hp"].get("transform"), B.level_scale(r["hp"])
+        )
         rows.append(
             {
                 "seed": r["seed"],

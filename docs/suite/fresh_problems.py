@@ -439,7 +439,13 @@ def _repeats(out: Path) -> list[str]:
 def _evaluate(out: Path, problem: str) -> dict[str, object]:
     import polars as pl
 
-    from bams_cli.benchmark import discrepancy_sd, fit_prior, screen_default, true_discrepancy_sd
+    from bams_cli.benchmark import (
+        discrepancy_sd,
+        fit_prior,
+        level_scale,
+        screen_default,
+        true_discrepancy_sd,
+    )
     from bams_cli.core.evaluate import staged_trials
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
@@ -482,7 +488,7 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
             raise SystemExit(f"{ws}: --screen auto decided otherwise from the kept workspace")
         f1 = levels["value_1"].to_numpy()
         disc = discrepancy_sd(model["hyperparameters"]) / true_discrepancy_sd(
-            value.to_numpy(), f1, model.get("transform")
+            value.to_numpy(), f1, model.get("transform"), level_scale(model["hyperparameters"])
         )
         runs.append(
             {

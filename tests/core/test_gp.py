@@ -417,7 +417,9 @@ def test_map_recovers_hyperparameters_of_data_drawn_from_the_prior():
         X, levels, y = draw_from_prior(seed, truth, d)
         hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed)).hyperparameters
         log_err_ell.append(np.log(hp.lengthscales0 / truth.lengthscales0))
-        log_err_noise.append(np.log(hp.noise / truth.noise))
+        # Each level's noise in its own units: a cheap level's is rho^2 tau^2.
+        own_units = hp.noise * np.r_[1.0, hp.scales] ** 2
+        log_err_noise.append(np.log(own_units / truth.noise))
     err_ell, err_noise = np.array(log_err_ell), np.array(log_err_noise)
     assert np.all(np.abs(err_ell) < math.log(2.5)), np.exp(err_ell)
     assert np.all(np.abs(err_noise) < math.log(2.5)), np.exp(err_noise)
@@ -436,11 +438,14 @@ def test_prior_modes_are_the_documented_ones():
     d = 12
     X = np.vstack([np.zeros(d), np.ones(d)])
     mode = np.exp(_Priors.for_data(X, 2).mode)
-    s, ell, noise = mode[:2], mode[2 : 2 + 2 * d].reshape(2, d), mode[2 + 2 * d :]
+    s, ell, noise = mode[:2], mode[2 : 2 + 2 * d].reshape(2, d), mode[2 + 2 * d : 4 + 2 * d]
+    rho = mode[4 + 2 * d :]
     np.testing.assert_allclose(ell, math.exp(math.sqrt(2) - 3) * math.sqrt(d), rtol=1e-12)
     assert ell[0, 0] == pytest.approx(0.7094, abs=1e-4)
     np.testing.assert_allclose(s, [1.0, DEFAULT_PRIORS.discrepancy[0]], rtol=1e-12)
     np.testing.assert_allclose(noise, [3e-4, 3e-3], rtol=1e-12)
+    np.testing.assert_allclose(rho, [1.0], rtol=1e-12)
+    assert DEFAULT_PRIORS.level_scale == (1.0, 0.5)
     assert DEFAULT_PRIORS.noise0 == (3e-4, 1.0) and DEFAULT_PRIORS.lengthscale_dim_scaling
     # Natural units: a dimension twice as wide gets twice the lengthscale.
     X2 = X.copy()
@@ -897,7 +902,12 @@ def weak_cheap_level(seed, d=12, n_pairs=5):
     levels = np.r_[np.zeros(7, int), np.ones(n_pairs + 80, int)]
     y = np.r_[f0(X0), f1(X0[:n_pairs]), f1(Xc)] + 0.01 * rng.normal(size=levels.size)
     Xt = rng.normal(size=(4000, d))
-    return X, levels, y, float(np.std(f1(Xt) - f0(Xt)))
+
+    def true_sd(rho=1.0):
+        """sd(f1 - rho f0) over the inputs' distribution."""
+        return float(np.std(f1(Xt) - rho * f0(Xt)))
+
+    return X, levels, y, true_sd
 
 
 def test_a_weak_cheap_level_is_not_trusted_beyond_what_its_pairs_show():
@@ -912,7 +922,7 @@ def test_a_weak_cheap_level_is_not_trusted_beyond_what_its_pairs_show():
     for seed in range(8):
         X, levels, y, true_sd = weak_cheap_level(seed)
         hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed)).hyperparameters
-        log_ratio.append(math.log(fitted_discrepancy_sd(hp) / true_sd))
+        log_ratio.append(math.log(fitted_discrepancy_sd(hp) / true_sd(hp.scales[0])))
     ratios = np.round(np.exp(log_ratio), 2)
     assert abs(np.mean(log_ratio)) < math.log(1.33), ratios
     assert np.all(np.abs(log_ratio) < math.log(2.5)), ratios

@@ -12,10 +12,12 @@ need nothing but the observations the model was fitted on (DESIGN.md, "Paired ev
   so z_i = alpha_i / sqrt([K^-1]_ii) is N(0, 1) under the model. sum z_i^2 far above its
   chi-square(n) range means the model's intervals are too narrow where it was tested.
 * Paired differences. A segment observed at level 0 and at level l gives
-  d = y_l - y_0 = b_l + alpha_l(x) + eps_l - eps_0, whose variance over the pool under the
-  model is s_l + tau_l^2 + tau_0^2 (the fitted discrepancy variance plus both noises). The
-  pairs' sample variance S^2 (the offset b_l drops out) then has (k - 1) S^2 / sigma^2 ~
-  chi-square(k - 1), approximately (pairs far apart are nearly independent).
+  d = y_l - rho_l y_0 = b_l + rho_l (alpha_l(x) + eps_l - eps_0) (rho_l = 1 but for a
+  scaled level, ``Hyperparameters.scales``), whose variance over the pool under the
+  model is rho_l^2 (s_l + tau_l^2 + tau_0^2) (the fitted discrepancy variance plus both
+  noises). The pairs' sample variance S^2 (the offset b_l drops out) then has
+  (k - 1) S^2 / sigma^2 ~ chi-square(k - 1), approximately (pairs far apart are nearly
+  independent).
 
 Both give a one-sided p-value for "the model is overconfident"; a small one is reported
 with its evidence. The mean square of the z_i misses one run far from its prediction among
@@ -54,9 +56,9 @@ class PairCheck:
     level : int
     n_pairs : int
     sd_observed : float
-        Sample sd of y_l - y_0 over the pairs (NaN below 2 pairs).
+        Sample sd of y_l - rho_l y_0 over the pairs (NaN below 2 pairs).
     sd_fitted : float
-        sqrt(s_l + tau_l^2 + tau_0^2), the model's sd of the same difference.
+        rho_l sqrt(s_l + tau_l^2 + tau_0^2), the model's sd of the same difference.
     p_value : float
         P(chi-square(k - 1) >= (k - 1) S^2 / sd_fitted^2); small = overconfident.
     """
@@ -131,12 +133,16 @@ class ModelChecks:
 
 
 def fitted_discrepancy_sd(hp: Hyperparameters, level: int = 1) -> float:
-    """The model's sd of y_l - y_0 at one segment: sqrt(s_l + tau_l^2 + tau_0^2).
+    """The model's sd of y_l - rho_l y_0 at one segment: rho_l sqrt(s_l + tau_l^2 + tau_0^2).
 
-    y_l - y_0 = b_l + alpha_l(x) + eps_l - eps_0 under the model; the offset b_l is a
-    constant and does not count (module docstring).
+    y_l - rho_l y_0 = b_l + rho_l (alpha_l(x) + eps_l - eps_0) under the model
+    (``Hyperparameters.scales``); the offset b_l is a constant and does not count (module
+    docstring). At rho_l = 1 (the additive model) this is the sd of y_l - y_0; for a
+    scaled level it is the discrepancy left once the scale is taken out, in level l's
+    units, which the pool's sd(f_l - rho_l f_0) measures.
     """
-    return math.sqrt(hp.outputscales[level - 1] + hp.noise[level] + hp.noise[0])
+    rho = float(hp.scales[level - 1])  # type: ignore[index]
+    return rho * math.sqrt(hp.outputscales[level - 1] + hp.noise[level] + hp.noise[0])
 
 
 def loo_level0(model: MFGP, rng: np.random.Generator | None = None) -> FloatArray:
@@ -221,16 +227,18 @@ def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:
         )
     hp = model.hyperparameters
     for lv in range(1, model.n_levels):
-        d = paired_differences(seg, model.levels_train, model.y_train, lv)
+        rho = float(hp.scales[lv - 1])  # type: ignore[index]
+        d = paired_differences(seg, model.levels_train, model.y_train, lv, rho)
         k = d.size
         sd_fit = fitted_discrepancy_sd(hp, lv)
         sd_obs = float(np.std(d, ddof=1)) if k >= 2 else math.nan
         p = float(chi2.sf((k - 1) * sd_obs**2 / sd_fit**2, k - 1)) if k >= 2 else math.nan
         checks.pairs.append(PairCheck(lv, k, sd_obs, sd_fit, p))
         if k >= 3 and p < CHECK_LEVEL:
+            what = f"y{lv} - y0" if rho == 1.0 else f"y{lv} - {rho:.3g} y0"
             checks.warnings.append(
                 f"level {lv} differs from level 0 more than the model allows: {k} segments "
-                f"run at both give sd(y{lv} - y0) = {sd_obs:.3g} against the model's "
+                f"run at both give sd({what}) = {sd_obs:.3g} against the model's "
                 f"{sd_fit:.3g} (p = {p:.1g}); the model trusts level {lv} too much"
             )
     return checks

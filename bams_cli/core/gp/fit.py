@@ -21,7 +21,12 @@ from bams_cli.core.gp._numerics import (
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _hyperparameters
 from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.objective import _MAPObjective
-from bams_cli.core.gp.priors import PriorSpec, _Priors, with_pair_modes
+from bams_cli.core.gp.priors import (
+    PriorSpec,
+    _Priors,
+    pair_slopes,
+    with_pair_modes,
+)
 from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
 
 _SCREEN_ITER = 10  # L-BFGS-B iterations every restart gets
@@ -118,7 +123,17 @@ def fit_mfgp(
     Xf, lf, yf = (X, levels, y) if sub is None else (X[sub], levels[sub], y[sub])
     objective = _MAPObjective(Xf, lf, (yf - ybar) / ystd, n_levels, prior)
     bounds = list(zip(prior.lower, prior.upper, strict=True))
+    # The search runs with every cheap level's scale held at 1 (the additive model), then
+    # frees the scales that pairs measure (``priors`` docstring) and continues from its
+    # best point, and from there with each scale at its pairs' slope. The additive search
+    # is thus the one a model without scales runs (its restarts, its optimum), and the
+    # scaled one can only improve on it.
+    first_scale = n_levels * (X.shape[1] + 2)
+    held = [(0.0, 0.0) if i >= first_scale else b for i, b in enumerate(bounds)]
+    slopes = pair_slopes(X, levels, y, n_levels)
+    free = [i for i, sl in enumerate(slopes) if math.isfinite(sl)]
     starts = [prior.mode] + [prior.sample_start(rng) for _ in range(restarts - 1)]
+    starts = [np.clip(t, *np.transpose(held)) for t in starts]
 
     # Restarts in two stages: every start gets a short L-BFGS-B run, then the best
     # _N_POLISH of them continue to convergence. All `restarts` starts still compete for
@@ -128,12 +143,22 @@ def fit_mfgp(
     # One BLAS thread: the matrices are a few hundred wide, where OpenBLAS threads only
     # add synchronisation (measured 30x slower Cholesky at n = 200 on a busy 2-core box).
     with threadpool_limits(limits=1, user_api="blas"):
-        screened = [_minimize(objective, t, bounds, _SCREEN_ITER) for t in starts]
+        screened = [_minimize(objective, t, held, _SCREEN_ITER) for t in starts]
         finite = [r for r in screened if np.isfinite(r.fun)]
         finite.sort(key=lambda r: float(r.fun))
-        polished = [_minimize(objective, r.x, bounds, _MAXITER) for r in finite[:_N_POLISH]]
+        polished = [_minimize(objective, r.x, held, _MAXITER) for r in finite[:_N_POLISH]]
+        results = finite + polished
+        if free and results:
+            scaled = [b if i < first_scale or i - first_scale in free else (0.0, 0.0)
+                      for i, b in enumerate(bounds)]  # fmt: skip
+            base = min(results, key=lambda r: float(r.fun)).x
+            at_slopes = base.copy()
+            for i in free:
+                lo, hi = scaled[first_scale + i]
+                at_slopes[first_scale + i] = np.clip(math.log(max(slopes[i], 1e-300)), lo, hi)
+            results += [_minimize(objective, t, scaled, _MAXITER) for t in (base, at_slopes)]
     best_theta, best_f = None, math.inf
-    for res in finite + polished:
+    for res in results:
         if np.isfinite(res.fun) and res.fun < best_f:
             best_theta, best_f = res.x, float(res.fun)
     if best_theta is None:
@@ -144,7 +169,7 @@ def fit_mfgp(
 
     K, _, _ = objective.covariance(best_theta)
     L, _ = cholesky(K)
-    beta, _ = objective.gls_mean(L)
+    beta, _ = objective.gls_mean(L, objective.scaled_y(best_theta))
     try:
         hp = _hyperparameters(best_theta, beta, X.shape[1], n_levels, ybar, ystd)
     except ValueError as exc:

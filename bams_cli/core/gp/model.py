@@ -199,12 +199,19 @@ class MFGP:
                 "mean diagonal) to factorise: some observations nearly repeat each other "
                 "with almost no noise; predictions near them are slightly smoothed"
             )
+        # A level-l value is rho_l (theta0 + delta_l + eps_l) + b_l (Hyperparameters):
+        # (y - b_l) / rho_l is the additive model's observation, and y's density is its
+        # density over prod rho_l (the Jacobian).
         offsets = np.concatenate([[0.0], hp.offsets])  # type: ignore[arg-type]
-        r = y - hp.mean - offsets[levels]
+        rho = np.concatenate([[1.0], hp.scales])  # type: ignore[arg-type]
+        r = (y - offsets[levels]) / rho[levels] - hp.mean
         self._alpha = cho_solve((self._L, True), r, check_finite=False)  # GPML Alg. 2.1 l. 3
         self.log_marginal_likelihood = float(
-            -0.5 * r @ self._alpha - np.sum(np.log(np.diag(self._L))) - 0.5 * n * LOG_2PI
-        )  # GPML Alg. 2.1 line 7
+            -0.5 * r @ self._alpha
+            - np.sum(np.log(np.diag(self._L)))
+            - 0.5 * n * LOG_2PI
+            - np.sum(np.log(rho[levels]))
+        )  # GPML Alg. 2.1 line 7, with the Jacobian
 
         ybar, ystd = standardise(y)
         v = ystd**2
@@ -216,6 +223,7 @@ class MFGP:
                 outputscales=hp.outputscales / v,
                 lengthscales=hp.lengthscales,
                 noise=hp.noise / v,
+                scales=hp.scales,
             )
         )
         #: The priors ``log_posterior`` is scored under, discrepancy modes resolved

@@ -9,7 +9,7 @@ from scipy.linalg import cho_solve
 from scipy.linalg.lapack import dpotri
 
 from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, GPFitError, IntArray, cholesky
-from bams_cli.core.gp.hyperparameters import _unpack
+from bams_cli.core.gp.hyperparameters import _unpack, _unpack_scales
 from bams_cli.core.gp.priors import _Priors
 from bams_cli.core.kernels import matern52_and_grad_factor
 
@@ -81,6 +81,12 @@ class _MAPObjective:
     (``kernels`` module docstring for dk/dlog ell_j), so one evaluation costs one Cholesky,
     one inverse and O(n^2 d).
 
+    A cheap level's scale rho_l (``Hyperparameters.scales``) enters through the data: its
+    values are scaled about the standardised mean 0, y'_i = y_i / rho_l, and the additive
+    model is fitted to y', whose density is y's times the Jacobian prod rho_l^(n_l). So
+    f gains sum_l n_l log rho_l, and by the envelope theorem again
+    d f / d log rho_l = n_l - sum_{i at level l} alpha_i y'_i.
+
     Parameters
     ----------
     X : ndarray of shape (n, d)
@@ -99,7 +105,7 @@ class _MAPObjective:
         self.levels = levels
         self.y = y
         self.H = mean_basis(levels, n_levels)
-        self._H_y = np.column_stack([self.H, y])
+        self._n_per_level = np.bincount(levels, minlength=n_levels).astype(np.float64)
         self.priors = priors
         self.idx = [np.flatnonzero(levels == lv) for lv in range(n_levels)]
         self.diffs = [_SquaredDiffs(X)] + [
@@ -122,13 +128,19 @@ class _MAPObjective:
         K[np.diag_indices_from(K)] += tau2
         return K, parts, tau2
 
-    def gls_mean(self, L: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def scaled_y(self, theta: FloatArray) -> FloatArray:
+        """y' = y / rho_l at each level-l observation (rho_0 = 1; class docstring)."""
+        rho = _unpack_scales(theta, self.d, self.n_levels)
+        return self.y / rho[self.levels]
+
+    def gls_mean(self, L: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
         """GLS coefficients beta = (H'K^-1 H)^-1 H'K^-1 y and alpha = K^-1 (y - H beta).
 
-        beta has length n_levels: the constant mean, then each level's offset (0 for a
-        level whose offset the data cannot identify, ``mean_basis``).
+        ``y`` is ``scaled_y(theta)``. beta has length n_levels: the constant mean, then
+        each level's offset (0 for a level whose offset the data cannot identify,
+        ``mean_basis``).
         """
-        sol = cho_solve((L, True), self._H_y, check_finite=False)
+        sol = cho_solve((L, True), np.column_stack([self.H, y]), check_finite=False)
         Kinv_H, Kinv_y = sol[:, :-1], sol[:, -1]
         A = self.H.T @ Kinv_H
         keep = np.flatnonzero(np.any(self.H != 0.0, axis=0))
@@ -145,9 +157,17 @@ class _MAPObjective:
         except GPFitError:
             # Only reachable through overflow at extreme bounds; L-BFGS-B backtracks.
             return math.inf, np.zeros_like(theta)
-        beta, alpha = self.gls_mean(L)
-        r = self.y - self.H @ beta
-        nll = 0.5 * float(r @ alpha) + float(np.sum(np.log(np.diag(L)))) + 0.5 * self.n * LOG_2PI
+        y = self.scaled_y(theta)
+        beta, alpha = self.gls_mean(L, y)
+        r = y - self.H @ beta
+        m_ = self.n_levels
+        log_rho = theta[m_ * (self.d + 2) :]
+        nll = (
+            0.5 * float(r @ alpha)
+            + float(np.sum(np.log(np.diag(L))))
+            + 0.5 * self.n * LOG_2PI
+            + float(self._n_per_level[1:] @ log_rho)
+        )
         # d nll / dtheta_i = 1/2 sum(W * dK_i), W = K^-1 - alpha alpha^T. LAPACK potri
         # inverts from the Cholesky factor in 2n^3/3 flops (cho_solve against I costs 2n^3)
         # but fills only the lower triangle T. Rather than symmetrise, use that every dK_i
@@ -164,7 +184,6 @@ class _MAPObjective:
         W *= 2.0
         W -= np.outer(alpha, alpha)
 
-        m_ = self.n_levels
         grad = np.empty_like(theta)
         ell_grad = np.empty((m_, self.d))
         for lv, (Kl, Gl) in enumerate(parts):
@@ -176,8 +195,12 @@ class _MAPObjective:
             ell_grad[lv] = 0.5 * self.diffs[lv].contract(Gl) / ell[lv] ** 2
         grad[m_ : m_ + m_ * self.d] = ell_grad.ravel()
         # dK/dlog tau_l^2 = tau_l^2 on level-l diagonal entries; diag(W) = diag(T) - alpha^2.
-        grad[m_ + m_ * self.d :] = (
+        grad[m_ + m_ * self.d : m_ * (self.d + 2)] = (
             0.5 * noise * np.bincount(self.levels, weights=diag_Kinv - alpha**2, minlength=m_)
+        )
+        # d f / d log rho_l = n_l - sum_{level l} alpha_i y'_i (class docstring)
+        grad[m_ * (self.d + 2) :] = (
+            self._n_per_level[1:] - np.bincount(self.levels, weights=alpha * y, minlength=m_)[1:]
         )
 
         lp, lp_grad = self.priors.log_prior(theta)

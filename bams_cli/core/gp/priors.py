@@ -53,6 +53,13 @@ exp(loc - scale^2), and in log space it is a Gaussian around that mode with sd `
   (100 scattered points in 4-d, noise 1e-2 of the variance: the likelihood is flat within
   0.3 nats over 1e-4..1e-2), the prior decides and the fit returns ~5e-4.
 - noise at levels >= 1: mode 3e-3, log-sd 2: cheap simulators are often noisy; weak.
+- scale rho_l of a cheap level against level 0 (``Hyperparameters.scales``): mode 1,
+  log-sd 0.5 (rho within 0.37..2.7 at two sds). A cheap simulator usually measures the
+  same quantity in the same units, so 1 is the default belief; a level whose values are
+  a multiple of level 0's (a coarser physics step that scales every distance) moves it,
+  since with the additive model such a level's difference from level 0 is a large
+  discrepancy and the level looks weak. rho is free only where the data can identify it,
+  at a cheap level with level-0 runs beside it (``fit_mfgp``); elsewhere it stays 1.
 """
 
 from __future__ import annotations
@@ -69,8 +76,10 @@ from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, IntArray, input_rang
 MIN_PAIRS = 3
 
 
-def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: int) -> FloatArray:
-    """y_l - y_0 for every segment observed at both levels (repeats averaged first).
+def paired_differences(
+    seg: IntArray, levels: IntArray, y: FloatArray, level: int, scale: float = 1.0
+) -> FloatArray:
+    """y_l - scale y_0 for every segment observed at both levels (repeats averaged first).
 
     Parameters
     ----------
@@ -80,11 +89,23 @@ def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: in
     y : ndarray of shape (n,)
     level : int
         The cheap level l >= 1.
+    scale : float
+        rho_l (``Hyperparameters.scales``): y_l - rho_l y_0 is what a scaled level's pairs
+        measure of its discrepancy.
 
     Returns
     -------
     d : ndarray of shape (k,), in increasing segment order
     """
+    y0, yl = paired_values(seg, levels, y, level)
+    return yl - scale * y0
+
+
+def paired_values(
+    seg: IntArray, levels: IntArray, y: FloatArray, level: int
+) -> tuple[FloatArray, FloatArray]:
+    """(y_0, y_l) of every segment observed at both levels, repeats averaged first, in
+    increasing segment order (``paired_differences``)."""
     out = []
     for lv in (0, level):
         m = levels == lv
@@ -93,7 +114,20 @@ def paired_differences(seg: IntArray, levels: IntArray, y: FloatArray, level: in
         out.append((keys, means))
     (k0, m0), (kl, ml) = out
     _, i0, il = np.intersect1d(k0, kl, return_indices=True)
-    return ml[il] - m0[i0]
+    return m0[i0], ml[il]
+
+
+def pair_slopes(X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int) -> list[float]:
+    """The least-squares slope of y_l on y_0 over each cheap level's pairs: a start for
+    its scale rho_l (``fit_mfgp``). NaN below ``MIN_PAIRS`` pairs or where the pairs'
+    y_0 do not vary."""
+    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
+    out = []
+    for lv in range(1, n_levels):
+        y0, yl = paired_values(seg.ravel(), levels, y, lv)
+        v = float(np.var(y0)) if y0.size >= MIN_PAIRS else 0.0
+        out.append(float(np.mean((y0 - y0.mean()) * (yl - yl.mean())) / v) if v > 0 else math.nan)
+    return out
 
 
 def pair_variances(
@@ -113,6 +147,24 @@ def pair_variances(
     return out
 
 
+def pair_moments(
+    X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int
+) -> list[tuple[float, float, float] | None]:
+    """(var y_l, var y_0, cov(y_l, y_0)) over each cheap level's pairs (unbiased), None
+    below ``MIN_PAIRS`` pairs: what the pairs say of y_l - rho y_0 at any scale rho,
+    var = var y_l - 2 rho cov + rho^2 var y_0 (``_Priors.log_prior``)."""
+    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
+    out: list[tuple[float, float, float] | None] = []
+    for lv in range(1, n_levels):
+        y0, yl = paired_values(seg.ravel(), levels, y, lv)
+        if y0.size < MIN_PAIRS:
+            out.append(None)
+            continue
+        c = np.cov(yl, y0, ddof=1)
+        out.append((float(c[0, 0]), float(c[1, 1]), float(c[0, 1])))
+    return out
+
+
 @dataclass(frozen=True)
 class PriorSpec:
     """Modes and log-space sds of the LogNormal priors, in standardised units.
@@ -128,6 +180,7 @@ class PriorSpec:
     discrepancy: tuple[float, float] = (0.01, 1.0)
     noise0: tuple[float, float] = (3e-4, 1.0)
     noise: tuple[float, float] = (3e-3, 2.0)
+    level_scale: tuple[float, float] = (1.0, 0.5)
     lengthscale_scale: float = math.sqrt(3.0)
     lengthscale_dim_scaling: bool = True
     discrepancy_from_pairs: bool = True
@@ -135,6 +188,9 @@ class PriorSpec:
     #: (``with_pair_modes``); None: from ``discrepancy`` and whatever data ``for_data``
     #: is given.
     discrepancy_modes: tuple[float, ...] | None = None
+    #: The pairs' moments behind those modes (``pair_moments``), one entry per cheap
+    #: level (None: too few pairs): the mode at a scale rho other than 1 follows them.
+    pair_moments: tuple[tuple[float, float, float] | None, ...] | None = None
 
 
 #: The priors every fit uses unless told otherwise.
@@ -155,11 +211,14 @@ def with_pair_modes(
     if spec.discrepancy_modes is not None:
         return spec
     modes = [spec.discrepancy[0]] * (n_levels - 1)
+    moments: tuple[tuple[float, float, float] | None, ...] = (None,) * (n_levels - 1)
     if spec.discrepancy_from_pairs and n_levels > 1:
-        for lv, (k, v) in enumerate(pair_variances(X, levels, y_std, n_levels), start=1):
-            if k >= MIN_PAIRS and v > modes[lv - 1]:
-                modes[lv - 1] = v
-    return replace(spec, discrepancy_modes=tuple(float(m) for m in modes))
+        moments = tuple(pair_moments(X, levels, y_std, n_levels))
+        for lv, mom in enumerate(moments, start=1):
+            if mom is not None:
+                a, b, c = mom
+                modes[lv - 1] = max(modes[lv - 1], a - 2.0 * c + b)  # var(y_l - y_0)
+    return replace(spec, discrepancy_modes=tuple(float(m) for m in modes), pair_moments=moments)
 
 
 # Box bounds on the standardised parameters. Wide: the priors do the regularising; the
@@ -168,6 +227,7 @@ _OUTPUTSCALE0_BOUNDS = (1e-4, 1e4)
 _DISCREPANCY_BOUNDS = (1e-6, 1e4)
 _LENGTHSCALE_BOUNDS = (5e-3, 1e3)  # in units of the training range of each dimension
 _NOISE_BOUNDS = (1e-9, 1e1)
+_LEVEL_SCALE_BOUNDS = (0.02, 50.0)
 
 
 @dataclass(frozen=True)
@@ -181,6 +241,13 @@ class _Priors:
     scale: FloatArray
     lower: FloatArray
     upper: FloatArray
+    #: Trailing entries that are cheap levels' scales (``sample_start`` starts them at
+    #: the mode).
+    n_scales: int = 0
+    #: Per cheap level, the pairs' (var y_l, var y_0, cov) and the floor of its
+    #: discrepancy mode; a level without them keeps its fixed mode (``log_prior``).
+    pair_moments: tuple[tuple[float, float, float] | None, ...] = ()
+    discrepancy_floor: float = 0.01
 
     @classmethod
     def for_data(
@@ -223,6 +290,7 @@ class _Priors:
                 np.tile(ell_loc, m),
                 [from_mode(*spec.noise0)],
                 np.full(m - 1, from_mode(*spec.noise)),
+                np.full(m - 1, from_mode(*spec.level_scale)),
             ]
         )
         scale = np.concatenate(
@@ -232,6 +300,7 @@ class _Priors:
                 np.full(m * d, spec.lengthscale_scale),
                 [spec.noise0[1]],
                 np.full(m - 1, spec.noise[1]),
+                np.full(m - 1, spec.level_scale[1]),
             ]
         )
         lower = np.log(
@@ -241,6 +310,7 @@ class _Priors:
                     np.full(m - 1, _DISCREPANCY_BOUNDS[0]),
                     np.tile(_LENGTHSCALE_BOUNDS[0] * np.exp(log_range), m),
                     np.full(m, _NOISE_BOUNDS[0]),
+                    np.full(m - 1, _LEVEL_SCALE_BOUNDS[0]),
                 ]
             )
         )
@@ -251,10 +321,17 @@ class _Priors:
                     np.full(m - 1, _DISCREPANCY_BOUNDS[1]),
                     np.tile(_LENGTHSCALE_BOUNDS[1] * np.exp(log_range), m),
                     np.full(m, _NOISE_BOUNDS[1]),
+                    np.full(m - 1, _LEVEL_SCALE_BOUNDS[1]),
                 ]
             )
         )
-        return cls(loc=loc, scale=scale, lower=lower, upper=upper)
+        moments = spec.pair_moments if spec.pair_moments is not None else (None,) * (m - 1)
+        if len(moments) != m - 1:
+            raise ValueError(f"{len(moments)} pair moment(s) resolved for {m - 1} cheap level(s)")
+        return cls(
+            loc=loc, scale=scale, lower=lower, upper=upper, n_scales=m - 1,
+            pair_moments=tuple(moments), discrepancy_floor=float(spec.discrepancy[0]),
+        )  # fmt: skip
 
     @property
     def mode(self) -> FloatArray:
@@ -265,16 +342,46 @@ class _Priors:
         """A restart point: theta ~ N(mode, scale^2), clipped to the bounds.
 
         Centred on the mode rather than the median: the lengthscale prior's median
-        (4.1 sqrt(d) x range) is far beyond where the MAP usually lands.
+        (4.1 sqrt(d) x range) is far beyond where the MAP usually lands. The cheap levels'
+        scales start at their mode, 1: one smooth dimension each, which every start then
+        finds from there (and the draws for the rest are those of a model without them).
         """
-        return np.clip(rng.normal(self.loc - self.scale**2, self.scale), self.lower, self.upper)
+        mode = self.loc - self.scale**2
+        k = mode.size - self.n_scales
+        start = np.concatenate([rng.normal(mode[:k], self.scale[:k]), mode[k:]])
+        return np.clip(start, self.lower, self.upper)
 
     def log_prior(self, theta: FloatArray) -> tuple[float, FloatArray]:
         """Sum of LogNormal log densities of exp(theta) and its gradient wrt theta.
 
         log p(v) = -log v - log(scale sqrt(2 pi)) - (log v - loc)^2 / (2 scale^2), v = exp(theta).
+
+        A cheap level with pairs has its discrepancy's mode at what the pairs show at the
+        level's scale rho: the variance of y_l - rho y_0 in level 0's units,
+        v(rho) = (var y_l - 2 rho cov + rho^2 var y_0) / rho^2 (at rho = 1 the variance of
+        y_l - y_0), or the fixed floor where that is smaller. It is then a prior on the
+        discrepancy given rho, and its location's derivative in log rho enters the scale's
+        gradient.
         """
-        u = (theta - self.loc) / self.scale
+        loc = self.loc
+        dloc = []  # (discrepancy index, scale index, d loc / d log rho)
+        if any(mom is not None for mom in self.pair_moments):
+            loc = loc.copy()
+            first_scale = self.loc.size - self.n_scales
+            for i, mom in enumerate(self.pair_moments):
+                if mom is None:
+                    continue
+                a, b, c = mom
+                rho = math.exp(theta[first_scale + i])
+                v = a / rho**2 - 2.0 * c / rho + b
+                if v > self.discrepancy_floor:
+                    loc[1 + i] = math.log(v) + self.scale[1 + i] ** 2
+                    dloc.append((1 + i, first_scale + i, (-2.0 * a / rho**2 + 2.0 * c / rho) / v))
+                else:
+                    loc[1 + i] = math.log(self.discrepancy_floor) + self.scale[1 + i] ** 2
+        u = (theta - loc) / self.scale
         value = float(np.sum(-theta - np.log(self.scale) - 0.5 * LOG_2PI - 0.5 * u * u))
         grad = -1.0 - u / self.scale
+        for i_disc, i_rho, dl in dloc:
+            grad[i_rho] += u[i_disc] / self.scale[i_disc] * dl
         return value, grad

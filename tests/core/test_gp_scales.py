@@ -1,0 +1,226 @@
+"""A cheap level on its own scale: y_l = rho_l (theta0 + delta_l + eps_l) + b_l.
+
+The model is checked against the Kennedy-O'Hagan covariance written out densely and
+scipy's multivariate normal, its gradient against central differences, and its fit
+against data whose cheap level is a known multiple of level 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+from threadpoolctl import threadpool_limits
+
+from bams_cli.core.gp import Hyperparameters, fit_mfgp
+from bams_cli.core.gp._numerics import standardise
+from bams_cli.core.gp.checks import check_model, fitted_discrepancy_sd
+from bams_cli.core.gp.objective import _MAPObjective
+from bams_cli.core.gp.priors import PriorSpec, _Priors, pair_slopes, with_pair_modes
+from tests.core.test_gp import mf_data, random_hp, ref_matern52
+
+
+def koh_cov(A, la, B, lb, hp):
+    """Cov(y_a(x), y_b(x')) without noise: rho_a rho_b k0 + [a == b >= 1] rho_a^2 k_a."""
+    rho = np.r_[1.0, hp.scales]
+    K = rho[la][:, None] * rho[lb][None, :] * ref_matern52(A, B, hp.lengthscales0, hp.outputscale0)
+    for i in range(len(A)):
+        for j in range(len(B)):
+            if la[i] == lb[j] and la[i] >= 1:
+                lv = la[i]
+                K[i, j] += (
+                    rho[lv] ** 2
+                    * ref_matern52(
+                        A[i : i + 1], B[j : j + 1], hp.lengthscales[lv - 1], hp.outputscales[lv - 1]
+                    )[0, 0]
+                )
+    return K
+
+
+@pytest.mark.parametrize("n_levels", [2, 3])
+def test_scaled_levels_posterior_and_likelihood_equal_the_dense_koh_model(n_levels):
+    rng = np.random.default_rng(40 + n_levels)
+    d = 2
+    X, levels, y = mf_data(rng, d, n_levels)
+    hp = dataclasses.replace(
+        random_hp(rng, d, n_levels), scales=rng.uniform(0.4, 3.0, n_levels - 1)
+    )
+    rho = np.r_[1.0, hp.scales]
+    y = y * rho[levels]  # the cheap levels on their own scales
+    model = fit_mfgp(X, levels, y, n_levels, rng=rng, fixed=hp)
+
+    K = koh_cov(X, levels, X, levels, hp) + np.diag(rho[levels] ** 2 * hp.noise[levels])
+    mean = rho[levels] * hp.mean + np.r_[0.0, hp.offsets][levels]
+    Xp = rng.normal(size=(6, d))
+    k0_p = ref_matern52(Xp, X, hp.lengthscales0, hp.outputscale0) * rho[levels][None, :]
+    mu_ref = hp.mean + k0_p @ np.linalg.solve(K, y - mean)
+    cov_ref = ref_matern52(Xp, Xp, hp.lengthscales0, hp.outputscale0) - k0_p @ np.linalg.solve(
+        K, k0_p.T
+    )
+    mu, var = model.predict_theta0(Xp)
+    np.testing.assert_allclose(mu, mu_ref, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(var, np.diag(cov_ref), rtol=1e-8, atol=1e-10)
+    assert model.log_marginal_likelihood == pytest.approx(
+        multivariate_normal(mean, K).logpdf(y), rel=1e-10
+    )
+    # A candidate observation's covariance is in level 0's units, (y_l - b_l) / rho_l:
+    # the information it carries about theta0 is the same at any scale.
+    Xc, lc = rng.normal(size=(4, d)), np.arange(4) % n_levels
+    kc = koh_cov(X, levels, Xc, lc, hp)
+    cov_cc = koh_cov(Xc, lc, Xc, lc, hp) + np.diag(rho[lc] ** 2 * hp.noise[lc])
+    cov_cc -= kc.T @ np.linalg.solve(K, kc)
+    np.testing.assert_allclose(
+        model.cov_obs_obs(Xc, lc, Xc, lc),
+        cov_cc / np.outer(rho[lc], rho[lc]),
+        rtol=1e-8,
+        atol=1e-10,
+    )
+
+
+@pytest.mark.parametrize("n_levels", [2, 3])
+def test_gradient_in_the_scales_matches_central_differences(n_levels):
+    rng = np.random.default_rng(7 + n_levels)
+    d = 3
+    X, levels, y = mf_data(rng, d, n_levels, n=30)
+    ybar, ystd = standardise(y)
+    priors = _Priors.for_data(X, n_levels)
+    objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, priors)
+    h = 1e-6
+    with threadpool_limits(limits=1, user_api="blas"):
+        for _ in range(3):
+            theta = priors.sample_start(rng)
+            theta[-(n_levels - 1) :] = rng.normal(0.0, 0.6, n_levels - 1)
+            _, grad = objective(theta)
+            fd = np.array(
+                [
+                    (objective(theta + h * e)[0] - objective(theta - h * e)[0]) / (2 * h)
+                    for e in np.eye(theta.size)
+                ]
+            )
+            np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+def test_gradient_with_the_pairs_prior_matches_central_differences():
+    """With pairs, the discrepancy's prior mode moves with rho; its derivative is in the
+    scale's gradient."""
+    X, levels, y, _ = scaled_study(5, n_pairs=10)
+    ybar, ystd = standardise(y)
+    ys = (y - ybar) / ystd
+    spec = with_pair_modes(None, X, levels, ys, 2)
+    assert spec.pair_moments[0] is not None
+    priors = _Priors.for_data(X, 2, spec)
+    objective = _MAPObjective(X, levels, ys, 2, priors)
+    rng = np.random.default_rng(1)
+    h = 1e-6
+    with threadpool_limits(limits=1, user_api="blas"):
+        for log_rho in (-0.3, 0.4, 0.9):
+            theta = priors.sample_start(rng)
+            theta[-1] = log_rho
+            _, grad = objective(theta)
+            fd = np.array(
+                [
+                    (objective(theta + h * e)[0] - objective(theta - h * e)[0]) / (2 * h)
+                    for e in np.eye(theta.size)
+                ]
+            )
+            np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+def test_the_pairs_prior_mode_is_their_variance_at_the_scale():
+    """At rho the mode is var(y1 - rho y0) / rho^2 over the pairs (level 0's units), the
+    fixed floor where that is smaller."""
+    X, levels, y, _ = scaled_study(6, n_pairs=9)
+    spec = with_pair_modes(None, X, levels, y, 2)
+    priors = _Priors.for_data(X, 2, spec)
+    y0, y1 = y[:9], y[20:29]
+    theta = priors.mode.copy()
+    for rho in (0.7, 1.0, 2.5):
+        theta[-1] = math.log(rho)
+        # the density's log at theta is largest in the discrepancy where it sits at the mode
+        v = max(np.var(y1 - rho * y0, ddof=1) / rho**2, 0.01)
+        grid = np.log(v) + np.linspace(-0.5, 0.5, 101)
+        values = []
+        for g in grid:
+            theta[1] = g
+            values.append(priors.log_prior(theta)[0])
+        assert grid[int(np.argmax(values))] == pytest.approx(np.log(v), abs=0.011)
+    assert spec.discrepancy_modes[0] == pytest.approx(max(np.var(y1 - y0, ddof=1), 0.01))
+
+
+def scaled_study(seed, rho=2.5, n_pairs=12, n0=20, n1=120, d=3):
+    """Level 1 = rho x level 0 + 1 + a small discrepancy; ``n_pairs`` segments at both."""
+    rng = np.random.default_rng(seed)
+    f0 = lambda Z: np.sin(2.0 * Z[:, 0]) + Z[:, 1] ** 2 - 0.5 * Z[:, 2]  # noqa: E731
+    X0 = rng.uniform(-1, 1, (n0, d))
+    X1 = np.vstack([X0[:n_pairs], rng.uniform(-1, 1, (n1 - n_pairs, d))])
+    y0 = f0(X0) + 0.01 * rng.normal(size=n0)
+    y1 = rho * f0(X1) + 1.0 + 0.3 * np.cos(3 * X1[:, 2]) + 0.02 * rng.normal(size=n1)
+    X = np.vstack([X0, X1])
+    levels = np.r_[np.zeros(n0, int), np.ones(n1, int)]
+    return X, levels, np.r_[y0, y1], f0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_cheap_level_on_another_scale_is_fitted_with_its_scale_and_trusted(seed):
+    X, levels, y, f0 = scaled_study(seed)
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed), restarts=4)
+    hp = model.hyperparameters
+    assert hp.scales[0] == pytest.approx(2.5, rel=0.1)
+    # The discrepancy left is small against theta0's variation: the level is trusted.
+    assert math.sqrt(hp.outputscales[0] / hp.outputscale0) < 0.15
+    # What the model says of y1 - rho y0 is what the pool shows at that rho.
+    Z = np.random.default_rng(9).uniform(-1, 1, (5000, 3))
+    rho = hp.scales[0]
+    truth = float(np.std((2.5 - rho) * f0(Z) + 0.3 * np.cos(3 * Z[:, 2])))
+    assert 0.5 < fitted_discrepancy_sd(hp) / truth < 2.0
+    # Its pairs, scaled, are what the model allows: no warning.
+    seg = np.unique(X, axis=0, return_inverse=True)[1].ravel()
+    checks = check_model(model, seg)
+    assert not [w for w in checks.warnings if "differs from level 0" in w]
+    # Level 0 is predicted better than by level 0's runs alone.
+    alone = fit_mfgp(X[levels == 0], levels[levels == 0], y[levels == 0], 1,
+                     rng=np.random.default_rng(seed), restarts=4)  # fmt: skip
+    err = lambda m: float(np.sqrt(np.mean((m.predict_theta0(Z)[0] - f0(Z)) ** 2)))  # noqa: E731
+    assert err(model) < 0.5 * err(alone)
+
+
+def test_held_at_one_the_same_level_looks_weak_and_predicts_worse():
+    """The additive model (the scale held at 1 by a prior of no width) reads 1.5 theta0 as
+    discrepancy: the level looks weak, and level 0 is predicted worse than with the scale."""
+    X, levels, y, f0 = scaled_study(0)
+    Z = np.random.default_rng(9).uniform(-1, 1, (5000, 3))
+    err = lambda m: float(np.sqrt(np.mean((m.predict_theta0(Z)[0] - f0(Z)) ** 2)))  # noqa: E731
+    scaled = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=4)
+    additive = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=4,
+                        priors=PriorSpec(level_scale=(1.0, 1e-4)))  # fmt: skip
+    assert additive.hyperparameters.scales[0] == pytest.approx(1.0, abs=1e-3)
+    ratio = lambda hp: math.sqrt(hp.outputscales[0] / hp.outputscale0)  # noqa: E731
+    assert ratio(additive.hyperparameters) > 0.5 > 0.15 > ratio(scaled.hyperparameters)
+    assert err(scaled) < 0.5 * err(additive)
+
+
+def test_scale_is_held_at_one_without_enough_pairs():
+    X, levels, y, _ = scaled_study(0, n_pairs=2)
+    hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=3).hyperparameters
+    assert hp.scales[0] == 1.0
+    assert math.isnan(pair_slopes(X, levels, y, 2)[0])
+
+
+def test_pair_slopes_are_the_least_squares_slope_of_the_pairs():
+    X, levels, y, _ = scaled_study(3, n_pairs=8)
+    y0, y1 = y[:8], y[20:28]  # the paired segments, one run each
+    ref = np.polyfit(y0, y1, 1)[0]
+    assert pair_slopes(X, levels, y, 2)[0] == pytest.approx(ref, rel=1e-10)
+
+
+def test_models_written_before_scales_read_as_additive():
+    hp = random_hp(np.random.default_rng(0), 2, 3)
+    d = hp.to_dict()
+    assert d["scales"] == [1.0, 1.0]
+    del d["scales"]
+    assert Hyperparameters.from_dict(d) == hp
+    with pytest.raises(ValueError, match="scales must be 2 finite numbers > 0"):
+        Hyperparameters.from_dict({**d, "scales": [1.0, -2.0]})
