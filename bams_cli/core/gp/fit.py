@@ -152,11 +152,21 @@ def fit_mfgp(
             scaled = [b if i < first_scale or i - first_scale in free else (0.0, 0.0)
                       for i, b in enumerate(bounds)]  # fmt: skip
             base = min(results, key=lambda r: float(r.fun)).x
-            at_slopes = base.copy()
-            for i in free:
-                lo, hi = scaled[first_scale + i]
-                at_slopes[first_scale + i] = np.clip(math.log(max(slopes[i], 1e-300)), lo, hi)
-            results += [_minimize(objective, t, scaled, _MAXITER) for t in (base, at_slopes)]
+            # At a scale far from 1 the additive optimum's discrepancy (which took the
+            # scale's share) pulls back towards 1: the starts at the pairs' slopes have
+            # the discrepancy at its prior mode there, from the additive optimum and
+            # from the prior's mode.
+            at_slopes = [base.copy(), prior.mode.copy()]
+            for t in at_slopes:
+                for i in free:
+                    lo, hi = scaled[first_scale + i]
+                    rho = float(np.exp(np.clip(math.log(max(slopes[i], 1e-300)), lo, hi)))
+                    t[first_scale + i] = math.log(rho)
+                    t[1 + i] = math.log(prior.discrepancy_mode_at(i, rho))
+            results += [
+                _minimize(objective, np.clip(t, *np.transpose(scaled)), scaled, _MAXITER)
+                for t in [base, *at_slopes]
+            ]
     best_theta, best_f = None, math.inf
     for res in results:
         if np.isfinite(res.fun) and res.fun < best_f:

@@ -351,6 +351,16 @@ class _Priors:
         start = np.concatenate([rng.normal(mode[:k], self.scale[:k]), mode[k:]])
         return np.clip(start, self.lower, self.upper)
 
+    def discrepancy_mode_at(self, level: int, rho: float) -> float:
+        """The mode of cheap level ``level``'s (1-based index - 1) discrepancy variance at
+        scale rho: its pairs' var(y_l - rho y_0) / rho^2 or the floor, whichever is
+        larger; the fixed mode where it has no pairs (``log_prior``)."""
+        mom = self.pair_moments[level] if level < len(self.pair_moments) else None
+        if mom is None:
+            return math.exp(self.loc[1 + level] - self.scale[1 + level] ** 2)
+        a, b, c = mom
+        return max(a / rho**2 - 2.0 * c / rho + b, self.discrepancy_floor)
+
     def log_prior(self, theta: FloatArray) -> tuple[float, FloatArray]:
         """Sum of LogNormal log densities of exp(theta) and its gradient wrt theta.
 
@@ -373,12 +383,10 @@ class _Priors:
                     continue
                 a, b, c = mom
                 rho = math.exp(theta[first_scale + i])
-                v = a / rho**2 - 2.0 * c / rho + b
+                v = self.discrepancy_mode_at(i, rho)
+                loc[1 + i] = math.log(v) + self.scale[1 + i] ** 2
                 if v > self.discrepancy_floor:
-                    loc[1 + i] = math.log(v) + self.scale[1 + i] ** 2
                     dloc.append((1 + i, first_scale + i, (-2.0 * a / rho**2 + 2.0 * c / rho) / v))
-                else:
-                    loc[1 + i] = math.log(self.discrepancy_floor) + self.scale[1 + i] ** 2
         u = (theta - loc) / self.scale
         value = float(np.sum(-theta - np.log(self.scale) - 0.5 * LOG_2PI - 0.5 * u * u))
         grad = -1.0 - u / self.scale
