@@ -266,7 +266,11 @@ def fit(
         "n_observations_per_level": [int(c) for c in np.bincount(lv, minlength=settings.n_levels)],
         "observations_hash": obs_hash,
         "pool": ws.pool_fingerprint(),
-        "units": "outputscale0, outputscales and noise are variances; lengthscales and mean in the metric's units",
+        "units": (
+            "outputscale0, outputscales and noise are variances; lengthscales and mean in the "
+            "metric's units; a cheap level l's discrepancy and noise in level 0's, its offset "
+            "in its own (y_l = scales[l] (theta0 + discrepancy + noise) + offsets[l])"
+        ),
         "trained": fixed is None,
         "restarts": restarts,
         # The MAP search runs on at most defaults.FIT_SUBSET observations (core.gp.fit_subset);

@@ -15,7 +15,7 @@ import pytest
 from scipy.stats import multivariate_normal
 from threadpoolctl import threadpool_limits
 
-from bams_cli.core.gp import Hyperparameters, fit_mfgp
+from bams_cli.core.gp import MFGP, Hyperparameters, fit_mfgp
 from bams_cli.core.gp._numerics import standardise
 from bams_cli.core.gp.checks import check_model, fitted_discrepancy_sd
 from bams_cli.core.gp.objective import _MAPObjective
@@ -253,3 +253,30 @@ def test_the_scale_is_found_when_the_additive_optimum_holds_it_back(seed):
     hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(seed)).hyperparameters
     assert hp.scales[0] == pytest.approx(2.5, rel=0.05)
     assert math.sqrt(hp.outputscales[0] / hp.outputscale0) < 0.1
+
+
+def test_a_scale_the_fit_cannot_reach_is_reported_with_the_pairs_slope():
+    """A cheap level in other units (20x level 0) is fitted near rho 1 and trusted little;
+    fit's check says what the pairs show. At 2.5x it is fitted, and nothing is said."""
+    said = {}
+    for rho in (20.0, 2.5):
+        X, levels, y = few_level0_runs(0, rho=rho)
+        model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0))
+        seg = np.unique(X, axis=0, return_inverse=True)[1].ravel()
+        said[rho] = [w for w in check_model(model, seg).warnings if "times level 0's" in w]
+    assert not said[2.5]
+    [warning] = said[20.0]
+    assert "level 1's values are 19.9 times level 0's at the 7 segments run at both" in warning
+
+
+def test_the_fitted_offset_is_in_the_cheap_level_s_units():
+    """b_l = rho_l ystd beta_l + (1 - rho_l) ybar: on data far from 0 (ybar 7 away), the
+    fitted offset is the GLS optimum in natural units; moving it lowers the likelihood."""
+    X, levels, y, _ = scaled_study(2)
+    y = y + 7.0
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(2), restarts=3)
+    hp = model.hyperparameters
+    assert hp.scales[0] == pytest.approx(2.5, rel=0.1)
+    for delta in (-0.05, 0.05):
+        moved = MFGP(X, levels, y, 2, dataclasses.replace(hp, offsets=hp.offsets + delta))
+        assert moved.log_marginal_likelihood < model.log_marginal_likelihood - 1e-3

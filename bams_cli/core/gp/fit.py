@@ -132,6 +132,8 @@ def fit_mfgp(
     held = [(0.0, 0.0) if i >= first_scale else b for i, b in enumerate(bounds)]
     slopes = pair_slopes(X, levels, y, n_levels)
     free = [i for i, sl in enumerate(slopes) if math.isfinite(sl)]
+    # A start at the slope needs a slope a scale can be (rho > 0).
+    sloped = [i for i in free if slopes[i] > 0.0]
     starts = [prior.mode] + [prior.sample_start(rng) for _ in range(restarts - 1)]
     starts = [np.clip(t, *np.transpose(held)) for t in starts]
 
@@ -156,11 +158,11 @@ def fit_mfgp(
             # scale's share) pulls back towards 1: the starts at the pairs' slopes have
             # the discrepancy at its prior mode there, from the additive optimum and
             # from the prior's mode.
-            at_slopes = [base.copy(), prior.mode.copy()]
+            at_slopes = [base.copy(), prior.mode.copy()] if sloped else []
             for t in at_slopes:
-                for i in free:
+                for i in sloped:
                     lo, hi = scaled[first_scale + i]
-                    rho = float(np.exp(np.clip(math.log(max(slopes[i], 1e-300)), lo, hi)))
+                    rho = float(np.exp(np.clip(math.log(slopes[i]), lo, hi)))
                     t[first_scale + i] = math.log(rho)
                     t[1 + i] = math.log(prior.discrepancy_mode_at(i, rho))
             results += [
