@@ -637,8 +637,9 @@ def table(out: Path) -> None:
         "their true cheap values (`benchmark.screen_default`); elsewhere the staged design "
         "1,000 times (stage 2 keeping stage 1's p_n), whose coverage and misses are shown "
         "(over the unscreened runs). Recall over plain MC's at the same cost (20 level-0 "
-        "runs plus K). Discrepancy: the model after batch 3, its sd of y1 - y0 over the true "
-        "sd(f1 - f0).",
+        "runs plus K). Discrepancy: the model after batch 3, its sd of y1 - rho y0 over the "
+        "true sd(f1 - rho f0), rho its scale of the cheap level (1 but where pairs show "
+        "another, since 2026-11-29: `common`).",
         "",
         "| problem | N | rate | runs | screened | runs: p_hat / rate, mean | runs: interval "
         "holds the rate / below / above | design: var / uniform | staged design: coverage "

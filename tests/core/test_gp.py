@@ -277,18 +277,21 @@ def test_gradient_matches_central_differences(n_levels):
     ybar, ystd = standardise(y)
     priors = _Priors.for_data(X, n_levels)
     objective = _MAPObjective(X, levels, (y - ybar) / ystd, n_levels, priors)
-    h = 1e-6
+    for _ in range(4):
+        assert_gradient_matches(objective, priors.sample_start(rng))
+
+
+def assert_gradient_matches(objective, theta, h=1e-6):
+    """The objective's analytic gradient at theta equals central differences of it."""
     with threadpool_limits(limits=1, user_api="blas"):  # as fit_mfgp runs it; faster
-        for _ in range(4):
-            theta = priors.sample_start(rng)
-            _, grad = objective(theta)
-            fd = np.array(
-                [
-                    (objective(theta + h * e)[0] - objective(theta - h * e)[0]) / (2 * h)
-                    for e in np.eye(theta.size)
-                ]
-            )
-            np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+        _, grad = objective(theta)
+        fd = np.array(
+            [
+                (objective(theta + h * e)[0] - objective(theta - h * e)[0]) / (2 * h)
+                for e in np.eye(theta.size)
+            ]
+        )
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
 
 
 def test_uncached_squared_differences_give_same_objective(monkeypatch):
