@@ -18,7 +18,13 @@ from bams_cli.core.gp import MFGP, Hyperparameters, fit_mfgp
 from bams_cli.core.gp._numerics import standardise
 from bams_cli.core.gp.checks import check_model, fitted_discrepancy_sd
 from bams_cli.core.gp.objective import _MAPObjective
-from bams_cli.core.gp.priors import PriorSpec, _Priors, pair_slopes, with_pair_modes
+from bams_cli.core.gp.priors import (
+    PriorSpec,
+    _Priors,
+    pair_scales,
+    shows_scale,
+    with_pair_modes,
+)
 from tests.core.test_gp import assert_gradient_matches, mf_data, random_hp, ref_matern52
 
 
@@ -131,14 +137,15 @@ def test_the_pairs_prior_mode_is_their_variance_at_the_scale():
     assert spec.discrepancy_modes[0] == pytest.approx(max(np.var(y1 - y0, ddof=1), 0.01))
 
 
-def scaled_study(seed, rho=2.5, n_pairs=12, n0=20, n1=120, d=3):
-    """Level 1 = rho x level 0 + 1 + a small discrepancy; ``n_pairs`` segments at both."""
+def scaled_study(seed, rho=2.5, n_pairs=12, n0=20, n1=120, d=3, noise=0.02):
+    """Level 1 = rho x level 0 + 1 + a small discrepancy + noise of sd ``noise``;
+    ``n_pairs`` segments at both."""
     rng = np.random.default_rng(seed)
     f0 = lambda Z: np.sin(2.0 * Z[:, 0]) + Z[:, 1] ** 2 - 0.5 * Z[:, 2]  # noqa: E731
     X0 = rng.uniform(-1, 1, (n0, d))
     X1 = np.vstack([X0[:n_pairs], rng.uniform(-1, 1, (n1 - n_pairs, d))])
     y0 = f0(X0) + 0.01 * rng.normal(size=n0)
-    y1 = rho * f0(X1) + 1.0 + 0.3 * np.cos(3 * X1[:, 2]) + 0.02 * rng.normal(size=n1)
+    y1 = rho * f0(X1) + 1.0 + 0.3 * np.cos(3 * X1[:, 2]) + noise * rng.normal(size=n1)
     X = np.vstack([X0, X1])
     levels = np.r_[np.zeros(n0, int), np.ones(n1, int)]
     return X, levels, np.r_[y0, y1], f0
@@ -183,18 +190,32 @@ def test_held_at_one_the_same_level_looks_weak_and_predicts_worse():
     assert err(scaled) < 0.5 * err(additive)
 
 
-def test_scale_is_held_at_one_without_enough_pairs():
-    X, levels, y, _ = scaled_study(0, n_pairs=2)
+@pytest.mark.parametrize(
+    "what, kw",
+    [
+        ("4 pairs", {"n_pairs": 4}),
+        ("a slope of 1.3", {"rho": 1.3}),
+        ("pairs correlated at 0.5", {"rho": 2.5, "noise": 1.5}),
+    ],
+)
+def test_scale_is_held_at_one_where_the_pairs_show_none(what, kw):
+    """Too few pairs, a slope within 1.5 of 1, or pairs that do not track each other:
+    the additive model, exactly (rho 1, not merely near it)."""
+    X, levels, y, _ = scaled_study(0, **kw)
+    assert math.isnan(pair_scales(X, levels, y, 2)[0]), what
     hp = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=3).hyperparameters
-    assert hp.scales[0] == 1.0
-    assert math.isnan(pair_slopes(X, levels, y, 2)[0])
+    assert hp.scales[0] == 1.0, what
 
 
-def test_pair_slopes_are_the_least_squares_slope_of_the_pairs():
+def test_pair_scales_are_the_least_squares_slope_where_pairs_show_a_scale():
     X, levels, y, _ = scaled_study(3, n_pairs=8)
     y0, y1 = y[:8], y[20:28]  # the paired segments, one run each
     ref = np.polyfit(y0, y1, 1)[0]
-    assert pair_slopes(X, levels, y, 2)[0] == pytest.approx(ref, rel=1e-10)
+    assert ref == pytest.approx(2.5, rel=0.1)
+    assert pair_scales(X, levels, y, 2)[0] == pytest.approx(ref, rel=1e-10)
+    assert shows_scale(5, 1.5, 0.9) and shows_scale(5, 1 / 1.5, 0.95)
+    assert not shows_scale(4, 2.5, 0.99) and not shows_scale(5, 1.49, 0.99)
+    assert not shows_scale(5, 2.5, 0.89) and not shows_scale(5, -2.5, 0.99)
 
 
 def test_models_written_before_scales_read_as_additive():

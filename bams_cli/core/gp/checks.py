@@ -24,11 +24,12 @@ with its evidence. The mean square of the z_i misses one run far from its predic
 many close ones (|z| = 5.5 among twenty passed it in a trial study), so the largest |z_i|
 is tested too, Bonferroni over the n runs: P(max |z| >= m) <= n erfc(m / sqrt 2).
 
-A third check is of the cheap level's scale, with no p-value. Where five or more pairs
-track each other closely (correlation >= 0.9), their least-squares slope measures rho_l,
-and a fitted rho_l more than 2x away from it is reported: a cheap level that reports other
-units, 20x level 0's, is fitted at rho about 1.1 and trusted little (the priors are in
-the units of all levels pooled, where level 0's variation is then small).
+A third check is of the cheap level's scale, with no p-value. Where the pairs show a
+scale (``priors.shows_scale``: five or more pairs at correlation >= 0.9, a slope of 1.5
+or more either way), their least-squares slope measures rho_l, and a fitted rho_l more
+than 2x away from it is reported: a cheap level that reports other units, 20x level 0's,
+is fitted at rho about 1.1 and trusted little (the priors are in the units of all levels
+pooled, where level 0's variation is then small).
 """
 
 from __future__ import annotations
@@ -44,15 +45,15 @@ from scipy.stats import chi2
 from bams_cli.core.gp._numerics import FloatArray, IntArray
 from bams_cli.core.gp.hyperparameters import Hyperparameters
 from bams_cli.core.gp.model import MFGP
-from bams_cli.core.gp.priors import paired_differences, paired_values
+from bams_cli.core.gp.priors import (
+    pair_slope,
+    paired_differences,
+    paired_values,
+    shows_scale,
+)
 
 #: A check's p-value below this is reported as a warning.
 CHECK_LEVEL = 0.01
-#: Pairs needed before their slope is set against the model's scale of a cheap level.
-SLOPE_CHECK_PAIRS = 5
-#: ... and the correlation over them that makes their slope a measurement of the scale
-#: (a weak level's slope is its correlation times the ratio of sds, not a scale).
-SLOPE_CHECK_CORR = 0.9
 #: At most this many level-0 points enter the leave-one-out check: each costs an O(n^2)
 #: triangular solve, and 500 standardised residuals pin their mean square to ~+-0.13.
 _MAX_LOO = 500
@@ -156,16 +157,6 @@ def fitted_discrepancy_sd(hp: Hyperparameters, level: int = 1) -> float:
     return rho * math.sqrt(hp.outputscales[level - 1] + hp.noise[level] + hp.noise[0])
 
 
-def _pair_slope(seg: IntArray, levels: IntArray, y: FloatArray, level: int) -> tuple[float, float]:
-    """Least-squares slope of y_l on y_0 over the pairs and their correlation (NaN below 2
-    pairs or without spread)."""
-    y0, yl = paired_values(seg, levels, y, level)
-    if y0.size < 2 or np.ptp(y0) == 0 or np.ptp(yl) == 0:
-        return math.nan, math.nan
-    c = np.cov(yl, y0)
-    return float(c[0, 1] / c[1, 1]), float(c[0, 1] / math.sqrt(c[0, 0] * c[1, 1]))
-
-
 def loo_level0(model: MFGP, rng: np.random.Generator | None = None) -> FloatArray:
     """Standardised leave-one-out residuals z_i at (up to 500) level-0 observations.
 
@@ -255,13 +246,8 @@ def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:
         sd_obs = float(np.std(d, ddof=1)) if k >= 2 else math.nan
         p = float(chi2.sf((k - 1) * sd_obs**2 / sd_fit**2, k - 1)) if k >= 2 else math.nan
         checks.pairs.append(PairCheck(lv, k, sd_obs, sd_fit, p))
-        slope, corr = _pair_slope(seg, model.levels_train, model.y_train, lv)
-        if (
-            k >= SLOPE_CHECK_PAIRS
-            and corr >= SLOPE_CHECK_CORR
-            and slope > 0
-            and max(slope / rho, rho / slope) > 2.0
-        ):
+        slope, corr = pair_slope(*paired_values(seg, model.levels_train, model.y_train, lv))
+        if shows_scale(k, slope, corr) and max(slope / rho, rho / slope) > 2.0:
             checks.warnings.append(
                 f"level {lv}'s values are {slope:.3g} times level 0's at the {k} segments run "
                 f"at both (their least-squares slope), but the model's scale for it is "

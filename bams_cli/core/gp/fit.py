@@ -24,7 +24,7 @@ from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import (
     PriorSpec,
     _Priors,
-    pair_slopes,
+    pair_scales,
     with_pair_modes,
 )
 from bams_cli.core.gp.transform import OutputTransform, candidate_transforms
@@ -124,16 +124,14 @@ def fit_mfgp(
     objective = _MAPObjective(Xf, lf, (yf - ybar) / ystd, n_levels, prior)
     bounds = list(zip(prior.lower, prior.upper, strict=True))
     # The search runs with every cheap level's scale held at 1 (the additive model), then
-    # frees the scales that pairs measure (``priors`` docstring) and continues from its
+    # frees the scales that pairs show (``priors.shows_scale``) and continues from its
     # best point, and from there with each scale at its pairs' slope. The additive search
     # is thus the one a model without scales runs (its restarts, its optimum), and the
     # scaled one can only improve on it.
     first_scale = n_levels * (X.shape[1] + 2)
     held = [(0.0, 0.0) if i >= first_scale else b for i, b in enumerate(bounds)]
-    slopes = pair_slopes(X, levels, y, n_levels)
+    slopes = pair_scales(X, levels, y, n_levels)
     free = [i for i, sl in enumerate(slopes) if math.isfinite(sl)]
-    # A start at the slope needs a slope a scale can be (rho > 0).
-    sloped = [i for i in free if slopes[i] > 0.0]
     starts = [prior.mode] + [prior.sample_start(rng) for _ in range(restarts - 1)]
     starts = [np.clip(t, *np.transpose(held)) for t in starts]
 
@@ -158,9 +156,9 @@ def fit_mfgp(
             # scale's share) pulls back towards 1: the starts at the pairs' slopes have
             # the discrepancy at its prior mode there, from the additive optimum and
             # from the prior's mode.
-            at_slopes = [base.copy(), prior.mode.copy()] if sloped else []
+            at_slopes = [base.copy(), prior.mode.copy()]
             for t in at_slopes:
-                for i in sloped:
+                for i in free:
                     lo, hi = scaled[first_scale + i]
                     rho = float(np.exp(np.clip(math.log(slopes[i]), lo, hi)))
                     t[first_scale + i] = math.log(rho)
