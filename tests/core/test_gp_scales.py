@@ -21,6 +21,7 @@ from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import (
     PriorSpec,
     _Priors,
+    pair_evidence,
     pair_scales,
     shows_scale,
     with_pair_modes,
@@ -194,7 +195,7 @@ def test_held_at_one_the_same_level_looks_weak_and_predicts_worse():
     "what, kw",
     [
         ("4 pairs", {"n_pairs": 4}),
-        ("a slope of 1.3", {"rho": 1.3}),
+        ("a slope of 1.3 with a discrepancy", {"rho": 1.3}),
         ("pairs correlated at 0.5", {"rho": 2.5, "noise": 1.5}),
     ],
 )
@@ -213,9 +214,24 @@ def test_pair_scales_are_the_least_squares_slope_where_pairs_show_a_scale():
     ref = np.polyfit(y0, y1, 1)[0]
     assert ref == pytest.approx(2.5, rel=0.1)
     assert pair_scales(X, levels, y, 2)[0] == pytest.approx(ref, rel=1e-10)
-    assert shows_scale(5, 1.5, 0.9) and shows_scale(5, 1 / 1.5, 0.95)
-    assert not shows_scale(4, 2.5, 0.99) and not shows_scale(5, 1.49, 0.99)
-    assert not shows_scale(5, 2.5, 0.89) and not shows_scale(5, -2.5, 0.99)
+    assert shows_scale(5, 2.0, 0.9, 2.0) and shows_scale(5, 0.4, 0.95, 3.0)
+    assert not shows_scale(4, 2.5, 0.99, 4.0) and not shows_scale(5, 2.5, 0.99, 1.99)
+    assert not shows_scale(5, 2.5, 0.89, 4.0) and not shows_scale(5, -2.5, 0.99, 4.0)
+    # Pairs about a line of slope 2: at correlation 0.9 it cuts the sd of the differences
+    # by 1.44, not 2 (a weak level's few pairs); at 0.99 by 3.65. Closed form with
+    # s = sd(y_l) / sd(y_0) = 2 / corr: sqrt((s^2 - 2 corr s + 1) / (s^2 (1 - corr^2))).
+    rng = np.random.default_rng(0)
+    for corr, gain in ((0.9, 1.435), (0.99, 3.65)):
+        z = rng.standard_normal((2, 200_000))
+        y0 = z[0]
+        yl = 2.0 * (corr * z[0] + math.sqrt(1 - corr**2) * z[1]) / corr  # slope 2
+        k, slope, r, g = pair_evidence(y0, yl)
+        assert (k, slope, r) == (
+            200_000,
+            pytest.approx(2.0, rel=0.01),
+            pytest.approx(corr, abs=0.002),
+        )
+        assert g == pytest.approx(gain, rel=0.02)
 
 
 def test_models_written_before_scales_read_as_additive():

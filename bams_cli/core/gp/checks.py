@@ -25,8 +25,8 @@ many close ones (|z| = 5.5 among twenty passed it in a trial study), so the larg
 is tested too, Bonferroni over the n runs: P(max |z| >= m) <= n erfc(m / sqrt 2).
 
 A third check is of the cheap level's scale, with no p-value. Where the pairs show a
-scale (``priors.shows_scale``: five or more pairs at correlation >= 0.9, a slope of 1.5
-or more either way), their least-squares slope measures rho_l, and a fitted rho_l more
+scale (``priors.shows_scale``: five or more pairs at correlation >= 0.9, whose slope
+halves the sd of their differences), their least-squares slope measures rho_l, and a fitted rho_l more
 than 2x away from it is reported: a cheap level that reports other units, 20x level 0's,
 is fitted at rho about 1.1 and trusted little (the priors are in the units of all levels
 pooled, where level 0's variation is then small).
@@ -46,7 +46,7 @@ from bams_cli.core.gp._numerics import FloatArray, IntArray
 from bams_cli.core.gp.hyperparameters import Hyperparameters
 from bams_cli.core.gp.model import MFGP
 from bams_cli.core.gp.priors import (
-    pair_slope,
+    pair_evidence,
     paired_differences,
     paired_values,
     shows_scale,
@@ -246,8 +246,10 @@ def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:
         sd_obs = float(np.std(d, ddof=1)) if k >= 2 else math.nan
         p = float(chi2.sf((k - 1) * sd_obs**2 / sd_fit**2, k - 1)) if k >= 2 else math.nan
         checks.pairs.append(PairCheck(lv, k, sd_obs, sd_fit, p))
-        slope, corr = pair_slope(*paired_values(seg, model.levels_train, model.y_train, lv))
-        if shows_scale(k, slope, corr) and max(slope / rho, rho / slope) > 2.0:
+        _, slope, corr, gain = pair_evidence(
+            *paired_values(seg, model.levels_train, model.y_train, lv)
+        )
+        if shows_scale(k, slope, corr, gain) and max(slope / rho, rho / slope) > 2.0:
             checks.warnings.append(
                 f"level {lv}'s values are {slope:.3g} times level 0's at the {k} segments run "
                 f"at both (their least-squares slope), but the model's scale for it is "
