@@ -26,7 +26,7 @@ is tested too, Bonferroni over the n runs: P(max |z| >= m) <= n erfc(m / sqrt 2)
 
 A third check is of the cheap level's scale, with no p-value. Where the pairs show a
 scale (``priors.shows_scale``: five or more pairs at correlation >= 0.9, whose slope
-halves the sd of their differences), their least-squares slope measures rho_l, and a fitted rho_l more
+cuts the sd of their differences by 4), their least-squares slope measures rho_l, and a fitted rho_l more
 than 2x away from it is reported: a cheap level that reports other units, 20x level 0's,
 is fitted at rho about 1.1 and trusted little (the priors are in the units of all levels
 pooled, where level 0's variation is then small).
