@@ -614,7 +614,7 @@ reports [0.0035, 0.0486] against 0.0510 (under the shares' weights its upper lim
 reached the rate). A tail draw of the design, whose below-misses are 3.6% of draws
 for that seed (3.9% under the old weights): were the 98 runs a uniform sample, Clopper and
 Pearson's exact 90% interval for one failure in them would end at 0.047 of the unknown
-segments, about 0.047 of the pool with the known failure, below the rate too."""
+segments, about 0.047 of the pool with the known failure, below the rate too. common rerun 2026-11-29 (12:51-13:18 at d8123ba, the cheap level's scale in the model, docs/suite/level_scale.md; table 13:18-13:26): after batch 3 seven runs' pairs (7 each, slopes 2.50-2.65, correlation 0.991-0.999) showed a scale, cutting the sd of their differences by 4.7-13.9, and the fit took it (rho 2.42-2.57), so the level's discrepancy came to 0.08-0.15 of level 0's signal and --screen auto screened those 7 (none before). The design's variance over uniform's fell from 0.424 [0.815] to 0.134 [0.663] (the screened seven 0.017-0.098), recall over plain MC rose from 1.3x to 2.6x (1.6x-3.8x on the screened seven), and the fitted discrepancy, now set beside the pool's sd(f1 - rho f0) at the fitted rho, is 1.40-2.06 of the truth (1.53-3.12 of sd(f1 - f0) before). 7 of 8 intervals held the rate; the other, seed 6, lay above it as before (p_hat 1.045 of the rate), the one run that did not screen: its 8 pairs (correlation 0.986) cut the sd by 3.75, under the gate's 4, so its model after batch 3 stayed additive (discrepancy 3.2 times level 0's signal); unscreened, it ran no more cheap runs, and its model stayed additive to the end."""
 
 
 def table(out: Path) -> None:
