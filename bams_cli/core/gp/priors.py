@@ -142,15 +142,6 @@ def paired_values(
     return m0[i0], ml[il]
 
 
-def pair_slope(y0: FloatArray, yl: FloatArray) -> tuple[float, float]:
-    """(least-squares slope of y_l on y_0, their correlation) over pairs; NaN below two
-    pairs or where either level's values do not vary."""
-    if y0.size < 2 or np.ptp(y0) == 0 or np.ptp(yl) == 0:
-        return math.nan, math.nan
-    c = np.cov(yl, y0)
-    return float(c[0, 1] / c[1, 1]), float(c[0, 1] / math.sqrt(c[0, 0] * c[1, 1]))
-
-
 def shows_scale(k: int, slope: float, corr: float, sd_ratio: float) -> bool:
     """Whether k pairs measure a scale: enough of them (``SCALE_PAIRS``), tracking
     closely (``SCALE_CORR``), at a positive slope that cuts the sd of what they show,
@@ -159,14 +150,18 @@ def shows_scale(k: int, slope: float, corr: float, sd_ratio: float) -> bool:
 
 
 def pair_evidence(y0: FloatArray, yl: FloatArray) -> tuple[int, float, float, float]:
-    """(pairs, slope, correlation, sd(y_l - y_0) / sd(y_l - slope y_0)) over pairs: what
-    ``shows_scale`` judges (NaN where undefined; the ratio inf on an exact line)."""
-    slope, corr = pair_slope(y0, yl)
-    if not math.isfinite(slope):
-        return int(y0.size), slope, corr, math.nan
-    rest = float(np.std(yl - slope * y0))
-    diff = float(np.std(yl - y0))
-    return int(y0.size), slope, corr, (diff / rest if rest > 0 else math.inf)
+    """(pairs, least-squares slope of y_l on y_0, their correlation, sd(y_l - y_0) over
+    sd(y_l - slope y_0)) over pairs: what ``shows_scale`` judges. From one covariance
+    (a = var y_l, b = var y_0, c = cov): slope c / b, the two variances a - 2c + b and
+    a - c^2 / b. NaN below two pairs or where either level's values do not vary; the
+    ratio inf on an exact line."""
+    k = int(y0.size)
+    if k < 2 or np.ptp(y0) == 0 or np.ptp(yl) == 0:
+        return k, math.nan, math.nan, math.nan
+    (a, c), (_, b) = np.cov(yl, y0)
+    rest = a - c * c / b
+    ratio = math.sqrt((a - 2.0 * c + b) / rest) if rest > 0 else math.inf
+    return k, float(c / b), float(c / math.sqrt(a * b)), ratio
 
 
 def pair_scales(X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int) -> list[float]:
