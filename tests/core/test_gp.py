@@ -836,10 +836,22 @@ def test_score_of_a_large_threaded_model_equals_a_dense_scipy_posterior():
 # ------------------------------------------------------- discrepancy prior from pairs
 
 
+def pair_variances(X, levels, y, n_levels):
+    """(pairs, unbiased variance of y_l - y_0 over them) per cheap level, from the pairs'
+    moments the discrepancy prior is built from."""
+    from bams_cli.core.gp.priors import pair_moments, paired_differences
+
+    seg = np.unique(X, axis=0, return_inverse=True)[1].ravel()
+    out = []
+    for lv in range(1, n_levels):
+        d = paired_differences(seg, levels, y, lv)
+        mom = pair_moments(X, levels, y, n_levels)[lv - 1]
+        out.append((d.size, math.nan if mom is None else mom[0] - 2 * mom[2] + mom[1]))
+    return out
+
+
 def test_pair_variances_equal_a_brute_force_count():
     """Pairs are inputs seen at level 0 and at the cheap level, repeats averaged first."""
-    from bams_cli.core.gp.priors import pair_variances
-
     rng = np.random.default_rng(7)
     sites = rng.normal(size=(9, 3))
     which = rng.integers(0, 9, size=60)
@@ -935,7 +947,7 @@ def test_the_reported_log_posterior_is_the_map_objective_under_the_pairs_prior()
     """On a study with pairs and a metric far from unit scale, ``log_posterior`` is the
     negative MAP objective (natural units) built with the pairs' discrepancy mode, which
     is the standardised pairs' variance: the fit and the model use one prior."""
-    from bams_cli.core.gp.priors import pair_variances, with_pair_modes
+    from bams_cli.core.gp.priors import with_pair_modes
 
     X, levels, y0, _ = weak_cheap_level(3)
     y = 40.0 * y0 + 7.0

@@ -22,7 +22,7 @@ exp(loc - scale^2), and in log space it is a Gaussian around that mode with sd `
   (docs/reproduction/README.md, "What moved the numbers").
   Pairs move the mode: once ``MIN_PAIRS`` segments have been run at level 0 and at the
   cheap level, the mode is the sample variance of their differences y_l - y_0
-  (standardised) when that is larger than 0.01 (``pair_variances``). The pairs are the
+  (standardised) when that is larger than 0.01 (``pair_moments``). The pairs are the
   one direct measurement of the discrepancy, but a handful of them against a hundred
   cheap-only runs could not pull the MAP away from a fixed mode of 0.01: on the suite's
   weak_cheap (corr(f0, f1) 0.59) the fitted sd of y1 - y0 was on average 0.69 of the truth, seeds
@@ -172,23 +172,6 @@ def pair_scales(X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int) -
     for lv in range(1, n_levels):
         k, slope, corr, gain = pair_evidence(*paired_values(seg.ravel(), levels, y, lv))
         out.append(slope if shows_scale(k, slope, corr, gain) else math.nan)
-    return out
-
-
-def pair_variances(
-    X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int
-) -> list[tuple[int, float]]:
-    """(number of pairs, variance of y_l - y_0 over them) for each cheap level l >= 1.
-
-    A pair is an input observed at level 0 and at level l (identical rows of X stand for
-    one segment; ``paired_differences``). The variance is the unbiased sample variance,
-    NaN below two pairs.
-    """
-    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
-    out = []
-    for lv in range(1, n_levels):
-        d = paired_differences(seg.ravel(), levels, y, lv)
-        out.append((int(d.size), float(np.var(d, ddof=1)) if d.size >= 2 else math.nan))
     return out
 
 
