@@ -1,4 +1,4 @@
-"""Eight problems unlike the suite's, run through the CLI the way a study runs it.
+"""Nine problems unlike the suite's, run through the CLI the way a study runs it.
 
     .venv/bin/python docs/suite/fresh_problems.py make /tmp/fresh            # the problems
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh cancer 0 1 2 3 4 5 6 7
@@ -9,6 +9,7 @@
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh scattered 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh veryrare 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh common 0 1 2 3 4 5 6 7
+    .venv/bin/python docs/suite/fresh_problems.py run /tmp/fresh hview 0 1 2 3 4 5 6 7
     .venv/bin/python docs/suite/fresh_problems.py repeat /tmp/fresh blind 4 20  # (after run)
     .venv/bin/python docs/suite/fresh_problems.py table /tmp/fresh           # the .md/.json
 
@@ -52,6 +53,10 @@ the defaults were fixed, to check them on data built another way:
   between the stages; the cheap level is on another scale, f1 = 2.5 f0 + 1 plus a
   latent-dependent bias and noise (corr 0.99, but sd(f1 - f0) 1.76 against sd(f0) 1.09:
   the model's additive discrepancy cannot take a scale).
+* ``hview`` (added 2026-11-29): a 64-d view (a two-layer tanh network) of a 12-d latent,
+  rate 0.5% in 20,000, three failure modes; the cheap level has a latent-dependent bias
+  and noise (corr(f0, f1) 0.89) and does not see one mode (it sees 64% of the failures):
+  the shape of issue 11's problem H, written anew.
 
 ``run`` drives each seed as a Makefile would, with the shipped defaults and no truth given
 to the tool (the simulator is ``bams-cli simulate`` reading the truth file):
@@ -87,7 +92,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 BAMS = str(ROOT / ".venv" / "bin" / "bams-cli")
-PROBLEMS = ("cancer", "ties", "blind", "classif", "braking", "scattered", "veryrare", "common")
+PROBLEMS = (
+    "cancer", "ties", "blind", "classif", "braking", "scattered", "veryrare", "common", "hview",
+)  # fmt: skip
 DISCOVERY_COST = 10 + 5 + 5  # the loop's three batches, in level-0 runs
 
 
@@ -153,6 +160,7 @@ def make(out: Path, data_seed: int = 0) -> None:
     _make_scattered(out, data_seed)
     _make_veryrare(out, data_seed)
     _make_common(out, data_seed)
+    _make_hview(out, data_seed)
 
 
 def _make_classif(out: Path, data_seed: int) -> None:
@@ -305,6 +313,35 @@ def _make_common(out: Path, data_seed: int) -> None:
     W = rng.normal(0, 1, (4, 12)) / 2.0 * 1.5
     X = np.tanh(U @ W + rng.normal(0, 0.3, 12)) + rng.normal(0, 0.03, (n, 12))
     _save(out, "common", X, f0, f1, float(np.quantile(f0, 0.06)))
+
+
+def _make_hview(out: Path, data_seed: int) -> None:
+    """``hview`` (2026-11-29): a 64-d view of a 12-d latent, a rate of about 0.5%, and a
+    cheap level biased by a latent-dependent amount that hides one of the three failure
+    modes: the shape of the first problem issue 11 was measured on (H), written anew. The
+    embedding is a two-layer tanh network of the latent and 4 nuisances, with noise."""
+    n, d = 20_000, 12
+    rng = np.random.default_rng(20261202 + data_seed)
+    U = rng.standard_normal((n, d))
+    base = (
+        2.0 + 0.4 * np.sin(1.2 * U[:, 0]) + 0.3 * U[:, 1] * np.tanh(U[:, 2])
+        - 0.1 * U[:, 3] ** 2 + 0.25 * np.cos(U[:, 4] - U[:, 5])
+    )  # fmt: skip
+    ra = ((U[:, 6] - 1.6) ** 2 + (U[:, 7] + 1.2) ** 2) / 0.7
+    rb = ((U[:, 8] + 1.7) ** 2 + (U[:, 9] - 1.0) ** 2 + 0.5 * U[:, 10] ** 2) / 0.9
+    rc = ((U[:, 0] - 1.9) ** 2 + (U[:, 11] - 1.5) ** 2) / 0.5
+    f0 = base - 2.4 * np.exp(-ra) - 2.3 * np.exp(-rb) - 2.2 * np.exp(-rc)
+    bias = (
+        0.2 * np.tanh(U[:, 3]) + 0.15 * U[:, 4] + 0.2 * np.sin(U[:, 10])
+        + 1.6 * np.exp(-rc)  # the cheap level does not see mode c
+    )  # fmt: skip
+    f1 = f0 + bias + 0.15 * rng.standard_normal(n)
+    Z = np.hstack([U, rng.standard_normal((n, 4))])
+    W1 = rng.normal(0, 1, (Z.shape[1], 48)) / np.sqrt(Z.shape[1]) * 1.5
+    H = np.tanh(Z @ W1 + rng.normal(0, 0.3, 48))
+    W2 = rng.normal(0, 1, (48, 64)) / np.sqrt(48) * 1.5
+    X = np.tanh(H @ W2 + rng.normal(0, 0.3, 64)) + rng.normal(0, 0.03, (n, 64))
+    _save(out, "hview", X, f0, f1, float(np.quantile(f0, 0.005)))
 
 
 def run(out: Path, problem: str, seeds: list[int]) -> None:
