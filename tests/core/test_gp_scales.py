@@ -184,7 +184,7 @@ def test_held_at_one_the_same_level_looks_weak_and_predicts_worse():
     err = lambda m: float(np.sqrt(np.mean((m.predict_theta0(Z)[0] - f0(Z)) ** 2)))  # noqa: E731
     scaled = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=4)
     additive = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), restarts=4,
-                        priors=PriorSpec(level_scale=(1.0, 1e-4)))  # fmt: skip
+                        priors=PriorSpec(level_scale=(1.0, 1e-4), scale_from_pairs=False))  # fmt: skip
     assert additive.hyperparameters.scales[0] == pytest.approx(1.0, abs=1e-3)
     ratio = lambda hp: math.sqrt(hp.outputscales[0] / hp.outputscale0)  # noqa: E731
     assert ratio(additive.hyperparameters) > 0.5 > 0.15 > ratio(scaled.hyperparameters)
@@ -273,18 +273,43 @@ def test_the_scale_is_found_when_the_additive_optimum_holds_it_back(seed):
     assert math.sqrt(hp.outputscales[0] / hp.outputscale0) < 0.1
 
 
-def test_a_scale_the_fit_cannot_reach_is_reported_with_the_pairs_slope():
-    """A cheap level in other units (20x level 0) is fitted near rho 1 and trusted little;
-    fit's check says what the pairs show. At 2.5x it is fitted, and nothing is said."""
-    said = {}
-    for rho in (20.0, 2.5):
-        X, levels, y = few_level0_runs(0, rho=rho)
-        model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0))
-        seg = np.unique(X, axis=0, return_inverse=True)[1].ravel()
-        said[rho] = [w for w in check_model(model, seg).warnings if "times level 0's" in w]
-    assert not said[2.5]
-    [warning] = said[20.0]
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_cheap_level_in_other_units_is_fitted_as_in_level_0_s(seed):
+    """A cheap level reporting other units (its values times 1/50, 8 or 40: scales 0.05,
+    20 and 100) is the same model: the scale follows the units, the discrepancy and level
+    0's posterior do not move. Until the data were standardised in level 0's units and the
+    scale's prior centred on the pairs' slope, the priors were in the pooled units, and a
+    20x level was fitted at rho 1.1 with a discrepancy 25 times theta0's signal."""
+    X, levels, y = few_level0_runs(seed)
+    Z = np.random.default_rng(9).normal(size=(2000, 12))
+    fits = {}
+    for c in (1.0, 1 / 50, 8.0, 40.0):
+        yc = np.where(levels == 1, c * y, y)
+        model = fit_mfgp(X, levels, yc, 2, rng=np.random.default_rng(seed))
+        fits[c] = (model.hyperparameters, *model.predict_theta0(Z))
+    hp1, mu1, sd1 = fits[1.0]
+    assert hp1.scales[0] == pytest.approx(2.5, rel=0.05)
+    for c, (hp, mu, sd) in fits.items():
+        assert hp.scales[0] == pytest.approx(c * hp1.scales[0], rel=1e-3), c
+        assert hp.outputscales[0] == pytest.approx(hp1.outputscales[0], rel=0.02), c
+        assert hp.offsets[0] == pytest.approx(c * hp1.offsets[0], rel=0.01, abs=1e-3 * c), c
+        assert float(np.max(np.abs(mu - mu1) / sd1)) < 0.15, c
+        assert float(np.max(np.abs(sd / sd1 - 1.0))) < 0.01, c
+
+
+def test_a_scale_the_model_holds_away_from_its_pairs_is_reported_with_their_slope():
+    """Hyperparameters held at rho 1 (``--fixed-hyperparameters``) on a level 20x level
+    0's: fit's check says what the pairs show. The fitted model says nothing."""
+    X, levels, y = few_level0_runs(0, rho=20.0)
+    seg = np.unique(X, axis=0, return_inverse=True)[1].ravel()
+    fitted = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0))
+    assert fitted.hyperparameters.scales[0] == pytest.approx(20.0, rel=0.05)
+    assert not [w for w in check_model(fitted, seg).warnings if "times level 0's" in w]
+    held = dataclasses.replace(fitted.hyperparameters, scales=np.ones(1))
+    model = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0), fixed=held)
+    [warning] = [w for w in check_model(model, seg).warnings if "times level 0's" in w]
     assert "level 1's values are 19.9 times level 0's at the 7 segments run at both" in warning
+    assert "the model's scale for it is 1 (held fixed" in warning
 
 
 def test_the_fitted_offset_is_in_the_cheap_level_s_units():

@@ -27,9 +27,9 @@ is tested too, Bonferroni over the n runs: P(max |z| >= m) <= n erfc(m / sqrt 2)
 A third check is of the cheap level's scale, with no p-value. Where the pairs show a
 scale (``priors.shows_scale``: five or more pairs at correlation >= 0.9, whose slope
 cuts the sd of their differences by 4), their least-squares slope measures rho_l, and a fitted rho_l more
-than 2x away from it is reported: a cheap level that reports other units, 20x level 0's,
-is fitted at rho about 1.1 and trusted little (the priors are in the units of all levels
-pooled, where level 0's variation is then small).
+than 2x away from it is reported. The fit centres the scale's prior on that slope, so
+this is rare there; hyperparameters held fixed (``--fixed-hyperparameters``), or a fit in
+which a discrepancy explained the pairs better, meet it.
 """
 
 from __future__ import annotations
@@ -253,9 +253,8 @@ def check_model(model: MFGP, seg: IntArray, names: Any = None) -> ModelChecks:
             checks.warnings.append(
                 f"level {lv}'s values are {slope:.3g} times level 0's at the {k} segments run "
                 f"at both (their least-squares slope), but the model's scale for it is "
-                f"{rho:.3g}: it could not fit that scale (its priors are in the units of all "
-                "levels pooled), so it trusts the level less than the pairs suggest; if "
-                f"level {lv} reports other units than level 0, convert its results"
+                f"{rho:.3g} (held fixed, or a discrepancy explained the pairs better), so "
+                "it trusts the level less than the pairs suggest"
             )
         if k >= 3 and p < CHECK_LEVEL:
             what = f"y{lv} - y0" if rho == 1.0 else f"y{lv} - {rho:.3g} y0"

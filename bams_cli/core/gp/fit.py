@@ -16,7 +16,6 @@ from bams_cli.core.gp._numerics import (
     IntArray,
     check_data,
     cholesky,
-    standardise,
 )
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _hyperparameters
 from bams_cli.core.gp.model import MFGP
@@ -24,6 +23,7 @@ from bams_cli.core.gp.objective import _MAPObjective
 from bams_cli.core.gp.priors import (
     PriorSpec,
     _Priors,
+    level0_standardise,
     pair_scales,
     with_pair_modes,
 )
@@ -116,7 +116,7 @@ def fit_mfgp(
     if restarts < 1:
         raise GPFitError(f"restarts must be >= 1, got {restarts}")
 
-    ybar, ystd = standardise(y)
+    ybar, ystd = level0_standardise(X, levels, y, n_levels)
     priors = with_pair_modes(priors, X, levels, (y - ybar) / ystd, n_levels)
     prior = _Priors.for_data(X, n_levels, priors)
     sub = fit_subset(levels, n_levels, max_fit, rng)
@@ -241,7 +241,7 @@ def condition(
     """
     X, levels, y = check_data(X, levels, y, n_levels)
     n = y.size
-    ybar, ystd = standardise(y)
+    ybar, ystd = level0_standardise(X, levels, y, n_levels)
     priors = with_pair_modes(priors, X, levels, (y - ybar) / ystd, n_levels)
     cap = max_conditioned(max_memory)
     rows = conditioning_subset(levels, n_levels, cap)

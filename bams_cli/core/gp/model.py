@@ -24,10 +24,9 @@ from bams_cli.core.gp._numerics import (
     check_data,
     check_levels,
     cholesky_inplace,
-    standardise,
 )
 from bams_cli.core.gp.hyperparameters import Hyperparameters, _pack
-from bams_cli.core.gp.priors import PriorSpec, _Priors, with_pair_modes
+from bams_cli.core.gp.priors import PriorSpec, _Priors, level0_standardise, with_pair_modes
 from bams_cli.core.kernels import (
     matern52,
     matern52_aug_lower,
@@ -213,7 +212,7 @@ class MFGP:
             - np.sum(np.log(rho[levels]))
         )  # GPML Alg. 2.1 line 7, with the Jacobian
 
-        ybar, ystd = standardise(y)
+        ybar, ystd = level0_standardise(X, levels, y, n_levels)
         v = ystd**2
         theta_std = _pack(
             Hyperparameters(

@@ -53,12 +53,18 @@ exp(loc - scale^2), and in log space it is a Gaussian around that mode with sd `
   (100 scattered points in 4-d, noise 1e-2 of the variance: the likelihood is flat within
   0.3 nats over 1e-4..1e-2), the prior decides and the fit returns ~5e-4.
 - noise at levels >= 1: mode 3e-3, log-sd 2: cheap simulators are often noisy; weak.
-- scale rho_l of a cheap level against level 0 (``Hyperparameters.scales``): mode 1,
-  log-sd 0.5 (rho within 0.37..2.7 at two sds). A cheap simulator usually measures the
-  same quantity in the same units, so 1 is the default belief; a level whose values are
-  a multiple of level 0's (a coarser physics step that scales every distance) moves it,
-  since with the additive model such a level's difference from level 0 is a large
-  discrepancy and the level looks weak. rho is free only where the level's pairs show a
+- scale rho_l of a cheap level against level 0 (``Hyperparameters.scales``): log-sd 0.5
+  about the level's pairs' least-squares slope (rho within 0.37..2.7 times it at two
+  sds). A level whose values are a multiple of level 0's (a coarser physics step that
+  scales every distance, a simulator in feet, a cheaper model's margin on another scale)
+  is the case for it, since with the additive model such a level's difference from level
+  0 is a large discrepancy and the level looks weak. The data are then standardised with
+  that level's values put into level 0's units along the pairs' line
+  (``level0_standardise``), so every other prior is in level 0's units whatever units the
+  level reports: times 1/50, 8 or 40, the same level gives the same discrepancy and level-0
+  posterior, its scale moving with the units (until 2026-11-29 the scale's mode was 1 and
+  the units those of all levels pooled: a level 20x level 0's was fitted at rho 1.1, its
+  discrepancy 25 times theta0's signal). rho is free only where the level's pairs show a
   scale (``shows_scale``: five or more pairs at correlation >= 0.9 whose least-squares
   slope cuts the sd of their differences by 4 or more, sd(y_l - y_0) >= 4 sd(y_l - slope
   y_0)); elsewhere it stays 1, the additive model. Why so strict: free wherever three
@@ -86,7 +92,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, IntArray, input_ranges
+from bams_cli.core.gp._numerics import LOG_2PI, FloatArray, IntArray, input_ranges, standardise
 
 #: Pairs (level 0 and a cheap level at the same input) needed before their variance
 #: moves the discrepancy prior.
@@ -164,14 +170,45 @@ def pair_evidence(y0: FloatArray, yl: FloatArray) -> tuple[int, float, float, fl
     return k, float(c / b), float(c / math.sqrt(a * b)), ratio
 
 
+def pair_lines(
+    X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int
+) -> list[tuple[float, float] | None]:
+    """Each cheap level's pairs' least-squares line y_l = slope y_0 + intercept where they
+    show a scale (``shows_scale``), else None."""
+    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
+    out: list[tuple[float, float] | None] = []
+    for lv in range(1, n_levels):
+        y0, yl = paired_values(seg.ravel(), levels, y, lv)
+        k, slope, corr, gain = pair_evidence(y0, yl)
+        shown = shows_scale(k, slope, corr, gain)
+        out.append((slope, float(np.mean(yl) - slope * np.mean(y0))) if shown else None)
+    return out
+
+
 def pair_scales(X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int) -> list[float]:
     """Each cheap level's pairs' slope where they show a scale (``shows_scale``), else NaN:
     the levels whose scale ``fit_mfgp`` frees, and where its search starts."""
-    _, seg = np.unique(np.asarray(X), axis=0, return_inverse=True)
-    out = []
-    for lv in range(1, n_levels):
-        k, slope, corr, gain = pair_evidence(*paired_values(seg.ravel(), levels, y, lv))
-        out.append(slope if shows_scale(k, slope, corr, gain) else math.nan)
+    return [math.nan if ln is None else ln[0] for ln in pair_lines(X, levels, y, n_levels)]
+
+
+def in_level0_units(
+    levels: IntArray, y: FloatArray, lines: list[tuple[float, float] | None]
+) -> FloatArray:
+    """y with every cheap level whose pairs show a scale put into level 0's units along
+    its pairs' line, (y_l - intercept) / slope (``pair_lines``); the rest as it is.
+
+    What the data are standardised by (``level0_standardise``): the priors are in
+    standardised units, and a cheap level that reports other units (20x level 0's, say)
+    would otherwise set them, putting level 0's whole variation at 1/400 of the unit and
+    its noise prior's mode at a third of it.
+    """
+    if all(ln is None for ln in lines):
+        return y
+    out = np.array(y, dtype=np.float64, copy=True)
+    for lv, ln in enumerate(lines, start=1):
+        if ln is not None:
+            m = levels == lv
+            out[m] = (out[m] - ln[1]) / ln[0]
     return out
 
 
@@ -193,6 +230,16 @@ def pair_moments(
     return out
 
 
+def level0_standardise(
+    X: FloatArray, levels: IntArray, y: FloatArray, n_levels: int
+) -> tuple[float, float]:
+    """(mean, std) the GP's data are standardised by: ``standardise`` over the values in
+    level 0's units (``in_level0_units``), so a cheap level's units do not set the
+    priors'. The same as ``standardise(y)`` where no level's pairs show a scale."""
+    lines = pair_lines(X, levels, y, n_levels) if n_levels > 1 else []
+    return standardise(in_level0_units(levels, y, lines))
+
+
 @dataclass(frozen=True)
 class PriorSpec:
     """Modes and log-space sds of the LogNormal priors, in standardised units.
@@ -200,8 +247,8 @@ class PriorSpec:
     Each pair is (mode, log-sd); the module docstring says why each default is what it is.
     ``lengthscale_dim_scaling`` multiplies the lengthscale prior's location by sqrt(d)
     (BoTorch's dimension-scaled prior); ``discrepancy_from_pairs`` moves a cheap level's
-    discrepancy mode to its pairs' variance (module docstring). Turning either off is for
-    experiments only.
+    discrepancy mode to its pairs' variance and ``scale_from_pairs`` its scale's mode to
+    their slope (module docstring). Turning any of them off is for experiments only.
     """
 
     outputscale0: tuple[float, float] = (1.0, 1.5)
@@ -212,6 +259,9 @@ class PriorSpec:
     lengthscale_scale: float = math.sqrt(3.0)
     lengthscale_dim_scaling: bool = True
     discrepancy_from_pairs: bool = True
+    #: Centre a cheap level's scale prior on its pairs' slope where they show a scale
+    #: (``shows_scale``); False: on ``level_scale``'s mode everywhere (experiments only).
+    scale_from_pairs: bool = True
     #: The discrepancy modes, one per cheap level, once resolved from a study's pairs
     #: (``with_pair_modes``); None: from ``discrepancy`` and whatever data ``for_data``
     #: is given.
@@ -219,6 +269,9 @@ class PriorSpec:
     #: The pairs' moments behind those modes (``pair_moments``), one entry per cheap
     #: level (None: too few pairs): the mode at a scale rho other than 1 follows them.
     pair_moments: tuple[tuple[float, float, float] | None, ...] | None = None
+    #: The scales' modes, one per cheap level, once resolved (``with_pair_modes``): the
+    #: pairs' slope where they show a scale (``shows_scale``), else ``level_scale``'s.
+    scale_modes: tuple[float, ...] | None = None
 
 
 #: The priors every fit uses unless told otherwise.
@@ -246,7 +299,16 @@ def with_pair_modes(
             if mom is not None:
                 a, b, c = mom
                 modes[lv - 1] = max(modes[lv - 1], a - 2.0 * c + b)  # var(y_l - y_0)
-    return replace(spec, discrepancy_modes=tuple(float(m) for m in modes), pair_moments=moments)
+    # A slope is the same in standardised and natural units (one affine map for all).
+    slopes = pair_scales(X, levels, y_std, n_levels) if spec.scale_from_pairs else []
+    slopes += [math.nan] * (n_levels - 1 - len(slopes))
+    scale_modes = tuple(spec.level_scale[0] if math.isnan(s) else float(s) for s in slopes)
+    return replace(
+        spec,
+        discrepancy_modes=tuple(float(m) for m in modes),
+        pair_moments=moments,
+        scale_modes=scale_modes,
+    )
 
 
 # Box bounds on the standardised parameters. Wide: the priors do the regularising; the
@@ -255,7 +317,7 @@ _OUTPUTSCALE0_BOUNDS = (1e-4, 1e4)
 _DISCREPANCY_BOUNDS = (1e-6, 1e4)
 _LENGTHSCALE_BOUNDS = (5e-3, 1e3)  # in units of the training range of each dimension
 _NOISE_BOUNDS = (1e-9, 1e1)
-_LEVEL_SCALE_BOUNDS = (0.02, 50.0)
+_LEVEL_SCALE_BOUNDS = (0.02, 50.0)  # times the scale's mode
 
 
 @dataclass(frozen=True)
@@ -301,6 +363,15 @@ class _Priors:
             raise ValueError(
                 f"{disc_modes.size} discrepancy mode(s) resolved for {m - 1} cheap level(s)"
             )
+        scale_modes = (
+            np.full(m - 1, spec.level_scale[0])
+            if spec.scale_modes is None
+            else np.asarray(spec.scale_modes, dtype=np.float64)
+        )
+        if scale_modes.size != m - 1:
+            raise ValueError(
+                f"{scale_modes.size} scale mode(s) resolved for {m - 1} cheap level(s)"
+            )
         log_range = np.log(input_ranges(X))
 
         def from_mode(mode: float, scale: float) -> float:
@@ -318,7 +389,7 @@ class _Priors:
                 np.tile(ell_loc, m),
                 [from_mode(*spec.noise0)],
                 np.full(m - 1, from_mode(*spec.noise)),
-                np.full(m - 1, from_mode(*spec.level_scale)),
+                [from_mode(v, spec.level_scale[1]) for v in scale_modes],
             ]
         )
         scale = np.concatenate(
@@ -338,7 +409,7 @@ class _Priors:
                     np.full(m - 1, _DISCREPANCY_BOUNDS[0]),
                     np.tile(_LENGTHSCALE_BOUNDS[0] * np.exp(log_range), m),
                     np.full(m, _NOISE_BOUNDS[0]),
-                    np.full(m - 1, _LEVEL_SCALE_BOUNDS[0]),
+                    _LEVEL_SCALE_BOUNDS[0] * scale_modes,
                 ]
             )
         )
@@ -349,7 +420,7 @@ class _Priors:
                     np.full(m - 1, _DISCREPANCY_BOUNDS[1]),
                     np.tile(_LENGTHSCALE_BOUNDS[1] * np.exp(log_range), m),
                     np.full(m, _NOISE_BOUNDS[1]),
-                    np.full(m - 1, _LEVEL_SCALE_BOUNDS[1]),
+                    _LEVEL_SCALE_BOUNDS[1] * scale_modes,
                 ]
             )
         )
@@ -371,7 +442,7 @@ class _Priors:
 
         Centred on the mode rather than the median: the lengthscale prior's median
         (4.1 sqrt(d) x range) is far beyond where the MAP usually lands. The cheap levels'
-        scales start at their mode, 1: one smooth dimension each, which every start then
+        scales start at their mode: one smooth dimension each, which every start then
         finds from there (and the draws for the rest are those of a model without them).
         """
         mode = self.loc - self.scale**2
