@@ -368,6 +368,17 @@ ESTIMATE_DEFAULTS: dict[str, Any] = {
 }
 
 
+def open_leads(r: RunResult, f1: np.ndarray, gamma: float) -> np.ndarray:
+    """The run's open leads after discovery: segments run at level 1 whose value there is
+    at or below gamma, with no level-0 result (truth-file order, bool). The simulator of a
+    benchmark returns the truth, so the level-1 value is ``f1``'s."""
+    leads = np.zeros(f1.size, bool)
+    for idx, lv in r.picks:
+        cheap = idx[lv == 1]
+        leads[cheap[f1[cheap] <= gamma]] = True
+    return leads & ~np.asarray(r.known, bool)
+
+
 def _select_kwargs(strategy: str, batch: int) -> dict[str, Any]:
     if batch == 1:  # random; mixed fidelity for the multifidelity strategies
         return {"strategy": "random", "mixed_fidelity": strategy in MULTIFIDELITY}
@@ -1124,8 +1135,8 @@ def run_benchmark(
         The command line to record (default: this process's argv).
     save_arrays : bool
         Also write ``runs.npz``: the true level-0 values and gamma, and per run
-        (``<strategy>-<seed>-p``, ``-known``) the final p_n (or importance scores) and the
-        known stratum, in truth-file order. Estimate designs can then be studied on the
+        (``<strategy>-<seed>-p``, ``-known``, ``-leads``) the final p_n (or importance
+        scores), the known stratum and the open leads (``open_leads``), in truth-file order. Estimate designs can then be studied on the
         runs without repeating them (``core.design``, ``docs/suite/estimate_design.py``).
     greedy : {"auto", "exact", "approximate"}
         BAMS / BAS: the plan ``select --greedy`` runs; forcing each in turn compares the
@@ -1221,6 +1232,7 @@ def run_benchmark(
                 if score is not None:
                     arrays[f"{r.strategy}-{r.seed}-p"] = np.asarray(score, np.float64)
                 arrays[f"{r.strategy}-{r.seed}-known"] = np.asarray(r.known, bool)
+                arrays[f"{r.strategy}-{r.seed}-leads"] = open_leads(r, f1, gamma)
             np.savez_compressed(out_dir / "runs.npz", **arrays)  # type: ignore[arg-type]
     wall = time.perf_counter() - t_start
 
