@@ -796,7 +796,9 @@ def fit_prior(hyperparameters: dict[str, Any] | None) -> tuple[float, float]:
     return risk_prior(cheap_level_discrepancy({"hyperparameters": hp}) if hp else None)
 
 
-def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[float, float] | None:
+def _staged_design(
+    r: RunResult, is_failure: np.ndarray, K: float, leads: np.ndarray | None = None
+) -> tuple[float, float] | None:
     """Expected recall of the staged estimate design (``estimate --plan`` twice) and its
     variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
     draws from the truth (``staged_trials``).
@@ -820,6 +822,7 @@ def _staged_design(r: RunResult, is_failure: np.ndarray, K: float) -> tuple[floa
         t = staged_trials(
             p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS, prior=fit_prior(hp),
             rng=np.random.default_rng([r.seed, 2026]),
+            leads=leads if r.p_after[-1] is not None else None,
         )  # fmt: skip
     return float(t.recall.mean()), float(t.var / t.var_uniform)
 
@@ -985,7 +988,11 @@ def evaluate_runs(
             continue
         stats = [_run_designs(r, is_failure, K, estimator) for r in mine]
         entry = _summary([s["default"][0] for s in stats], [s["default"][1] for s in stats])
-        maybe = [_staged_design(r, is_failure, K) for r in mine]
+        # The open leads a GP strategy's estimate samples with certainty (``open_leads``).
+        maybe = [
+            _staged_design(r, is_failure, K, None if f1 is None else open_leads(r, f1, gamma))
+            for r in mine
+        ]
         staged = [v for v in maybe if v is not None]
         if len(staged) == len(maybe):
             entry["recall_staged"] = float(np.mean([v[0] for v in staged]))

@@ -187,6 +187,12 @@ SELECT_NEGLIGIBLE_FAILURES = 0.01
 #: (two-sided) reaches about 3%.
 PLAN_MIN_SAMPLES = 100
 
+#: A new staged estimate (``estimate --plan``, the default design) samples the open
+#: cheap-level leads with certainty (``pipeline.estimation.open_leads``): segments whose
+#: cheap run failed and that have no level-0 result. They take at most this share of K,
+#: the highest p_n first.
+LEAD_SHARE = 0.5
+
 #: The rate estimate runs in stages (``estimate --plan`` once per stage): stage 1 spends
 #: this share of the budget K, and its level-0 outcomes check the model before the later
 #: stages spend the rest (``core.design``).

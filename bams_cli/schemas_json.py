@@ -420,6 +420,10 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "warnings": array(STR),
             },
             {
+                # open cheap-level leads this plan samples with certainty, and the series'
+                # (since they were: ``pipeline.estimation.open_leads``)
+                "leads_certain": COUNT,
+                "series_leads": COUNT,
                 "screen": obj(
                     {
                         "file": PATH,
@@ -435,7 +439,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "confirm_prior": array(NUM),
                         "seed": nullable(INT),
                     }
-                )
+                ),
             },
         ),
     ),

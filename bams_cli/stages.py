@@ -130,6 +130,10 @@ def mix_evidence(ws: Workspace, gamma: float) -> tuple[list[StageEvidence], list
         t = pl.from_arrow(read_state(path, columns=[SID, "stratum", "p_n"]))
         assert isinstance(t, pl.DataFrame)
         t = t.filter(pl.col("stratum") == "sampled").join(obs, on=SID, how="inner")
+        # Leads sampled with certainty were chosen by their cheap runs, not by p_n: where
+        # failures fall among them says nothing of p_n's calibration (``open_leads``).
+        if leads := meta.get("lead_ids"):
+            t = t.filter(~pl.col(SID).is_in(leads))
         if not t.height:
             continue
         evidence.append(

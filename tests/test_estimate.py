@@ -706,3 +706,80 @@ def test_a_stage_planned_by_an_older_version_still_checks_the_model(fitted_ws, t
     meta[b"bams.risk_norms"] = json.dumps(old[:3]).encode()
     pq.write_table(t.replace_schema_metadata(meta), path)
     assert stages.mix_evidence(pipeline.Workspace(ws), 0.56) == ([], [])
+
+
+def test_open_leads_are_sampled_with_certainty_out_of_k_and_left_out_of_the_evidence(tmp_path):
+    """A segment whose cheap run failed and that has no level-0 result is a lead: stage 1
+    of a new estimate samples it with pi = 1 out of K, the stages share the rest of K over
+    the other segments with the design the tool would draw there, and the leads' outcomes
+    do not enter the evidence on p_n (their selection was the cheap run's, not p_n's)."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
+    # A cheap level reading 0.6 low: it fails wherever level 0 is under 1.16.
+    t = pl.read_parquet(truth).with_columns((pl.col("value_0") - 0.6).alias("value_1"))
+    t.write_parquet(truth)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2",
+       "--seed", "3")  # fmt: skip
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
+    _simulate_batch(runner, ws, truth, 1, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    obs = pl.read_parquet(ws / "observations.parquet")
+    level0 = set(obs.filter(pl.col("fidelity") == 0)[SID])
+    leads = sorted(
+        set(obs.filter((pl.col("fidelity") == 1) & (pl.col("value") <= 0.56))[SID]) - level0
+    )
+    assert 3 <= len(leads) <= 30, len(leads)
+    K = 60
+    s1 = strict_json(
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", str(K), "--json").stdout
+    )
+    n_l = len(leads)
+    assert s1["leads_certain"] == s1["series_leads"] == n_l
+    assert f"{n_l} open leads (a cheap run at or below gamma" in " ".join(s1["notes"])
+    share = defaults.STAGE1_SHARE
+    assert s1["samples_K"] == pytest.approx(n_l + share * (K - n_l))
+    n_unknown = 400 - len(level0)
+    assert s1["stage_weights"] == pytest.approx(
+        dz.stage_weights([share, 1 - share], K - n_l, n_unknown - n_l), rel=1e-12
+    )
+    plan = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
+    sampled = plan.filter(pl.col("stratum") == "sampled")
+    at_leads = sampled.filter(pl.col(SID).is_in(leads))
+    assert at_leads.height == n_l and (at_leads["pi"] == 1.0).all()
+    # The rest: the design choose_design draws over U without the leads, at their share.
+    scores = pl.read_parquet(ws / "scores.parquet").select(SID, "p_0")
+    rest = scores.filter(~pl.col(SID).is_in(sorted(level0) + leads))
+    want = dz.choose_design(
+        rest["p_0"].to_numpy(), K=share * (K - n_l), posterior=dz.risk_posterior([])
+    )
+    got = rest.with_columns(pl.Series("want", want.pi)).join(
+        sampled.select(SID, "pi"), on=SID, how="inner"
+    )
+    assert got.height > 0
+    np.testing.assert_allclose(got["pi"], got["want"], rtol=1e-12)
+    assert sorted(read_metadata_json(ws / "estimates" / "plan-0001.parquet")["lead_ids"]) == leads
+    # Stage 1's results in and fitted: the evidence is its sampled segments but the leads,
+    # and stage 2 spends the rest of what the leads left.
+    _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    s2 = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
+    assert (s2["stage"], s2["series_leads"], s2["leads_certain"]) == (2, n_l, 0)
+    assert s2["samples_K"] == pytest.approx((1 - share) * (K - n_l))
+    assert s2["model_check"]["sampled"] == sampled.height - n_l
+    _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    est = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)["estimates"][0]
+    # Every lead's level-0 outcome is in hand: the failures found count them.
+    lead_fails = int(t.filter(pl.col(SID).is_in(leads))["value_0"].le(0.56).sum())
+    assert est["distinct_failures_found"] >= lead_fails
+
+
+def _simulate_batch(runner, ws, truth, number: int, tmp_path):
+    res = tmp_path / f"batch-{number}.parquet"
+    ok(runner, "simulate", ws / "batches" / f"batch-{number:04d}.parquet", "--truth", truth,
+       "-o", res)  # fmt: skip
+    ok(runner, "ingest-results", "-w", ws, res)

@@ -461,18 +461,23 @@ def test_a_plain_plan_trusts_p_n_less_where_the_cheap_level_does_not_track_level
     plan = pq.read_table(ws / "estimates" / "plan-0001.parquet").to_pylist()
     meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
     known = {r[SID] for r in plan if r["stratum"] == "known"}
+    # The open leads are sampled with certainty out of K (pipeline.estimation.open_leads);
+    # the design is chosen over the rest of U with the rest of K.
+    leads = set(meta["lead_ids"])
+    assert len(leads) == out["leads_certain"]
     scores = pl.read_parquet(ws / "scores.parquet")
-    unknown = ~scores[SID].is_in(list(known)).to_numpy()
+    unknown = ~scores[SID].is_in(sorted(known | leads)).to_numpy()
     assert meta["plan_gamma"] == 0.56  # p_1: the plan is drawn for the largest gamma
     p = scores["p_1"].to_numpy()[unknown]
     ids = scores[SID].to_numpy()[unknown]
     by_hand = {
-        pr: dict(zip(ids, dz.choose_design(p, K=out["samples_K"],
+        pr: dict(zip(ids, dz.choose_design(p, K=out["samples_K"] - len(leads),
                                            posterior=dz.risk_posterior([], prior=pr)).pi,
                      strict=True))
         for pr in (defaults.RISK_MIX_PRIOR, defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
     }  # fmt: skip
-    sampled = [r for r in plan if r["stratum"] == "sampled"]
+    assert all(r["pi"] == 1.0 for r in plan if r[SID] in leads)
+    sampled = [r for r in plan if r["stratum"] == "sampled" and r[SID] not in leads]
     assert sampled
     got = np.array([r["pi"] for r in sampled])
     want = np.array([by_hand[prior][r[SID]] for r in sampled])

@@ -8,6 +8,7 @@ failures for display (paper Figure 3).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -316,6 +317,7 @@ def staged_trials(
     n_trials: int = 1000,
     rng: np.random.Generator,
     reference: bool = False,
+    leads: ArrayLike | None = None,
 ) -> StagedTrials:
     """Draw the default two-stage estimate design ``n_trials`` times from a known truth.
 
@@ -352,11 +354,29 @@ def staged_trials(
         ``estimate_from_sample``, ``combine_stages``) instead of the evaluation's fast path
         (``_staged_trials_fast``): the same draws and, to rounding, the same numbers, at
         several times the cost on a large U.
+    leads : bool array_like of shape (n_pool,), optional
+        The open cheap-level leads after discovery (``pipeline.estimation.open_leads``),
+        which ``estimate --plan`` samples with certainty out of K (at most
+        ``defaults.LEAD_SHARE`` of it, the highest p first): they join the known stratum
+        and the stages share the rest of K, as the tool plans them. ``var_uniform`` stays
+        that of a uniform design of K over the whole of U.
 
     Returns
     -------
     StagedTrials
     """
+    known_m = np.zeros(np.asarray(p).size, bool) if known is None else np.asarray(known, bool)
+    lead_m = certain_leads(p, known_m, leads, K)
+    if lead_m.any():
+        fail = np.asarray(is_failure, dtype=bool)
+        n_u = int((~known_m).sum())
+        var_u = int(fail[~known_m].sum()) * (n_u - K) / K / fail.size**2
+        out = staged_trials(
+            p, is_failure, K=K - int(lead_m.sum()), known=known_m | lead_m, share=share,
+            prior=prior, anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials,
+            rng=rng, reference=reference,
+        )  # fmt: skip
+        return dataclasses.replace(out, var_uniform=var_u)
     # Every trial's dot products are over one U (a few 1e4 terms): BLAS threads only
     # contend there (measured: twice the CPU time on 2 busy cores), and their split sums
     # make the last digits depend on the thread count. One thread: same numbers anywhere.
@@ -366,6 +386,24 @@ def staged_trials(
             p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
+
+
+def certain_leads(
+    p: ArrayLike, known: NDArray[np.bool_], leads: ArrayLike | None, K: float
+) -> NDArray[np.bool_]:
+    """The leads ``estimate --plan`` samples with certainty out of K: those outside the
+    known stratum, at most ``defaults.LEAD_SHARE`` K of them, the highest p first
+    (``pipeline.estimation.open_leads``'s cap)."""
+    p = np.asarray(p, dtype=np.float64)
+    if leads is None:
+        return np.zeros(p.size, bool)
+    lead = np.asarray(leads, dtype=bool) & ~known
+    idx = np.flatnonzero(lead)
+    cap = int(defaults.LEAD_SHARE * K)
+    if idx.size > cap:
+        lead = np.zeros(p.size, bool)
+        lead[idx[np.argsort(-p[idx], kind="stable")[: max(cap, 0)]]] = True
+    return lead
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from bams_cli.pipeline._common import (
     Progress,
     check_samples,
     finite_or_none,
+    ids_in,
     locked,
     plan_numbers,
     read_scores,
@@ -226,6 +227,8 @@ def estimate_plan(
     warnings: list[str] = []
     new_estimate = None  # the note that this plan starts a new estimate beside an earlier one
     census = None  # the note that K takes every unknown segment, so one stage
+    leads = np.zeros(len(ids), dtype=bool)  # sampled with certainty (stage 1 only)
+    series_leads = 0
     # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
     staged = design == "poisson"
     prev = st.plan_info(ws, number - 1) if number > 1 else None
@@ -350,7 +353,9 @@ def estimate_plan(
             )
         series, stage, n_stages = prev.series, prev.stage + 1, prev.stages
         series_K, shares, weights = prev.series_K, prev.shares, prev.weights
-        K_stage = series_K * shares[stage - 1]
+        # Stage 1's certain leads came out of K; the stages share what was left.
+        series_leads = int(prev.meta.get("series_leads") or 0)
+        K_stage = (series_K - series_leads) * shares[stage - 1]
     else:
         if prev is not None:
             # Said, since the report and status then show this newest estimate: a trial
@@ -378,9 +383,17 @@ def estimate_plan(
         series, stage, series_K = number, 1, float(samples)
         rest = (1.0 - stage1_share) / (n_stages - 1) if n_stages > 1 else 0.0
         shares = [stage1_share, *([rest] * (n_stages - 1))] if n_stages > 1 else [1.0]
-        weights = dz.stage_weights(shares, series_K, n_unknown)
-        K_stage = series_K * shares[0]
-    K_stage = min(K_stage, float(n_unknown))
+        # The open cheap-level leads are sampled with certainty (``open_leads``): they come
+        # out of K, and the stages share the rest over the segments that are not leads.
+        if staged and weighting == "auto" and series_K < n_unknown:
+            leads = open_leads(
+                ws, ids, p, known, settings.gammas[g_plan], pend,
+                cap=int(defaults.LEAD_SHARE * series_K),
+            )  # fmt: skip
+        series_leads = int(leads.sum())
+        weights = dz.stage_weights(shares, series_K - series_leads, n_unknown - series_leads)
+        K_stage = (series_K - series_leads) * shares[0]
+    K_stage = min(K_stage, float(n_unknown - int(leads.sum())))
     # A later stage of a series whose stage 1 was drawn with --seed draws from that seed
     # too (its own stream per stage): fresh plans of one study, each from its own --seed,
     # had shared stage 2's draws, all from the study's seed.
@@ -399,6 +412,10 @@ def estimate_plan(
     rng = np.random.default_rng(stream)
     unknown = np.flatnonzero(~known)
     pu = p[unknown]
+    certain_u = leads[unknown]
+    # What the design and the evidence of this plan stand on: U without the certain leads,
+    # whose selection is not p_n's (their p_n would tell where failures fall only in part).
+    pr = pu[~certain_u]
     # What the finished plans say about trusting p_n (lam: the share of failure mass it
     # does not explain); the prior alone before any plan has results.
     evidence, evidence_plans = st.mix_evidence(ws, settings.gammas[g_plan])
@@ -412,9 +429,10 @@ def estimate_plan(
                 pi_u = np.zeros(0)
             elif weighting == "auto":
                 choice = dz.choose_design(
-                    pu, K=K_stage, posterior=post, alpha=alpha, defensive=defensive
+                    pr, K=K_stage, posterior=post, alpha=alpha, defensive=defensive
                 )
-                pi_u = choice.pi
+                pi_u = np.ones(unknown.size)
+                pi_u[~certain_u] = choice.pi
             elif weighting == "uniform":
                 pi_u = np.full(unknown.size, K_stage / max(unknown.size, 1))
             else:
@@ -422,14 +440,17 @@ def estimate_plan(
         from bams_cli.core.estimate import SamplePlan, draw_poisson
 
         sampled = draw_poisson(pi_u, rng)
+        K_drawn = K_stage + int(certain_u.sum())
         plan = SamplePlan(
-            "poisson", n, unknown.astype(np.int64), pi_u / max(K_stage, 1e-300), pi_u,
-            K_stage, sampled, np.ones(sampled.size, np.int64),
+            "poisson", n, unknown.astype(np.int64), pi_u / max(K_drawn, 1e-300), pi_u,
+            K_drawn, sampled, np.ones(sampled.size, np.int64),
         )  # fmt: skip
         # The interval's allowance for a failure no stage has seen, per gamma: where the
         # least-trusted calibrated model the evidence allows puts failures.
         w_model = [
-            dz.unseen_failure_weight(post.allowance_risk(p_all[unknown, g]), pi_u)
+            dz.unseen_failure_weight(
+                post.allowance_risk(p_all[unknown[~certain_u], g]), pi_u[~certain_u]
+            )
             for g in range(len(settings.gammas))
         ]
     else:
@@ -463,12 +484,15 @@ def estimate_plan(
         "series_K": series_K,
         "stage_shares": shares,
         "stage_weights": weights,
+        "series_leads": series_leads,
     }
     check = {**post.summary(), "plans": evidence_plans}
     meta = {
         "plan": number,
         "design": design,
-        "samples": K_stage,
+        "samples": K_stage + int(certain_u.sum()),
+        "leads_certain": int(certain_u.sum()),
+        "lead_ids": ids[unknown[certain_u]].astype(str).tolist(),
         "alpha": alpha,
         "defensive": defensive,
         "weighting": weighting_used,
@@ -478,8 +502,8 @@ def estimate_plan(
         **stage_info,
         "n_pool": n,
         "n_unknown": n_unknown,
-        "p_mean_unknown": float(pu.mean()) if pu.size else None,
-        "risk_norms": dz.risk_norms(dz.relative_risk(pu)).tolist(),
+        "p_mean_unknown": float(pr.mean()) if pr.size else None,
+        "risk_norms": dz.risk_norms(dz.relative_risk(pr)).tolist(),
         "risk_taus": list(dz.TAUS),
         **_plan_meta_tail(
             settings,
@@ -499,15 +523,26 @@ def estimate_plan(
     )  # fmt: skip
     # A new estimate where a screen measured better: said, not done (it is not the default).
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
-    notes = [n for n in [new_estimate, census, design_note(meta), auto_note or hint] if n]
+    n_lead = meta["leads_certain"]
+    lead_note = (
+        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma, no "
+        f"level-0 result) {'are' if n_lead > 1 else 'is'} sampled with certainty out of K: "
+        "each is confirmed at level 0, and none adds variance"
+        if n_lead
+        else None
+    )
+    notes = [
+        n for n in [new_estimate, census, lead_note, design_note(meta), auto_note or hint] if n
+    ]
     return {
         "plan": number,
         "plan_file": str(path),
         "handoff": str(handoff_path),
         "results_template": str(template),
         "design": design,
-        "samples_K": K_stage,
+        "samples_K": meta["samples"],
         **stage_info,
+        "leads_certain": meta["leads_certain"],
         "weighting": weighting_used,
         "predicted_vs_uniform": predicted,
         "model_check": check,
@@ -524,6 +559,38 @@ def estimate_plan(
         "notes": notes,
         "warnings": warnings,
     }
+
+
+def open_leads(
+    ws: Workspace,
+    ids: np.ndarray,
+    p: np.ndarray,
+    known: np.ndarray,
+    gamma: float,
+    pend: pl.DataFrame,
+    *,
+    cap: int,
+) -> np.ndarray:
+    """The segments a new staged estimate samples with certainty: the open leads.
+
+    A lead is a segment whose result at a cheap level is at or below ``gamma`` (a failure
+    the cheap simulator saw) with no level-0 result and none awaited. A failure seen only
+    at the cheap level is a lead, not a finding, and leads fail at level 0 far more often
+    than their p_n says (the model shrinks one cheap run towards its smooth surroundings):
+    on the fresh problems 40-100% of them did where p_n put many at 0.01 or below. The
+    estimate confirms each: pi = 1 adds no variance, it takes the lead's share of K from
+    the rest, and the failures it confirms are in hand. At most ``cap`` of them, the
+    highest p_n first (bool over the pool).
+    """
+    cheap = ws.read_observations().filter((pl.col("fidelity") >= 1) & (pl.col("value") <= gamma))
+    lead = ids_in(ids, cheap[SID].to_numpy()) & ~known
+    if pend.height:
+        lead &= ~ids_in(ids, pend.filter(pl.col("fidelity") == 0)[SID].to_numpy())
+    idx = np.flatnonzero(lead)
+    if idx.size > cap:
+        lead = np.zeros_like(lead)
+        lead[idx[np.argsort(-p[idx], kind="stable")[: max(cap, 0)]]] = True
+    return lead
 
 
 def _plan_samples(

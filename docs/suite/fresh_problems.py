@@ -499,6 +499,13 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
             (pl.col("fidelity") == 0) & pl.col("batch").is_not_null() & (pl.col("batch") <= 3)
         )
         known = ids.is_in(before["segment_id"].implode()).to_numpy()
+        # The open leads after batch 3, which the staged estimate samples with certainty
+        # (``pipeline.estimation.open_leads``; runs made before 2026-11-29 did not).
+        cheap_fail = obs.filter(
+            (pl.col("fidelity") >= 1) & pl.col("batch").is_not_null() & (pl.col("batch") <= 3)
+            & (pl.col("value") <= gamma)
+        )  # fmt: skip
+        leads = ids.is_in(cheap_fail["segment_id"].implode()).to_numpy() & ~known
         levels = ids.to_frame().join(truth, on="segment_id", how="left")
         value = levels["value_0"]
         fail = value.to_numpy() <= gamma
@@ -508,7 +515,7 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         t = staged_trials(
             p.to_numpy(), fail, K=K, known=known, n_trials=1000,
             prior=fit_prior(model.get("hyperparameters")),
-            rng=np.random.default_rng(7),
+            rng=np.random.default_rng(7), leads=leads,
         )  # fmt: skip
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
         screened = (ws / "estimates" / "screen-0001.parquet").exists()

@@ -576,3 +576,44 @@ def test_staged_uniform_draws_with_these_weights_match_one_uniform_sample():
     assert abs(est.mean() - 40) < 4 * est.std() / np.sqrt(reps)
     assert est.var() == pytest.approx(var_one, rel=0.1)
     assert (T @ np.array([0.5, 0.5])).var() > 2.5 * var_one
+
+
+def test_leads_sampled_with_certainty_are_the_design_with_them_known_and_k_less_them():
+    """``estimate --plan`` samples the open cheap-level leads with pi = 1 out of K; the
+    evaluation draws that as the design with the leads in the known stratum and K less
+    them. Unbiased, the leads' failures in hand, the variance set beside a uniform design
+    of the whole K over the whole of U; more leads than defaults.LEAD_SHARE K: the highest
+    p first."""
+    rng = np.random.default_rng(11)
+    N = 3000
+    p = rng.beta(0.3, 20, N)
+    fail = rng.random(N) < p
+    # Leads as a cheap level gives them: enriched in failures whatever p says.
+    leads = rng.random(N) < np.where(fail, 0.3, 0.004)
+    K = 200.0
+    n_l = int(leads.sum())
+    assert 0 < n_l < defaults.LEAD_SHARE * K
+    t = staged_trials(p, fail, K=K, leads=leads, n_trials=2000, rng=np.random.default_rng(1))
+    ref = staged_trials(
+        p, fail, K=K - n_l, known=leads, n_trials=2000, rng=np.random.default_rng(1)
+    )
+    np.testing.assert_array_equal(t.p_hat, ref.p_hat)
+    np.testing.assert_array_equal(t.recall, ref.recall)
+    assert t.var == ref.var
+    assert t.var_uniform == pytest.approx(fail.sum() * (N - K) / K / N**2, rel=1e-12)
+    se = t.p_hat_unbiased.std(ddof=1) / np.sqrt(t.p_hat_unbiased.size)
+    assert abs(t.p_hat_unbiased.mean() - t.rate) < 3 * se
+    assert np.all(t.recall >= fail[leads].sum() / fail.sum())
+    none = staged_trials(p, fail, K=K, n_trials=2000, rng=np.random.default_rng(1))
+    assert t.recall.mean() > none.recall.mean() + 0.5 * fail[leads].sum() / fail.sum()
+    # The cap: every segment a lead, only the top LEAD_SHARE K by p are certain.
+    top = np.argsort(-p, kind="stable")[: int(defaults.LEAD_SHARE * K)]
+    capped = np.zeros(N, bool)
+    capped[top] = True
+    many = staged_trials(
+        p, fail, K=K, leads=np.ones(N, bool), n_trials=50, rng=np.random.default_rng(2)
+    )
+    want = staged_trials(
+        p, fail, K=K - capped.sum(), known=capped, n_trials=50, rng=np.random.default_rng(2)
+    )
+    np.testing.assert_array_equal(many.p_hat, want.p_hat)
