@@ -311,6 +311,18 @@ def with_pair_modes(
     )
 
 
+def _per_level(
+    resolved: tuple[float, ...] | None, default: float, n_levels: int, what: str
+) -> FloatArray:
+    """One mode per cheap level: those resolved from the study's pairs, else ``default``."""
+    if resolved is None:
+        return np.full(n_levels - 1, default)
+    modes = np.asarray(resolved, dtype=np.float64)
+    if modes.size != n_levels - 1:
+        raise ValueError(f"{modes.size} {what} mode(s) resolved for {n_levels - 1} cheap level(s)")
+    return modes
+
+
 # Box bounds on the standardised parameters. Wide: the priors do the regularising; the
 # bounds only keep L-BFGS-B away from overflow and from singular K.
 _OUTPUTSCALE0_BOUNDS = (1e-4, 1e4)
@@ -354,24 +366,8 @@ class _Priors:
         spec = DEFAULT_PRIORS if spec is None else spec
         d = X.shape[1]
         m = n_levels
-        disc_modes = (
-            np.full(m - 1, spec.discrepancy[0])
-            if spec.discrepancy_modes is None
-            else np.asarray(spec.discrepancy_modes, dtype=np.float64)
-        )
-        if disc_modes.size != m - 1:
-            raise ValueError(
-                f"{disc_modes.size} discrepancy mode(s) resolved for {m - 1} cheap level(s)"
-            )
-        scale_modes = (
-            np.full(m - 1, spec.level_scale[0])
-            if spec.scale_modes is None
-            else np.asarray(spec.scale_modes, dtype=np.float64)
-        )
-        if scale_modes.size != m - 1:
-            raise ValueError(
-                f"{scale_modes.size} scale mode(s) resolved for {m - 1} cheap level(s)"
-            )
+        disc_modes = _per_level(spec.discrepancy_modes, spec.discrepancy[0], m, "discrepancy")
+        scale_modes = _per_level(spec.scale_modes, spec.level_scale[0], m, "scale")
         log_range = np.log(input_ranges(X))
 
         def from_mode(mode: float, scale: float) -> float:
