@@ -371,8 +371,14 @@ ESTIMATE_DEFAULTS: dict[str, Any] = {
 def open_leads(r: RunResult, f1: np.ndarray, gamma: float) -> np.ndarray:
     """The run's open leads after discovery: segments run at level 1 whose value there is
     at or below gamma, with no level-0 result (truth-file order, bool). The simulator of a
-    benchmark returns the truth, so the level-1 value is ``f1``'s."""
+    benchmark returns the truth, so the level-1 value is ``f1``'s. None where the run's
+    last fit put level 1's scale more than ``defaults.LEAD_SCALE_LIMIT`` from 1 (other
+    units: the pipeline's ``open_leads`` counts no leads there)."""
     leads = np.zeros(f1.size, bool)
+    hp = r.hyperparameters[-1] if r.hyperparameters else None
+    rho = float((hp.get("scales") or [1.0])[0]) if hp else 1.0
+    if not 1.0 / defaults.LEAD_SCALE_LIMIT <= rho <= defaults.LEAD_SCALE_LIMIT:
+        return leads
     for idx, lv in r.picks:
         cheap = idx[lv == 1]
         leads[cheap[f1[cheap] <= gamma]] = True

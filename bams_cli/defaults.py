@@ -192,6 +192,10 @@ PLAN_MIN_SAMPLES = 100
 #: cheap run failed and that have no level-0 result. They take at most this share of K,
 #: the highest p_n first.
 LEAD_SHARE = 0.5
+#: ... counting the runs of a cheap level only where the model's scale for it
+#: (``Hyperparameters.scales``) is within this factor of 1: a level in other units (a
+#: scale of 2.5, 20) has another threshold than gamma.
+LEAD_SCALE_LIMIT = 1.5
 
 #: The rate estimate runs in stages (``estimate --plan`` once per stage): stage 1 spends
 #: this share of the budget K, and its level-0 outcomes check the model before the later

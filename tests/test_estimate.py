@@ -716,23 +716,8 @@ def test_open_leads_are_sampled_with_certainty_out_of_k_and_left_out_of_the_evid
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
-    # A cheap level reading 0.6 low: it fails wherever level 0 is under 1.16.
-    t = pl.read_parquet(truth).with_columns((pl.col("value_0") - 0.6).alias("value_1"))
-    t.write_parquet(truth)
-    ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2",
-       "--seed", "3")  # fmt: skip
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
-    _simulate_batch(runner, ws, truth, 1, tmp_path)
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
-    obs = pl.read_parquet(ws / "observations.parquet")
-    level0 = set(obs.filter(pl.col("fidelity") == 0)[SID])
-    leads = sorted(
-        set(obs.filter((pl.col("fidelity") == 1) & (pl.col("value") <= 0.56))[SID]) - level0
-    )
+    ws, truth, t = _lead_study(runner, tmp_path)
+    level0, leads = _leads(ws)
     assert 3 <= len(leads) <= 30, len(leads)
     K = 60
     s1 = strict_json(
@@ -776,6 +761,69 @@ def test_open_leads_are_sampled_with_certainty_out_of_k_and_left_out_of_the_evid
     # Every lead's level-0 outcome is in hand: the failures found count them.
     lead_fails = int(t.filter(pl.col(SID).is_in(leads))["value_0"].le(0.56).sum())
     assert est["distinct_failures_found"] >= lead_fails
+
+
+def _lead_study(runner, tmp_path: Path) -> tuple[Path, Path, pl.DataFrame]:
+    """400 toy2d segments whose cheap level reads 0.6 low (it fails wherever level 0 is
+    under 1.16), one random mixed-fidelity batch of budget 12, fitted: (workspace, truth,
+    the truth table)."""
+    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
+    t = pl.read_parquet(truth).with_columns((pl.col("value_0") - 0.6).alias("value_1"))
+    t.write_parquet(truth)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2",
+       "--seed", "3")  # fmt: skip
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
+    _simulate_batch(runner, ws, truth, 1, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    return ws, truth, t
+
+
+def _leads(ws: Path) -> tuple[set[str], list[str]]:
+    """(the segments with a level-0 result, the open leads at gamma 0.56), by hand."""
+    obs = pl.read_parquet(ws / "observations.parquet")
+    level0 = set(obs.filter(pl.col("fidelity") == 0)[SID])
+    cheap_fail = set(obs.filter((pl.col("fidelity") == 1) & (pl.col("value") <= 0.56))[SID])
+    return level0, sorted(cheap_fail - level0)
+
+
+def test_open_leads_keep_the_highest_p_n_within_the_cap_and_skip_abandoned_and_scaled(tmp_path):
+    """More leads than the cap: the highest p_n. A lead whose level-0 run was abandoned
+    (it failed for good) is not asked for again. A cheap level the model fits with a scale
+    other than 1 reports other units: its runs are no leads at gamma."""
+    from typer.testing import CliRunner
+
+    from bams_cli.pipeline.estimation import open_leads
+    from bams_cli.state.workspace import Workspace
+
+    runner = CliRunner()
+    ws, _, _ = _lead_study(runner, tmp_path)
+    level0, leads = _leads(ws)
+    w = Workspace(ws)
+    scores = pl.read_parquet(ws / "scores.parquet")
+    ids, p = scores[SID].to_numpy(), scores["p_0"].to_numpy()
+    known = np.isin(ids, sorted(level0))
+
+    def chosen(**kw) -> list[str]:
+        kw.setdefault("cap", 1000)
+        return sorted(ids[open_leads(w, ids, p, known, 0.56, w.pending(), **kw)])
+
+    assert chosen() == leads
+    by_p = sorted(leads, key=lambda s: -p[ids == s][0])
+    assert chosen(cap=2) == sorted(by_p[:2])
+    assert chosen(scales=[2.5]) == [] == chosen(scales=[0.6])
+    assert chosen(scales=[1.0]) == leads == chosen(scales=[1.4])
+    # A BAMS batch whose level-0 runs crash for good (abandoned): none of them is a lead.
+    ok(runner, "select", "-w", ws, "--budget", "6")
+    b2 = pl.read_parquet(ws / "batches" / "batch-0002.parquet")
+    asked = set(b2.filter(pl.col("fidelity") == 0)[SID]) & set(leads)
+    assert asked, "the batch confirms no lead: the test has nothing to check"
+    assert not set(chosen()) & asked  # awaited
+    ok(runner, "abandon", "-w", ws, "--batch", "2", "--fidelity", "0", "--reason", "crash")
+    assert not set(chosen()) & asked  # abandoned
+    assert set(chosen()) == set(leads) - asked
 
 
 def _simulate_batch(runner, ws, truth, number: int, tmp_path):

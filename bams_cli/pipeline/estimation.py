@@ -389,6 +389,7 @@ def estimate_plan(
             leads = open_leads(
                 ws, ids, p, known, settings.gammas[g_plan], pend,
                 cap=int(defaults.LEAD_SHARE * series_K),
+                scales=model["hyperparameters"].get("scales") or (),
             )  # fmt: skip
         series_leads = int(leads.sum())
         weights = dz.stage_weights(shares, series_K - series_leads, n_unknown - series_leads)
@@ -525,8 +526,9 @@ def estimate_plan(
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
     n_lead = meta["leads_certain"]
     lead_note = (
-        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma, no "
-        f"level-0 result) {'are' if n_lead > 1 else 'is'} sampled with certainty out of K: "
+        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma "
+        f"{settings.gammas[g_plan]:g}, no level-0 result) {'are' if n_lead > 1 else 'is'} "
+        "sampled with certainty out of K: "
         "each is confirmed at level 0, and none adds variance"
         if n_lead
         else None
@@ -570,11 +572,17 @@ def open_leads(
     pend: pl.DataFrame,
     *,
     cap: int,
+    scales: Sequence[float] = (),
 ) -> np.ndarray:
     """The segments a new staged estimate samples with certainty: the open leads.
 
     A lead is a segment whose result at a cheap level is at or below ``gamma`` (a failure
-    the cheap simulator saw) with no level-0 result and none awaited. A failure seen only
+    the cheap simulator saw) with no level-0 result, none awaited and none abandoned (its
+    simulation failed for good: certainty would ask for it again). Only levels in level
+    0's units count: a level the model fits with a scale more than
+    ``defaults.LEAD_SCALE_LIMIT`` from 1 (``scales``, one per cheap level;
+    ``Hyperparameters.scales``) reports other units, where gamma is not its threshold.
+    A failure seen only
     at the cheap level is a lead, not a finding, and leads fail at level 0 far more often
     than their p_n says (the model shrinks one cheap run towards its smooth surroundings):
     on the fresh problems 40-100% of them did where p_n put many at 0.01 or below. The
@@ -582,10 +590,18 @@ def open_leads(
     the rest, and the failures it confirms are in hand. At most ``cap`` of them, the
     highest p_n first (bool over the pool).
     """
-    cheap = ws.read_observations().filter((pl.col("fidelity") >= 1) & (pl.col("value") <= gamma))
+    limit = defaults.LEAD_SCALE_LIMIT
+    same_units = [lv for lv in range(1, ws.require_initialised().n_levels)
+                  if lv > len(scales) or 1.0 / limit <= scales[lv - 1] <= limit]  # fmt: skip
+    cheap = ws.read_observations().filter(
+        pl.col("fidelity").is_in(same_units) & (pl.col("value") <= gamma)
+    )
     lead = ids_in(ids, cheap[SID].to_numpy()) & ~known
     if pend.height:
         lead &= ~ids_in(ids, pend.filter(pl.col("fidelity") == 0)[SID].to_numpy())
+    gone = ws.read_abandoned()
+    if gone.height:
+        lead &= ~ids_in(ids, gone.filter(pl.col("fidelity") == 0)[SID].to_numpy())
     idx = np.flatnonzero(lead)
     if idx.size > cap:
         lead = np.zeros_like(lead)

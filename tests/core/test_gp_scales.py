@@ -323,3 +323,25 @@ def test_the_fitted_offset_is_in_the_cheap_level_s_units():
     for delta in (-0.05, 0.05):
         moved = MFGP(X, levels, y, 2, dataclasses.replace(hp, offsets=hp.offsets + delta))
         assert moved.log_marginal_likelihood < model.log_marginal_likelihood - 1e-3
+
+
+def test_a_model_on_a_subset_scores_its_prior_in_the_fit_s_units():
+    """Conditioning on a subset (a memory budget) that keeps too few pairs to show the
+    scale: the prior is still scored in the units the fit chose on every observation, so
+    log_posterior - log_marginal_likelihood is near the full model's: 2 nats off, the
+    lengthscale prior's, which follows the subset's input ranges; 57 nats off when the
+    subset standardised itself (pooled units, the gate lost)."""
+    from bams_cli.core.conditioning_budget import BYTES_PER_ENTRY
+    from bams_cli.core.gp.fit import conditioning_subset
+
+    X, levels, y = few_level0_runs(0, rho=20.0)
+    full = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0))
+    cap = 60
+    rows = conditioning_subset(levels, 2, cap)
+    assert rows is not None
+    assert math.isnan(pair_scales(X[rows], levels[rows], y[rows], 2)[0])  # the gate is lost
+    sub = fit_mfgp(X, levels, y, 2, rng=np.random.default_rng(0),
+                   fixed=full.hyperparameters, max_memory=BYTES_PER_ENTRY * cap * cap)  # fmt: skip
+    assert sub.conditioning["conditioned_on"] == cap
+    prior = lambda m: m.log_posterior - m.log_marginal_likelihood  # noqa: E731
+    assert abs(prior(sub) - prior(full)) < 3.0

@@ -248,7 +248,10 @@ def condition(
     if rows is None:
         model = MFGP(X, levels, y, n_levels, hyperparameters, priors=priors)
     else:
-        model = MFGP(X[rows], levels[rows], y[rows], n_levels, hyperparameters, priors=priors)
+        model = MFGP(
+            X[rows], levels[rows], y[rows], n_levels, hyperparameters, priors=priors,
+            standardisation=(ybar, ystd),
+        )  # fmt: skip
         model.notes.append(
             f"the model conditions on {rows.size:,} of the {n:,} observations "
             f"({int(np.sum(levels[rows] == 0)):,} of them level 0, taken first): exact "

@@ -102,6 +102,11 @@ class MFGP:
     y : ndarray of shape (n,)
     n_levels : int
     hyperparameters : Hyperparameters
+    priors : PriorSpec, optional
+        The priors ``log_posterior`` is scored under (``with_pair_modes``).
+    standardisation : (float, float), optional
+        The (mean, std) those priors' units are: the fit's over every observation, when
+        these data are a subset of them; default ``level0_standardise`` of these data.
 
     Attributes
     ----------
@@ -136,6 +141,7 @@ class MFGP:
         hyperparameters: Hyperparameters,
         *,
         priors: PriorSpec | None = None,
+        standardisation: tuple[float, float] | None = None,
     ) -> None:
         X, levels, y = check_data(X, levels, y, n_levels)
         hp = hyperparameters
@@ -212,7 +218,9 @@ class MFGP:
             - np.sum(np.log(rho[levels]))
         )  # GPML Alg. 2.1 line 7, with the Jacobian
 
-        ybar, ystd = level0_standardise(X, levels, y, n_levels)
+        # The units the priors are scored in: the fit's, on every observation, when this
+        # model conditions on a subset of them (``fit.condition``), else these data's.
+        ybar, ystd = standardisation or level0_standardise(X, levels, y, n_levels)
         v = ystd**2
         theta_std = _pack(
             Hyperparameters(

@@ -260,7 +260,8 @@ class PriorSpec:
     lengthscale_dim_scaling: bool = True
     discrepancy_from_pairs: bool = True
     #: Centre a cheap level's scale prior on its pairs' slope where they show a scale
-    #: (``shows_scale``); False: on ``level_scale``'s mode everywhere (experiments only).
+    #: (``shows_scale``); False: on ``level_scale``'s mode everywhere (experiments only;
+    #: the data are still standardised in level 0's units, ``level0_standardise``).
     scale_from_pairs: bool = True
     #: The discrepancy modes, one per cheap level, once resolved from a study's pairs
     #: (``with_pair_modes``); None: from ``discrepancy`` and whatever data ``for_data``
