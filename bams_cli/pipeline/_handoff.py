@@ -3,6 +3,7 @@ column layout, internal columns kept in the Parquet state."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 import polars as pl
 import pyarrow as pa
 
+from bams_cli import defaults
 from bams_cli.pipeline._common import SID, ids_in
 from bams_cli.state import handoff as contract
 from bams_cli.state.io import (
@@ -20,6 +22,24 @@ from bams_cli.state.workspace import Workspace
 
 def observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     obs = ws.read_observations().filter(pl.col("fidelity") == 0)
+    return ids_in(ids, obs[SID].to_numpy())
+
+
+def cheap_failures(
+    ws: Workspace, ids: np.ndarray, gamma: float, scales: Sequence[float] = ()
+) -> np.ndarray:
+    """Segments seen at or below ``gamma`` at some cheap level in level 0's units: a lead
+    until level 0 confirms it (``select``'s confirmation runs, ``estimate --plan``'s
+    certain leads). A level the model fits with a scale more than
+    ``defaults.LEAD_SCALE_LIMIT`` from 1 (``scales``, one per cheap level;
+    ``Hyperparameters.scales``) reports other units, where gamma is not its threshold:
+    its runs do not count (bool over the pool)."""
+    limit = defaults.LEAD_SCALE_LIMIT
+    same_units = [lv for lv in range(1, ws.require_initialised().n_levels)
+                  if lv > len(scales) or 1.0 / limit <= scales[lv - 1] <= limit]  # fmt: skip
+    obs = ws.read_observations().filter(
+        pl.col("fidelity").is_in(same_units) & (pl.col("value") <= gamma)
+    )
     return ids_in(ids, obs[SID].to_numpy())
 
 

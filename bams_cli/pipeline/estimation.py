@@ -35,6 +35,7 @@ from bams_cli.pipeline._common import (
 )
 from bams_cli.pipeline._handoff import (
     PLAN_INTERNAL,
+    cheap_failures,
     observed_level0,
     passthrough_columns,
     write_handoff,
@@ -579,10 +580,7 @@ def open_leads(
     A lead is a segment whose result at a cheap level is at or below ``gamma`` (a failure
     the cheap simulator saw) with no level-0 result, none awaited and none abandoned (its
     simulation failed for good: certainty would ask for it again). Only levels in level
-    0's units count: a level the model fits with a scale more than
-    ``defaults.LEAD_SCALE_LIMIT`` from 1 (``scales``, one per cheap level;
-    ``Hyperparameters.scales``) reports other units, where gamma is not its threshold.
-    A failure seen only
+    0's units count (``cheap_failures``). A failure seen only
     at the cheap level is a lead, not a finding, and leads fail at level 0 far more often
     than their p_n says (the model shrinks one cheap run towards its smooth surroundings):
     on the fresh problems 40-100% of them did where p_n put many at 0.01 or below. The
@@ -590,13 +588,7 @@ def open_leads(
     the rest, and the failures it confirms are in hand. At most ``cap`` of them, the
     highest p_n first (bool over the pool).
     """
-    limit = defaults.LEAD_SCALE_LIMIT
-    same_units = [lv for lv in range(1, ws.require_initialised().n_levels)
-                  if lv > len(scales) or 1.0 / limit <= scales[lv - 1] <= limit]  # fmt: skip
-    cheap = ws.read_observations().filter(
-        pl.col("fidelity").is_in(same_units) & (pl.col("value") <= gamma)
-    )
-    lead = ids_in(ids, cheap[SID].to_numpy()) & ~known
+    lead = cheap_failures(ws, ids, gamma, scales) & ~known
     if pend.height:
         lead &= ~ids_in(ids, pend.filter(pl.col("fidelity") == 0)[SID].to_numpy())
     gone = ws.read_abandoned()

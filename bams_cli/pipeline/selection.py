@@ -36,6 +36,7 @@ from bams_cli.pipeline._common import (
 )
 from bams_cli.pipeline._handoff import (
     BATCH_INTERNAL,
+    cheap_failures,
     passthrough_columns,
     write_handoff,
 )
@@ -207,12 +208,6 @@ def _existing_batch(
         "timings_s": {},
         "unchanged": True,
     }
-
-
-def _cheap_leads(ws: Workspace, ids: np.ndarray, gamma: float) -> np.ndarray:
-    """Segments seen at or below gamma at some cheap level (a lead until level 0 confirms)."""
-    obs = ws.read_observations().filter((pl.col("fidelity") > 0) & (pl.col("value") <= gamma))
-    return ids_in(ids, obs[SID].to_numpy())
 
 
 def _check_out(out: Path) -> Path:
@@ -559,7 +554,12 @@ def select(
         if k:
             assert scores is not None
             confirm, is_lead = confirmation_picks(
-                scores[3][:, 0], _cheap_leads(ws, ids, settings.gammas[0]), exclude, k
+                scores[3][:, 0],
+                cheap_failures(
+                    ws, ids, settings.gammas[0], model["hyperparameters"].get("scales") or ()
+                ),
+                exclude,
+                k,
             )
         rest = budget - float(costs[0]) * len(confirm)
         moments = _scored_moments(scores, model, ids) if bounded else None
