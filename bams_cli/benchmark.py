@@ -372,12 +372,13 @@ def open_leads(r: RunResult, f1: np.ndarray, gamma: float) -> np.ndarray:
     """The run's open leads after discovery: segments run at level 1 whose value there is
     at or below gamma, with no level-0 result (truth-file order, bool). The simulator of a
     benchmark returns the truth, so the level-1 value is ``f1``'s. None where the run's
-    last fit put level 1's scale more than ``defaults.LEAD_SCALE_LIMIT`` from 1 (other
-    units: the pipeline's ``open_leads`` counts no leads there)."""
+    last fit put level 1 in other units (``pipeline._handoff.reports_level0_units``), as the
+    pipeline's ``cheap_failures`` counts none there."""
+    from bams_cli.pipeline._handoff import reports_level0_units
+
     leads = np.zeros(f1.size, bool)
     hp = r.hyperparameters[-1] if r.hyperparameters else None
-    rho = float((hp.get("scales") or [1.0])[0]) if hp else 1.0
-    if not 1.0 / defaults.LEAD_SCALE_LIMIT <= rho <= defaults.LEAD_SCALE_LIMIT:
+    if not reports_level0_units((hp.get("scales") or [1.0])[0] if hp else 1.0):
         return leads
     for idx, lv in r.picks:
         cheap = idx[lv == 1]
@@ -1149,8 +1150,9 @@ def run_benchmark(
     save_arrays : bool
         Also write ``runs.npz``: the true level-0 values and gamma, and per run
         (``<strategy>-<seed>-p``, ``-known``, ``-leads``) the final p_n (or importance
-        scores), the known stratum and the open leads (``open_leads``), in truth-file order. Estimate designs can then be studied on the
-        runs without repeating them (``core.design``, ``docs/suite/estimate_design.py``).
+        scores), the known stratum and the open leads (``open_leads``), in truth-file
+        order. Estimate designs can then be studied on the runs without repeating them
+        (``core.design``, ``docs/suite/estimate_design.py``).
     greedy : {"auto", "exact", "approximate"}
         BAMS / BAS: the plan ``select --greedy`` runs; forcing each in turn compares the
         approximate plan with the exact greedy on the same protocol and seeds.

@@ -807,12 +807,12 @@ def test_open_leads_keep_the_highest_p_n_within_the_cap_and_skip_abandoned_and_s
     known = np.isin(ids, sorted(level0))
 
     def chosen(**kw) -> list[str]:
-        kw.setdefault("cap", 1000)
+        kw.setdefault("K", 2000.0)
         return sorted(ids[open_leads(w, ids, p, known, 0.56, w.pending(), **kw)])
 
     assert chosen() == leads
     by_p = sorted(leads, key=lambda s: -p[ids == s][0])
-    assert chosen(cap=2) == sorted(by_p[:2])
+    assert chosen(K=2 / defaults.LEAD_SHARE) == sorted(by_p[:2])  # a cap of 2
     assert chosen(scales=[2.5]) == [] == chosen(scales=[0.6])
     assert chosen(scales=[1.0]) == leads == chosen(scales=[1.4])
     # A BAMS batch whose level-0 runs crash for good (abandoned): none of them is a lead.

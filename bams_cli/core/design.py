@@ -495,6 +495,24 @@ def unseen_failure_weight(risk: ArrayLike, pi: ArrayLike) -> float:
     return float(r @ ((1.0 - pi) / np.where(rand, pi, 1.0))) / mass
 
 
+def certain_leads(
+    p: ArrayLike, known: ArrayLike, leads: ArrayLike | None, K: float
+) -> NDArray[np.bool_]:
+    """The open leads a new staged estimate samples with certainty out of K: those outside
+    the known stratum, at most ``defaults.LEAD_SHARE`` K of them, the highest p_n first
+    (``pipeline.estimation.open_leads``; bool over the pool, all False without leads)."""
+    p = np.asarray(p, dtype=np.float64)
+    if leads is None:
+        return np.zeros(p.size, bool)
+    lead = np.asarray(leads, dtype=bool) & ~np.asarray(known, dtype=bool)
+    idx = np.flatnonzero(lead)
+    cap = max(int(defaults.LEAD_SHARE * K), 0)
+    if idx.size > cap:
+        lead = np.zeros(p.size, bool)
+        lead[idx[np.argsort(-p[idx], kind="stable")[:cap]]] = True
+    return lead
+
+
 def stage_weights(shares: ArrayLike, K: float, n_unknown: float) -> list[float]:
     """The weights of T = sum_s w_s T_s, fixed when stage 1 is planned (module docstring).
 

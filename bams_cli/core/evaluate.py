@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from bams_cli import defaults
+from bams_cli.core.design import certain_leads
 from bams_cli.core.estimate import DESIGNS, Design, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
@@ -386,24 +387,6 @@ def staged_trials(
             p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
-
-
-def certain_leads(
-    p: ArrayLike, known: NDArray[np.bool_], leads: ArrayLike | None, K: float
-) -> NDArray[np.bool_]:
-    """The leads ``estimate --plan`` samples with certainty out of K: those outside the
-    known stratum, at most ``defaults.LEAD_SHARE`` K of them, the highest p first
-    (``pipeline.estimation.open_leads``'s cap)."""
-    p = np.asarray(p, dtype=np.float64)
-    if leads is None:
-        return np.zeros(p.size, bool)
-    lead = np.asarray(leads, dtype=bool) & ~known
-    idx = np.flatnonzero(lead)
-    cap = int(defaults.LEAD_SHARE * K)
-    if idx.size > cap:
-        lead = np.zeros(p.size, bool)
-        lead[idx[np.argsort(-p[idx], kind="stable")[: max(cap, 0)]]] = True
-    return lead
 
 
 @dataclass(frozen=True)

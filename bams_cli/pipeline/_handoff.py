@@ -25,6 +25,13 @@ def observed_level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
     return ids_in(ids, obs[SID].to_numpy())
 
 
+def reports_level0_units(scale: float) -> bool:
+    """Whether a cheap level fitted at this scale (``Hyperparameters.scales``) counts as
+    reporting level 0's units, where gamma is its failure threshold too: within
+    ``defaults.LEAD_SCALE_LIMIT`` of 1."""
+    return 1.0 / defaults.LEAD_SCALE_LIMIT <= float(scale) <= defaults.LEAD_SCALE_LIMIT
+
+
 def cheap_failures(
     ws: Workspace, ids: np.ndarray, gamma: float, scales: Sequence[float] = ()
 ) -> np.ndarray:
@@ -34,9 +41,8 @@ def cheap_failures(
     ``defaults.LEAD_SCALE_LIMIT`` from 1 (``scales``, one per cheap level;
     ``Hyperparameters.scales``) reports other units, where gamma is not its threshold:
     its runs do not count (bool over the pool)."""
-    limit = defaults.LEAD_SCALE_LIMIT
     same_units = [lv for lv in range(1, ws.require_initialised().n_levels)
-                  if lv > len(scales) or 1.0 / limit <= scales[lv - 1] <= limit]  # fmt: skip
+                  if lv > len(scales) or reports_level0_units(scales[lv - 1])]  # fmt: skip
     obs = ws.read_observations().filter(
         pl.col("fidelity").is_in(same_units) & (pl.col("value") <= gamma)
     )

@@ -389,7 +389,7 @@ def estimate_plan(
         if staged and weighting == "auto" and series_K < n_unknown:
             leads = open_leads(
                 ws, ids, p, known, settings.gammas[g_plan], pend,
-                cap=int(defaults.LEAD_SHARE * series_K),
+                K=series_K,
                 scales=model["hyperparameters"].get("scales") or (),
             )  # fmt: skip
         series_leads = int(leads.sum())
@@ -415,6 +415,7 @@ def estimate_plan(
     unknown = np.flatnonzero(~known)
     pu = p[unknown]
     certain_u = leads[unknown]
+    n_certain = int(certain_u.sum())
     # What the design and the evidence of this plan stand on: U without the certain leads,
     # whose selection is not p_n's (their p_n would tell where failures fall only in part).
     pr = pu[~certain_u]
@@ -442,7 +443,7 @@ def estimate_plan(
         from bams_cli.core.estimate import SamplePlan, draw_poisson
 
         sampled = draw_poisson(pi_u, rng)
-        K_drawn = K_stage + int(certain_u.sum())
+        K_drawn = K_stage + n_certain
         plan = SamplePlan(
             "poisson", n, unknown.astype(np.int64), pi_u / max(K_drawn, 1e-300), pi_u,
             K_drawn, sampled, np.ones(sampled.size, np.int64),
@@ -492,8 +493,8 @@ def estimate_plan(
     meta = {
         "plan": number,
         "design": design,
-        "samples": K_stage + int(certain_u.sum()),
-        "leads_certain": int(certain_u.sum()),
+        "samples": K_stage + n_certain,
+        "leads_certain": n_certain,
         "lead_ids": ids[unknown[certain_u]].astype(str).tolist(),
         "alpha": alpha,
         "defensive": defensive,
@@ -572,7 +573,7 @@ def open_leads(
     gamma: float,
     pend: pl.DataFrame,
     *,
-    cap: int,
+    K: float,
     scales: Sequence[float] = (),
 ) -> np.ndarray:
     """The segments a new staged estimate samples with certainty: the open leads.
@@ -585,8 +586,8 @@ def open_leads(
     than their p_n says (the model shrinks one cheap run towards its smooth surroundings):
     on the fresh problems 40-100% of them did where p_n put many at 0.01 or below. The
     estimate confirms each: pi = 1 adds no variance, it takes the lead's share of K from
-    the rest, and the failures it confirms are in hand. At most ``cap`` of them, the
-    highest p_n first (bool over the pool).
+    the rest, and the failures it confirms are in hand. At most ``defaults.LEAD_SHARE``
+    of K, the highest p_n first (``core.design.certain_leads``; bool over the pool).
     """
     lead = cheap_failures(ws, ids, gamma, scales) & ~known
     if pend.height:
@@ -594,11 +595,9 @@ def open_leads(
     gone = ws.read_abandoned()
     if gone.height:
         lead &= ~ids_in(ids, gone.filter(pl.col("fidelity") == 0)[SID].to_numpy())
-    idx = np.flatnonzero(lead)
-    if idx.size > cap:
-        lead = np.zeros_like(lead)
-        lead[idx[np.argsort(-p[idx], kind="stable")[: max(cap, 0)]]] = True
-    return lead
+    from bams_cli.core.design import certain_leads
+
+    return certain_leads(p, known, lead, K)
 
 
 def _plan_samples(

@@ -484,6 +484,8 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         true_discrepancy_sd,
     )
     from bams_cli.core.evaluate import staged_trials
+    from bams_cli.pipeline._handoff import cheap_failures
+    from bams_cli.state.workspace import Workspace
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
     gamma = float((out / problem / "gamma").read_text())
@@ -499,18 +501,18 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
             (pl.col("fidelity") == 0) & pl.col("batch").is_not_null() & (pl.col("batch") <= 3)
         )
         known = ids.is_in(before["segment_id"].implode()).to_numpy()
-        # The open leads after batch 3, which the staged estimate samples with certainty
-        # (``pipeline.estimation.open_leads``; runs made before 2026-11-29 did not).
-        cheap_fail = obs.filter(
-            (pl.col("fidelity") >= 1) & pl.col("batch").is_not_null() & (pl.col("batch") <= 3)
-            & (pl.col("value") <= gamma)
-        )  # fmt: skip
-        leads = ids.is_in(cheap_fail["segment_id"].implode()).to_numpy() & ~known
         levels = ids.to_frame().join(truth, on="segment_id", how="left")
         value = levels["value_0"]
         fail = value.to_numpy() <= gamma
         rate, N, K = float(fail.mean()), len(fail), _series_K(ws, doc)
         model = json.loads(path.with_name(f"{ws.name}.model-after-batch-3.json").read_text())
+        # The open leads after batch 3, which the staged estimate samples with certainty
+        # (``pipeline.estimation.open_leads``; runs made before 2026-11-29 did not), read
+        # from the workspace kept then as the pipeline reads them.
+        leads = cheap_failures(
+            Workspace(ws.with_name(f"{ws.name}.after-batch-3")), ids.to_numpy(), gamma,
+            model["hyperparameters"].get("scales") or (),
+        ) & ~known  # fmt: skip
         # The prior on lam estimate --plan takes for this model.
         t = staged_trials(
             p.to_numpy(), fail, K=K, known=known, n_trials=1000,

@@ -14,7 +14,7 @@ from bams_cli import defaults
 from bams_cli.core import design as dz
 from bams_cli.core import screen as sc
 from bams_cli.core.estimate import estimate_from_sample
-from bams_cli.core.evaluate import _capped, certain_leads, staged_trials
+from bams_cli.core.evaluate import _capped, staged_trials
 from bams_cli.core.sampling import inclusion_probabilities
 
 
@@ -606,4 +606,4 @@ def test_leads_sampled_with_certainty_keep_the_staged_estimate_unbiased_and_in_h
     cap = int(defaults.LEAD_SHARE * K)
     want = np.zeros(N, bool)
     want[[i for i in sorted(range(N), key=lambda i: -p[i]) if not known[i]][:cap]] = True
-    np.testing.assert_array_equal(certain_leads(p, known, np.ones(N, bool), K), want)
+    np.testing.assert_array_equal(dz.certain_leads(p, known, np.ones(N, bool), K), want)

@@ -246,7 +246,9 @@ def condition(
     cap = max_conditioned(max_memory)
     rows = conditioning_subset(levels, n_levels, cap)
     if rows is None:
-        model = MFGP(X, levels, y, n_levels, hyperparameters, priors=priors)
+        model = MFGP(
+            X, levels, y, n_levels, hyperparameters, priors=priors, standardisation=(ybar, ystd)
+        )
     else:
         model = MFGP(
             X[rows], levels[rows], y[rows], n_levels, hyperparameters, priors=priors,
