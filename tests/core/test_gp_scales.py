@@ -232,6 +232,14 @@ def test_pair_scales_are_the_least_squares_slope_where_pairs_show_a_scale():
             pytest.approx(corr, abs=0.002),
         )
         assert g == pytest.approx(gain, rel=0.02)
+    # A cheap level that is level 0 shifted: the differences are a constant, slope 1 fits
+    # exactly and there is no scale to show; an exact line of slope 2.5 shows one.
+    y0 = rng.standard_normal(12)
+    for shift in (3.0, -0.7, 1e4):
+        k, slope, r, g = pair_evidence(y0, y0 + shift)
+        assert g == 1.0 and slope == pytest.approx(1.0) and not shows_scale(k, slope, r, g)
+    k, slope, r, g = pair_evidence(y0, 2.5 * y0 + 1.0)
+    assert g > 1e6 and shows_scale(k, slope, r, g)
 
 
 def test_models_written_before_scales_read_as_additive():

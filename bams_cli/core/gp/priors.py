@@ -148,6 +148,12 @@ def paired_values(
     return m0[i0], ml[il]
 
 
+#: ``pair_evidence``: differences y_l - y_0 whose variance is under this share of level
+#: 0's are a constant offset (a cheap level that is level 0 shifted), whatever rounding
+#: says of their sd.
+EXACT_OFFSET = 1e-12
+
+
 def shows_scale(k: int, slope: float, corr: float, sd_ratio: float) -> bool:
     """Whether k pairs measure a scale: enough of them (``SCALE_PAIRS``), tracking
     closely (``SCALE_CORR``), at a positive slope that cuts the sd of what they show,
@@ -160,13 +166,19 @@ def pair_evidence(y0: FloatArray, yl: FloatArray) -> tuple[int, float, float, fl
     sd(y_l - slope y_0)) over pairs: what ``shows_scale`` judges. From one covariance
     (a = var y_l, b = var y_0, c = cov): slope c / b, the two variances a - 2c + b and
     a - c^2 / b. NaN below two pairs or where either level's values do not vary; the
-    ratio inf on an exact line."""
+    ratio inf on an exact line of another slope, and 1 where y_l - y_0 is constant to
+    within ``EXACT_OFFSET`` of level 0's variance (slope 1 already fits exactly: both sds
+    are rounding, and their ratio would be any number)."""
     k = int(y0.size)
     if k < 2 or np.ptp(y0) == 0 or np.ptp(yl) == 0:
         return k, math.nan, math.nan, math.nan
     (a, c), (_, b) = np.cov(yl, y0)
     rest = a - c * c / b
-    ratio = math.sqrt((a - 2.0 * c + b) / rest) if rest > 0 else math.inf
+    diff = a - 2.0 * c + b
+    if diff <= EXACT_OFFSET * b:
+        ratio = 1.0
+    else:
+        ratio = math.sqrt(diff / rest) if rest > 0 else math.inf
     return k, float(c / b), float(c / math.sqrt(a * b)), ratio
 
 
