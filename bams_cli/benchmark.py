@@ -597,11 +597,13 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
     -------
     dict or None
         share, recall (mean over the trials), var_ratio (the design's variance over a
-        uniform Poisson design's of K level-0 runs), screened (mean |S1|), trials; None
-        where the default does not screen.
+        uniform Poisson design's of K level-0 runs), screened (mean |S1|), leads (the open
+        leads taken with certainty), trials; None where the default does not screen.
     """
     from bams_cli.core.evaluate import screen_trials
+    from bams_cli.core.screen import lead_budget
     from bams_cli.pipeline import screening
+    from bams_cli.pipeline.estimation import open_leads as open_leads_of
     from bams_cli.state.workspace import Workspace
 
     ws = Workspace(root)
@@ -644,11 +646,17 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
 
+    model = ws.read_model()
+    # The open leads the screen takes with certainty, as ``estimate --plan`` chooses them.
+    leads = open_leads_of(
+        ws, ids, p, seen[0], settings.gammas[g], ws.pending(),
+        K=lead_budget(K, float(share)), scales=model["hyperparameters"].get("scales") or (),
+    )  # fmt: skip
     t = screen_trials(
         p, fail, K=K, cost=settings.costs[screening.SCREEN_LEVEL], share=float(share),
         refit=refit, known=seen[0], cheap_known=seen[1], n_trials=SCREEN_TRIALS,
-        prior=screening.risk_prior(model := ws.read_model(), settings),
-        confirm_prior=screening.confirm_prior(model, settings),
+        prior=screening.risk_prior(model, settings),
+        confirm_prior=screening.confirm_prior(model, settings), leads=leads,
         rng=np.random.default_rng([seed, 2027]),
     )  # fmt: skip
     return {
@@ -656,6 +664,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
         "recall": float(t.recall.mean()),
         "var_ratio": float(t.var / t.var_uniform),
         "screened": float(t.screened.mean()),
+        "leads": int(leads.sum()),
         "trials": SCREEN_TRIALS,
     }
 

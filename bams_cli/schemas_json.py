@@ -434,6 +434,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "series_K": NUM,
                         "screened": COUNT,
                         "cheap_runs": COUNT,
+                        # open leads confirmed with certainty (pi1 = pi2 = 1)
+                        "leads_certain": COUNT,
                         "level0_budget": NUM,
                         # Beta(a, b) on lam that planned pi2, as the screen recorded it
                         "confirm_prior": array(NUM),
@@ -457,11 +459,13 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "screen_level": INT,
                 "screen_cost": NUM,
                 "screen_expected": NUM,
-                "screen_design": {"enum": ["calibrated", "uniform", "p^alpha"]},
+                "screen_design": {"enum": ["calibrated", "uniform", "p^alpha", "leads"]},
                 "screened": COUNT,
                 "cheap_runs": COUNT,
                 "cheap_in_log": COUNT,
                 "cheap_abandoned": COUNT,
+                # open cheap-level leads screened and confirmed with certainty
+                "leads_certain": COUNT,
                 # Beta(a, b) priors on lam: pi1's, and the confirmation's pi2's
                 "risk_prior": array(NUM),
                 "confirm_prior": array(NUM),

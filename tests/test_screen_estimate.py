@@ -85,13 +85,24 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     )
     assert errors(scr, schemas_json.schema("estimate-screen")) == []
     assert (scr["plan"], scr["batch"], scr["samples_K"], scr["screen_level"]) == (1, 2, K, 1)
-    # The screen's expected size is its share of K at the cheap level's cost.
-    assert scr["screen_expected"] == pytest.approx(SHARE * K / 0.1)
+    # The open leads (a cheap run at or below the largest gamma, no level-0 result), by hand:
+    # in the screen with certainty, at no cost; the rest of the screen keeps its expected
+    # size, its share of K at the cheap level's cost.
+    obs0 = pl.read_parquet(ws / "observations.parquet")
+    leads = set(cheap_before.filter(pl.col("value") <= 0.56)[SID]) - set(
+        obs0.filter(pl.col("fidelity") == 0)[SID]
+    )
+    assert leads, "the batch left no open lead: the test has nothing to check"
+    assert scr["leads_certain"] == len(leads)
+    assert scr["screen_expected"] == pytest.approx(SHARE * K / 0.1 + len(leads))
     screen = pl.read_parquet(ws / "estimates" / "screen-0001.parquet")
     smeta = read_metadata_json(ws / "estimates" / "screen-0001.parquet")
     assert screen.height == 400 and smeta["series_K"] == K
+    assert set(smeta["lead_ids"]) == leads
     s1 = screen.filter(pl.col("screened"))
     assert s1.height == scr["screened"] and (s1["stratum"] == "unknown").all()
+    assert (screen.filter(pl.col(SID).is_in(sorted(leads)))["pi1"] == 1.0).all()
+    assert leads <= set(s1[SID])
     # The batch runs the cheap level on S1 but for what the log already holds.
     batch = pl.read_parquet(ws / "batches" / "batch-0002.parquet")
     assert (batch["fidelity"] == 1).all() and (batch["strategy"] == "screen").all()
@@ -140,12 +151,17 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     assert smeta["risk_prior"] == list(defaults.RISK_MIX_PRIOR)
     assert plan["screen"]["confirm_prior"] == smeta["confirm_prior"]
     post2 = dz.risk_posterior([], prior=defaults.RISK_MIX_PRIOR_CONFIRM)
-    pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=post2).pi
+    is_lead = s1p[SID].is_in(sorted(leads)).to_numpy()
+    pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=post2, leads=is_lead).pi
+    # The leads confirmed with certainty, the rest of K2 over the other screened segments.
+    assert (pi2[is_lead] == 1).all() and plan["screen"]["leads_certain"] == len(leads)
+    assert pi2[~is_lead].sum() == pytest.approx(K2 - len(leads), rel=1e-9)
     assert plan["samples_K"] == pytest.approx(K2)
     pi_by_id = dict(zip(s1[SID].to_list(), (s1["pi1"].to_numpy() * pi2).tolist(), strict=True))
     planned = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
     sampled = planned.filter(pl.col("stratum") == "sampled")
     assert set(sampled[SID]) <= set(s1[SID]) and sampled.height == plan["to_simulate"]
+    assert leads <= set(sampled[SID])
     for sid, pi in zip(sampled[SID].to_list(), sampled["pi"].to_list(), strict=True):
         assert pi == pytest.approx(pi_by_id[sid], rel=1e-12)
     # The known stratum is the screen's: every segment with a level-0 result at the screen.
@@ -159,8 +175,10 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     post = dz.risk_posterior([])
     p_cols = sorted((c for c in scores.columns if c.startswith("p_")), key=lambda c: int(c[2:]))
     assert len(pmeta["w_model"]) == len(p_cols) == 2
+    unk_lead = unk[SID].is_in(sorted(leads)).to_numpy()
     for g, col in enumerate(p_cols):
-        risk = post.allowance_risk(unk[col].to_numpy())
+        # No unseen failure hides in a lead, confirmed with certainty.
+        risk = np.where(unk_lead, 0.0, post.allowance_risk(unk[col].to_numpy()))
         stand_in = (risk[in_s1] * pi2).sum() / risk[in_s1].sum()
         allow = np.where(in_s1, 0.0, pi1_u * stand_in)
         allow[in_s1] = pi1_u[in_s1] * pi2
@@ -521,9 +539,10 @@ def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
     unknown = screen.filter(pl.col("stratum") == "unknown").join(
         scores.select(SID, "p_1"), on=SID, how="left"
     )
+    is_lead = unknown[SID].is_in(smeta["lead_ids"]).to_numpy()
     pi1 = {
         pr: sc.screen_design(unknown["p_1"].to_numpy(), K=K, cost=0.1, share=SHARE,
-                             posterior=dz.risk_posterior([], prior=pr)).pi
+                             posterior=dz.risk_posterior([], prior=pr), leads=is_lead).pi
         for pr in (weak, strong)
     }  # fmt: skip
     np.testing.assert_allclose(unknown["pi1"].to_numpy(), pi1[weak], rtol=1e-12)
@@ -704,8 +723,11 @@ def test_a_screen_written_before_the_confirmation_prior_confirms_as_it_did(fitte
     p_col = [c for c in scores.columns if c.startswith("p_")][-1]
     p2 = s1.join(scores.select(SID, p_col), on=SID, how="left")[p_col].to_numpy()
     K2 = min(sc.confirm_budget(K, 0.1, scr["cheap_runs"]), float(s1.height))
+    lead = s1[SID].is_in(read_metadata_json(path)["lead_ids"]).to_numpy()
     pi2 = {
-        pr: sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([], prior=pr)).pi
+        pr: sc.confirm_design(
+            p2, K2=K2, posterior=dz.risk_posterior([], prior=pr), leads=lead
+        ).pi
         for pr in (defaults.RISK_MIX_PRIOR, defaults.RISK_MIX_PRIOR_CONFIRM)
     }
     assert (

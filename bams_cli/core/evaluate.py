@@ -925,6 +925,7 @@ def screen_trials(
     cheap_known: ArrayLike | None = None,
     prior: tuple[float, float] | None = None,
     confirm_prior: tuple[float, float] | None = None,
+    leads: ArrayLike | None = None,
     n_trials: int,
     rng: np.random.Generator,
 ) -> ScreenTrials:
@@ -961,6 +962,10 @@ def screen_trials(
     confirm_prior : (float, float), optional
         Beta prior on lam of the confirmation's pi2; default ``prior`` (``estimate --plan``
         takes ``core.design.confirm_prior`` of the screen's fit and keeps it).
+    leads : bool array_like of shape (n_pool,), optional
+        The open leads the screen takes with certainty (pi1 = pi2 = 1, ``core.screen``),
+        as ``pipeline.estimation.open_leads`` chooses them; they must hold a cheap result
+        (``cheap_known``) and lie outside ``known``.
     n_trials : int
     rng : numpy.random.Generator
 
@@ -987,7 +992,11 @@ def screen_trials(
     # A new study: no earlier estimate to mix in.
     posterior = risk_posterior([], prior=defaults.RISK_MIX_PRIOR if prior is None else prior)
     confirm = posterior if confirm_prior is None else risk_posterior([], prior=confirm_prior)
-    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior).pi
+    lead = np.zeros(n, bool) if leads is None else np.asarray(leads, dtype=bool)
+    if np.any(lead & (kn | ~have)):
+        raise ValueError("a lead must have a cheap result and no level-0 one")
+    lead_U = lead[U]
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior, leads=lead_U).pi
     recall = np.empty(n_trials)
     screened = np.empty(n_trials, np.int64)
     v2 = np.empty(n_trials)
@@ -1001,7 +1010,7 @@ def screen_trials(
         p2 = np.asarray(refit(U[s1]), dtype=np.float64)
         runs = int((~have[U[s1]]).sum())
         K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm).pi
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm, leads=lead_U[s1]).pi
         recall[t] = (in_hand + float(pi2[fU[s1]].sum())) / F
         v2[t] = sc.phase2_variance(fU[s1], pi1[s1], pi2)
     N2 = float(n) ** 2

@@ -33,11 +33,20 @@ Why: the model ranks failures by its p_n, which on a problem it knows poorly ran
 little better than chance (digits, weak_cheap). A cheap run on the segment itself is
 evidence p_n does not have. Measured through the tool on the suite
 (docs/suite/screen_design.md).
+
+Open leads (segments whose cheap run already failed and that have no level-0 result,
+``pipeline.estimation.open_leads``) are in the screen with certainty: pi1 = pi2 = 1. Their
+cheap run is in the log, so phase 1 costs nothing for them; phase 2 confirms each out of
+K2 and the rest of K2 goes to the other screened segments. Both phases' designs are fixed
+before any outcome they weigh is seen, so T stays unbiased, and a lead adds no variance
+where the model, which shrinks one cheap run towards its smooth surroundings, would have
+confirmed it at a small pi2 (weight 1/(pi1 pi2)).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -72,7 +81,13 @@ def screen_size(K: float, cost: float, share: float, n_unknown: int) -> float:
 
 
 def screen_design(
-    p: ArrayLike, *, K: float, cost: float, share: float, posterior: RiskPosterior
+    p: ArrayLike,
+    *,
+    K: float,
+    cost: float,
+    share: float,
+    posterior: RiskPosterior,
+    leads: ArrayLike | None = None,
 ) -> DesignChoice:
     """Phase 1: pi1 over U, the estimate's own design choice at the screen's size.
 
@@ -84,9 +99,39 @@ def screen_design(
         As in ``screen_size``.
     posterior : RiskPosterior
         How far p_n is trusted (``design.risk_posterior``).
+    leads : bool array_like of shape (n_unknown,), optional
+        Open leads (module docstring): pi1 = 1 there, at no cost (their cheap run is in
+        the log); the design over the other segments keeps the screen's size.
     """
     p = np.asarray(p, dtype=np.float64)
-    return choose_design(p, K=screen_size(K, cost, share, p.size), posterior=posterior)
+    lead = _mask(leads, p.size)
+    if not lead.any():
+        return choose_design(p, K=screen_size(K, cost, share, p.size), posterior=posterior)
+    rest = ~lead
+    n_rest = int(rest.sum())
+    pi = np.ones(p.size)
+    if n_rest == 0:
+        return DesignChoice(name="leads", pi=pi, risk=np.zeros(p.size), predicted={})
+    c = choose_design(p[rest], K=screen_size(K, cost, share, n_rest), posterior=posterior)
+    pi[rest] = c.pi
+    risk = np.zeros(p.size)
+    risk[rest] = c.risk
+    return replace(c, pi=pi, risk=risk)
+
+
+def lead_budget(K: float, share: float) -> float:
+    """The level-0 runs a screen's confirmation expects to have, K (1 - share): the budget
+    whose ``defaults.LEAD_SHARE`` the certain leads may take (``design.certain_leads``)."""
+    return float(K) * (1.0 - float(share))
+
+
+def _mask(leads: ArrayLike | None, n: int) -> NDArray[np.bool_]:
+    if leads is None:
+        return np.zeros(n, bool)
+    lead = np.asarray(leads, dtype=bool)
+    if lead.shape != (n,):
+        raise ValueError(f"leads has shape {lead.shape}; expected ({n},), one per segment")
+    return lead
 
 
 def confirm_budget(K: float, cost: float, n_screened: int) -> float:
@@ -99,12 +144,18 @@ def confirm_budget(K: float, cost: float, n_screened: int) -> float:
     return max(1.0, float(K) - float(cost) * int(n_screened))
 
 
-def confirm_design(p2: ArrayLike, *, K2: float, posterior: RiskPosterior) -> DesignChoice:
+def confirm_design(
+    p2: ArrayLike, *, K2: float, posterior: RiskPosterior, leads: ArrayLike | None = None
+) -> DesignChoice:
     """Phase 2: pi2 over S1 from the refitted model's p2, expected size min(K2, |S1|).
 
     A weight 1/pi1^2 in the risk would minimise the predicted variance, but it draws the
     budget towards segments phase 1 took at small pi1, most of them passing ones, and
     measured worse on the suite wherever p2 is good (docs/suite/screen_design.md).
+
+    ``leads`` (bool over S1): the open leads, confirmed with certainty (pi2 = 1) out of
+    K2; the rest of K2 goes to the other screened segments, at least one run's worth
+    where any remain (every screened segment keeps pi2 > 0, as ``confirm_budget`` says).
 
     An empty screen (S1 is random, and may be empty) has nothing to confirm: T = 0, which
     is E[T | S1] for it; the design returned is empty.
@@ -114,7 +165,20 @@ def confirm_design(p2: ArrayLike, *, K2: float, posterior: RiskPosterior) -> Des
         return DesignChoice(name="uniform", pi=np.zeros(0), risk=np.zeros(0), predicted={})
     if not K2 > 0:
         raise ValueError(f"no level-0 budget is left to confirm the screen (K2 = {K2!r})")
-    return choose_design(p2, K=min(float(K2), float(p2.size)), posterior=posterior)
+    lead = _mask(leads, p2.size)
+    if not lead.any():
+        return choose_design(p2, K=min(float(K2), float(p2.size)), posterior=posterior)
+    rest = ~lead
+    n_rest = int(rest.sum())
+    pi = np.ones(p2.size)
+    if n_rest == 0:
+        return DesignChoice(name="leads", pi=pi, risk=np.zeros(p2.size), predicted={})
+    k = min(max(float(K2) - float(lead.sum()), 1.0), float(n_rest))
+    c = choose_design(p2[rest], K=k, posterior=posterior)
+    pi[rest] = c.pi
+    risk = np.zeros(p2.size)
+    risk[rest] = c.risk
+    return replace(c, pi=pi, risk=risk)
 
 
 def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:

@@ -321,9 +321,17 @@ def estimate_plan(
             else ([settings.seed, 30_000 + number, *state], "study settings")
         )
         evidence, _ = st.mix_evidence(ws, settings.gammas[g_plan])
+        from bams_cli.core.screen import lead_budget
+
+        # The open cheap-level leads are in the screen with certainty (``core.screen``).
+        leads = open_leads(
+            ws, ids, p, known, settings.gammas[g_plan], pend,
+            K=lead_budget(samples, share),
+            scales=model["hyperparameters"].get("scales") or (),
+        )  # fmt: skip
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
-            share=share,
+            share=share, leads=leads,
             posterior=dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings)),
             confirm_prior=screening.confirm_prior(model, settings),
             rng=np.random.default_rng(stream),

@@ -219,6 +219,7 @@ def draw_screen(
     known: np.ndarray,
     K: float,
     share: float,
+    leads: np.ndarray | None = None,
     posterior: Any,
     confirm_prior: tuple[float, float],
     rng: np.random.Generator,
@@ -228,7 +229,8 @@ def draw_screen(
     """Draw S1, write the screen and the batch of its cheap runs (one transaction).
 
     ``p``: p_n over the pool at the plan's gamma; ``known``: which segments have a level-0
-    result; ``posterior``: what pi1 is planned under; ``confirm_prior``: the prior on lam
+    result; ``leads``: the open leads (bool over the pool, ``estimation.open_leads``),
+    screened and confirmed with certainty; ``posterior``: what pi1 is planned under; ``confirm_prior``: the prior on lam
     the confirmation's pi2 will be planned under (recorded, so a refit cannot change it);
     ``meta``: what the screen's metadata shares with a plan's (seed, gamma ...).
     Returns the summary ``estimate --plan --screen --json`` prints.
@@ -244,7 +246,10 @@ def draw_screen(
             f"{ws.root}: every segment has a level-0 result; there is nothing to screen "
             "(drop --screen: the estimate is a census)"
         )
-    choice = sc.screen_design(p[unknown], K=K, cost=cost, share=share, posterior=posterior)
+    lead = np.zeros(len(ids), bool) if leads is None else np.asarray(leads, bool) & ~known
+    choice = sc.screen_design(
+        p[unknown], K=K, cost=cost, share=share, posterior=posterior, leads=lead[unknown]
+    )
     pi1 = choice.pi
     s1 = unknown[draw_poisson(pi1, rng)]
     obs = ws.read_observations().filter(pl.col("fidelity") == SCREEN_LEVEL)
@@ -270,12 +275,16 @@ def draw_screen(
         "cheap_in_log": int(have.sum()),
         "cheap_abandoned": int((gone & ~have).sum()),
         "batch": batch,
+        "leads_certain": int(lead.sum()),
         # The prior of pi1, which the confirmation's allowance keeps (``risk_prior``'s
         # ``recorded``), and the prior of the confirmation's pi2.
         "risk_prior": [float(v) for v in posterior.prior],
         "confirm_prior": [float(v) for v in confirm_prior],
     }
-    screen_meta = {**meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size)}
+    screen_meta = {
+        **meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size),
+        "lead_ids": ids[lead].astype(str).tolist(),
+    }  # fmt: skip
     table = schemas.SCREEN.conform(
         pa.table(
             {
@@ -434,9 +443,15 @@ def confirm_screen(
     pi1_S1 = pi1_U[in_s1]
     cost = float(smeta["screen_cost"])
     p2 = p_all[S1, g_plan]
+    # The leads the screen took with certainty (pi1 = 1, so all in S1): confirmed so too.
+    lead_U = ids_in(ids[U], np.asarray(smeta.get("lead_ids") or [], dtype=str))
+    if np.any(lead_U & ~in_s1):
+        raise WorkspaceError(f"{path}: a lead the screen took with certainty is not in it")
     if S1.size:
         K2 = min(sc.confirm_budget(K, cost, int(smeta["cheap_runs"])), float(S1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm_posterior).pi
+        pi2 = sc.confirm_design(
+            p2, K2=K2, posterior=confirm_posterior, leads=lead_U[in_s1]
+        ).pi
     else:  # an empty screen has nothing to confirm: T = 0, its conditional mean
         K2, pi2 = 0.0, np.zeros(0)
     drawn = draw_poisson(pi2, rng)
@@ -446,7 +461,9 @@ def confirm_screen(
     # "mean" allowance, ``core.screen.allowance_pi``; docs/suite/screen_design.md).
     w_model = []
     for g in range(p_all.shape[1]):
-        risk = posterior.allowance_risk(p_all[U, g])
+        # A lead is confirmed with certainty: no unseen failure hides there, and its pi2 of
+        # 1 is not what a screened segment of its risk gets.
+        risk = np.where(lead_U, 0.0, posterior.allowance_risk(p_all[U, g]))
         w_model.append(dz.unseen_failure_weight(risk, sc.allowance_pi(pi1_U, in_s1, pi2, risk)))
     w_max = poisson_max_weight(sc.min_allowance_pi(pi1_U, in_s1, pi2))
     return {
@@ -466,6 +483,7 @@ def confirm_screen(
             "series_K": K,
             "screened": int(S1.size),
             "cheap_runs": int(smeta["cheap_runs"]),
+            "leads_certain": int(lead_U.sum()),
             "level0_budget": K2,
             "confirm_prior": [float(v) for v in confirm_posterior.prior],
             "seed": smeta.get("seed"),

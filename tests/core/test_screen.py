@@ -140,7 +140,8 @@ def test_the_confirmation_follows_the_refitted_model_and_an_empty_screen_confirm
     assert empty.pi.size == 0
 
 
-def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
+@pytest.mark.parametrize("with_leads", [False, True])
+def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design(with_leads):
     # core.evaluate.screen_trials (the benchmark's measure of the screened default) against
     # the design simulated end to end: draw S1, plan pi2 from a refit that sees S1's cheap
     # values, draw S2, sum y / (pi1 pi2). Its variance (phase 1 exact, phase 2 averaged
@@ -159,17 +160,23 @@ def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
     have = np.zeros(n, bool)
     have[rng.choice(n, 300, replace=False)] = True  # cheap results already in the log
     K, cost, share = 60.0, 0.2, 0.3
+    # Open leads: cheap results in hand, no level-0 one, most of them failures the model
+    # rates low; taken with certainty in both phases.
+    leads = np.zeros(n, bool)
+    if with_leads:
+        leads[rng.choice(np.flatnonzero(have & ~known & (p < 0.05)), 12, replace=False)] = True
 
     def refit(s1: np.ndarray) -> np.ndarray:
         return np.clip(0.5 * p[s1] + 0.5 * cheap[s1], 1e-6, 1.0)
 
     t = screen_trials(
         p, fail, K=K, cost=cost, share=share, refit=refit, known=known, cheap_known=have,
-        n_trials=3000, rng=np.random.default_rng(4),
+        leads=leads if with_leads else None, n_trials=3000, rng=np.random.default_rng(4),
     )  # fmt: skip
     U = np.flatnonzero(~known)
     post = dz.risk_posterior([])
-    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post).pi
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post, leads=leads[U]).pi
+    assert np.all(pi1[leads[U]] == 1.0)
     sims = np.empty(20_000)
     found = np.empty(sims.size)
     mc = np.random.default_rng(5)
@@ -177,7 +184,7 @@ def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
         s1 = np.flatnonzero(mc.random(U.size) < pi1)
         runs = int((~have[U[s1]]).sum())
         K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
-        pi2 = sc.confirm_design(refit(U[s1]), K2=K2, posterior=post).pi
+        pi2 = sc.confirm_design(refit(U[s1]), K2=K2, posterior=post, leads=leads[U[s1]]).pi
         s2 = mc.random(s1.size) < pi2
         y = fail[U[s1]] & s2
         sims[i] = float((1.0 / (pi1[s1] * pi2))[y].sum())
@@ -192,6 +199,64 @@ def test_screen_trials_match_a_monte_carlo_of_the_whole_two_phase_design():
     k = K / U.size
     assert t.var_uniform * n**2 == pytest.approx(F_U * (1 - k) / k, rel=1e-12)
     assert t.rate == F / n and t.screened.mean() == pytest.approx(pi1.sum(), rel=0.02)
+
+
+def test_leads_are_screened_and_confirmed_with_certainty_and_the_rest_keeps_its_budget():
+    p = np.geomspace(1e-5, 0.3, 400)
+    lead = np.zeros(p.size, bool)
+    lead[[3, 50, 51, 200]] = True  # leads the model rates low
+    prior = dz.risk_posterior([])
+    pi1 = sc.screen_design(p, K=20.0, cost=0.1, share=0.3, posterior=prior, leads=lead).pi
+    assert np.all(pi1[lead] == 1.0)
+    # The other segments keep the screen's size (the leads' cheap runs are in the log).
+    assert pi1[~lead].sum() == pytest.approx(60.0, rel=1e-9)
+    plain = sc.screen_design(p[~lead], K=20.0, cost=0.1, share=0.3, posterior=prior).pi
+    np.testing.assert_allclose(pi1[~lead], plain, rtol=1e-12)
+    # Phase 2: the leads out of K2, the rest of K2 over the other screened segments, and
+    # never less than one run's worth while any remain.
+    p2 = np.geomspace(1e-4, 0.5, 30)
+    l2 = np.zeros(p2.size, bool)
+    l2[[0, 1, 7]] = True
+    pi2 = sc.confirm_design(p2, K2=8.0, posterior=prior, leads=l2).pi
+    assert np.all(pi2[l2] == 1.0) and pi2[~l2].sum() == pytest.approx(5.0, rel=1e-9)
+    tight = sc.confirm_design(p2, K2=3.5, posterior=prior, leads=l2).pi
+    assert np.all(tight[~l2] > 0) and tight[~l2].sum() == pytest.approx(1.0, rel=1e-9)
+    every = sc.confirm_design(p2[l2], K2=2.0, posterior=prior, leads=np.ones(3, bool))
+    assert np.all(every.pi == 1.0) and every.name == "leads"
+    with pytest.raises(ValueError, match="leads has shape"):
+        sc.confirm_design(p2, K2=8.0, posterior=prior, leads=l2[:5])
+
+
+def test_the_screened_estimate_with_certain_leads_is_unbiased_by_enumeration():
+    # Segments 0 and 5 are leads (5 fails at level 0 unseen by the cheap level's value
+    # here, which the refit reads as a pass): pi1 = pi2 = 1 there, the rest as drawn.
+    lead = np.zeros(N, bool)
+    lead[[0, 5]] = True
+    pi1 = np.where(lead, 1.0, PI1)
+    mean = second = v_mean = 0.0
+    for bits in itertools.product((0, 1), repeat=N):
+        in1 = np.array(bits, dtype=bool)
+        P1 = float(np.prod(np.where(in1, pi1, 1.0 - pi1)))
+        if P1 == 0.0:
+            continue
+        s1 = np.flatnonzero(in1)
+        p2 = np.clip(1.0 - CHEAP[s1], 0.01, 1.0) ** 2
+        K2 = sc.confirm_budget(K, COST, int((~lead[s1]).sum()))
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([]), leads=lead[s1]).pi
+        assert np.all(pi2[lead[s1]] == 1.0)
+        pi = sc.confirmed_pi(pi1[s1], pi2)
+        for bits2 in itertools.product((0, 1), repeat=s1.size):
+            in2 = np.array(bits2, dtype=bool)
+            P = P1 * float(np.prod(np.where(in2, pi2, 1.0 - pi2)))
+            if P == 0.0:
+                continue
+            y = FAIL[s1] & in2
+            T = float(np.sum(1.0 / pi[y]))
+            mean += P * T
+            second += P * T * T
+            v_mean += P * float(np.sum((1.0 - pi[y]) / pi[y] ** 2))
+    assert mean == pytest.approx(FAIL.sum(), abs=1e-10)
+    assert v_mean == pytest.approx(second - mean**2, rel=1e-10)
 
 
 def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_risk_weighted_mean_pi2():
