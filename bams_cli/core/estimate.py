@@ -443,53 +443,17 @@ def estimate_from_sample(
     n_fail_s = yf.sum(axis=0).astype(np.int64)
     n_pass_s = n_sampled - n_fail_s
 
+    # One estimator per design: Hansen-Hurwitz with replacement, Horvitz-Thompson else.
     if design == "with-replacement":
-        K = float(budget)
-        yc = np.broadcast_to(y * c, (fr.size, m))
-        T = (inv @ yc) / K
-        # s^2 of the K terms Y_k = y/q; v = s^2 / K. Two passes: the squared deviations
-        # from T, the failure draws' (1/q - T)^2 and T^2 for each of the other draws. The
-        # one-pass sum Y^2 - K T^2 cancels when every draw is a failure of similar weight
-        # (terms 1e9 +- 1: every digit lost, v = 0); these terms are all >= 0.
-        n_zero_draws = K - yc.sum(axis=0)
-        ss = ((inv[:, None] - T[None, :]) ** 2 * yc).sum(axis=0) + n_zero_draws * T**2
-        v = ss / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
-        D = np.zeros(m)
-        R = T
-        yr = yf
-        n_rand_fail = n_fail_s
-        wt = failure_weights(np.where(pf > 0, pf, 1.0), design=design, K=K)
-        w0 = (n_unknown - 1.0) / K  # the same at uniform q = 1/|U|
-        n_certain = 0
+        est = _with_replacement_sum(
+            pf, inv, y, c, yf, n_fail_s, K=float(budget), n_unknown=n_unknown, m=m
+        )
     else:
-        certain = pf >= 1.0
-        rand = ~certain
-        D = (certain @ yf).astype(np.float64)
-        yr = yf * rand[:, None]
-        R = inv @ yr
-        n_rand_fail = yr.sum(axis=0).astype(np.int64)
-        one_m = (1.0 - pf) * rand
-        if design == "poisson":
-            v = (one_m * inv**2) @ yr
-        else:
-            # Deville (1999): n/(n-1) sum_s c_i (e_i - A)^2 with c_i = 1 - pi_i, e_i = y_i/pi_i,
-            # over the sampled units with pi < 1 (failures or not).
-            rand_all = prob < 1.0
-            n_r = np.broadcast_to(
-                np.count_nonzero(in_s_all & rand_all[:, None], axis=0), (m,)
-            ).astype(np.float64)
-            sum_c = np.broadcast_to(((1.0 - prob) * rand_all) @ in_s_all, (m,))
-            sum_ce = (one_m * inv) @ yr
-            sum_ce2 = (one_m * inv**2) @ yr
-            with np.errstate(divide="ignore", invalid="ignore"):
-                A2 = np.where(sum_c > 0, sum_ce**2 / np.where(sum_c > 0, sum_c, 1.0), 0.0)
-                fac = np.where(n_r > 1, n_r / (n_r - 1.0), 1.0)
-            v = np.maximum(fac * (sum_ce2 - A2), 0.0)
-        wt = one_m * inv  # failure_weights: (1 - pi)/pi, 0 at pi = 1
-        n_certain = int(np.count_nonzero(prob >= 1.0))
-        K_r = float(budget) - n_certain
-        # The same for a segment of U_r at its mean inclusion probability K_r / |U_r|.
-        w0 = (n_unknown - n_certain - K_r) / K_r if K_r > 0 else 0.0
+        est = _ht_sum(
+            pf, inv, yf, prob, in_s_all, design=design, budget=float(budget),
+            n_unknown=n_unknown, m=m,
+        )  # fmt: skip
+    D, R, v, n_rand_fail = est.D, est.R, est.v, est.n_rand_fail
 
     # HT totals are not range-respecting: in a rare sample (failures drawn at small pi from
     # a small pool) the sum exceeds every segment not seen to pass, which cannot all fail;
@@ -505,64 +469,24 @@ def estimate_from_sample(
     p_hat = total / N
     var_hat = v / N**2
 
-    # The weight of the one more failure the gamma upper limit allows for: the heaviest
-    # failure seen, or the model's typical failure if heavier; with no model, the design's
-    # typical segment when no failure was seen.
-    w_seen = np.where(yr > 0, wt[:, None], 0.0).max(axis=0, initial=0.0)
-    wm = (
-        np.full(m, np.nan)
-        if w_model is None
-        else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
-    )
-    w_allow = np.where(np.isnan(wm), np.where(n_rand_fail > 0, w_seen, w0), np.maximum(w_seen, wm))
-
+    w_allow = _allowance_weight(est, w_model, m)
+    basis = _variance_basis(est, design=design, budget=float(budget), n_unknown=n_unknown)
     # v sums over the sampled failures with pi < 1 (with replacement: the spread of the
     # draws), so it is 0 when none was sampled, even when failures sampled with pi = 1
     # carry p_hat. se = 0 would then claim a certainty the design does not have: failures
     # may sit among the pi < 1 segments unseen. So se is that of one such failure, of the
     # weight w_allow the upper limit allows for (the rule of three's reasoning, applied to
     # the se), and ``variance_basis`` records why. Only a census of U is exact.
-    basis = np.full(m, BASIS_HT, np.int8)
-    if design == "with-replacement":
-        has_random = n_unknown > 1
-        if not float(budget) > 1:
-            basis[:] = BASIS_SINGLE_DRAW
-    else:
-        has_random = n_unknown - n_certain > 0
-    no_var = (v <= 0) & (basis == BASIS_HT)
-    if not has_random:
-        basis[no_var] = BASIS_CENSUS
-    else:
-        basis[no_var] = np.where(
-            R > 0, BASIS_NO_SPREAD, np.where(D > 0, BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE)
-        )[no_var]
     floor = np.isin(basis, (BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE, BASIS_NO_SPREAD))
     se = np.where(floor, np.sqrt(w_allow) / N, np.sqrt(var_hat))
     with np.errstate(divide="ignore", invalid="ignore"):
         rel_var = np.where((p_hat > 0) & np.isfinite(se), se**2 / p_hat**2, np.nan)
         n_eff = np.where(R > 0, np.where(v > 0, R**2 / np.where(v > 0, v, 1.0), np.inf), 0.0)
 
-    a = 1.0 - confidence
-    if interval in ("gamma", "fay-feuer"):
-        if interval == "gamma":
-            w_next = w_allow
-        else:
-            if w_max is None:
-                raise ValueError("interval='fay-feuer' needs w_max (estimate_rate computes it)")
-            w_next = np.full(m, float(w_max))
-        lo_r, hi_r = _gamma_interval(R, v, w_next, a)
-        lo = known + D + lo_r
-        hi = known + D + hi_r
-    elif interval == "wald":
-        z = float(ndtri(1.0 - a / 2.0))
-        lo = total - z * np.sqrt(v)
-        hi = total + z * np.sqrt(v)
-    else:
-        raise ValueError(f"interval must be one of {INTERVALS}; got {interval!r}")
-    # No variance estimate (one draw with replacement): nothing narrower than the feasible
-    # range below can be claimed.
-    lo = np.where(np.isfinite(v), lo, -np.inf)
-    hi = np.where(np.isfinite(v), hi, np.inf)
+    lo, hi = _interval(
+        est, total, known=known, w_allow=w_allow, interval=interval, w_max=w_max,
+        a=1.0 - confidence,
+    )  # fmt: skip
     # Intersect with the feasible range: the failures in hand are a sure lower bound, and
     # segments seen to pass cannot fail (p_hat is within it, above).
     hi = np.minimum(np.maximum(hi, total), hi_cap)
@@ -587,6 +511,212 @@ def estimate_from_sample(
         cap=hi_cap / N,
         p_hat_unbiased=unbiased / N,
     )
+
+
+@dataclass(frozen=True)
+class _Sum:
+    """What one design's estimator makes of a sample, per column (``estimate_from_sample``).
+
+    Attributes
+    ----------
+    D : ndarray of shape (m,)
+        The deterministic part of the total over U: failures sampled with pi = 1.
+    R : ndarray of shape (m,)
+        The random part, and ``v`` its variance estimate.
+    v : ndarray of shape (m,)
+    yr : ndarray of shape (n_failure_rows, m)
+        The sampled failures that carry R.
+    n_rand_fail : ndarray of int, shape (m,)
+        Distinct failures among them.
+    wt : ndarray of shape (n_failure_rows,)
+        Each failure row's weight, its variance-to-mean ratio (``failure_weights``).
+    w0 : float
+        The weight of a typical segment of U_r, which the upper limit allows for when no
+        failure was sampled and no model says otherwise.
+    n_certain : int
+        Segments of U with pi = 1 (0 with replacement).
+    """
+
+    D: FloatArray
+    R: FloatArray
+    v: FloatArray
+    yr: FloatArray
+    n_rand_fail: IntArray
+    wt: FloatArray
+    w0: float
+    n_certain: int
+
+
+def _with_replacement_sum(
+    q: FloatArray,
+    inv: FloatArray,
+    y: FloatArray,
+    c: FloatArray,
+    yf: FloatArray,
+    n_fail_s: IntArray,
+    *,
+    K: float,
+    n_unknown: int,
+    m: int,
+) -> _Sum:
+    """Hansen-Hurwitz: T = (1/K) sum_draws y/q, v = s^2 / K with s^2 the sample variance of
+    the K terms y/q, over the failure rows (q, 1/q, y, draw counts c)."""
+    yc = np.broadcast_to(y * c, (q.size, m))
+    T = (inv @ yc) / K
+    # Two passes: the squared deviations from T, the failure draws' (1/q - T)^2 and T^2
+    # for each of the other draws. The one-pass sum Y^2 - K T^2 cancels when every draw is
+    # a failure of similar weight (terms 1e9 +- 1: every digit lost, v = 0); these terms
+    # are all >= 0.
+    n_zero_draws = K - yc.sum(axis=0)
+    ss = ((inv[:, None] - T[None, :]) ** 2 * yc).sum(axis=0) + n_zero_draws * T**2
+    v = ss / (K * (K - 1.0)) if K > 1 else np.full(m, np.inf)
+    return _Sum(
+        D=np.zeros(m),
+        R=T,
+        v=v,
+        yr=yf,
+        n_rand_fail=n_fail_s,
+        wt=failure_weights(np.where(q > 0, q, 1.0), design="with-replacement", K=K),
+        w0=(n_unknown - 1.0) / K,  # the weight at uniform q = 1/|U|
+        n_certain=0,
+    )
+
+
+def _ht_sum(
+    pf: FloatArray,
+    inv: FloatArray,
+    yf: FloatArray,
+    prob: FloatArray,
+    in_s_all: BoolArray,
+    *,
+    design: str,
+    budget: float,
+    n_unknown: int,
+    m: int,
+) -> _Sum:
+    """Horvitz-Thompson over the failure rows (pi, 1/pi, sampled failures): failures at
+    pi = 1 are certain (D), the rest R = sum y/pi with the design's variance estimate
+    (``_poisson_variance``, ``_deville_variance``)."""
+    certain = pf >= 1.0
+    rand = ~certain
+    yr = yf * rand[:, None]
+    one_m = (1.0 - pf) * rand
+    v = (
+        _poisson_variance(one_m, inv, yr)
+        if design == "poisson"
+        else _deville_variance(prob, in_s_all, one_m, inv, yr, m)
+    )
+    n_certain = int(np.count_nonzero(prob >= 1.0))
+    K_r = budget - n_certain
+    return _Sum(
+        D=(certain @ yf).astype(np.float64),
+        R=inv @ yr,
+        v=v,
+        yr=yr,
+        n_rand_fail=yr.sum(axis=0).astype(np.int64),
+        wt=one_m * inv,  # failure_weights: (1 - pi)/pi, 0 at pi = 1
+        # The weight of a segment of U_r at its mean inclusion probability K_r / |U_r|.
+        w0=(n_unknown - n_certain - K_r) / K_r if K_r > 0 else 0.0,
+        n_certain=n_certain,
+    )
+
+
+def _poisson_variance(one_m: FloatArray, inv: FloatArray, yr: FloatArray) -> FloatArray:
+    """v = sum_s y (1 - pi)/pi^2 over the sampled failures with pi < 1 (unbiased)."""
+    return (one_m * inv**2) @ yr
+
+
+def _deville_variance(
+    prob: FloatArray,
+    in_s_all: BoolArray,
+    one_m: FloatArray,
+    inv: FloatArray,
+    yr: FloatArray,
+    m: int,
+) -> FloatArray:
+    """Deville (1999): n/(n-1) sum_s c_i (e_i - A)^2 with c_i = 1 - pi_i, e_i = y_i/pi_i,
+    over the sampled units with pi < 1 (failures or not); A = sum_s c e / sum_s c."""
+    rand_all = prob < 1.0
+    n_r = np.count_nonzero(in_s_all & rand_all[:, None], axis=0).astype(np.float64)
+    n_r = np.broadcast_to(n_r, (m,))
+    sum_c = np.broadcast_to(((1.0 - prob) * rand_all) @ in_s_all, (m,))
+    sum_ce = (one_m * inv) @ yr
+    sum_ce2 = (one_m * inv**2) @ yr
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A2 = np.where(sum_c > 0, sum_ce**2 / np.where(sum_c > 0, sum_c, 1.0), 0.0)
+        fac = np.where(n_r > 1, n_r / (n_r - 1.0), 1.0)
+    return np.maximum(fac * (sum_ce2 - A2), 0.0)
+
+
+def _allowance_weight(est: _Sum, w_model: ArrayLike | None, m: int) -> FloatArray:
+    """The weight of the one more failure the gamma upper limit allows for: the heaviest
+    failure seen, or the model's typical failure if heavier; with no model, the design's
+    typical segment when no failure was seen."""
+    w_seen = np.where(est.yr > 0, est.wt[:, None], 0.0).max(axis=0, initial=0.0)
+    wm = (
+        np.full(m, np.nan)
+        if w_model is None
+        else np.broadcast_to(np.asarray(w_model, dtype=np.float64), (m,))
+    )
+    return np.where(
+        np.isnan(wm), np.where(est.n_rand_fail > 0, w_seen, est.w0), np.maximum(w_seen, wm)
+    )
+
+
+def _variance_basis(est: _Sum, *, design: str, budget: float, n_unknown: int) -> NDArray:
+    """What se rests on per column, a ``BASIS_*`` code (``variance_note``)."""
+    m = est.v.size
+    basis = np.full(m, BASIS_HT, np.int8)
+    if design == "with-replacement":
+        has_random = n_unknown > 1
+        if not budget > 1:
+            basis[:] = BASIS_SINGLE_DRAW
+    else:
+        has_random = n_unknown - est.n_certain > 0
+    no_var = (est.v <= 0) & (basis == BASIS_HT)
+    if not has_random:
+        basis[no_var] = BASIS_CENSUS
+    else:
+        basis[no_var] = np.where(
+            est.R > 0,
+            BASIS_NO_SPREAD,
+            np.where(est.D > 0, BASIS_CERTAIN_FAILURES, BASIS_NO_FAILURE),
+        )[no_var]
+    return basis
+
+
+def _interval(
+    est: _Sum,
+    total: FloatArray,
+    *,
+    known: FloatArray,
+    w_allow: FloatArray,
+    interval: str,
+    w_max: float | None,
+    a: float,
+) -> tuple[FloatArray, FloatArray]:
+    """The interval's limits on the total over the pool, before the feasible range."""
+    if interval in ("gamma", "fay-feuer"):
+        if interval == "gamma":
+            w_next = w_allow
+        else:
+            if w_max is None:
+                raise ValueError("interval='fay-feuer' needs w_max (estimate_rate computes it)")
+            w_next = np.full(est.v.size, float(w_max))
+        lo_r, hi_r = _gamma_interval(est.R, est.v, w_next, a)
+        lo = known + est.D + lo_r
+        hi = known + est.D + hi_r
+    elif interval == "wald":
+        z = float(ndtri(1.0 - a / 2.0))
+        lo = total - z * np.sqrt(est.v)
+        hi = total + z * np.sqrt(est.v)
+    else:
+        raise ValueError(f"interval must be one of {INTERVALS}; got {interval!r}")
+    # No variance estimate (one draw with replacement): nothing narrower than the feasible
+    # range can be claimed.
+    lo = np.where(np.isfinite(est.v), lo, -np.inf)
+    hi = np.where(np.isfinite(est.v), hi, np.inf)
+    return lo, hi
 
 
 def _gamma_interval(
