@@ -386,6 +386,27 @@ def open_leads(r: RunResult, f1: np.ndarray, gamma: float) -> np.ndarray:
     return leads & ~np.asarray(r.known, bool)
 
 
+def run_leads(
+    r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: float
+) -> tuple[np.ndarray, float]:
+    """The run's open leads and their share of K (``open_leads``, ``run_lead_share``)."""
+    return open_leads(r, f1, gamma), run_lead_share(r, f1, is_failure, gamma)
+
+
+def run_lead_share(r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: float) -> float:
+    """The share of K the run's open leads may take (``core.design.lead_share``), from its
+    discovery's evidence: segments run at level 1 at or below gamma that have a level-0
+    result, and how many of them fail there (``pipeline._handoff.lead_evidence``)."""
+    from bams_cli.core.design import lead_share
+
+    cheap = np.zeros(f1.size, bool)
+    for idx, lv in r.picks:
+        run1 = idx[lv == 1]
+        cheap[run1[f1[run1] <= gamma]] = True
+    pairs = cheap & np.asarray(r.known, bool)
+    return lead_share(int(pairs.sum()), int((pairs & is_failure).sum()))
+
+
 def _select_kwargs(strategy: str, batch: int) -> dict[str, Any]:
     if batch == 1:  # random; mixed fidelity for the multifidelity strategies
         return {"strategy": "random", "mixed_fidelity": strategy in MULTIFIDELITY}
@@ -648,7 +669,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
 
     model = ws.read_model()
     # The open leads the screen takes with certainty, as ``estimate --plan`` chooses them.
-    leads = open_leads_of(
+    leads, _ = open_leads_of(
         ws, ids, p, seen[0], settings.gammas[g], ws.pending(),
         K=lead_budget(K, float(share)), scales=model["hyperparameters"].get("scales") or (),
     )  # fmt: skip
@@ -813,7 +834,11 @@ def fit_prior(hyperparameters: dict[str, Any] | None) -> tuple[float, float]:
 
 
 def _staged_design(
-    r: RunResult, is_failure: np.ndarray, K: float, leads: np.ndarray | None = None
+    r: RunResult,
+    is_failure: np.ndarray,
+    K: float,
+    leads: np.ndarray | None = None,
+    lead_share: float = defaults.LEAD_SHARE,
 ) -> tuple[float, float] | None:
     """Expected recall of the staged estimate design (``estimate --plan`` twice) and its
     variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
@@ -838,7 +863,7 @@ def _staged_design(
         t = staged_trials(
             p, is_failure, K=K, known=r.known, n_trials=STAGED_TRIALS, prior=fit_prior(hp),
             rng=np.random.default_rng([r.seed, 2026]),
-            leads=leads if r.p_after[-1] is not None else None,
+            leads=leads if r.p_after[-1] is not None else None, lead_share=lead_share,
         )  # fmt: skip
     return float(t.recall.mean()), float(t.var / t.var_uniform)
 
@@ -1006,7 +1031,9 @@ def evaluate_runs(
         entry = _summary([s["default"][0] for s in stats], [s["default"][1] for s in stats])
         # The open leads a GP strategy's estimate samples with certainty (``open_leads``).
         maybe = [
-            _staged_design(r, is_failure, K, None if f1 is None else open_leads(r, f1, gamma))
+            _staged_design(r, is_failure, K)
+            if f1 is None
+            else _staged_design(r, is_failure, K, *run_leads(r, f1, is_failure, gamma))
             for r in mine
         ]
         staged = [v for v in maybe if v is not None]
@@ -1158,8 +1185,9 @@ def run_benchmark(
         The command line to record (default: this process's argv).
     save_arrays : bool
         Also write ``runs.npz``: the true level-0 values and gamma, and per run
-        (``<strategy>-<seed>-p``, ``-known``, ``-leads``) the final p_n (or importance
-        scores), the known stratum and the open leads (``open_leads``), in truth-file
+        (``<strategy>-<seed>-p``, ``-known``, ``-leads``, ``-lead_share``) the final p_n (or
+        importance scores), the known stratum, the open leads (``open_leads``) and their
+        share of K (``run_lead_share``), in truth-file
         order. Estimate designs can then be studied on the runs without repeating them
         (``core.design``, ``docs/suite/estimate_design.py``).
     greedy : {"auto", "exact", "approximate"}
@@ -1257,6 +1285,9 @@ def run_benchmark(
                     arrays[f"{r.strategy}-{r.seed}-p"] = np.asarray(score, np.float64)
                 arrays[f"{r.strategy}-{r.seed}-known"] = np.asarray(r.known, bool)
                 arrays[f"{r.strategy}-{r.seed}-leads"] = open_leads(r, f1, gamma)
+                arrays[f"{r.strategy}-{r.seed}-lead_share"] = np.array(
+                    run_lead_share(r, f1, f0 <= gamma, gamma)
+                )
             np.savez_compressed(out_dir / "runs.npz", **arrays)  # type: ignore[arg-type]
     wall = time.perf_counter() - t_start
 

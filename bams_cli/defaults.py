@@ -192,6 +192,18 @@ PLAN_MIN_SAMPLES = 100
 #: cheap run failed and that have no level-0 result. They take at most this share of K,
 #: the highest p_n first.
 LEAD_SHARE = 0.5
+#: ... where the study's own pairs show that a cheap-level failure fails at level 0 at
+#: least this often (``core.design.lead_share``: the posterior mean under a uniform prior,
+#: (k + 1)/(n + 2), over the n segments with a cheap run at or below gamma and a level-0
+#: result, k of them failing there). Not tuned: a lead sampled with certainty lowers the
+#: design's variance only where its chance of failing exceeds F/K, the failures of U per
+#: run of K (it takes a run from the other segments, whose pi all shrink), and the default
+#: K = 5 p N puts F/K at 1/5. On the fresh classif problem leads failed at level 0 7% of
+#: the time at K = 1.2 F, and half of K in leads raised the variance to 1.32x uniform's.
+LEAD_HIT_MIN = 0.2
+#: ... and elsewhere at most this share of K: leads that never fail then raise the
+#: variance by at most 1 / (1 - 0.1) = 1.11 of the design's.
+LEAD_SHARE_UNPROVEN = 0.1
 #: ... counting the runs of a cheap level only where the model's scale for it
 #: (``Hyperparameters.scales``) is within this factor of 1: a level in other units (a
 #: scale of 2.5, 20) has another threshold than gamma.

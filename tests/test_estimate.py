@@ -808,7 +808,7 @@ def test_open_leads_keep_the_highest_p_n_within_the_cap_and_skip_abandoned_and_s
 
     def chosen(**kw) -> list[str]:
         kw.setdefault("K", 2000.0)
-        return sorted(ids[open_leads(w, ids, p, known, 0.56, w.pending(), **kw)])
+        return sorted(ids[open_leads(w, ids, p, known, 0.56, w.pending(), **kw)[0]])
 
     assert chosen() == leads
     by_p = sorted(leads, key=lambda s: -p[ids == s][0])
@@ -824,6 +824,53 @@ def test_open_leads_keep_the_highest_p_n_within_the_cap_and_skip_abandoned_and_s
     ok(runner, "abandon", "-w", ws, "--batch", "2", "--fidelity", "0", "--reason", "crash")
     assert not set(chosen()) & asked  # abandoned
     assert set(chosen()) == set(leads) - asked
+
+
+def test_the_leads_share_of_k_follows_the_leads_the_study_ran_at_level0(tmp_path, monkeypatch):
+    """The evidence (cheap failures with a level-0 result, how many failed there) is read
+    from the log; where it says leads fail rarely, they take a tenth of K, and the plan
+    says how many were left to the design and why."""
+    from typer.testing import CliRunner
+
+    from bams_cli.pipeline.estimation import open_leads
+    from bams_cli.state.workspace import Workspace
+
+    runner = CliRunner()
+    ws, truth, _ = _lead_study(runner, tmp_path)
+    # A BAMS batch confirms some leads at level 0: the evidence.
+    ok(runner, "select", "-w", ws, "--budget", "6")
+    _simulate_batch(runner, ws, truth, 2, tmp_path)
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    level0, leads = _leads(ws)
+    obs = pl.read_parquet(ws / "observations.parquet")
+    cheap_fail = set(obs.filter((pl.col("fidelity") == 1) & (pl.col("value") <= 0.56))[SID])
+    ran0 = obs.filter(pl.col("fidelity") == 0)
+    pairs = cheap_fail & set(ran0[SID])
+    failed = cheap_fail & set(ran0.filter(pl.col("value") <= 0.56)[SID])
+    assert pairs, "no cheap failure was run at level 0: nothing to count"
+    w = Workspace(ws)
+    scores = pl.read_parquet(ws / "scores.parquet")
+    ids, p = scores[SID].to_numpy(), scores["p_0"].to_numpy()
+    known = np.isin(ids, sorted(level0))
+    _, facts = open_leads(w, ids, p, known, 0.56, w.pending(), K=2000.0)
+    assert facts == {
+        "open": len(leads), "pairs": len(pairs), "failed": len(failed),
+        "share": dz.lead_share(len(pairs), len(failed)),
+    }  # fmt: skip
+    # Evidence that leads fail less often than the threshold: a tenth of K.
+    monkeypatch.setattr(defaults, "LEAD_HIT_MIN", 0.999)
+    K = 10 * (len(leads) - 1) / 1.0
+    cap = int(defaults.LEAD_SHARE_UNPROVEN * K)
+    assert 0 < cap < len(leads)
+    mask, facts = open_leads(w, ids, p, known, 0.56, w.pending(), K=K)
+    assert facts["share"] == defaults.LEAD_SHARE_UNPROVEN and mask.sum() == cap
+    s1 = strict_json(
+        ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", str(K), "--json").stdout
+    )
+    assert s1["leads_certain"] == cap
+    assert f"; {len(leads) - cap} more are left to the design" in " ".join(s1["notes"])
+    meta = read_metadata_json(ws / "estimates" / "plan-0001.parquet")
+    assert meta["lead_evidence"]["share"] == defaults.LEAD_SHARE_UNPROVEN
 
 
 def _simulate_batch(runner, ws, truth, number: int, tmp_path):

@@ -725,9 +725,7 @@ def test_a_screen_written_before_the_confirmation_prior_confirms_as_it_did(fitte
     K2 = min(sc.confirm_budget(K, 0.1, scr["cheap_runs"]), float(s1.height))
     lead = s1[SID].is_in(read_metadata_json(path)["lead_ids"]).to_numpy()
     pi2 = {
-        pr: sc.confirm_design(
-            p2, K2=K2, posterior=dz.risk_posterior([], prior=pr), leads=lead
-        ).pi
+        pr: sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([], prior=pr), leads=lead).pi
         for pr in (defaults.RISK_MIX_PRIOR, defaults.RISK_MIX_PRIOR_CONFIRM)
     }
     assert (

@@ -495,18 +495,34 @@ def unseen_failure_weight(risk: ArrayLike, pi: ArrayLike) -> float:
     return float(r @ ((1.0 - pi) / np.where(rand, pi, 1.0))) / mass
 
 
+def lead_share(n_pairs: int, n_failed: int) -> float:
+    """The share of K the open leads may take, from the study's evidence on leads: of
+    ``n_pairs`` segments with a cheap run at or below gamma and a level-0 result,
+    ``n_failed`` failed at level 0. ``defaults.LEAD_SHARE`` where (n_failed + 1) /
+    (n_pairs + 2), the chance a lead fails under a uniform prior, is at least
+    ``defaults.LEAD_HIT_MIN``; ``defaults.LEAD_SHARE_UNPROVEN`` below it."""
+    if not 0 <= n_failed <= n_pairs:
+        raise ValueError(f"need 0 <= failed <= pairs; got {n_failed} of {n_pairs}")
+    hit = (n_failed + 1.0) / (n_pairs + 2.0)
+    return defaults.LEAD_SHARE if hit >= defaults.LEAD_HIT_MIN else defaults.LEAD_SHARE_UNPROVEN
+
+
 def certain_leads(
-    p: ArrayLike, known: ArrayLike, leads: ArrayLike | None, K: float
+    p: ArrayLike,
+    known: ArrayLike,
+    leads: ArrayLike | None,
+    K: float,
+    share: float = defaults.LEAD_SHARE,
 ) -> NDArray[np.bool_]:
     """The open leads a new staged estimate samples with certainty out of K: those outside
-    the known stratum, at most ``defaults.LEAD_SHARE`` K of them, the highest p_n first
+    the known stratum, at most ``share`` K of them (``lead_share``), the highest p_n first
     (``pipeline.estimation.open_leads``; bool over the pool, all False without leads)."""
     p = np.asarray(p, dtype=np.float64)
     if leads is None:
         return np.zeros(p.size, bool)
     lead = np.asarray(leads, dtype=bool) & ~np.asarray(known, dtype=bool)
     idx = np.flatnonzero(lead)
-    cap = max(int(defaults.LEAD_SHARE * K), 0)
+    cap = max(int(share * K), 0)
     if idx.size > cap:
         lead = np.zeros(p.size, bool)
         lead[idx[np.argsort(-p[idx], kind="stable")[:cap]]] = True
@@ -662,6 +678,7 @@ __all__ = [
     "risk_norms",
     "choose_design",
     "combine_stages",
+    "lead_share",
     "predicted_variance",
     "relative_risk",
     "stage_weights",

@@ -319,6 +319,7 @@ def staged_trials(
     rng: np.random.Generator,
     reference: bool = False,
     leads: ArrayLike | None = None,
+    lead_share: float = defaults.LEAD_SHARE,
 ) -> StagedTrials:
     """Draw the default two-stage estimate design ``n_trials`` times from a known truth.
 
@@ -357,17 +358,19 @@ def staged_trials(
         several times the cost on a large U.
     leads : bool array_like of shape (n_pool,), optional
         The open cheap-level leads after discovery (``pipeline.estimation.open_leads``),
-        which ``estimate --plan`` samples with certainty out of K (at most
-        ``defaults.LEAD_SHARE`` of it, the highest p first): they join the known stratum
-        and the stages share the rest of K, as the tool plans them. ``var_uniform`` stays
-        that of a uniform design of K over the whole of U.
+        which ``estimate --plan`` samples with certainty out of K (at most ``lead_share``
+        of it, the highest p first): they join the known stratum and the stages share the
+        rest of K, as the tool plans them. ``var_uniform`` stays that of a uniform design
+        of K over the whole of U.
+    lead_share : float
+        The leads' largest share of K (``core.design.lead_share`` of the study's evidence).
 
     Returns
     -------
     StagedTrials
     """
     known_m = np.zeros(np.asarray(p).size, bool) if known is None else np.asarray(known, bool)
-    lead_m = certain_leads(p, known_m, leads, K)
+    lead_m = certain_leads(p, known_m, leads, K, lead_share)
     if lead_m.any():
         fail = np.asarray(is_failure, dtype=bool)
         n_u = int((~known_m).sum())

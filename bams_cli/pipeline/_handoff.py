@@ -49,6 +49,19 @@ def cheap_failures(
     return ids_in(ids, obs[SID].to_numpy())
 
 
+def lead_evidence(
+    ws: Workspace, ids: np.ndarray, gamma: float, scales: Sequence[float] = ()
+) -> tuple[int, int]:
+    """(segments seen at or below ``gamma`` at a cheap level in level 0's units that have a
+    level-0 result, how many of them fail at level 0 at ``gamma``): how often the study's
+    leads have been confirmed (``core.design.lead_share``)."""
+    cheap = cheap_failures(ws, ids, gamma, scales)
+    obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
+    ran = ids_in(ids, obs0[SID].to_numpy())
+    failed = ids_in(ids, obs0.filter(pl.col("value") <= gamma)[SID].to_numpy())
+    return int((cheap & ran).sum()), int((cheap & failed).sum())
+
+
 # Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
 BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
 PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "p_n")

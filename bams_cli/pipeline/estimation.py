@@ -36,6 +36,7 @@ from bams_cli.pipeline._common import (
 from bams_cli.pipeline._handoff import (
     PLAN_INTERNAL,
     cheap_failures,
+    lead_evidence,
     observed_level0,
     passthrough_columns,
     write_handoff,
@@ -229,6 +230,7 @@ def estimate_plan(
     new_estimate = None  # the note that this plan starts a new estimate beside an earlier one
     census = None  # the note that K takes every unknown segment, so one stage
     leads = np.zeros(len(ids), dtype=bool)  # sampled with certainty (stage 1 only)
+    lead_facts: dict[str, Any] | None = None  # open_leads' evidence, where it was asked
     series_leads = 0
     # Which stage is this? The next stage of an unfinished series, or stage 1 of a new one.
     staged = design == "poisson"
@@ -324,14 +326,14 @@ def estimate_plan(
         from bams_cli.core.screen import lead_budget
 
         # The open cheap-level leads are in the screen with certainty (``core.screen``).
-        leads = open_leads(
+        leads, lead_facts = open_leads(
             ws, ids, p, known, settings.gammas[g_plan], pend,
             K=lead_budget(samples, share),
             scales=model["hyperparameters"].get("scales") or (),
         )  # fmt: skip
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
-            share=share, leads=leads,
+            share=share, leads=leads, lead_facts=lead_facts,
             posterior=dz.risk_posterior(evidence, prior=screening.risk_prior(model, settings)),
             confirm_prior=screening.confirm_prior(model, settings),
             rng=np.random.default_rng(stream),
@@ -395,7 +397,7 @@ def estimate_plan(
         # The open cheap-level leads are sampled with certainty (``open_leads``): they come
         # out of K, and the stages share the rest over the segments that are not leads.
         if staged and weighting == "auto" and series_K < n_unknown:
-            leads = open_leads(
+            leads, lead_facts = open_leads(
                 ws, ids, p, known, settings.gammas[g_plan], pend,
                 K=series_K,
                 scales=model["hyperparameters"].get("scales") or (),
@@ -504,6 +506,7 @@ def estimate_plan(
         "samples": K_stage + n_certain,
         "leads_certain": n_certain,
         "lead_ids": ids[unknown[certain_u]].astype(str).tolist(),
+        "lead_evidence": lead_facts,
         "alpha": alpha,
         "defensive": defensive,
         "weighting": weighting_used,
@@ -534,15 +537,7 @@ def estimate_plan(
     )  # fmt: skip
     # A new estimate where a screen measured better: said, not done (it is not the default).
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
-    n_lead = meta["leads_certain"]
-    lead_note = (
-        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma "
-        f"{settings.gammas[g_plan]:g}, no level-0 result) {'are' if n_lead > 1 else 'is'} "
-        "sampled with certainty out of K: "
-        "each is confirmed at level 0, and none adds variance"
-        if n_lead
-        else None
-    )
+    lead_note = _lead_note(meta["leads_certain"], lead_facts, settings.gammas[g_plan])
     notes = [
         n for n in [new_estimate, census, lead_note, design_note(meta), auto_note or hint] if n
     ]
@@ -573,6 +568,24 @@ def estimate_plan(
     }
 
 
+def _lead_note(n_lead: int, facts: dict[str, Any] | None, gamma: float) -> str | None:
+    """What the plan says of its certain leads, and of a cap the evidence set."""
+    if not n_lead:
+        return None
+    text = (
+        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma "
+        f"{gamma:g}, no level-0 result) {'are' if n_lead > 1 else 'is'} sampled with "
+        "certainty out of K: each is confirmed at level 0, and none adds variance"
+    )
+    if facts and facts["open"] > n_lead:
+        text += (
+            f"; {facts['open'] - n_lead} more are left to the design (at most "
+            f"{facts['share']:g} of K in leads: {facts['failed']} of the {facts['pairs']} "
+            "run at level 0 so far failed there)"
+        )
+    return text
+
+
 def open_leads(
     ws: Workspace,
     ids: np.ndarray,
@@ -583,7 +596,7 @@ def open_leads(
     *,
     K: float,
     scales: Sequence[float] = (),
-) -> np.ndarray:
+) -> tuple[np.ndarray, dict[str, Any]]:
     """The segments a new staged estimate samples with certainty: the open leads.
 
     A lead is a segment whose result at a cheap level is at or below ``gamma`` (a failure
@@ -594,8 +607,16 @@ def open_leads(
     than their p_n says (the model shrinks one cheap run towards its smooth surroundings):
     on the fresh problems 40-100% of them did where p_n put many at 0.01 or below. The
     estimate confirms each: pi = 1 adds no variance, it takes the lead's share of K from
-    the rest, and the failures it confirms are in hand. At most ``defaults.LEAD_SHARE``
-    of K, the highest p_n first (``core.design.certain_leads``; bool over the pool).
+    the rest, and the failures it confirms are in hand. At most ``core.design.lead_share``
+    of K, the highest p_n first: half, unless the leads the study has already run at level
+    0 show them failing less often than ``defaults.LEAD_HIT_MIN`` (then a tenth).
+
+    Returns
+    -------
+    leads : ndarray of bool over the pool
+    facts : dict
+        ``open`` (leads before the cap), ``pairs`` and ``failed`` (the evidence:
+        ``_handoff.lead_evidence``) and ``share`` (the cap's share of K).
     """
     lead = cheap_failures(ws, ids, gamma, scales) & ~known
     if pend.height:
@@ -603,9 +624,12 @@ def open_leads(
     gone = ws.read_abandoned()
     if gone.height:
         lead &= ~ids_in(ids, gone.filter(pl.col("fidelity") == 0)[SID].to_numpy())
-    from bams_cli.core.design import certain_leads
+    from bams_cli.core.design import certain_leads, lead_share
 
-    return certain_leads(p, known, lead, K)
+    pairs, failed = lead_evidence(ws, ids, gamma, scales)
+    share = lead_share(pairs, failed)
+    facts = {"open": int(lead.sum()), "pairs": pairs, "failed": failed, "share": share}
+    return certain_leads(p, known, lead, K, share), facts
 
 
 def _plan_samples(

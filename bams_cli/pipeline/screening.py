@@ -220,6 +220,7 @@ def draw_screen(
     K: float,
     share: float,
     leads: np.ndarray | None = None,
+    lead_facts: dict[str, Any] | None = None,
     posterior: Any,
     confirm_prior: tuple[float, float],
     rng: np.random.Generator,
@@ -230,7 +231,7 @@ def draw_screen(
 
     ``p``: p_n over the pool at the plan's gamma; ``known``: which segments have a level-0
     result; ``leads``: the open leads (bool over the pool, ``estimation.open_leads``),
-    screened and confirmed with certainty; ``posterior``: what pi1 is planned under; ``confirm_prior``: the prior on lam
+    screened and confirmed with certainty, and ``lead_facts`` the evidence that capped them; ``posterior``: what pi1 is planned under; ``confirm_prior``: the prior on lam
     the confirmation's pi2 will be planned under (recorded, so a refit cannot change it);
     ``meta``: what the screen's metadata shares with a plan's (seed, gamma ...).
     Returns the summary ``estimate --plan --screen --json`` prints.
@@ -284,6 +285,7 @@ def draw_screen(
     screen_meta = {
         **meta, **facts, "series_K": K, "n_pool": n, "n_unknown": int(unknown.size),
         "lead_ids": ids[lead].astype(str).tolist(),
+        "lead_evidence": lead_facts,
     }  # fmt: skip
     table = schemas.SCREEN.conform(
         pa.table(
@@ -449,9 +451,7 @@ def confirm_screen(
         raise WorkspaceError(f"{path}: a lead the screen took with certainty is not in it")
     if S1.size:
         K2 = min(sc.confirm_budget(K, cost, int(smeta["cheap_runs"])), float(S1.size))
-        pi2 = sc.confirm_design(
-            p2, K2=K2, posterior=confirm_posterior, leads=lead_U[in_s1]
-        ).pi
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm_posterior, leads=lead_U[in_s1]).pi
     else:  # an empty screen has nothing to confirm: T = 0, its conditional mean
         K2, pi2 = 0.0, np.zeros(0)
     drawn = draw_poisson(pi2, rng)

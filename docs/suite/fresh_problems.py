@@ -483,8 +483,9 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         screen_default,
         true_discrepancy_sd,
     )
+    from bams_cli.core.design import lead_share
     from bams_cli.core.evaluate import staged_trials
-    from bams_cli.pipeline._handoff import cheap_failures
+    from bams_cli.pipeline._handoff import cheap_failures, lead_evidence
     from bams_cli.state.workspace import Workspace
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
@@ -509,15 +510,16 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         # The open leads after batch 3, which the staged estimate samples with certainty
         # (``pipeline.estimation.open_leads``; runs made before 2026-11-29 did not), read
         # from the workspace kept then as the pipeline reads them.
-        leads = cheap_failures(
-            Workspace(ws.with_name(f"{ws.name}.after-batch-3")), ids.to_numpy(), gamma,
-            model["hyperparameters"].get("scales") or (),
-        ) & ~known  # fmt: skip
+        kept = Workspace(ws.with_name(f"{ws.name}.after-batch-3"))
+        scales = model["hyperparameters"].get("scales") or ()
+        leads = cheap_failures(kept, ids.to_numpy(), gamma, scales) & ~known
+        # How far the leads' share of K reaches: the leads run at level 0 by then.
+        share = lead_share(*lead_evidence(kept, ids.to_numpy(), gamma, scales))
         # The prior on lam estimate --plan takes for this model.
         t = staged_trials(
             p.to_numpy(), fail, K=K, known=known, n_trials=1000,
             prior=fit_prior(model.get("hyperparameters")),
-            rng=np.random.default_rng(7), leads=leads,
+            rng=np.random.default_rng(7), leads=leads, lead_share=share,
         )  # fmt: skip
         mc = min(1.0, (DISCOVERY_COST + K) / N)  # plain MC's expected recall at equal cost
         screened = (ws / "estimates" / "screen-0001.parquet").exists()

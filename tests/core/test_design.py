@@ -607,3 +607,44 @@ def test_leads_sampled_with_certainty_keep_the_staged_estimate_unbiased_and_in_h
     want = np.zeros(N, bool)
     want[[i for i in sorted(range(N), key=lambda i: -p[i]) if not known[i]][:cap]] = True
     np.testing.assert_array_equal(dz.certain_leads(p, known, np.ones(N, bool), K), want)
+    small = dz.certain_leads(p, known, np.ones(N, bool), K, defaults.LEAD_SHARE_UNPROVEN)
+    assert small.sum() == int(defaults.LEAD_SHARE_UNPROVEN * K) and not (small & ~want).any()
+
+
+@pytest.mark.parametrize(
+    ("pairs", "failed", "share"),
+    [
+        (0, 0, defaults.LEAD_SHARE),  # no evidence: the uniform prior's 1/2
+        (3, 0, defaults.LEAD_SHARE),  # 1/5: at the threshold
+        (4, 0, defaults.LEAD_SHARE_UNPROVEN),  # 1/6
+        (12, 1, defaults.LEAD_SHARE_UNPROVEN),  # 1/7
+        (5, 1, defaults.LEAD_SHARE),  # 2/7
+    ],
+)
+def test_the_leads_share_of_K_follows_how_often_the_studys_leads_failed(pairs, failed, share):
+    assert defaults.LEAD_HIT_MIN == 0.2  # the thresholds above are 1/5
+    assert dz.lead_share(pairs, failed) == share
+
+
+def test_leads_that_rarely_fail_take_little_of_K_and_keep_the_variance_near_uniforms():
+    # A study at K = 1.2 F (K at its floor under a model that saw no failure): leads that
+    # fail 7% of the time, half of K of them, raise the variance above uniform's; a tenth
+    # of K raises it by at most 1/0.9. The rule's threshold, F/K, by the exact variance.
+    from bams_cli.core.evaluate import staged_trials
+
+    rng = np.random.default_rng(5)
+    N, K = 6000, 100.0
+    fail = rng.random(N) < 0.02
+    p = np.full(N, 1e-4)
+    leads = np.zeros(N, bool)
+    leads[rng.choice(np.flatnonzero(~fail), 47, replace=False)] = True
+    leads[rng.choice(np.flatnonzero(fail), 3, replace=False)] = True
+    ratio = {}
+    for share in (defaults.LEAD_SHARE, defaults.LEAD_SHARE_UNPROVEN):
+        t = staged_trials(
+            p, fail, K=K, leads=leads, lead_share=share, n_trials=200,
+            rng=np.random.default_rng(1),
+        )  # fmt: skip
+        ratio[share] = t.var / t.var_uniform
+    assert ratio[defaults.LEAD_SHARE] > 1.3
+    assert ratio[defaults.LEAD_SHARE_UNPROVEN] < 1.0 / 0.9 + 0.03
