@@ -1345,7 +1345,7 @@ def run_benchmark(
         "workers": workers,
         "cpu_count": os.cpu_count(),
     }
-    (out_dir / "results.json").write_text(json.dumps(result, indent=1, default=_json) + "\n")
+    (out_dir / "results.json").write_text(_strict_json(result))
     (out_dir / "tables.md").write_text(render_tables(result))
     plot_retention_recall(result, out_dir / "retention-recall.png")
     return result
@@ -1422,7 +1422,7 @@ def run_suite(
             greedy=greedy,
         )
     condensed = {p: suite_rows(r) for p, r in results.items()}
-    (out_dir / "suite.json").write_text(json.dumps(condensed, indent=1, default=_json) + "\n")
+    (out_dir / "suite.json").write_text(_strict_json(condensed))
     (out_dir / "suite.md").write_text(render_suite(results))
     return results
 
@@ -1561,6 +1561,26 @@ def _json(o: Any) -> Any:
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _strict_json(doc: Any) -> str:
+    """``doc`` as strict JSON: an undefined number (NaN, inf) is null, never a bare NaN,
+    which is not JSON (a table of seeds with an undefined ratio wrote one)."""
+
+    def clean(o: Any) -> Any:
+        if isinstance(o, dict):
+            return {k: clean(v) for k, v in o.items()}
+        if isinstance(o, list | tuple):
+            return [clean(v) for v in o]
+        if isinstance(o, np.ndarray):
+            return clean(o.tolist())
+        if isinstance(o, np.generic):
+            o = o.item()
+        if isinstance(o, float) and not math.isfinite(o):
+            return None
+        return o
+
+    return json.dumps(clean(doc), indent=1, default=_json, allow_nan=False) + "\n"
 
 
 # ---------------------------------------------------------------------------------------

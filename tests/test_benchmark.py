@@ -365,3 +365,29 @@ def test_mc_estimates_uniformly_and_mc_gp_by_its_gp():
     p_n = np.where(is_failure, 0.5, 0.01)
     _, rv_gp = _run_designs(run("mc-gp", p_n), is_failure, K, est)["default"]
     assert rv_gp < rv / 5
+
+
+def test_benchmark_json_writes_undefined_numbers_as_null():
+    """results.json and suite.json are strict JSON: NaN and inf, bare or inside numpy
+    values and arrays, become null (a bare NaN is not JSON)."""
+    import json as _json
+
+    from bams_cli.benchmark import _strict_json
+
+    doc = {
+        "ratio": float("nan"),
+        "rows": [1.5, np.float64("inf"), np.array([0.25, np.nan])],
+        "seeds": (np.int64(3), -np.inf),
+        "ok": {"x": np.float32(0.5)},
+    }
+
+    def refuse(name):
+        raise ValueError(f"bare {name} in the JSON")
+
+    got = _json.loads(_strict_json(doc), parse_constant=refuse)
+    assert got == {
+        "ratio": None,
+        "rows": [1.5, None, [0.25, None]],
+        "seeds": [3, None],
+        "ok": {"x": 0.5},
+    }
