@@ -1,7 +1,7 @@
 """The default estimate design on the suite: variance against uniform, and coverage.
 
-    .venv/bin/bams-cli benchmark --protocol suite --seeds 10 --strategies bams,mcm-gp \\
-        --save-arrays --out /tmp/suite-arrays                  # the runs (~40 min)
+    .venv/bin/bams-cli benchmark --protocol suite --seeds 10 --save-arrays \\
+        --out /tmp/suite-arrays                                # the runs (~25 min)
     .venv/bin/python docs/suite/estimate_design.py /tmp/suite-arrays [--trials 100]
 
 For every run the benchmark saved (``runs.npz``: p_n after discovery, the known stratum,
@@ -39,6 +39,10 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 PROBLEMS = ("toy2d", "av_like", "weak_cheap", "digits", "rare_regions", "gap_sim")
+#: The GP strategies, plain MC (its uniform discovery and a uniform estimate), and the
+#: "uniform" row (a uniform estimate after BAMS's discovery).
+STRATEGIES = ("bams", "mcm-gp", "mc", "uniform")
+MODELLED = ("bams", "mcm-gp")
 
 
 def _old_recall(p: np.ndarray, fail: np.ndarray, known: np.ndarray, K: float) -> float:
@@ -70,13 +74,21 @@ def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     z = np.load(Path(folder) / problem / "runs.npz")
     fail = z["f0"] <= float(z["gamma"])
     K = float(z["K"])
-    known = z[f"{'bams' if strategy == 'uniform' else strategy}-{seed}-known"]
-    p = np.ones(fail.size) if strategy == "uniform" else z[f"{strategy}-{seed}-p"]
-    prior = _prior(Path(folder) / problem, "bams" if strategy == "uniform" else strategy, seed)
+    src = "bams" if strategy == "uniform" else strategy
+    known = z[f"{src}-{seed}-known"]
+    modelled = strategy in ("bams", "mcm-gp")
+    # Plain MC and the uniform row: p_n constant, so both stages are uniform.
+    p = z[f"{strategy}-{seed}-p"] if modelled else np.ones(fail.size)
+    prior = _prior(Path(folder) / problem, src, seed) if src != "mc" else defaults.RISK_MIX_PRIOR
+    # The open leads a GP strategy's estimate samples with certainty, and their share of K
+    # (saved by the benchmark since 2026-11-29).
+    leads = z.get(f"{strategy}-{seed}-leads") if modelled else None
+    share = z.get(f"{strategy}-{seed}-lead_share")
     t0, c0 = time.perf_counter(), time.process_time()
     r = staged_trials(
-        p, fail, K=K, known=known, n_trials=trials, prior=prior, rng=np.random.default_rng(seed)
-    )
+        p, fail, K=K, known=known, n_trials=trials, prior=prior, rng=np.random.default_rng(seed),
+        leads=leads, lead_share=defaults.LEAD_SHARE if share is None else float(share),
+    )  # fmt: skip
     U = np.flatnonzero(~known)
     fu = fail[U]
     with np.errstate(divide="ignore", over="ignore"):
@@ -125,7 +137,7 @@ def main(argv: list[str]) -> None:
     jobs = []
     for problem in PROBLEMS:
         z = np.load(folder / problem / "runs.npz")
-        for strategy in ("bams", "mcm-gp", "uniform"):
+        for strategy in STRATEGIES:
             src = "bams" if strategy == "uniform" else strategy
             for key in sorted(
                 k for k in z.files if k.startswith(f"{src}-") and k.endswith("-known")
@@ -157,7 +169,11 @@ def main(argv: list[str]) -> None:
         "the estimate (known before it, plus the design's sampled ones), mean over draws and "
         "seeds, for the default design and for p^alpha; the uniform row's is that of a "
         "uniform estimate after BAMS's discovery (BAMS's known strata, p_n constant), so it "
-        f"counts the failures BAMS's batches found. Wall time {wall:.0f} s on 2 workers "
+        "counts the failures BAMS's batches found; the mc row is plain MC's: its uniform "
+        "level-0 batches, then a uniform estimate of the same K. The GP strategies' designs "
+        "sample the run's open cheap-level leads with certainty, up to the share of K the "
+        "run's evidence allows (``benchmark.run_leads``), as ``estimate --plan`` does. "
+        f"Wall time {wall:.0f} s on 2 workers "
         f"({sum(r['cpu_seconds'] for r in rows):.0f} CPU s in the trials, {cpu_all:.0f} CPU s "
         f"in all with the workers' start; load average {load0:.1f} at the start, "
         f"{load1:.1f} at the end, on 2 cores).",
@@ -166,7 +182,7 @@ def main(argv: list[str]) -> None:
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for problem in PROBLEMS:
-        for strategy in ("bams", "mcm-gp", "uniform"):
+        for strategy in STRATEGIES:
             rs = [r for r in rows if r["problem"] == problem and r["strategy"] == strategy]
             if not rs:
                 continue
@@ -175,20 +191,20 @@ def main(argv: list[str]) -> None:
             old = [r["old_ratio"] for r in rs]
             lines.append(
                 f"| {problem} | {strategy} | {n} | {np.mean(ratio):.3f} [{np.max(ratio):.3f}] | "
-                + (f"{np.mean(old):.3f} [{np.max(old):.3f}]" if strategy != "uniform" else "-")
+                + (f"{np.mean(old):.3f} [{np.max(old):.3f}]" if strategy in MODELLED else "-")
                 + f" | {sum(r['covered'] for r in rs) / n:.3f} | {sum(r['below'] for r in rs) / n:.3f}"
                 f" | {sum(r['above'] for r in rs) / n:.3f} | {np.mean([r['width'] for r in rs]):.2f}"
                 f" | {np.mean([r['mean_p_hat'] for r in rs]):.3f} | {np.mean([r['lam'] for r in rs]):.2f}"
                 + (
                     f" | {np.mean(dr):.3f} [{np.max(dr):.3f}] |"
                     if (dr := [r["dr_over_ht"] for r in rs if r["dr_over_ht"] is not None])
-                    and strategy != "uniform"
+                    and strategy in MODELLED
                     else " | - |"
                 )
                 + f" {np.mean([r['recall'] for r in rs]):.3f} | "
                 + (
                     f"{np.mean([r['old_recall'] for r in rs]):.3f} |"
-                    if strategy != "uniform"
+                    if strategy in MODELLED
                     else "- |"
                 )
             )
