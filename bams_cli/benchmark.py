@@ -398,7 +398,11 @@ def run_lead_share(r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: 
     discovery's evidence: segments run at level 1 at or below gamma that have a level-0
     result, and how many of them fail there (``pipeline._handoff.lead_evidence``)."""
     from bams_cli.core.design import lead_share
+    from bams_cli.pipeline._handoff import reports_level0_units
 
+    hp = r.hyperparameters[-1] if r.hyperparameters else None
+    if not reports_level0_units((hp.get("scales") or [1.0])[0] if hp else 1.0):
+        return lead_share(0, 0)  # a level in other units shows no leads (``open_leads``)
     cheap = np.zeros(f1.size, bool)
     for idx, lv in r.picks:
         run1 = idx[lv == 1]
@@ -1427,14 +1431,20 @@ def run_suite(
     return results
 
 
+def _defined(values: Sequence[float | None] | None) -> list[float]:
+    """The finite values of a per-seed list (None or NaN where a seed's is undefined)."""
+    return [float(v) for v in values or () if v is not None and math.isfinite(v)]
+
+
 def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
     """The suite table's numbers for one problem: its setup and one row per strategy."""
     st = result["setup"]
     rows: dict[str, Any] = {}
     for s in strategy_rows(result):
         e = result[s]
-        fitted, ratio = e.get("discrepancy_sd_fitted") or [], e.get("gp_rate_ratio") or []
-        disc = e.get("discrepancy_sd_ratio") or []
+        # Per-seed lists as results.json holds them: an undefined value is null there.
+        fitted, ratio = _defined(e.get("discrepancy_sd_fitted")), _defined(e.get("gp_rate_ratio"))
+        disc, vd = _defined(e.get("discrepancy_sd_ratio")), _defined(e.get("per_seed_var_default"))
         rows[s] = {
             "recall": e["recall"],
             "recall_se": e["recall_se"],
@@ -1442,7 +1452,7 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
             "recall_staged_se": e.get("recall_staged_se"),
             "recall_default": e.get("recall_default"),
             "recall_default_se": e.get("recall_default_se"),
-            "var_default": float(np.mean(vd)) if (vd := e.get("per_seed_var_default")) else None,
+            "var_default": float(np.mean(vd)) if vd else None,
             "var_default_max": float(np.max(vd)) if vd else None,
             "screened_seeds": e.get("screened_seeds"),
             "rv": e["rv"],

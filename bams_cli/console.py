@@ -598,8 +598,13 @@ def screen_summary(s: Mapping[str, Any]) -> None:
             f"at cost {_num(s['screen_cost'])} a run, about {_num(s['level0_left'])} left "
             "for level 0",
             "screened": f"{plural(s['screened'], 'segment')} ({s['cheap_in_log']} with a cheap "
-            f"result in the log, {s['cheap_abandoned']} abandoned at that level; "
-            f"{plural(s['leads_certain'], 'open lead')} screened and confirmed with certainty)",
+            f"result in the log, {s['cheap_abandoned']} abandoned at that level"
+            + (
+                f"; {plural(s['leads_certain'], 'open lead')} screened and confirmed with "
+                "certainty)"
+                if s.get("leads_certain")
+                else ")"
+            ),
             "design": s["screen_design"],
             "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",
             "screen file": s["screen_file"],

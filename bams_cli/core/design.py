@@ -522,7 +522,7 @@ def certain_leads(
         return np.zeros(p.size, bool)
     lead = np.asarray(leads, dtype=bool) & ~np.asarray(known, dtype=bool)
     idx = np.flatnonzero(lead)
-    cap = max(int(share * K), 0)
+    cap = max(int(share * K + 1e-9), 0)  # 0.5 x 126 is 63 however K was rounded
     if idx.size > cap:
         lead = np.zeros(p.size, bool)
         lead[idx[np.argsort(-p[idx], kind="stable")[:cap]]] = True

@@ -62,6 +62,27 @@ def lead_evidence(
     return int((cheap & ran).sum()), int((cheap & failed).sum())
 
 
+def describe_leads(
+    n_lead: int, facts: dict[str, Any] | None, gamma: float, of: str = "K"
+) -> str | None:
+    """What a plan or screen says of its certain leads, and of a cap the evidence set
+    (``estimation.open_leads``' facts); ``of``: the budget they come out of."""
+    if not n_lead:
+        return None
+    text = (
+        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma "
+        f"{gamma:g}, no level-0 result) {'are' if n_lead > 1 else 'is'} sampled with "
+        f"certainty out of {of}: each is confirmed at level 0, and none adds variance"
+    )
+    if facts and facts["open"] > n_lead:
+        text += (
+            f"; {facts['open'] - n_lead} more are left to the design (at most "
+            f"{facts['share']:g} of {of} in leads: {facts['failed']} of the {facts['pairs']} "
+            "run at level 0 so far failed there)"
+        )
+    return text
+
+
 # Columns of the state files that only bams-cli reads: the CSV hand-off leaves them out.
 BATCH_INTERNAL = ("delta_j", "cluster", "rank", "strategy")
 PLAN_INTERNAL = ("stratum", "pi", "draws", "q", "p_n")

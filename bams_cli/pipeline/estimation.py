@@ -36,6 +36,7 @@ from bams_cli.pipeline._common import (
 from bams_cli.pipeline._handoff import (
     PLAN_INTERNAL,
     cheap_failures,
+    describe_leads,
     lead_evidence,
     observed_level0,
     passthrough_columns,
@@ -537,7 +538,7 @@ def estimate_plan(
     )  # fmt: skip
     # A new estimate where a screen measured better: said, not done (it is not the default).
     hint = screening.screen_hint(model, ws.root) if stage == 1 and settings.n_levels > 1 else None
-    lead_note = _lead_note(meta["leads_certain"], lead_facts, settings.gammas[g_plan])
+    lead_note = describe_leads(meta["leads_certain"], lead_facts, settings.gammas[g_plan])
     notes = [
         n for n in [new_estimate, census, lead_note, design_note(meta), auto_note or hint] if n
     ]
@@ -566,24 +567,6 @@ def estimate_plan(
         "notes": notes,
         "warnings": warnings,
     }
-
-
-def _lead_note(n_lead: int, facts: dict[str, Any] | None, gamma: float) -> str | None:
-    """What the plan says of its certain leads, and of a cap the evidence set."""
-    if not n_lead:
-        return None
-    text = (
-        f"{n_lead} open lead{'s' if n_lead > 1 else ''} (a cheap run at or below gamma "
-        f"{gamma:g}, no level-0 result) {'are' if n_lead > 1 else 'is'} sampled with "
-        "certainty out of K: each is confirmed at level 0, and none adds variance"
-    )
-    if facts and facts["open"] > n_lead:
-        text += (
-            f"; {facts['open'] - n_lead} more are left to the design (at most "
-            f"{facts['share']:g} of K in leads: {facts['failed']} of the {facts['pairs']} "
-            "run at level 0 so far failed there)"
-        )
-    return text
 
 
 def open_leads(

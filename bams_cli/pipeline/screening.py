@@ -32,7 +32,12 @@ import pyarrow as pa
 from bams_cli import defaults
 from bams_cli.errors import OptionValueError, PendingResultsError, WorkspaceError
 from bams_cli.pipeline._common import SID, ids_in
-from bams_cli.pipeline._handoff import BATCH_INTERNAL, passthrough_columns, write_handoff
+from bams_cli.pipeline._handoff import (
+    BATCH_INTERNAL,
+    describe_leads,
+    passthrough_columns,
+    write_handoff,
+)
 from bams_cli.settings import Settings
 from bams_cli.state import handoff as contract
 from bams_cli.state import schemas
@@ -346,8 +351,18 @@ def draw_screen(
         "seed": meta["seed"],
         "seed_source": meta["seed_source"],
         "notes": [
-            f"screen for plan {number}: {then}`bams-cli estimate --plan -w {ws.root}` draws "
-            "the level-0 confirmation within the screen"
+            n
+            for n in [
+                describe_leads(
+                    int(lead.sum()),
+                    lead_facts,
+                    float(meta["plan_gamma"]),
+                    of="the confirmation's level-0 runs",
+                ),
+                f"screen for plan {number}: {then}`bams-cli estimate --plan -w {ws.root}` "
+                "draws the level-0 confirmation within the screen",
+            ]
+            if n
         ],
     }
 
@@ -459,13 +474,16 @@ def confirm_screen(
     # The interval's allowance for a failure no run has seen: a segment outside S1 is
     # priced as if confirmed as often as a screened segment of its risk is on average (the
     # "mean" allowance, ``core.screen.allowance_pi``; docs/suite/screen_design.md).
+    # A lead is confirmed with certainty: no unseen failure hides there, and its pi2 of 1
+    # is not what a screened segment of its risk gets. So both allowances are taken over
+    # U without the leads (an empty rest of S1 prices at pi1, as an empty screen does).
+    rest = ~lead_U
+    pi1_r, s1_r, pi2_r = pi1_U[rest], in_s1[rest], pi2[~lead_U[in_s1]]
     w_model = []
     for g in range(p_all.shape[1]):
-        # A lead is confirmed with certainty: no unseen failure hides there, and its pi2 of
-        # 1 is not what a screened segment of its risk gets.
-        risk = np.where(lead_U, 0.0, posterior.allowance_risk(p_all[U, g]))
-        w_model.append(dz.unseen_failure_weight(risk, sc.allowance_pi(pi1_U, in_s1, pi2, risk)))
-    w_max = poisson_max_weight(sc.min_allowance_pi(pi1_U, in_s1, pi2))
+        risk = posterior.allowance_risk(p_all[U, g])[rest]
+        w_model.append(dz.unseen_failure_weight(risk, sc.allowance_pi(pi1_r, s1_r, pi2_r, risk)))
+    w_max = poisson_max_weight(sc.min_allowance_pi(pi1_r, s1_r, pi2_r))
     return {
         "sampled_idx": S1[drawn],
         "known_idx": known_idx,

@@ -140,7 +140,7 @@ def main(argv: list[str]) -> None:
         for strategy in STRATEGIES:
             src = "bams" if strategy == "uniform" else strategy
             for key in sorted(
-                k for k in z.files if k.startswith(f"{src}-") and k.endswith("-known")
+                k for k in z.files if k.rsplit("-", 2)[0] == src and k.endswith("-known")
             ):
                 jobs.append((str(folder), problem, strategy, int(key.split("-")[-2]), trials))
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
