@@ -435,6 +435,8 @@ def test_stages_1_is_a_single_stage_plan(fitted_ws, tmp_path):
         ({"uniform": 1.0, "calibrated": 0.4, "p^alpha": 0.5}, "calibrated", False),
         ({"uniform": 1.0, "calibrated": 1.0, "p^alpha": 2.0}, "uniform", True),
         (None, "p^alpha", False),  # a forced design: nothing was predicted
+        ({"screen": 1.05}, "screen", True),  # a screen's confirmation
+        ({"screen": 0.4}, "screen", False),
     ],
 )
 def test_a_design_predicted_no_better_than_uniform_is_said_in_one_line(predicted, weighting, says):

@@ -155,6 +155,20 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     pi2 = sc.confirm_design(s1p[p_col].to_numpy(), K2=K2, posterior=post2, leads=is_lead).pi
     # The leads confirmed with certainty, the rest of K2 over the other screened segments.
     assert (pi2[is_lead] == 1).all() and plan["screen"]["leads_certain"] == len(leads)
+    # What the checked model predicts of the confirmed design against uniform sampling of
+    # K, by hand: phase 1's term over U and phase 2's over the screen as drawn.
+    unk_p = screen.filter(pl.col("stratum") == "unknown").join(
+        scores.select(SID, p_col), on=SID, how="left"
+    )
+    r = post2.risk(unk_p[p_col].to_numpy())
+    a, s1_mask = unk_p["pi1"].to_numpy(), unk_p["screened"].to_numpy()
+    b = np.ones(unk_p.height)
+    by_id = dict(zip(s1p[SID].to_list(), pi2.tolist(), strict=True))
+    b[s1_mask] = [by_id[x] for x in unk_p[SID].filter(s1_mask).to_list()]
+    one = np.where(a >= 1, 0.0, r * (1 - a) / a).sum()
+    two = np.where(b >= 1, 0.0, r * (1 - b) / (a * a * b))[s1_mask].sum()
+    uni = (r * (1 - K / r.size) / (K / r.size)).sum()
+    assert plan["predicted_vs_uniform"]["screen"] == pytest.approx((one + two) / uni, abs=1e-6)
     assert pi2[~is_lead].sum() == pytest.approx(K2 - len(leads), rel=1e-9)
     assert plan["samples_K"] == pytest.approx(K2)
     pi_by_id = dict(zip(s1[SID].to_list(), (s1["pi1"].to_numpy() * pi2).tolist(), strict=True))

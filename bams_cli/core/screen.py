@@ -261,6 +261,29 @@ def min_allowance_pi(pi1: ArrayLike, screened: ArrayLike, pi2: ArrayLike) -> Flo
     return out
 
 
+def predicted_vs_uniform(
+    risk: ArrayLike, pi1: ArrayLike, screened: ArrayLike, pi2: ArrayLike, K: float
+) -> float:
+    """The confirmed design's variance over a uniform Poisson design's of K level-0 runs
+    over U, both predicted from ``risk`` (the checked model's relative risk over U,
+    ``RiskPosterior.risk``) as ``design.predicted_variance`` predicts a stage's: phase 1's
+    term sum_U r (1 - pi1)/pi1, and phase 2's given the screen as drawn,
+    sum_{S1} r (1 - pi2)/(pi1^2 pi2) (``phase1_variance``, ``phase2_variance``). NaN when
+    the uniform design would be exact (K >= |U|)."""
+    r = np.asarray(risk, dtype=np.float64)
+    a = np.asarray(pi1, dtype=np.float64)
+    s1 = np.asarray(screened, dtype=bool)
+    b = np.asarray(pi2, dtype=np.float64)
+    k = min(float(K), float(r.size))
+    uniform = predicted_variance(np.full(r.size, k / r.size), r) if r.size else 0.0
+    if not uniform > 0:
+        return math.nan
+    rs, a_s = r[s1], a[s1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        two = float(np.where(b >= 1.0, 0.0, rs * (1.0 - b) / (a_s * a_s * b)).sum())
+    return (predicted_variance(a, r) + two) / uniform
+
+
 def phase1_variance(failures: ArrayLike, pi1: ArrayLike) -> float:
     """sum_U y (1 - pi1)/pi1: the variance T would have if S1's level-0 values were seen
     (``design.predicted_variance`` with the failures as the risk)."""

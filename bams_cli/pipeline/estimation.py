@@ -802,6 +802,8 @@ def _confirm_screen(
     )  # fmt: skip
     p = p_all[:, g_plan]
     K2 = float(c["K2"])
+    # The confirmed design against uniform sampling of K, as the checked model predicts.
+    predicted = None if c["predicted_vs_uniform"] is None else {"screen": c["predicted_vs_uniform"]}
     sampled_idx, pi = c["sampled_idx"], c["pi"]
     check = {**post.summary(), "plans": evidence_plans}
     stage_info = {
@@ -816,7 +818,7 @@ def _confirm_screen(
         "defensive": defaults.DEFENSIVE,
         "weighting": "screen",
         "weighting_option": "screen",
-        "predicted_vs_uniform": None,
+        "predicted_vs_uniform": predicted,
         "model_check": check,
         **stage_info,
         "n_pool": len(ids),
@@ -843,7 +845,7 @@ def _confirm_screen(
         "samples_K": K2,
         **stage_info,
         "weighting": "screen",
-        "predicted_vs_uniform": None,
+        "predicted_vs_uniform": predicted,
         "model_check": check,
         "to_simulate": len(sampled_idx),
         "simulations_certain": int((pi >= 1.0).sum()),
@@ -857,9 +859,14 @@ def _confirm_screen(
         "seed_source": seed_source,
         "screen": scr,
         "notes": [
-            f"plan {number} confirms the screen of {scr['screened']} segments ({scr['file']}) "
-            f"at level 0 with {K2:g} of K = {scr['series_K']:g}; each sampled segment is "
-            "weighted by 1 / (pi1 pi2)"
+            n
+            for n in [
+                f"plan {number} confirms the screen of {scr['screened']} segments "
+                f"({scr['file']}) at level 0 with {K2:g} of K = {scr['series_K']:g}; each "
+                "sampled segment is weighted by 1 / (pi1 pi2)",
+                design_note(meta),
+            ]
+            if n
         ],
         "warnings": [],
     }
@@ -871,10 +878,14 @@ def design_note(meta: dict[str, Any]) -> str | None:
     chosen = predicted.get(meta.get("weighting"))
     if chosen is None or chosen <= UNIFORM_NOTE_RATIO:
         return None
+    what = (
+        "the screened design no better than uniform sampling of K"
+        if meta.get("weighting") == "screen"
+        else "no design much better than uniform sampling"
+    )
     return (
-        f"plan {meta['plan']}: the checked model predicted no design much better than "
-        f"uniform sampling ({meta['weighting']}, {chosen:.2f}x uniform's variance); the "
-        "estimate rests on the sample, not the model"
+        f"plan {meta['plan']}: the checked model predicted {what} ({meta['weighting']}, "
+        f"{chosen:.2f}x uniform's variance); the estimate rests on the sample, not the model"
     )
 
 

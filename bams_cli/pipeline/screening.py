@@ -418,6 +418,7 @@ def confirm_screen(
 
     Returns what ``estimation.estimate_plan`` writes as plan ``number``: ``sampled_idx``,
     ``known_idx``, ``pi`` (pi1 pi2 of the sampled), ``K2``, ``w_model``, ``w_max``,
+    ``predicted_vs_uniform`` (``core.screen.predicted_vs_uniform``, None where undefined),
     ``n_unknown`` and the ``screen`` facts for the plan's metadata.
     """
     from bams_cli.core import design as dz
@@ -484,6 +485,11 @@ def confirm_screen(
         risk = posterior.allowance_risk(p_all[U, g])[rest]
         w_model.append(dz.unseen_failure_weight(risk, sc.allowance_pi(pi1_r, s1_r, pi2_r, risk)))
     w_max = poisson_max_weight(sc.min_allowance_pi(pi1_r, s1_r, pi2_r))
+    # What the checked model predicts of the confirmed design against uniform sampling of
+    # K: the same yardstick as an unscreened plan's (``estimation.design_note``).
+    predicted = sc.predicted_vs_uniform(
+        confirm_posterior.risk(p_all[U, g_plan]), pi1_U, in_s1, pi2, K
+    )
     return {
         "sampled_idx": S1[drawn],
         "known_idx": known_idx,
@@ -491,6 +497,7 @@ def confirm_screen(
         "K2": K2,
         "w_model": w_model,
         "w_max": w_max,
+        "predicted_vs_uniform": None if math.isnan(predicted) else round(predicted, 6),
         "n_unknown": int(U.size),
         "screen": {
             "file": str(path),
