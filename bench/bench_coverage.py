@@ -1,0 +1,107 @@
+"""How long the default design's coverage takes to compute for the whole suite.
+
+    .venv/bin/bams-cli benchmark --protocol suite --seeds 10 --save-arrays --out /tmp/suite
+    .venv/bin/python bench/bench_coverage.py /tmp/suite [--trials 100] [--repeats 3]
+
+Issue 12 asks the design's coverage over the suite in under a minute. For every run the
+benchmark saved (``runs.npz``: p_n after discovery, the known stratum, the open leads and
+their share of K, the truth), ``core.evaluate.staged_trials`` draws the default two-stage
+design ``--trials`` times from the truth, as ``docs/suite/estimate_design.py`` does for the
+table, in one process. Prints the median wall and CPU time over ``--repeats`` passes, the
+load average, and the coverage it found per problem (all runs' draws pooled).
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from bams_cli import defaults
+from bams_cli.benchmark import fit_prior
+from bams_cli.core.evaluate import staged_trials
+
+PROBLEMS = ("toy2d", "av_like", "weak_cheap", "digits", "rare_regions", "gap_sim")
+STRATEGIES = ("bams", "mcm-gp", "mc")
+
+
+def _runs(folder: Path) -> list[tuple[str, str, int]]:
+    out = []
+    for problem in PROBLEMS:
+        z = np.load(folder / problem / "runs.npz")
+        for key in sorted(z.files):
+            head, _, tail = key.rpartition("-")
+            if tail == "known" and head.rsplit("-", 1)[0] in STRATEGIES:
+                strategy, seed = head.rsplit("-", 1)
+                out.append((problem, strategy, int(seed)))
+    return out
+
+
+def one_pass(folder: Path, trials: int) -> dict[str, list[int]]:
+    """Coverage counts per problem: [covered, below, above, draws]."""
+    import json
+
+    counts: dict[str, list[int]] = {p: [0, 0, 0, 0] for p in PROBLEMS}
+    hp_cache: dict[tuple[str, str], dict] = {}
+    for problem, strategy, seed in _runs(folder):
+        z = np.load(folder / problem / "runs.npz")
+        fail = z["f0"] <= float(z["gamma"])
+        modelled = strategy != "mc"
+        p = z[f"{strategy}-{seed}-p"] if modelled else np.ones(fail.size)
+        prior = defaults.RISK_MIX_PRIOR
+        if modelled:
+            if (problem, strategy) not in hp_cache:
+                entry = json.loads((folder / problem / "results.json").read_text())[strategy]
+                hp_cache[(problem, strategy)] = dict(
+                    zip(entry["seed_values"], entry["hyperparameters_final"], strict=True)
+                )
+            prior = fit_prior(hp_cache[(problem, strategy)][seed])
+        share = z.get(f"{strategy}-{seed}-lead_share")
+        t = staged_trials(
+            p, fail, K=float(z["K"]), known=z[f"{strategy}-{seed}-known"], n_trials=trials,
+            prior=prior, rng=np.random.default_rng(seed),
+            leads=z.get(f"{strategy}-{seed}-leads") if modelled else None,
+            lead_share=defaults.LEAD_SHARE if share is None else float(share),
+        )  # fmt: skip
+        c = counts[problem]
+        c[0] += int(((t.ci_low <= t.rate) & (t.rate <= t.ci_high)).sum())
+        c[1] += int((t.ci_high < t.rate).sum())
+        c[2] += int((t.ci_low > t.rate).sum())
+        c[3] += trials
+    return counts
+
+
+def main(argv: list[str]) -> None:
+    if not argv or argv[0].startswith("-"):
+        # `make bench` runs every script bare: this one needs the suite's saved runs.
+        print("bench_coverage.py: skipped, it needs the folder of `bams-cli benchmark "
+              "--protocol suite --save-arrays` (see its docstring)")  # fmt: skip
+        return
+    folder = Path(argv[0])
+    trials = int(argv[argv.index("--trials") + 1]) if "--trials" in argv else 100
+    repeats = int(argv[argv.index("--repeats") + 1]) if "--repeats" in argv else 3
+    warnings.simplefilter("ignore")
+    walls, cpus, counts = [], [], {}
+    load0 = os.getloadavg()[0]
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        counts = one_pass(folder, trials)
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    n_runs = len(_runs(folder))
+    print(
+        f"coverage of the default design over the suite: {n_runs} runs x {trials} draws, one "
+        f"process; median of {repeats}: {statistics.median(walls):.1f} s wall, "
+        f"{statistics.median(cpus):.1f} s CPU (load {load0:.1f} -> {os.getloadavg()[0]:.1f})"
+    )
+    for problem, (cov, lo, hi, n) in counts.items():
+        print(f"  {problem:13s} coverage {cov / n:.3f}  below {lo / n:.3f}  above {hi / n:.3f}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
