@@ -287,7 +287,8 @@ def test_allowance_pi_prices_the_unscreened_at_pi1_times_the_risk_weighted_mean_
 
 
 @pytest.mark.slow
-def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
+@pytest.mark.parametrize("with_leads", [False, True])
+def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers(with_leads):
     # Issue 12's check for the default estimate where it screens: 100 screens (S1 drawn,
     # pi2 from a refit that sees S1's cheap runs) x 100 confirmations each, from a known
     # truth whose model under-predicts the rate; the estimate and its 90% interval as
@@ -304,18 +305,30 @@ def test_the_screened_default_drawn_ten_thousand_times_is_unbiased_and_covers():
     U = np.flatnonzero(~known)
     K, cost, share = 5.0 * fail.sum() * 0.6, 0.1, 0.3
     post = dz.risk_posterior([])
-    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post).pi
+    # Open leads: segments discovery ran at the cheap level, which failed there, taken
+    # with certainty in both phases (the cheap level errs, so some of them pass).
+    lead = np.zeros(U.size, bool)
+    if with_leads:
+        seen = cheap_fail[U] & (rng.random(U.size) < 0.3)
+        # The cap estimate --plan applies (most of them are cheap-level false alarms).
+        lead = dz.certain_leads(p[U], np.zeros(U.size, bool), seen, sc.lead_budget(K, share))
+        assert 5 <= lead.sum() < seen.sum()
+    pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=post, leads=lead).pi
     rate, Fk = fail.mean(), int(fail[known].sum())
     p_hat, lo, hi = [], [], []
     for _ in range(100):
         s1 = rng.random(U.size) < pi1
         idx = np.flatnonzero(s1)
         refit = np.clip(0.3 * p[U] + 0.6 * cheap_fail[U] * s1, 1e-6, 1.0)  # sees S1's runs
-        K2 = min(sc.confirm_budget(K, cost, idx.size), float(idx.size))
-        pi2 = sc.confirm_design(refit[idx], K2=K2, posterior=post).pi
+        K2 = min(sc.confirm_budget(K, cost, int((s1 & ~lead).sum())), float(idx.size))
+        pi2 = sc.confirm_design(refit[idx], K2=K2, posterior=post, leads=lead[idx]).pi
         counts = (rng.random((idx.size, 100)) < pi2[:, None]).astype(np.int64)
-        allow = post.allowance_risk(refit)
-        w_model = dz.unseen_failure_weight(allow, sc.allowance_pi(pi1, s1, pi2, allow))
+        # The allowance over U without the leads, as ``screening.confirm_screen`` takes it.
+        rest = ~lead
+        allow = post.allowance_risk(refit)[rest]
+        w_model = dz.unseen_failure_weight(
+            allow, sc.allowance_pi(pi1[rest], s1[rest], pi2[~lead[idx]], allow)
+        )
         est = estimate_from_sample(
             sc.confirmed_pi(pi1[idx], pi2), fail[U][idx], design="poisson", n_pool=N,
             n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk, confidence=0.9,
