@@ -67,7 +67,17 @@ planned pi2 under Beta(0.1, 10) where the cheap level tracks level 0
 (docs/suite/screen_confirm_prior.md): 0.49 [1.12] -> 0.21 [0.38] of uniform's variance (4
 screens per run; conditioned on each failure the same change is 0.31 [0.41] -> 0.19 [0.25]),
 recall 12.2x -> 12.3x plain MC, all 5 realised intervals holding the rate; the other
-screened rows were measured before it."""
+screened rows were measured before it. Rerun for toy2d and av_like on both data seeds on
+2026-11-29 (17:38-17:50 at 09de138) once the screen took the open cheap-level leads with
+certainty in both phases (core.screen): av_like's variance over uniform's 0.13 [0.19] ->
+0.12 [0.18] on data seed 1 and 0.21 [0.38] -> 0.15 [0.19] on data seed 2, so every seed of
+both instances is now under issue 12's 1/5; recall over plain MC 9.7x -> 9.4x and 12.3x
+-> 13.7x; toy2d 0.03 [0.07] -> 0.02 [0.04] and 0.02 [0.04] -> 0.01 [0.02], recall 39.8x
+-> 52.9x and 32.4x -> 40.8x; all 20 realised intervals held the rate. av_like's data
+seeds 3 and 4 the same day (17:52-17:57 at 09de138; 0.25 [0.38] and 0.20 [0.25] before,
+README's estimate section): 0.17 [0.20] and 0.17 [0.23], recall 11.1x and 8.2x plain MC,
+9 of 10 realised intervals holding the rate, the other above it. On the four held-out
+instances av_like's mean is under 1/5 on each; two single seeds reach 0.20 and 0.23."""
 
 
 def run(data_seed: int, problems: tuple[str, ...], seeds: int) -> None:
