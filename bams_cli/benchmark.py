@@ -393,22 +393,32 @@ def run_leads(
     return open_leads(r, f1, gamma), run_lead_share(r, f1, is_failure, gamma)
 
 
-def run_lead_share(r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: float) -> float:
-    """The share of K the run's open leads may take (``core.design.lead_share``), from its
-    discovery's evidence: segments run at level 1 at or below gamma that have a level-0
-    result, and how many of them fail there (``pipeline._handoff.lead_evidence``)."""
-    from bams_cli.core.design import lead_share
+def run_lead_evidence(
+    r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: float
+) -> tuple[int, int]:
+    """The run's evidence on its leads, as ``pipeline._handoff.lead_evidence`` reads it from
+    a workspace: segments run at level 1 at or below gamma that have a level-0 result, and
+    how many of them fail there; (0, 0) where the run's last fit put level 1 in other
+    units (no leads, ``open_leads``)."""
     from bams_cli.pipeline._handoff import reports_level0_units
 
     hp = r.hyperparameters[-1] if r.hyperparameters else None
     if not reports_level0_units((hp.get("scales") or [1.0])[0] if hp else 1.0):
-        return lead_share(0, 0)  # a level in other units shows no leads (``open_leads``)
+        return 0, 0
     cheap = np.zeros(f1.size, bool)
     for idx, lv in r.picks:
         run1 = idx[lv == 1]
         cheap[run1[f1[run1] <= gamma]] = True
     pairs = cheap & np.asarray(r.known, bool)
-    return lead_share(int(pairs.sum()), int((pairs & is_failure).sum()))
+    return int(pairs.sum()), int((pairs & is_failure).sum())
+
+
+def run_lead_share(r: RunResult, f1: np.ndarray, is_failure: np.ndarray, gamma: float) -> float:
+    """The share of K the run's open leads may take (``core.design.lead_share`` of
+    ``run_lead_evidence``)."""
+    from bams_cli.core.design import lead_share
+
+    return lead_share(*run_lead_evidence(r, f1, is_failure, gamma))
 
 
 def _select_kwargs(strategy: str, batch: int) -> dict[str, Any]:

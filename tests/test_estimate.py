@@ -875,6 +875,43 @@ def test_the_leads_share_of_k_follows_the_leads_the_study_ran_at_level0(tmp_path
     assert meta["lead_evidence"]["share"] == defaults.LEAD_SHARE_UNPROVEN
 
 
+def test_the_benchmark_reads_leads_and_their_evidence_as_the_pipeline_does(tmp_path):
+    """The benchmark evaluates the estimate from a run's picks and the truth; the tool
+    reads the same study's observation log. Both must find the same open leads and the
+    same evidence on them, or the suite measures another design than the one shipped."""
+    from typer.testing import CliRunner
+
+    from bams_cli.benchmark import RunResult, run_lead_evidence
+    from bams_cli.benchmark import open_leads as run_open_leads
+    from bams_cli.pipeline._handoff import cheap_failures, lead_evidence
+    from bams_cli.state.workspace import Workspace
+
+    runner = CliRunner()
+    ws, truth, t = _lead_study(runner, tmp_path)
+    ok(runner, "select", "-w", ws, "--budget", "6")  # confirms some leads at level 0
+    _simulate_batch(runner, ws, truth, 2, tmp_path)
+    ids = t[SID].to_numpy().astype(str)  # the truth file's order, the benchmark's
+    row = {sid: i for i, sid in enumerate(ids)}
+    obs = pl.read_parquet(ws / "observations.parquet")
+    picks = [
+        (np.array([row[x] for x in b[SID].to_list()]), b["fidelity"].to_numpy())
+        for _, b in obs.group_by("batch", maintain_order=True)
+    ]
+    known = np.isin(ids, obs.filter(pl.col("fidelity") == 0)[SID].to_list())
+    r = RunResult(
+        strategy="bams", seed=0, picks=picks, p_after=[None], scores=None, known=known,
+        hyperparameters=[None], realised=None, seconds={},
+    )  # fmt: skip
+    f1, fail = t["value_1"].to_numpy(), t["value_0"].to_numpy() <= 0.56
+    w = Workspace(ws)
+    evidence = lead_evidence(w, ids, 0.56)
+    assert evidence[0] > 0, "no lead was run at level 0: nothing to compare"
+    assert run_lead_evidence(r, f1, fail, 0.56) == evidence
+    leads = cheap_failures(w, ids, 0.56) & ~known
+    assert leads.any()
+    np.testing.assert_array_equal(run_open_leads(r, f1, 0.56), leads)
+
+
 def _simulate_batch(runner, ws, truth, number: int, tmp_path):
     res = tmp_path / f"batch-{number}.parquet"
     ok(runner, "simulate", ws / "batches" / f"batch-{number:04d}.parquet", "--truth", truth,

@@ -332,6 +332,10 @@ def estimate_plan(
             K=lead_budget(samples, share),
             scales=model["hyperparameters"].get("scales") or (),
         )  # fmt: skip
+        # Only leads with a result at the screen's level: they cost the screen nothing (a
+        # lead seen at another cheap level alone stays with the design).
+        obs1 = ws.read_observations().filter(pl.col("fidelity") == screening.SCREEN_LEVEL)
+        leads &= ids_in(ids, obs1[SID].to_numpy())
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
             share=share, leads=leads, lead_facts=lead_facts,
