@@ -754,3 +754,43 @@ def test_a_screen_written_before_the_confirmation_prior_confirms_as_it_did(fitte
     np.testing.assert_allclose(
         sampled["pi"].to_numpy(), [want[s] for s in sampled[SID].to_list()], rtol=1e-12
     )
+
+
+def test_a_screen_takes_only_the_leads_run_at_its_own_level(tmp_path):
+    """Three levels: the screen runs level 1. A lead seen at level 2 alone would cost the
+    screen a level-1 run, so the screen leaves it to the design; the staged plan, which
+    runs no cheap level, takes every open lead."""
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
+    t = pl.read_parquet(truth)
+    # Level 1 tracks level 0; level 2 reads 0.6 low, so it fails where level 0 is under 1.16.
+    t.with_columns((pl.col("value_0") - 0.6).alias("value_2")).write_parquet(truth)
+    ws = tmp_path / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1,0.05", "--dim", "2",
+       "--seed", "3")  # fmt: skip
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
+    ok(runner, "ingest-results", "-w", ws,
+       _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r1.parquet"))  # fmt: skip
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    obs = pl.read_parquet(ws / "observations.parquet")
+    level0 = set(obs.filter(pl.col("fidelity") == 0)[SID])
+    ran1 = set(obs.filter(pl.col("fidelity") == 1)[SID])
+    cheap_fail = set(obs.filter((pl.col("fidelity") > 0) & (pl.col("value") <= 0.56))[SID])
+    leads = cheap_fail - level0
+    assert leads - ran1, "no lead seen at level 2 alone: the test has nothing to check"
+    scr = strict_json(
+        ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", "200",
+           "--json").stdout  # fmt: skip
+    )
+    assert scr["leads_certain"] == len(leads & ran1)
+    smeta = read_metadata_json(ws / "estimates" / f"screen-{scr['plan']:04d}.parquet")
+    assert set(smeta["lead_ids"]) == leads & ran1
+    staged = strict_json(
+        ok(runner, "estimate", "-w", ws, "--plan", "--new-series", "--screen", "off",
+           "--samples", "200", "--allow-pending", "--json").stdout  # fmt: skip
+    )
+    assert staged["leads_certain"] == len(leads)
