@@ -782,15 +782,12 @@ def test_a_screen_takes_only_the_leads_run_at_its_own_level(tmp_path):
     cheap_fail = set(obs.filter((pl.col("fidelity") > 0) & (pl.col("value") <= 0.56))[SID])
     leads = cheap_fail - level0
     assert leads - ran1, "no lead seen at level 2 alone: the test has nothing to check"
-    scr = strict_json(
-        ok(runner, "estimate", "-w", ws, "--plan", "--screen", SHARE, "--samples", "200",
-           "--json").stdout  # fmt: skip
-    )
+    plan = ["estimate", "-w", ws, "--plan", "--samples", "200", "--json"]
+    scr = strict_json(ok(runner, *plan, "--screen", SHARE).stdout)
     assert scr["leads_certain"] == len(leads & ran1)
     smeta = read_metadata_json(ws / "estimates" / f"screen-{scr['plan']:04d}.parquet")
     assert set(smeta["lead_ids"]) == leads & ran1
     staged = strict_json(
-        ok(runner, "estimate", "-w", ws, "--plan", "--new-series", "--screen", "off",
-           "--samples", "200", "--allow-pending", "--json").stdout  # fmt: skip
+        ok(runner, *plan, "--new-series", "--screen", "off", "--allow-pending").stdout
     )
     assert staged["leads_certain"] == len(leads)
