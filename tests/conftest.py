@@ -127,6 +127,45 @@ def write_toy(folder: Path, n: int = 400, seed: int = 0) -> tuple[Path, Path]:
     return seg, truth
 
 
+def fitted_toy_study(
+    runner: CliRunner,
+    folder: Path,
+    *,
+    gammas: str = "0.56",
+    costs: str = "1,0.1",
+    budget: int = 12,
+    cheap_offsets: dict[int, float] | None = None,
+) -> tuple[Path, Path]:
+    """A 400-segment toy2d study through the CLI, as a study starts: ``init`` (seed 3),
+    ``embed-reduce``, one random mixed-fidelity batch of ``budget``, its truth simulated
+    and ingested, ``fit``. ``cheap_offsets`` {level: c}: that level's truth becomes level
+    0's minus c (a cheap level that reads low, so it fails more widely). Returns (workspace,
+    truth file)."""
+    seg, truth = write_toy(folder / "data", n=400, seed=0)
+    if cheap_offsets:
+        t = pq.read_table(truth)
+        for level, c in cheap_offsets.items():
+            col = pa.array(t["value_0"].to_numpy() - c)
+            name = f"value_{level}"
+            t = (
+                t.set_column(t.schema.get_field_index(name), name, col)
+                if name in t.column_names
+                else t.append_column(name, col)
+            )
+        pq.write_table(t, truth)
+    ws = folder / "ws"
+    ok(runner, "init", "-w", ws, "--gamma", gammas, "--costs", costs, "--dim", "2",
+       "--seed", "3")  # fmt: skip
+    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
+       "--no-standardize")  # fmt: skip
+    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget",
+       str(budget))  # fmt: skip
+    batch = ws / "batches" / "batch-0001.parquet"
+    simulate_and_ingest(runner, ws, batch, truth, folder / "batch-1.parquet")
+    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    return ws, truth
+
+
 @pytest.fixture
 def toy_files(tmp_path: Path) -> tuple[Path, Path]:
     return write_toy(tmp_path / "data")

@@ -20,7 +20,7 @@ from bams_cli.core import design as dz
 from bams_cli.core import estimate as core_estimate
 from bams_cli.state.io import read_metadata_json, stamp
 from bams_cli.state.schemas import SEGMENT_ID as SID
-from tests.conftest import STAGED_PLAN, invoke, ok, write_toy
+from tests.conftest import STAGED_PLAN, fitted_toy_study, invoke, ok, write_toy
 
 
 @pytest.mark.parametrize(
@@ -769,18 +769,8 @@ def _lead_study(runner, tmp_path: Path) -> tuple[Path, Path, pl.DataFrame]:
     """400 toy2d segments whose cheap level reads 0.6 low (it fails wherever level 0 is
     under 1.16), one random mixed-fidelity batch of budget 12, fitted: (workspace, truth,
     the truth table)."""
-    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
-    t = pl.read_parquet(truth).with_columns((pl.col("value_0") - 0.6).alias("value_1"))
-    t.write_parquet(truth)
-    ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1", "--dim", "2",
-       "--seed", "3")  # fmt: skip
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
-    _simulate_batch(runner, ws, truth, 1, tmp_path)
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
-    return ws, truth, t
+    ws, truth = fitted_toy_study(runner, tmp_path, cheap_offsets={1: 0.6})
+    return ws, truth, pl.read_parquet(truth)
 
 
 def _leads(ws: Path) -> tuple[set[str], list[str]]:

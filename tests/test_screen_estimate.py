@@ -24,7 +24,7 @@ from bams_cli.pipeline import screening
 from bams_cli.state.io import read_metadata_json
 from bams_cli.state.schemas import SEGMENT_ID as SID
 from bams_cli.state.workspace import Workspace
-from tests.conftest import invoke, ok, tree_hash, write_toy
+from tests.conftest import fitted_toy_study, invoke, ok, tree_hash, write_toy
 from tests.jsonschema_subset import errors
 from tests.test_estimate import strict_json
 
@@ -40,18 +40,7 @@ def fitted(tmp_path_factory):
 
     runner = CliRunner()
     tmp = tmp_path_factory.mktemp("screen")
-    seg, truth = write_toy(tmp / "data", n=400, seed=0)
-    ws = tmp / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.05,0.56", "--costs", "1,0.1", "--dim", "2",
-       "--seed", "3")  # fmt: skip
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "20")
-    res = tmp / "r1.parquet"
-    ok(runner, "simulate", ws / "batches" / "batch-0001.parquet", "--truth", truth, "-o", res)
-    ok(runner, "ingest-results", "-w", ws, res)
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
-    return ws, truth
+    return fitted_toy_study(runner, tmp, gammas="0.05,0.56", budget=20)
 
 
 def _copy(fitted, tmp_path):
@@ -763,19 +752,8 @@ def test_a_screen_takes_only_the_leads_run_at_its_own_level(tmp_path):
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    seg, truth = write_toy(tmp_path / "data", n=400, seed=0)
-    t = pl.read_parquet(truth)
     # Level 1 tracks level 0; level 2 reads 0.6 low, so it fails where level 0 is under 1.16.
-    t.with_columns((pl.col("value_0") - 0.6).alias("value_2")).write_parquet(truth)
-    ws = tmp_path / "ws"
-    ok(runner, "init", "-w", ws, "--gamma", "0.56", "--costs", "1,0.1,0.05", "--dim", "2",
-       "--seed", "3")  # fmt: skip
-    ok(runner, "embed-reduce", "-w", ws, seg, "--columns", "x*", "--method", "identity",
-       "--no-standardize")  # fmt: skip
-    ok(runner, "select", "-w", ws, "--strategy", "random", "--mixed-fidelity", "--budget", "12")
-    ok(runner, "ingest-results", "-w", ws,
-       _sim(runner, ws / "batches" / "batch-0001.parquet", truth, tmp_path / "r1.parquet"))  # fmt: skip
-    ok(runner, "fit", "-w", ws, "--restarts", "1")
+    ws, truth = fitted_toy_study(runner, tmp_path, costs="1,0.1,0.05", cheap_offsets={2: 0.6})
     obs = pl.read_parquet(ws / "observations.parquet")
     level0 = set(obs.filter(pl.col("fidelity") == 0)[SID])
     ran1 = set(obs.filter(pl.col("fidelity") == 1)[SID])
