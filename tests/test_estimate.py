@@ -894,7 +894,7 @@ def test_the_benchmark_reads_leads_and_their_evidence_as_the_pipeline_does(tmp_p
     )  # fmt: skip
     f1, fail = t["value_1"].to_numpy(), t["value_0"].to_numpy() <= 0.56
     w = Workspace(ws)
-    evidence = lead_evidence(w, ids, 0.56)
+    evidence = lead_evidence(w, ids, cheap_failures(w, ids, 0.56), 0.56)
     assert evidence[0] > 0, "no lead was run at level 0: nothing to compare"
     assert run_lead_evidence(r, f1, fail, 0.56) == evidence
     leads = cheap_failures(w, ids, 0.56) & ~known

@@ -105,24 +105,32 @@ def screen_design(
     """
     p = np.asarray(p, dtype=np.float64)
     lead = _mask(leads, p.size)
-    if not lead.any():
-        return choose_design(p, K=screen_size(K, cost, share, p.size), posterior=posterior)
-    rest = ~lead
-    n_rest = int(rest.sum())
-    pi = np.ones(p.size)
-    if n_rest == 0:
-        return DesignChoice(name="leads", pi=pi, risk=np.zeros(p.size), predicted={})
-    c = choose_design(p[rest], K=screen_size(K, cost, share, n_rest), posterior=posterior)
-    pi[rest] = c.pi
-    risk = np.zeros(p.size)
-    risk[rest] = c.risk
-    return replace(c, pi=pi, risk=risk)
+    n_rest = p.size - int(lead.sum())
+    return _with_leads(p, lead, screen_size(K, cost, share, max(n_rest, 1)), posterior)
 
 
 def lead_budget(K: float, share: float) -> float:
     """The level-0 runs a screen's confirmation expects to have, K (1 - share): the budget
     whose ``defaults.LEAD_SHARE`` the certain leads may take (``design.certain_leads``)."""
     return float(K) * (1.0 - float(share))
+
+
+def _with_leads(
+    p: FloatArray, lead: NDArray[np.bool_], k: float, posterior: RiskPosterior
+) -> DesignChoice:
+    """pi = 1 on the leads and the estimate's design choice at expected size ``k`` over the
+    other segments (all of them, without leads)."""
+    if not lead.any():
+        return choose_design(p, K=k, posterior=posterior)
+    rest = ~lead
+    pi = np.ones(p.size)
+    risk = np.zeros(p.size)
+    if not rest.any():
+        return DesignChoice(name="leads", pi=pi, risk=risk, predicted={})
+    c = choose_design(p[rest], K=k, posterior=posterior)
+    pi[rest] = c.pi
+    risk[rest] = c.risk
+    return replace(c, pi=pi, risk=risk)
 
 
 def _mask(leads: ArrayLike | None, n: int) -> NDArray[np.bool_]:
@@ -166,19 +174,9 @@ def confirm_design(
     if not K2 > 0:
         raise ValueError(f"no level-0 budget is left to confirm the screen (K2 = {K2!r})")
     lead = _mask(leads, p2.size)
-    if not lead.any():
-        return choose_design(p2, K=min(float(K2), float(p2.size)), posterior=posterior)
-    rest = ~lead
-    n_rest = int(rest.sum())
-    pi = np.ones(p2.size)
-    if n_rest == 0:
-        return DesignChoice(name="leads", pi=pi, risk=np.zeros(p2.size), predicted={})
-    k = min(max(float(K2) - float(lead.sum()), 1.0), float(n_rest))
-    c = choose_design(p2[rest], K=k, posterior=posterior)
-    pi[rest] = c.pi
-    risk = np.zeros(p2.size)
-    risk[rest] = c.risk
-    return replace(c, pi=pi, risk=risk)
+    n_lead = int(lead.sum())
+    k = max(float(K2) - n_lead, 1.0) if n_lead else float(K2)
+    return _with_leads(p2, lead, min(k, float(p2.size - n_lead)), posterior)
 
 
 def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:

@@ -50,16 +50,16 @@ def cheap_failures(
 
 
 def lead_evidence(
-    ws: Workspace, ids: np.ndarray, gamma: float, scales: Sequence[float] = ()
+    ws: Workspace, ids: np.ndarray, cheap: np.ndarray, gamma: float
 ) -> tuple[int, int]:
-    """(segments seen at or below ``gamma`` at a cheap level in level 0's units that have a
-    level-0 result, how many of them fail at level 0 at ``gamma``): how often the study's
-    leads have been confirmed (``core.design.lead_share``)."""
-    cheap = cheap_failures(ws, ids, gamma, scales)
+    """(segments of ``cheap`` (``cheap_failures``, bool over the pool) that have a level-0
+    result, how many of them fail at level 0 at ``gamma``): how often the study's leads
+    have been confirmed (``core.design.lead_share``)."""
+    seen = ids[np.flatnonzero(cheap)]
     obs0 = ws.read_observations().filter(pl.col("fidelity") == 0)
-    ran = ids_in(ids, obs0[SID].to_numpy())
-    failed = ids_in(ids, obs0.filter(pl.col("value") <= gamma)[SID].to_numpy())
-    return int((cheap & ran).sum()), int((cheap & failed).sum())
+    ran = ids_in(seen, obs0[SID].to_numpy())
+    failed = ids_in(seen, obs0.filter(pl.col("value") <= gamma)[SID].to_numpy())
+    return int(ran.sum()), int(failed.sum())
 
 
 def describe_leads(

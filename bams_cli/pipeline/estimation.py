@@ -335,7 +335,8 @@ def estimate_plan(
         # Only leads with a result at the screen's level: they cost the screen nothing (a
         # lead seen at another cheap level alone stays with the design).
         obs1 = ws.read_observations().filter(pl.col("fidelity") == screening.SCREEN_LEVEL)
-        leads &= ids_in(ids, obs1[SID].to_numpy())
+        at = np.flatnonzero(leads)
+        leads[at[~ids_in(ids[at], obs1[SID].to_numpy())]] = False
         out = screening.draw_screen(
             ws, settings, number=number, ids=ids, p=p, known=known, K=samples,
             share=share, leads=leads, lead_facts=lead_facts,
@@ -605,7 +606,8 @@ def open_leads(
         ``open`` (leads before the cap), ``pairs`` and ``failed`` (the evidence:
         ``_handoff.lead_evidence``) and ``share`` (the cap's share of K).
     """
-    lead = cheap_failures(ws, ids, gamma, scales) & ~known
+    cheap = cheap_failures(ws, ids, gamma, scales)
+    lead = cheap & ~known
     if pend.height:
         lead &= ~ids_in(ids, pend.filter(pl.col("fidelity") == 0)[SID].to_numpy())
     gone = ws.read_abandoned()
@@ -613,7 +615,7 @@ def open_leads(
         lead &= ~ids_in(ids, gone.filter(pl.col("fidelity") == 0)[SID].to_numpy())
     from bams_cli.core.design import certain_leads, lead_share
 
-    pairs, failed = lead_evidence(ws, ids, gamma, scales)
+    pairs, failed = lead_evidence(ws, ids, cheap, gamma)
     share = lead_share(pairs, failed)
     facts = {"open": int(lead.sum()), "pairs": pairs, "failed": failed, "share": share}
     return certain_leads(p, known, lead, K, share), facts

@@ -512,9 +512,10 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
         # from the workspace kept then as the pipeline reads them.
         kept = Workspace(ws.with_name(f"{ws.name}.after-batch-3"))
         scales = model["hyperparameters"].get("scales") or ()
-        leads = cheap_failures(kept, ids.to_numpy(), gamma, scales) & ~known
+        cheap = cheap_failures(kept, ids.to_numpy(), gamma, scales)
+        leads = cheap & ~known
         # How far the leads' share of K reaches: the leads run at level 0 by then.
-        share = lead_share(*lead_evidence(kept, ids.to_numpy(), gamma, scales))
+        share = lead_share(*lead_evidence(kept, ids.to_numpy(), cheap, gamma))
         # The prior on lam estimate --plan takes for this model.
         t = staged_trials(
             p.to_numpy(), fail, K=K, known=known, n_trials=1000,
