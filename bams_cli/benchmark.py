@@ -847,6 +847,44 @@ def fit_prior(hyperparameters: dict[str, Any] | None) -> tuple[float, float]:
     return risk_prior(cheap_level_discrepancy({"hyperparameters": hp}) if hp else None)
 
 
+def saved_run_trials(
+    problem_dir: Path,
+    strategy: str,
+    seed: int,
+    *,
+    n_trials: int,
+    uniform: bool = False,
+    rng: np.random.Generator | None = None,
+) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
+    """The default staged estimate design drawn ``n_trials`` times from the truth, for one
+    run that ``run_benchmark(save_arrays=True)`` saved in ``problem_dir``: its final p_n
+    (constant for a run without a model, or with ``uniform``: a uniform estimate after
+    that run's discovery), its known stratum, its open leads at the share of K their
+    evidence allows, and the prior on lam ``estimate --plan`` takes for its last fit.
+
+    Returns (``core.evaluate.StagedTrials``, is_failure, known, p, prior), the design's
+    inputs for callers that measure more of it (docs/suite/estimate_design.py).
+    """
+    from bams_cli.core.evaluate import staged_trials
+
+    z = np.load(problem_dir / "runs.npz")
+    fail = z["f0"] <= float(z["gamma"])
+    known = z[f"{strategy}-{seed}-known"]
+    modelled = not uniform and f"{strategy}-{seed}-p" in z.files
+    p = z[f"{strategy}-{seed}-p"] if modelled else np.ones(fail.size)
+    entry = json.loads((problem_dir / "results.json").read_text())[strategy]
+    finals = dict(zip(entry["seed_values"], entry.get("hyperparameters_final") or [], strict=False))
+    prior = fit_prior(finals.get(seed))
+    share = z.get(f"{strategy}-{seed}-lead_share")
+    t = staged_trials(
+        p, fail, K=float(z["K"]), known=known, n_trials=n_trials, prior=prior,
+        rng=np.random.default_rng(seed) if rng is None else rng,
+        leads=z.get(f"{strategy}-{seed}-leads") if modelled else None,
+        lead_share=defaults.LEAD_SHARE if share is None else float(share),
+    )  # fmt: skip
+    return t, fail, known, p, prior
+
+
 def _staged_design(
     r: RunResult,
     is_failure: np.ndarray,

@@ -22,9 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bams_cli import defaults
-from bams_cli.benchmark import fit_prior
-from bams_cli.core.evaluate import staged_trials
+from bams_cli.benchmark import saved_run_trials
 
 PROBLEMS = ("toy2d", "av_like", "weak_cheap", "digits", "rare_regions", "gap_sim")
 STRATEGIES = ("bams", "mcm-gp", "mc")
@@ -44,30 +42,9 @@ def _runs(folder: Path) -> list[tuple[str, str, int]]:
 
 def one_pass(folder: Path, trials: int) -> dict[str, list[int]]:
     """Coverage counts per problem: [covered, below, above, draws]."""
-    import json
-
     counts: dict[str, list[int]] = {p: [0, 0, 0, 0] for p in PROBLEMS}
-    hp_cache: dict[tuple[str, str], dict] = {}
     for problem, strategy, seed in _runs(folder):
-        z = np.load(folder / problem / "runs.npz")
-        fail = z["f0"] <= float(z["gamma"])
-        modelled = strategy != "mc"
-        p = z[f"{strategy}-{seed}-p"] if modelled else np.ones(fail.size)
-        prior = defaults.RISK_MIX_PRIOR
-        if modelled:
-            if (problem, strategy) not in hp_cache:
-                entry = json.loads((folder / problem / "results.json").read_text())[strategy]
-                hp_cache[(problem, strategy)] = dict(
-                    zip(entry["seed_values"], entry["hyperparameters_final"], strict=True)
-                )
-            prior = fit_prior(hp_cache[(problem, strategy)][seed])
-        share = z.get(f"{strategy}-{seed}-lead_share")
-        t = staged_trials(
-            p, fail, K=float(z["K"]), known=z[f"{strategy}-{seed}-known"], n_trials=trials,
-            prior=prior, rng=np.random.default_rng(seed),
-            leads=z.get(f"{strategy}-{seed}-leads") if modelled else None,
-            lead_share=defaults.LEAD_SHARE if share is None else float(share),
-        )  # fmt: skip
+        t, *_ = saved_run_trials(folder / problem, strategy, seed, n_trials=trials)
         c = counts[problem]
         c[0] += int(((t.ci_low <= t.rate) & (t.rate <= t.ci_high)).sum())
         c[1] += int((t.ci_high < t.rate).sum())

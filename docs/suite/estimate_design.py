@@ -53,41 +53,20 @@ def _old_recall(p: np.ndarray, fail: np.ndarray, known: np.ndarray, K: float) ->
     return float(recall)
 
 
-def _prior(folder: Path, strategy: str, seed: int) -> tuple[float, float]:
-    """The prior on lam ``estimate --plan`` takes for this run's last fit
-    (``benchmark.fit_prior``), from the benchmark's ``hyperparameters_final``."""
-    from bams_cli.benchmark import fit_prior
-
-    entry = json.loads((folder / "results.json").read_text())[strategy]
-    return fit_prior(
-        dict(zip(entry["seed_values"], entry["hyperparameters_final"], strict=True))[seed]
-    )
-
-
 def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     from bams_cli import defaults
+    from bams_cli.benchmark import saved_run_trials
     from bams_cli.core.estimate import inclusion_probabilities
-    from bams_cli.core.evaluate import staged_trials
 
     folder, problem, strategy, seed, trials = args
     warnings.simplefilter("ignore")
-    z = np.load(Path(folder) / problem / "runs.npz")
-    fail = z["f0"] <= float(z["gamma"])
-    K = float(z["K"])
-    src = "bams" if strategy == "uniform" else strategy
-    known = z[f"{src}-{seed}-known"]
-    modelled = strategy in ("bams", "mcm-gp")
-    # Plain MC and the uniform row: p_n constant, so both stages are uniform.
-    p = z[f"{strategy}-{seed}-p"] if modelled else np.ones(fail.size)
-    prior = _prior(Path(folder) / problem, src, seed) if src != "mc" else defaults.RISK_MIX_PRIOR
-    # The open leads a GP strategy's estimate samples with certainty, and their share of K
-    # (saved by the benchmark since 2026-11-29).
-    leads = z.get(f"{strategy}-{seed}-leads") if modelled else None
-    share = z.get(f"{strategy}-{seed}-lead_share")
+    K = float(np.load(Path(folder) / problem / "runs.npz")["K"])
     t0, c0 = time.perf_counter(), time.process_time()
-    r = staged_trials(
-        p, fail, K=K, known=known, n_trials=trials, prior=prior, rng=np.random.default_rng(seed),
-        leads=leads, lead_share=defaults.LEAD_SHARE if share is None else float(share),
+    # Plain MC and the uniform row (BAMS's discovery, p_n constant): both stages uniform.
+    # The GP strategies' designs take the run's open leads at their evidence's share of K.
+    r, fail, known, p, prior = saved_run_trials(
+        Path(folder) / problem, "bams" if strategy == "uniform" else strategy, seed,
+        n_trials=trials, uniform=strategy == "uniform",
     )  # fmt: skip
     U = np.flatnonzero(~known)
     fu = fail[U]
