@@ -159,7 +159,7 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     uni = (r * (1 - K / r.size) / (K / r.size)).sum()
     assert plan["predicted_vs_uniform"]["screen"] == pytest.approx((one + two) / uni, abs=1e-6)
     assert pi2[~is_lead].sum() == pytest.approx(K2 - len(leads), rel=1e-9)
-    assert plan["samples_K"] == pytest.approx(K2)
+    assert plan["samples_K"] == pytest.approx(K2) == pytest.approx(pi2.sum(), rel=1e-9)
     pi_by_id = dict(zip(s1[SID].to_list(), (s1["pi1"].to_numpy() * pi2).tolist(), strict=True))
     planned = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
     sampled = planned.filter(pl.col("stratum") == "sampled")

@@ -175,8 +175,20 @@ def confirm_design(
         raise ValueError(f"no level-0 budget is left to confirm the screen (K2 = {K2!r})")
     lead = _mask(leads, p2.size)
     n_lead = int(lead.sum())
-    k = max(float(K2) - n_lead, 1.0) if n_lead else float(K2)
-    return _with_leads(p2, lead, min(k, float(p2.size - n_lead)), posterior)
+    return _with_leads(p2, lead, confirm_size(K2, n_lead, p2.size) - n_lead, posterior)
+
+
+def confirm_size(K2: float, n_lead: int, n_screened: int) -> float:
+    """The confirmation's expected number of level-0 runs (``confirm_design``): K2 where
+    the leads leave room in it, else the leads plus one run's worth over the other screened
+    segments, never more than |S1|.
+
+    It exceeds K2 only where the open leads alone use K2 up; the plan records it as its
+    ``samples``, which is what the simulation team is asked to run on average.
+    """
+    if not n_lead:
+        return min(float(K2), float(n_screened))
+    return n_lead + min(max(float(K2) - n_lead, 1.0), float(n_screened - n_lead))
 
 
 def confirmed_pi(pi1: ArrayLike, pi2: ArrayLike) -> FloatArray:

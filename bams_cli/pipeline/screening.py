@@ -417,7 +417,8 @@ def confirm_screen(
     interval's allowance for a failure no run has seen.
 
     Returns what ``estimation.estimate_plan`` writes as plan ``number``: ``sampled_idx``,
-    ``known_idx``, ``pi`` (pi1 pi2 of the sampled), ``K2``, ``w_model``, ``w_max``,
+    ``known_idx``, ``pi`` (pi1 pi2 of the sampled), ``K2`` (the runs asked for on average,
+    ``core.screen.confirm_size``), ``w_model``, ``w_max``,
     ``predicted_vs_uniform`` (``core.screen.predicted_vs_uniform``, None where undefined),
     ``n_unknown`` and the ``screen`` facts for the plan's metadata.
     """
@@ -494,7 +495,9 @@ def confirm_screen(
         "sampled_idx": S1[drawn],
         "known_idx": known_idx,
         "pi": pi[drawn],
-        "K2": K2,
+        # The runs the confirmation asks for on average: K2, or more where the open leads
+        # alone use K2 up (``core.screen.confirm_size``).
+        "K2": sc.confirm_size(K2, int(lead_U.sum()), S1.size) if S1.size else 0.0,
         "w_model": w_model,
         "w_max": w_max,
         "predicted_vs_uniform": None if math.isnan(predicted) else round(predicted, 6),

@@ -219,10 +219,14 @@ def test_leads_are_screened_and_confirmed_with_certainty_and_the_rest_keeps_its_
     l2[[0, 1, 7]] = True
     pi2 = sc.confirm_design(p2, K2=8.0, posterior=prior, leads=l2).pi
     assert np.all(pi2[l2] == 1.0) and pi2[~l2].sum() == pytest.approx(5.0, rel=1e-9)
+    assert sc.confirm_size(8.0, 3, p2.size) == pytest.approx(pi2.sum(), rel=1e-9) == 8.0
     tight = sc.confirm_design(p2, K2=3.5, posterior=prior, leads=l2).pi
     assert np.all(tight[~l2] > 0) and tight[~l2].sum() == pytest.approx(1.0, rel=1e-9)
+    # The leads use K2 up: the plan asks for more than K2 runs on average, and says so.
+    assert sc.confirm_size(3.5, 3, p2.size) == pytest.approx(tight.sum(), rel=1e-9) == 4.0
     every = sc.confirm_design(p2[l2], K2=2.0, posterior=prior, leads=np.ones(3, bool))
     assert np.all(every.pi == 1.0) and every.name == "leads"
+    assert sc.confirm_size(2.0, 3, 3) == 3.0 and sc.confirm_size(40.0, 0, 30) == 30.0
     with pytest.raises(ValueError, match="leads has shape"):
         sc.confirm_design(p2, K2=8.0, posterior=prior, leads=l2[:5])
 
