@@ -320,15 +320,17 @@ def staged_trials(
     reference: bool = False,
     leads: ArrayLike | None = None,
     lead_share: float = defaults.LEAD_SHARE,
+    stages: int = defaults.STAGES,
 ) -> StagedTrials:
-    """Draw the default two-stage estimate design ``n_trials`` times from a known truth.
+    """Draw the default staged estimate design ``n_trials`` times from a known truth.
 
     Each trial draws stage 1 (the calibrated design at the prior mean of lam, K_1 =
     share K), updates lam from where its sampled failures fell, plans stage 2 over what is
-    left (K_2 = K - K_1) as ``estimate --plan`` does, draws it, and combines the stages'
-    estimates (``core.design.combine_stages``). Stage 2 keeps stage 1's p_n: the real loop
-    refits the model on stage 1's results first, which the evaluation cannot afford a
-    thousand times; the design is otherwise exactly the tool's.
+    left as ``estimate --plan`` does, draws it, and so on for each later stage (they share
+    K - K_1 equally), and combines the stages' estimates (``core.design.combine_stages``).
+    Later stages keep stage 1's p_n: the real loop refits the model on each stage's
+    results first, which the evaluation cannot afford a thousand times; the design is
+    otherwise exactly the tool's.
 
     Parameters
     ----------
@@ -364,11 +366,17 @@ def staged_trials(
         of K over the whole of U.
     lead_share : float
         The leads' largest share of K (``core.design.lead_share`` of the study's evidence).
+    stages : int
+        How many stages K is spent in (``estimate --plan --stages``), at least 2. Two run
+        the fast path (or the reference); more run ``_multi_stage_trials``, the reference's
+        loop over the stages.
 
     Returns
     -------
     StagedTrials
     """
+    if stages < 2:
+        raise ValueError(f"staged_trials draws two stages or more, not {stages}")
     known_m = np.zeros(np.asarray(p).size, bool) if known is None else np.asarray(known, bool)
     lead_m = certain_leads(p, known_m, leads, K, lead_share)
     if lead_m.any():
@@ -378,13 +386,18 @@ def staged_trials(
         out = staged_trials(
             p, is_failure, K=K - int(lead_m.sum()), known=known_m | lead_m, share=share,
             prior=prior, anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials,
-            rng=rng, reference=reference,
+            rng=rng, reference=reference, stages=stages,
         )  # fmt: skip
         return dataclasses.replace(out, var_uniform=var_u)
     # Every trial's dot products are over one U (a few 1e4 terms): BLAS threads only
     # contend there (measured: twice the CPU time on 2 busy cores), and their split sums
     # make the last digits depend on the thread count. One thread: same numbers anywhere.
     with threadpool_limits(limits=1, user_api="blas"):
+        if stages > 2:
+            return _multi_stage_trials(
+                p, is_failure, K=K, known=known, share=share, stages=stages, prior=prior,
+                anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
+            )  # fmt: skip
         run = _staged_trials if reference else _staged_trials_fast
         return run(
             p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
@@ -532,6 +545,96 @@ def _staged_trials(
     return st.result(
         out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()),
         out["in_hand"], out["unbiased"],
+    )  # fmt: skip
+
+
+def _multi_stage_trials(
+    p: ArrayLike,
+    is_failure: ArrayLike,
+    *,
+    K: float,
+    known: ArrayLike | None,
+    share: float | None,
+    stages: int,
+    prior: tuple[float, float] | None,
+    anchor_sd: float | None,
+    confidence: float,
+    n_trials: int,
+    rng: np.random.Generator,
+) -> StagedTrials:
+    """``_staged_trials``' loop over ``stages`` stages: stage 1 spends ``share`` K, each later
+    stage an equal part of the rest (as ``estimate --plan --stages`` shares it), planned
+    over what the stages before it left, from the evidence of all of them. Two stages give
+    ``_staged_trials``' numbers from the same draws (tests/core/test_design.py).
+
+    var: sum_s w_s^2 E[V_s], V_s stage s's exact variance given the stages before it
+    (each stage's total is unbiased given them, so the stages' errors are uncorrelated),
+    the mean over the trials standing for E beyond stage 1."""
+    from bams_cli import defaults
+    from bams_cli.core import design as dz
+    from bams_cli.core.estimate import estimate_from_sample
+
+    share = defaults.STAGE1_SHARE if share is None else share
+    prior = defaults.RISK_MIX_PRIOR if prior is None else prior
+    st = _stage1(p, is_failure, K, known, share, prior)
+    N, n1, known_f, K = st.N, st.n1, st.known_f, st.K
+    shares = [share, *([(1.0 - share) / (stages - 1)] * (stages - 1))]
+    weights = dz.stage_weights(shares, K, n1)
+    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "in_hand", "unbiased")}
+    V = np.zeros((n_trials, stages))
+    names: list[str] = []
+    for t in range(n_trials):
+        # Stage 1 is the same in every trial (its design from the prior alone).
+        ps, fs, us, norms, pi, wm = st.p1, st.f1, st.u1, st.norms1, st.pi1, st.wm1
+        found, evidence, ests = known_f, [], []
+        post = None
+        for s in range(stages):
+            K_s = min(shares[s] * K, float(ps.size))
+            if s > 0:
+                post = dz.risk_posterior(evidence, prior=prior, anchor_sd=anchor_sd)
+                c = dz.choose_design(ps, K=K_s, posterior=post)
+                pi = c.pi
+                wm = dz.unseen_failure_weight(post.allowance_risk(ps), pi)
+            take = np.flatnonzero(rng.random(ps.size) < pi)
+            ests.append(
+                estimate_from_sample(
+                    pi[take],
+                    fs[take],
+                    design="poisson",
+                    n_pool=N,
+                    n_unknown=ps.size,
+                    budget=K_s,
+                    known_failures=found,
+                    confidence=confidence,
+                    w_model=wm,
+                )  # fmt: skip
+            )
+            pf = pi[fs]
+            V[t, s] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+            if s == stages - 1:
+                out["in_hand"][t] = found + float(pf.sum())
+                names.append(c.name if s > 0 else st.name1)
+                break
+            evidence.append(dz.StageEvidence(us[take], fs[take], norms, p_mean=float(ps.mean())))
+            found += int(fs[take].sum())
+            rest = np.ones(ps.size, bool)
+            rest[take] = False
+            ps, fs = ps[rest], fs[rest]
+            us = dz.relative_risk(ps)
+            norms = dz.risk_norms(us)
+        comb = dz.combine_stages(ests, weights, n_pool=N)
+        out["p_hat"][t], out["lo"][t], out["hi"][t] = comb.p_hat[0], comb.ci_low[0], comb.ci_high[0]
+        assert comb.p_hat_unbiased is not None
+        out["unbiased"][t] = comb.p_hat_unbiased[0]
+        out["lam"][t] = post.lam_mean if post is not None else float("nan")
+    w = np.asarray(weights, dtype=np.float64)
+    var = float((w**2 * V.mean(axis=0)).sum()) / N**2
+    var_u = int(st.f1.sum()) * (n1 - K) / K / N**2 if K > 0 else math.inf
+    recall = out["in_hand"] / st.n_fail if st.n_fail > 0 else np.full(n_trials, np.nan)
+    return StagedTrials(
+        p_hat=out["p_hat"], ci_low=out["lo"], ci_high=out["hi"], lam=out["lam"],
+        stage2_design=names, recall=recall, var=var, var_uniform=var_u,
+        stage1_design=st.name1, rate=st.rate, p_hat_unbiased=out["unbiased"],
     )  # fmt: skip
 
 

@@ -308,10 +308,12 @@ def test_a_weighted_sum_below_the_failures_found_is_raised_to_them():
     assert raised > 0 and capped > 0  # the random stages reach both cases
 
 
+@pytest.mark.parametrize("stages", [2, 3])
 @pytest.mark.parametrize("model", ["calibrated", "useless"])
-def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
-    # Repeated draws of the whole two-stage design from a known truth: the mean of p_hat is
-    # the rate within 3 SE, and its spread matches the design's stated variance.
+def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model, stages):
+    # Repeated draws of the whole staged design from a known truth: the mean of p_hat is
+    # the rate within 3 SE, and its spread matches the design's stated variance (for three
+    # stages sum_s w_s^2 E[V_s], which holds only if the stages' errors are uncorrelated).
     rng = np.random.default_rng(9)
     N = 1000
     p = rng.beta(0.3, 8, N)
@@ -320,7 +322,7 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
         p = rng.permutation(p)
     # 2,000 draws: a useless model puts failures at small pi, whose weights make p_hat's
     # spread heavy-tailed, and 400 draws put the mean 3.2 SE off once (20,000: 1.1 SE).
-    res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=2000, rng=rng)
+    res = staged_trials(p, fail, K=4.0 * fail.sum(), n_trials=2000, rng=rng, stages=stages)
     se = res.p_hat_unbiased.std(ddof=1) / np.sqrt(res.p_hat_unbiased.size)
     assert abs(res.p_hat_unbiased.mean() - res.rate) < 3 * se
     assert res.p_hat_unbiased.var(ddof=1) == pytest.approx(res.var, rel=0.15)
@@ -329,6 +331,26 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model):
     # the same 3 SE of the rate (it is raised only in the rare draws below the count).
     assert np.all(res.p_hat >= res.p_hat_unbiased)
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
+
+
+def test_the_many_stage_loop_at_two_stages_is_the_two_stage_reference():
+    # _multi_stage_trials at stages=2 draws what _staged_trials draws, to the bit: its
+    # loop over the stages plans, draws and combines them the same way.
+    from bams_cli.core.evaluate import _multi_stage_trials, _staged_trials
+
+    rng = np.random.default_rng(4)
+    p = rng.beta(0.3, 20, 2500)
+    fail = rng.random(p.size) < np.clip(1.5 * p, 0, 1)
+    known = rng.random(p.size) < 0.01
+    kw = {"K": 120.0, "known": known, "share": 0.5, "prior": None, "anchor_sd": 0.5,
+          "confidence": 0.9, "n_trials": 40}  # fmt: skip
+    a = _staged_trials(p, fail, rng=np.random.default_rng(7), **kw)
+    b = _multi_stage_trials(p, fail, stages=2, rng=np.random.default_rng(7), **kw)
+    for name in ("p_hat", "ci_low", "ci_high", "recall", "p_hat_unbiased", "lam"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert a.var == pytest.approx(b.var, rel=1e-12) and a.stage2_design == b.stage2_design
+    with pytest.raises(ValueError, match="two stages or more"):
+        staged_trials(p, fail, K=120.0, n_trials=1, rng=rng, stages=1)
 
 
 def test_the_staged_design_near_a_census_is_as_precise_as_one_uniform_sample():
