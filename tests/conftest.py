@@ -27,6 +27,15 @@ from bams_cli.state.io import transaction
 STAGED_PLAN = ("--plan", "--screen", "off")
 
 
+def default_shares() -> list[float]:
+    """Each stage's share of K in a default staged estimate: stage 1's, then the rest in
+    equal parts (``estimate --plan --stages``)."""
+    from bams_cli import defaults
+
+    n, first = defaults.STAGES, defaults.STAGE1_SHARE
+    return [first, *[(1.0 - first) / (n - 1)] * (n - 1)]
+
+
 @pytest.fixture
 def runner() -> CliRunner:
     return CliRunner()

@@ -20,7 +20,7 @@ from bams_cli.core import design as dz
 from bams_cli.core import estimate as core_estimate
 from bams_cli.state.io import read_metadata_json, stamp
 from bams_cli.state.schemas import SEGMENT_ID as SID
-from tests.conftest import STAGED_PLAN, fitted_toy_study, invoke, ok, write_toy
+from tests.conftest import STAGED_PLAN, default_shares, fitted_toy_study, invoke, ok, write_toy
 
 
 @pytest.mark.parametrize(
@@ -173,8 +173,9 @@ def test_a_default_k_near_a_census_is_said_and_a_given_k_is_not(tmp_path):
     shown = ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--new-series", "--allow-pending",
                "--samples", "150").stdout  # fmt: skip
     (line,) = [x for x in shown.splitlines() if x.lstrip().startswith("stage weights")]
-    w = dz.stage_weights([0.5, 0.5], 150, n_unknown)
-    assert f"{w[0]:.3g} / {w[1]:.3g} in the combined estimate" in line
+    n, s1 = defaults.STAGES, defaults.STAGE1_SHARE
+    w = dz.stage_weights([s1, *[(1 - s1) / (n - 1)] * (n - 1)], 150, n_unknown)
+    assert " / ".join(f"{x:.3g}" for x in w) + " in the combined estimate" in line
 
 
 def test_k_that_takes_every_unknown_segment_is_one_stage_a_census(fitted_ws, tmp_path):
@@ -285,14 +286,16 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     s1 = strict_json(
         ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--json").stdout
     )
-    assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, 2, 1, 80)
+    n_stages = defaults.STAGES
+    assert (s1["stage"], s1["stages"], s1["series"], s1["series_K"]) == (1, n_stages, 1, 80)
     assert s1["samples_K"] == pytest.approx(80 * defaults.STAGE1_SHARE)
     # The estimate's weights are set apart from the budget's shares: 80 of the 375 unknown
-    # segments puts a little more weight on stage 2, which samples from fewer.
-    shares = [defaults.STAGE1_SHARE, 1 - defaults.STAGE1_SHARE]
-    assert s1["stage_shares"] == shares
+    # segments puts a little more weight on the later stages, which sample from fewer.
+    shares = default_shares()
+    assert s1["stage_shares"] == pytest.approx(shares, rel=1e-12)
     assert s1["stage_weights"] == pytest.approx(dz.stage_weights(shares, 80, 375), rel=1e-12)
-    assert s1["stage_weights"][0] < 0.49 and sum(s1["stage_weights"]) == pytest.approx(1)
+    assert s1["stage_weights"][0] < shares[0] - 0.01
+    assert sum(s1["stage_weights"]) == pytest.approx(1)
     assert s1["model_check"]["sampled"] == 0  # the prior alone: nothing checked yet
     assert s1["predicted_vs_uniform"]["uniform"] == 1.0
     assert s1["predicted_vs_uniform"][s1["weighting"]] == min(s1["predicted_vs_uniform"].values())
@@ -302,7 +305,8 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     _simulate_and_ingest(runner, ws, truth, 1, tmp_path)
     # ... stage 1 alone is an estimate already, and says that a stage remains ...
     part = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
-    assert part["staging"]["stages_done"] == 1 and "1 more stage" in part["staging"]["note"]
+    assert part["staging"]["stages_done"] == 1
+    assert f"{n_stages - 1} more stage" in part["staging"]["note"]
     # ... and stage 2 needs the model refitted on stage 1's results; status says so.
     nxt = strict_json(ok(runner, "status", "-w", ws, "--json").stdout)["next"]
     assert nxt["step"] == "fit" and "before stage 2" in nxt["text"]
@@ -318,21 +322,33 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
         ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--samples", "80", "--json").stdout
     )
     assert (s2["stage"], s2["series"], s2["stage_weights"]) == (2, 1, s1["stage_weights"])
-    assert s2["samples_K"] == pytest.approx(80 * (1 - defaults.STAGE1_SHARE))
+    assert s2["samples_K"] == pytest.approx(80 * shares[1])
     assert s2["model_check"]["plans"] == [1] and s2["model_check"]["sampled"] == s1["to_simulate"]
     # Stage 2 never re-draws what stage 1 simulated: those are known now.
     assert not set(_plan_ids(ws, 1)) & set(_plan_ids(ws, 2))
     _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
+    # The later stages, each from the model refitted on every stage before it.
+    for k in range(3, n_stages + 1):
+        ok(runner, "fit", "-w", ws, "--restarts", "1")
+        sk = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
+        assert (sk["stage"], sk["stage_weights"]) == (k, s1["stage_weights"])
+        assert sk["samples_K"] == pytest.approx(80 * shares[k - 1])
+        assert sk["model_check"]["plans"] == list(range(1, k))
+        assert not set(_plan_ids(ws, k)) & {i for j in range(1, k) for i in _plan_ids(ws, j)}
+        _simulate_and_ingest(runner, ws, truth, k, tmp_path)
     out = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)
-    assert out["design"] == "staged" and out["staging"]["plans"] == [1, 2]
+    assert out["design"] == "staged" and out["staging"]["plans"] == list(range(1, n_stages + 1))
     assert out["staging"]["note"] is None
     # The combined estimate is the weighted sum of the stages' own (computed one by one).
-    w1, w2 = out["staging"]["weights"]
-    one = pipeline.plan_estimate(pipeline.Workspace(ws), 1, np.array([0.05, 0.56]), 0.9)
-    two = pipeline.plan_estimate(pipeline.Workspace(ws), 2, np.array([0.05, 0.56]), 0.9)
+    w = out["staging"]["weights"]
+    each = [
+        pipeline.plan_estimate(pipeline.Workspace(ws), k, np.array([0.05, 0.56]), 0.9)
+        for k in range(1, n_stages + 1)
+    ]
+    one = each[0]
     n_pool = pq.read_metadata(Path(ws) / "segments.parquet").num_rows
     for g, e in enumerate(out["estimates"]):
-        wsum = w1 * one.p_hat_unbiased[g] + w2 * two.p_hat_unbiased[g]
+        wsum = sum(wk * ek.p_hat_unbiased[g] for wk, ek in zip(w, each, strict=True))
         assert e["p_hat_unbiased"] == pytest.approx(wsum, rel=1e-12)
         # ... raised to the failures found when it falls below them (core.design).
         assert e["p_hat"] == pytest.approx(max(wsum, e["distinct_failures_found"] / n_pool))
@@ -340,7 +356,7 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
         # Failures are counted once: known from outside the samples (here: before stage 1),
         # then sampled by either stage (stage 2's known stratum holds stage 1's).
         assert e["failures_known"] == one.n_known_failures[g]
-        assert e["failures_sampled"] == one.n_failures_sampled[g] + two.n_failures_sampled[g]
+        assert e["failures_sampled"] == sum(ek.n_failures_sampled[g] for ek in each)
         assert e["failures_known"] + e["failures_sampled"] == e["distinct_failures_found"]
     assert one.n_failures_sampled.max() > 0  # else the double count could not show
     # A weighted sum below the failures found (as if stage 1 had drawn few of those stage 2
@@ -370,14 +386,18 @@ def test_a_staged_estimate_walks_plan_simulate_ingest_fit_plan_and_combines(
     high = estimate_with_sum(2.0)
     capped = [n for n in high["notes"] if "not seen to pass" in n]
     assert len(capped) == len(raised) and "the rate is at most that" in capped[0]
-    # The third plan starts a new estimate: the series is complete.
+    # The next plan starts a new estimate: the series is complete.
     ok(runner, "fit", "-w", ws, "--restarts", "1")
-    s3 = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
-    assert (s3["stage"], s3["series"]) == (1, 3)
-    assert s3["model_check"]["plans"] == [1, 2]
+    nxt = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
+    after = n_stages + 1
+    assert (nxt["stage"], nxt["series"]) == (1, after)
+    assert nxt["model_check"]["plans"] == list(range(1, after))
     # ... and says so: the report's headline will move to it.
     assert not any("new estimate" in n for n in s1["notes"] + s2["notes"])
-    assert s3["notes"][0].startswith("plan 3 starts a new estimate; the earlier one (plans 1, 2)")
+    earlier = ", ".join(str(k) for k in range(1, after))
+    assert nxt["notes"][0].startswith(
+        f"plan {after} starts a new estimate; the earlier one (plans {earlier})"
+    )
 
 
 def test_failures_a_discovery_batch_finds_between_stages_are_counted_once(fitted_ws, tmp_path):
@@ -732,7 +752,7 @@ def test_open_leads_are_sampled_with_certainty_out_of_k_and_left_out_of_the_evid
     assert s1["samples_K"] == pytest.approx(n_l + share * (K - n_l))
     n_unknown = 400 - len(level0)
     assert s1["stage_weights"] == pytest.approx(
-        dz.stage_weights([share, 1 - share], K - n_l, n_unknown - n_l), rel=1e-12
+        dz.stage_weights(default_shares(), K - n_l, n_unknown - n_l), rel=1e-12
     )
     plan = pl.read_parquet(ws / "estimates" / "plan-0001.parquet")
     sampled = plan.filter(pl.col("stratum") == "sampled")
@@ -756,7 +776,7 @@ def test_open_leads_are_sampled_with_certainty_out_of_k_and_left_out_of_the_evid
     ok(runner, "fit", "-w", ws, "--restarts", "1")
     s2 = strict_json(ok(runner, "estimate", "-w", ws, *STAGED_PLAN, "--json").stdout)
     assert (s2["stage"], s2["series_leads"], s2["leads_certain"]) == (2, n_l, 0)
-    assert s2["samples_K"] == pytest.approx((1 - share) * (K - n_l))
+    assert s2["samples_K"] == pytest.approx(default_shares()[1] * (K - n_l))
     assert s2["model_check"]["sampled"] == sampled.height - n_l
     _simulate_and_ingest(runner, ws, truth, 2, tmp_path)
     est = strict_json(ok(runner, "estimate", "-w", ws, "--json").stdout)["estimates"][0]

@@ -20,7 +20,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from bams_cli import schemas_json
+from bams_cli import defaults, schemas_json
 from bams_cli.state.io import read_metadata_json
 from bams_cli.state.lock import LOCK_FILE
 from bams_cli.state.workspace import Workspace
@@ -60,6 +60,10 @@ def _loop_args(ws: Path, truth: Path, screen: str | None = "off") -> list[str]:
             *(() if screen is None else ("--screen", screen))]  # fmt: skip
 
 
+#: The last plan of a default staged estimate: one per stage.
+LAST = defaults.STAGES
+
+
 def _final(ws: Path) -> dict:
     """What a study's outcome is made of (not when it was written)."""
     w = Workspace(ws)
@@ -68,8 +72,10 @@ def _final(ws: Path) -> dict:
         for n in w.batch_numbers()
     ]
     obs = w.read_observations(active_only=False).select("segment_id", "fidelity", "value")
-    plan = pl.concat([pl.read_parquet(ws / "estimates" / f"plan-{k:04d}.parquet") for k in (1, 2)])
-    est = json.loads((ws / "estimates" / "estimate-0002.json").read_text())
+    plan = pl.concat(
+        [pl.read_parquet(ws / "estimates" / f"plan-{k:04d}.parquet") for k in range(1, LAST + 1)]
+    )
+    est = json.loads((ws / "estimates" / f"estimate-{LAST:04d}.json").read_text())
     model = json.loads(w.model_path.read_text())
     return {
         "batches": batches,
@@ -101,11 +107,12 @@ def test_loop_runs_the_study_to_an_estimate(data):
         ("ingest-results", "batch 1"),
         ("fit", None),
     ]
-    # The estimate's two stages, a refit between them, then the combined estimate.
-    i1, i2 = steps.index(("estimate --plan", "plan 1")), steps.index(("estimate --plan", "plan 2"))
-    assert ("fit", None) in steps[i1:i2] and ("estimate", "plan 2") in steps[i2:]
+    # The estimate's stages, a refit between each two, then the combined estimate.
+    at = [steps.index(("estimate --plan", f"plan {k}")) for k in range(1, LAST + 1)]
+    assert all(("fit", None) in steps[a:b] for a, b in zip(at, at[1:], strict=False))
+    assert ("estimate", f"plan {LAST}") in steps[at[-1] :]
     assert steps[-1] == ("fit", None)  # the model includes the plan's results
-    assert out["batches"] == 3 and out["plans"] == 2 and out["estimate_file"]
+    assert out["batches"] == 3 and out["plans"] == LAST and out["estimate_file"]
     # The output of a loop that did the work validates against its schema, every field a
     # step carried included (the schema test's own study runs a loop with nothing to do).
     assert errors(out, schemas_json.schema("loop")) == []
@@ -239,22 +246,22 @@ def test_loop_refuses_a_screen_it_cannot_draw_before_any_batch(data, tmp_path):
 
 
 def test_a_loop_that_ends_with_the_estimate_prints_it(data, tmp_path):
-    # A loop whose last step was `estimate` ended on "estimate  .../estimate-0002.json":
+    # A loop whose last step was `estimate` ended on "estimate  .../estimate-000N.json":
     # the rate itself took a `report` or `status`.
     tmp, _, truth, ws, out = data
     copy = tmp_path / "ws"
     shutil.copytree(ws, copy)
-    (copy / "estimates" / "estimate-0002.json").unlink()  # a loop stopped before its estimate
+    (copy / "estimates" / f"estimate-{LAST:04d}.json").unlink()  # stopped before its estimate
     args = [*_loop_args(copy, truth)]
     done = subprocess.run(args, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
-    assert done.stderr.splitlines() == ["loop [3/4]: plan 2: estimate"]  # its one step
-    lines = _headline(copy, 2)
+    assert done.stderr.splitlines() == [f"loop [3/4]: plan {LAST}: estimate"]  # its one step
+    lines = _headline(copy, LAST)
     assert len(lines) == 1 and lines[0] in done.stdout.splitlines()
     # --json: the same headline, as `status --json` gives it (latest_estimate)
-    assert out["estimate"]["plan"] == 2 and out["estimate"]["file"] == out["estimate_file"]
+    assert out["estimate"]["plan"] == LAST and out["estimate"]["file"] == out["estimate_file"]
     got = out["estimate"]["estimates"][0]
-    doc = json.loads((ws / "estimates" / "estimate-0002.json").read_text())["estimates"][0]
+    doc = json.loads((ws / "estimates" / f"estimate-{LAST:04d}.json").read_text())["estimates"][0]
     assert {k: got[k] for k in ("gamma", "p_hat", "ci_low", "ci_high", "confidence")} == {
         k: doc[k] for k in ("gamma", "p_hat", "ci_low", "ci_high", "confidence")
     }
@@ -306,7 +313,7 @@ def test_a_three_level_study_runs_to_an_estimate(data, tmp_path, screen):
         assert weighting == "screen"
         assert (w.read_batch(4)["fidelity"] == 1).all()
     else:
-        assert weighting != "screen" and out["plans"] == 2
+        assert weighting != "screen" and out["plans"] == LAST
     for cmd in (["status", "-w", ws, "--json"], ["report", "-w", ws, "--json"]):
         r = subprocess.run([*BAMS, *map(str, cmd)], capture_output=True, text=True)
         assert r.returncode == 0, r.stderr

@@ -126,7 +126,9 @@ def study(tmp_path_factory) -> Study:
     s.simulate_and_ingest(ws / "batches" / "batch-0003.parquet")
     s.run("fit", "-w", ws, "--restarts", "2")
     s.report("cheap-only bams batch fitted")
-    s.run("estimate", "-w", ws, *STAGED_PLAN, "--samples", "40")
+    # Two stages, to keep the walk short: the default three are walked by
+    # tests/test_estimate.py and, through `loop`, by tests/test_loop_driver.py.
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--stages", "2", "--samples", "40")
     s.report("plan 1 pending")
     s.simulate_and_ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.report("plan 1 in, not computed")

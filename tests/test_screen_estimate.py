@@ -568,7 +568,11 @@ def test_an_estimate_keeps_the_prior_of_its_first_step_whatever_the_refit_says(
     ws2, truth = _copy(fitted, tmp_path / "staged")
     monkeypatch.setattr(screening, "cheap_level_discrepancy", lambda model: 0.8)
     one = _plain_plan(runner, ws2, K)
-    assert (one["stage"], one["stages"], one["model_check"]["prior"]) == (1, 2, list(weak))
+    assert (one["stage"], one["stages"], one["model_check"]["prior"]) == (
+        1,
+        defaults.STAGES,
+        list(weak),
+    )
     ok(runner, "ingest-results", "-w", ws2,
        _sim(runner, one["handoff"], truth, tmp_path / "r1.parquet"))  # fmt: skip
     ok(runner, "fit", "-w", ws2, "--restarts", "1")
@@ -639,7 +643,7 @@ def test_screen_auto_does_not_screen_more_than_a_refit_conditions_on(fitted, tmp
     out = strict_json(
         ok(CliRunner(), "estimate", "-w", ws, "--plan", "--samples", K, "--json").stdout
     )
-    assert "screen_file" not in out and out["stage"] == 1 and out["stages"] == 2
+    assert "screen_file" not in out and out["stage"] == 1 and out["stages"] == defaults.STAGES
     assert any("exceed the" in n and "a refit conditions on exactly" in n for n in out["notes"])
 
 

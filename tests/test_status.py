@@ -70,7 +70,9 @@ def study(tmp_path_factory) -> Study:
     s.status("batch 2 in")
     s.run("fit", "-w", ws, "--restarts", "1")
     s.status("refitted")
-    s.run("estimate", "-w", ws, *STAGED_PLAN, "--samples", "20")
+    # Two stages, to keep the walk short: the default three are walked by
+    # tests/test_estimate.py and, through `loop`, by tests/test_loop_driver.py.
+    s.run("estimate", "-w", ws, *STAGED_PLAN, "--stages", "2", "--samples", "20")
     s.status("plan pending", keep=True)
     s.ingest(ws / "estimates" / "plan-0001-handoff.csv")
     s.status("plan in")
