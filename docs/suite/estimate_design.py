@@ -5,19 +5,19 @@
     .venv/bin/python docs/suite/estimate_design.py /tmp/suite-arrays [--trials 100]
 
 For every run the benchmark saved (``runs.npz``: p_n after discovery, the known stratum,
-the truth), ``core.evaluate.staged_trials`` draws the default two-stage design ``--trials``
-times from the truth, as ``estimate --plan`` builds it (stage 2 keeps stage 1's p_n instead
-of a refit), and records:
+the truth), ``core.evaluate.staged_trials`` draws the default staged design
+(``defaults.STAGES`` stages) ``--trials`` times from the truth, as ``estimate --plan``
+builds it (the later stages keep stage 1's p_n instead of a refit), and records:
 
 * its variance against a uniform Poisson design of the same expected size K over U
-  (stage 1 exact, stage 2 averaged over the trials' stage-1 draws);
+  (stage 1 exact, the later stages averaged over the trials' earlier draws);
 * the default 90% interval's coverage of the true rate, the share of intervals wholly
   below and wholly above it, and the mean interval width over the rate.
 
 Beside them: the single-stage p^alpha design that ``estimate --plan`` used before
 (alpha ``defaults.ALPHA``, defensive share ``defaults.DEFENSIVE``), exact; and, as the
 "uniform" row, the staged design with a model that says nothing (p_n constant), i.e.
-uniform sampling in two stages, on the BAMS runs' known strata.
+uniform sampling in stages, on the BAMS runs' known strata.
 
 Writes docs/suite/estimate_design.md and estimate_design.json.
 """
@@ -136,12 +136,12 @@ def main(argv: list[str]) -> None:
         "# The default estimate design on the suite",
         "",
         f"`docs/suite/estimate_design.py {folder} --trials {trials}`: {trials} draws of the "
-        "default two-stage design per run (10 seeds per problem and strategy), from the truth. "
+        "default staged design (three stages of a third of K since 2026-11-29; two halves before) per run (10 seeds per problem and strategy), from the truth. "
         "var / uniform: the design's variance over a uniform Poisson design's of the same "
         "expected size, mean [max] over seeds; p^alpha / uniform: the same for the "
         "single-stage p^alpha design used before. Coverage of the default 90% interval over "
         "all draws, the shares of intervals wholly below and wholly above the true rate, "
-        "and the mean width over the rate. lam: the mean share of failure mass stage 2 "
+        "and the mean width over the rate. lam: the mean share of failure mass the last stage "
         "leaves to uniform risk. DR / HT: the exact variance of the difference (doubly "
         "robust) form, sum_U p_n + sum_s (y - p_n)/pi, over Horvitz-Thompson's on stage 1's "
         "design, mean [max] over seeds. recall: the share of the true failures in hand after "
