@@ -586,13 +586,14 @@ def _multi_stage_trials(
     for t in range(n_trials):
         # Stage 1 is the same in every trial (its design from the prior alone).
         ps, fs, us, norms, pi, wm = st.p1, st.f1, st.u1, st.norms1, st.pi1, st.wm1
+        order = st.order1
         found, evidence, ests = known_f, [], []
         post = None
         for s in range(stages):
             K_s = min(shares[s] * K, float(ps.size))
             if s > 0:
                 post = dz.risk_posterior(evidence, prior=prior, anchor_sd=anchor_sd)
-                c = dz.choose_design(ps, K=K_s, posterior=post)
+                c = dz.choose_design(ps, K=K_s, posterior=post, order=order)
                 pi = c.pi
                 wm = dz.unseen_failure_weight(post.allowance_risk(ps), pi)
             take = np.flatnonzero(rng.random(ps.size) < pi)
@@ -619,6 +620,8 @@ def _multi_stage_trials(
             found += int(fs[take].sum())
             rest = np.ones(ps.size, bool)
             rest[take] = False
+            # One sort of U serves every stage: dropping segments keeps it sorted.
+            order = (np.cumsum(rest) - 1)[order[rest[order]]]
             ps, fs = ps[rest], fs[rest]
             us = dz.relative_risk(ps)
             norms = dz.risk_norms(us)
