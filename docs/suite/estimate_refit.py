@@ -106,6 +106,30 @@ def workspaces_before_estimate(
         yield seed, kept["ws"]
 
 
+def level0(ws, ids: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """Which of ``ids`` have a level-0 result in the workspace's log."""
+    obs = ws.read_observations()
+    return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
+
+
+def _start(problem: str, what: str) -> tuple[Path, SuiteProblem]:
+    """A scratch folder and the problem's data generated in it, warnings off."""
+    warnings.simplefilter("ignore")
+    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-{what}-{problem}-"))
+    return scratch, suite_problem(problem, scratch)
+
+
+def _seed_state(base: Path, prob: SuiteProblem) -> tuple[np.ndarray, ...]:
+    """A kept workspace's segment ids, p_n, true failures and level-0 knowns, in its order."""
+    from bams_cli import benchmark as bm
+    from bams_cli.state.workspace import Workspace
+
+    ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
+    p = bm._column(base / "scores.parquet", "p_0").astype(float)
+    fail = prob.truth[[prob.pos[s] for s in ids]] <= prob.gamma
+    return ids, p, fail, level0(Workspace(base), ids)
+
+
 def run(problem: str, seeds: list[int], trials: int) -> None:
     from bams_cli import benchmark as bm
     from bams_cli import defaults, pipeline
@@ -114,22 +138,13 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
     from bams_cli.core.evaluate import staged_trials
     from bams_cli.state.workspace import Workspace
 
-    warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-refit-{problem}-"))
-    prob = suite_problem(problem, scratch)
-    data, truth, pos, gamma, K = prob.data, prob.truth, prob.pos, prob.gamma, prob.K
+    scratch, prob = _start(problem, "refit")
+    data, gamma, K = prob.data, prob.gamma, prob.K
     real_plan = pipeline.estimate_plan
-
-    def level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
-        obs = ws.read_observations()
-        return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
 
     OUT.mkdir(exist_ok=True)
     for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
-        ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
-        p = bm._column(base / "scores.parquet", "p_0").astype(float)
-        fail = truth[[pos[s] for s in ids]] <= gamma
-        known = level0(Workspace(base), ids)
+        ids, p, fail, known = _seed_state(base, prob)
         U1 = np.flatnonzero(~known)
         K1 = defaults.STAGE1_SHARE * K
         pi1 = dz.choose_design(p[U1], K=K1, posterior=dz.risk_posterior([])).pi
@@ -188,23 +203,14 @@ def recall(problem: str, seeds: list[int], trials: int, optimise: bool) -> None:
     from bams_cli.pipeline.estimation import open_leads
     from bams_cli.state.workspace import Workspace
 
-    warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-recall-{problem}-"))
-    prob = suite_problem(problem, scratch)
-    data, truth, pos, gamma, K = prob.data, prob.truth, prob.pos, prob.gamma, prob.K
+    scratch, prob = _start(problem, "recall")
+    data, truth, gamma, K = prob.data, prob.truth, prob.gamma, prob.K
     real_plan = pipeline.estimate_plan
-
-    def level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
-        obs = ws.read_observations()
-        return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
 
     OUT.mkdir(exist_ok=True)
     for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
-        ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
-        p = bm._column(base / "scores.parquet", "p_0").astype(float)
-        fail = truth[[pos[s] for s in ids]] <= gamma
-        F = int(truth.__le__(gamma).sum())
-        known = level0(Workspace(base), ids)
+        ids, p, fail, known = _seed_state(base, prob)
+        F = int((truth <= gamma).sum())
         got = []
         t0 = time.perf_counter()
         for t in range(trials):
@@ -268,10 +274,8 @@ def staged_path(
     from bams_cli.core import estimate as est_mod
     from bams_cli.state.workspace import Workspace
 
-    warnings.simplefilter("ignore")
-    scratch = Path(tempfile.mkdtemp(prefix=f"estimate-stages-{problem}-"))
-    prob = suite_problem(problem, scratch)
-    data, truth, pos, gamma, K = prob.data, prob.truth, prob.pos, prob.gamma, prob.K
+    scratch, prob = _start(problem, "stages")
+    data, truth, gamma, K = prob.data, prob.truth, prob.gamma, prob.K
     real_plan, real_draw = pipeline.estimate_plan, est_mod.draw_poisson
     caught: list[np.ndarray] = []
 
@@ -279,17 +283,11 @@ def staged_path(
         caught.append(np.asarray(pi, dtype=np.float64).copy())
         return real_draw(pi, rng)
 
-    def level0(ws: Workspace, ids: np.ndarray) -> np.ndarray:
-        obs = ws.read_observations()
-        return np.isin(ids, obs.filter(obs["fidelity"] == 0)["segment_id"].to_numpy().astype(str))
-
     OUT.mkdir(exist_ok=True)
     opts = {**bm.PLAN_DEFAULTS, "stages": n_stages, "stage1_share": share1, "screen": "off"}
     for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
-        ids = bm._column(base / "scores.parquet", "segment_id").astype(str)
-        fail = truth[[pos[s] for s in ids]] <= gamma
+        ids, _, fail, known0 = _seed_state(base, prob)
         F = int((truth <= gamma).sum())
-        known0 = level0(Workspace(base), ids)
         U0 = int((~known0).sum())
         var_u = int(fail[~known0].sum()) * (U0 - K) / K
         V = np.zeros((trials, n_stages))
