@@ -892,9 +892,9 @@ def _staged_design(
     leads: np.ndarray | None = None,
     lead_share: float = defaults.LEAD_SHARE,
 ) -> tuple[float, float] | None:
-    """Expected recall of the staged estimate design (``estimate --plan`` twice) and its
-    variance over a uniform Poisson design's of the same size, over ``STAGED_TRIALS``
-    draws from the truth (``staged_trials``).
+    """Expected recall of the staged estimate design (``estimate --plan`` once per stage,
+    ``defaults.STAGES``) and its variance over a uniform Poisson design's of the same size,
+    over ``STAGED_TRIALS`` draws from the truth (``staged_trials``).
 
     GP strategies plan it from their p_n, under the prior on lam ``estimate --plan`` takes
     for their last fit (``core.design.risk_prior``); a strategy without a model (MC) from a

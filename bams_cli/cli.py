@@ -1023,10 +1023,10 @@ def estimate(
     --plan draws a stage's sample and writes its hand-off list; once its results are
     ingested, estimate (no --plan) computes the estimate for every configured gamma.
 
-    Unscreened, K is spent in two stages: after stage 1's results, refit and run --plan
-    again for stage 2, whose design rests on the model as checked against stage 1's
-    outcomes. The stages' weights are fixed at stage 1, so the combined estimate stays
-    unbiased.
+    Unscreened, K is spent in stages (--stages, default 3): after each stage's results,
+    refit and run --plan again for the next, whose design rests on the model as checked
+    against the outcomes so far. The stages' weights are fixed at stage 1, so the combined
+    estimate stays unbiased.
 
     Screened (--screen SHARE, or the default auto where the fitted cheap level tracks
     level 0), the first --plan writes cheap-level runs of a sample as a batch
@@ -1036,7 +1036,8 @@ def estimate(
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
 
     then simulate the hand-off list, ingest the results, `bams-cli fit -w study`,
-    `bams-cli estimate -w study --plan` (stage 2), simulate, ingest, and: bams-cli estimate -w study
+    `bams-cli estimate -w study --plan` (the next stage), and so on until `bams-cli status -w
+    study` names the estimate itself: bams-cli estimate -w study
     """
     if seed is not None and not plan:
         raise OptionValueError(

@@ -387,7 +387,8 @@ def headline(
             rate_text = f"failure rate {_sig(rate)} per segment{one_in}; {interval}"
         done, planned = int(e.get("stages_done") or 1), int(e.get("stages") or 1)
         stage_text = (
-            f"; stage {done} of {planned} only: the next `estimate --plan` draws the rest"
+            f"; stage {done} of {planned} only: the next `estimate --plan` draws "
+            + ("the rest" if done + 1 == planned else f"stage {done + 1}")
             if done < planned
             else ""
         )

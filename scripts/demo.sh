@@ -31,7 +31,7 @@ done
 # (--screen auto) a study whose fitted cheap level tracks level 0, as toy2d's does, screens
 # first: 0.3 of K buys cheap runs of a sample, a batch of the log; their results and a
 # refit let the next --plan confirm within the screen at level 0. Elsewhere the same
-# commands plan two level-0 stages, stage 1's results checking the model before stage 2.
+# commands plan three level-0 stages, each stage's results checking the model before the next.
 # Either way: plan, simulate, ingest, refit, until status names `estimate` itself.
 step bams-cli estimate -w "$WS" --plan --samples 200
 if [ -e "$WS/estimates/screen-0001.parquet" ]; then

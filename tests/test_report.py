@@ -994,6 +994,9 @@ def test_a_headline_over_abandoned_segments_is_a_range_and_says_a_stage_remains(
         "next `estimate --plan` draws the rest; "
     )
     assert "among 3 segments sampled by plan 1 (1 of them abandoned)" in h["width"]
+    # Stage 1 of three: the next plan draws stage 2, not the rest.
+    h3 = rep.headline([{**e, "stages": 3}], [], [], SPENT, 0.0)
+    assert "stage 1 of 3 only: the next `estimate --plan` draws stage 2; " in h3["text"]
     assert "narrow it. 1 planned" in h["width"]  # a sentence of its own, capitalised
     # One stage of one: nothing remains, and a sampled failure gives a rate.
     h = rep.headline([_estimate_row(p_hat=0.002, failures_sampled=2)], [], [], SPENT, 0.0)

@@ -31,7 +31,8 @@ failures where u is large towards 0.
 
 The estimate is staged (``estimate --plan``, DESIGN.md): stage 1 spends a share of K with the
 design at the current posterior mean of lam; once its results are in, the posterior is
-updated and stage 2 spends the rest. Each stage's HT estimate T_s counts what is known at
+updated and the next stage spends its share, and so on (``defaults.STAGES``). Each stage's
+HT estimate T_s counts what is known at
 its planning exactly and is unbiased given the past, so T = sum_s w_s T_s with weights fixed
 when stage 1 is planned is unbiased, and its stages are uncorrelated
 (E[(T_1 - T)(T_2 - T)] = E[(T_1 - T) E[T_2 - T | stage 1]] = 0):

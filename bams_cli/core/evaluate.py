@@ -260,16 +260,17 @@ class StagedTrials:
         The stages' weighted sum, p_hat before it is held between the failures found and
         the cap (``core.design.combine_stages``): exactly unbiased.
     lam : ndarray of shape (n_trials,)
-        The uniform share stage 2 used (posterior mean after stage 1).
+        The uniform share the last stage used (posterior mean after the stages before).
     stage2_design : list of str
-        The design stage 2 chose in each trial.
+        The design the last stage chose in each trial (stage 2 of two).
     recall : ndarray of shape (n_trials,)
         The share of the pool's true failures in hand after the estimate: those known
-        before it, stage 1's sampled ones, and the expected number stage 2 samples given
-        stage 1 (its design's pi summed over the failures left), over all failures.
+        before it, the earlier stages' sampled ones, and the expected number the last
+        stage samples given them (its design's pi summed over the failures left), over all
+        failures.
     var : float
-        The design's variance of p_hat: sum_s w_s^2 Var(T_s) / N^2, exact for stage 1 and
-        averaged over the trials' stage-1 draws for stage 2.
+        The design's variance of p_hat: sum_s w_s^2 E[Var(T_s | the stages before)] / N^2,
+        exact for stage 1 and averaged over the trials' earlier draws for the later ones.
     var_uniform : float
         Variance of the uniform Poisson design of the same expected size K over U.
     stage1_design : str

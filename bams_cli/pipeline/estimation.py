@@ -83,7 +83,7 @@ def estimate_plan(
     The estimate runs in ``stages`` stages (``core.design``, ``stages``): the first plan of
     a series fixes the total budget K (``samples``) and the stages' weights, and spends
     ``stage1_share`` of K; each later call, once the previous stage's results are in and
-    the model refitted on them, draws the next stage with the rest. Every stage's design
+    the model refitted on them, draws the next stage with its share. Every stage's design
     comes from the model checked against the level-0 outcomes of every finished plan
     (``weighting="auto"``): the candidate with the smallest predicted variance among
     uniform, the calibrated design and the paper's p^alpha form. ``weighting`` "uniform"
@@ -365,7 +365,7 @@ def estimate_plan(
             raise WorkspaceError(
                 f"--samples: plan {prev.number} is stage {prev.stage} of {prev.stages} of an "
                 f"estimate with K = {prev.series_K:g} fixed at its stage 1; this plan is its "
-                "next stage and spends the rest (drop --samples, or pass the same K); pass "
+                "next stage and spends its share of K (drop --samples, or pass the same K); pass "
                 "--new-series to start a new estimate instead"
             )
         series, stage, n_stages = prev.series, prev.stage + 1, prev.stages
