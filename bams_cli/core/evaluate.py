@@ -19,7 +19,7 @@ from threadpoolctl import threadpool_limits
 
 from bams_cli import defaults
 from bams_cli.core.design import certain_leads
-from bams_cli.core.estimate import DESIGNS, Design, SamplePlan, _as_columns
+from bams_cli.core.estimate import DESIGNS, Design, RateEstimates, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -588,8 +588,10 @@ def _multi_stage_trials(
         # Stage 1 is the same in every trial (its design from the prior alone).
         ps, fs, us, norms, pi, wm = st.p1, st.f1, st.u1, st.norms1, st.pi1, st.wm1
         order = st.order1
-        found, evidence, ests = known_f, [], []
-        post = None
+        found = known_f
+        evidence: list[dz.StageEvidence] = []
+        ests: list[RateEstimates] = []
+        post: dz.RiskPosterior | None = None
         for s in range(stages):
             K_s = min(shares[s] * K, float(ps.size))
             if s > 0:
