@@ -399,8 +399,12 @@ def staged_trials(
                 p, is_failure, K=K, known=known, share=share, stages=stages, prior=prior,
                 anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
             )  # fmt: skip
-        run = _staged_trials if reference else _staged_trials_fast
-        return run(
+        if reference:
+            return _multi_stage_trials(
+                p, is_failure, K=K, known=known, share=share, stages=2, prior=prior,
+                anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
+            )  # fmt: skip
+        return _staged_trials_fast(
             p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
             confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
@@ -483,72 +487,6 @@ def _stage1(
     )  # fmt: skip
 
 
-def _staged_trials(
-    p: ArrayLike,
-    is_failure: ArrayLike,
-    *,
-    K: float,
-    known: ArrayLike | None,
-    share: float | None,
-    prior: tuple[float, float] | None,
-    anchor_sd: float | None,
-    confidence: float,
-    n_trials: int,
-    rng: np.random.Generator,
-) -> StagedTrials:
-    from bams_cli import defaults
-    from bams_cli.core import design as dz
-    from bams_cli.core.estimate import estimate_from_sample
-
-    share = defaults.STAGE1_SHARE if share is None else share
-    prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    st = _stage1(p, is_failure, K, known, share, prior)
-    N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
-    p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
-    out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "V2", "in_hand", "unbiased")}
-    names: list[str] = []
-    for t in range(n_trials):
-        s1 = np.flatnonzero(rng.random(n1) < pi1)
-        fs1 = f1[s1]
-        e1 = estimate_from_sample(
-            pi1[s1], fs1, design="poisson", n_pool=N, n_unknown=n1, budget=K1,
-            known_failures=known_f, confidence=confidence, w_model=wm1,
-        )  # fmt: skip
-        post = dz.risk_posterior(
-            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=float(p1.mean()))],
-            prior=prior,
-            anchor_sd=anchor_sd,
-        )
-        rest = np.ones(n1, bool)
-        rest[s1] = False
-        p2, f2 = p1[rest], f1[rest]
-        # Position in p2 of each kept segment, taken in order1's order.
-        pos2 = np.cumsum(rest) - 1
-        order2 = pos2[order1[rest[order1]]]
-        c2 = dz.choose_design(p2, K=min(K2, float(p2.size)), posterior=post, order=order2)
-        pi2 = c2.pi
-        wm2 = dz.unseen_failure_weight(post.allowance_risk(p2), pi2)
-        s2 = np.flatnonzero(rng.random(p2.size) < pi2)
-        e2 = estimate_from_sample(
-            pi2[s2], f2[s2], design="poisson", n_pool=N, n_unknown=p2.size,
-            budget=min(K2, float(p2.size)), known_failures=known_f + int(fs1.sum()),
-            confidence=confidence, w_model=wm2,
-        )  # fmt: skip
-        comb = dz.combine_stages([e1, e2], weights, n_pool=N)
-        out["p_hat"][t], out["lo"][t], out["hi"][t] = comb.p_hat[0], comb.ci_low[0], comb.ci_high[0]
-        assert comb.p_hat_unbiased is not None
-        out["unbiased"][t] = comb.p_hat_unbiased[0]
-        out["lam"][t] = post.lam_mean
-        pf = pi2[f2]
-        out["V2"][t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
-        out["in_hand"][t] = known_f + int(fs1.sum()) + float(pf.sum())
-        names.append(c2.name)
-    return st.result(
-        out["p_hat"], out["lo"], out["hi"], out["lam"], names, float(out["V2"].mean()),
-        out["in_hand"], out["unbiased"],
-    )  # fmt: skip
-
-
 def _multi_stage_trials(
     p: ArrayLike,
     is_failure: ArrayLike,
@@ -563,10 +501,12 @@ def _multi_stage_trials(
     n_trials: int,
     rng: np.random.Generator,
 ) -> StagedTrials:
-    """``_staged_trials``' loop over ``stages`` stages: stage 1 spends ``share`` K, each later
-    stage an equal part of the rest (as ``estimate --plan --stages`` shares it), planned
-    over what the stages before it left, from the evidence of all of them. Two stages give
-    ``_staged_trials``' numbers from the same draws (tests/core/test_design.py).
+    """The reference: each trial runs the tool's own functions (``choose_design``,
+    ``estimate_from_sample``, ``combine_stages``) over ``stages`` stages. Stage 1 spends
+    ``share`` K, each later stage an equal part of the rest (as ``estimate --plan --stages``
+    shares it), planned over what the stages before it left, from the evidence of all of
+    them. At two stages ``_staged_trials_fast`` gives its numbers to rounding
+    (tests/core/test_design.py).
 
     var: sum_s w_s^2 E[V_s], V_s stage s's exact variance given the stages before it
     (each stage's total is unbiased given them, so the stages' errors are uncorrelated),
@@ -718,7 +658,7 @@ def _staged_trials_fast(
     n_trials: int,
     rng: np.random.Generator,
 ) -> StagedTrials:
-    """``_staged_trials``' numbers from per-run precomputations (``staged_trials``).
+    """Two stages' ``_multi_stage_trials`` numbers from per-run precomputations.
 
     Stage 2's design over U2 = U minus stage 1's sample needs no sort, exp or log per trial:
 
@@ -737,7 +677,7 @@ def _staged_trials_fast(
     The draws are the reference's, from the same stream in the same order. A candidate
     whose g is constant over U2 has the uniform design's pi and predicted variance exactly,
     as in the reference (where a tie goes to uniform): so a p_n constant over U2 gives
-    uniform without a comparison that rounding could tip. Equal to ``_staged_trials`` to
+    uniform without a comparison that rounding could tip. Equal to ``_multi_stage_trials`` to
     rounding (tests/core/test_design.py).
     """
     from bams_cli import defaults
@@ -750,9 +690,9 @@ def _staged_trials_fast(
     st = _stage1(p, is_failure, K, known, share, prior)
     if not (st.K > 0 and 0 < share < 1 and eps > 0):
         # Nothing to sample, or a single stage: the reference handles (or rejects) it.
-        return _staged_trials(
-            p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
-            confidence=confidence, n_trials=n_trials, rng=rng,
+        return _multi_stage_trials(
+            p, is_failure, K=K, known=known, share=share, stages=2, prior=prior,
+            anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
     N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
     p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
