@@ -130,23 +130,44 @@ def _seed_state(base: Path, prob: SuiteProblem) -> tuple[np.ndarray, ...]:
     return ids, p, fail, level0(Workspace(base), ids)
 
 
-def run(problem: str, seeds: list[int], trials: int) -> None:
+#: ``run`` and ``recall`` measure the two stages of half K the tool drew until 2026-11-29
+#: (``stages`` measures any number).
+TWO_STAGES = {"stages": 2, "stage1_share": 0.5}
+
+
+def _stage1_refitted(
+    base: Path, root: Path, prob: SuiteProblem, *, K: float, seed: int, optimise: bool
+) -> tuple:
+    """A copy of ``base`` with stage 1 (of two halves) planned, simulated, ingested and
+    refitted (``optimise``: the MAP search; else at the discovery hyperparameters): its
+    workspace and the refitted p_n."""
     from bams_cli import benchmark as bm
-    from bams_cli import defaults, pipeline
+    from bams_cli import pipeline
+    from bams_cli.state.workspace import Workspace
+
+    shutil.copytree(base, root)
+    plan = pipeline.estimate_plan(root, samples=K, seed=seed, **{**bm.PLAN_DEFAULTS, **TWO_STAGES})
+    res = root / "stage-1-results.parquet"
+    pipeline.simulate(Path(plan["handoff"]), prob.data / "truth.parquet", res)
+    pipeline.ingest_results(root, res)
+    fixed = None if optimise else root / "model.json"
+    pipeline.fit(root, fixed_hyperparameters=fixed, **bm.FIT_DEFAULTS)
+    return Workspace(root), bm._column(root / "scores.parquet", "p_0").astype(float)
+
+
+def run(problem: str, seeds: list[int], trials: int) -> None:
     from bams_cli import stages as st
     from bams_cli.core import design as dz
     from bams_cli.core.evaluate import staged_trials
-    from bams_cli.state.workspace import Workspace
 
     scratch, prob = _start(problem, "refit")
-    data, gamma, K = prob.data, prob.gamma, prob.K
-    real_plan = pipeline.estimate_plan
+    gamma, K = prob.gamma, prob.K
 
     OUT.mkdir(exist_ok=True)
     for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
         ids, p, fail, known = _seed_state(base, prob)
         U1 = np.flatnonzero(~known)
-        K1 = defaults.STAGE1_SHARE * K
+        K1 = TWO_STAGES["stage1_share"] * K
         pi1 = dz.choose_design(p[U1], K=K1, posterior=dz.risk_posterior([])).pi
         f1 = fail[U1]
         V1 = float(((1 - pi1[f1]) / pi1[f1]).sum())
@@ -154,14 +175,9 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
         t0 = time.perf_counter()
         for t in range(trials):
             root = scratch / f"trial-{seed}-{t}"
-            shutil.copytree(base, root)
-            plan = real_plan(root, samples=K, seed=1000 * seed + t, **bm.PLAN_DEFAULTS)
-            res = root / "stage-1-results.parquet"
-            pipeline.simulate(Path(plan["handoff"]), data / "truth.parquet", res)
-            pipeline.ingest_results(root, res)
-            pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
-            ws2 = Workspace(root)
-            p2 = bm._column(root / "scores.parquet", "p_0").astype(float)
+            ws2, p2 = _stage1_refitted(
+                base, root, prob, K=K, seed=1000 * seed + t, optimise=False
+            )  # fmt: skip
             U2 = np.flatnonzero(~level0(ws2, ids))
             post = dz.risk_posterior(st.mix_evidence(ws2, gamma)[0])
             pi2 = dz.choose_design(p2[U2], K=min(K - K1, U2.size), posterior=post).pi
@@ -169,11 +185,12 @@ def run(problem: str, seeds: list[int], trials: int) -> None:
             V2.append(float(((1 - pi2[f2]) / pi2[f2]).sum()))
             lam2.append(post.lam_mean)
             shutil.rmtree(root)
-        w1 = defaults.STAGE1_SHARE
+        w1 = TWO_STAGES["stage1_share"]
         var_u = int(f1.sum()) * (U1.size - K) / K
         fixed = staged_trials(
-            p, fail, K=K, known=known, n_trials=200, rng=np.random.default_rng(seed)
-        )
+            p, fail, K=K, known=known, n_trials=200, rng=np.random.default_rng(seed),
+            stages=2, share=0.5,
+        )  # fmt: skip
         row = {
             "problem": problem, "seed": seed, "trials": trials, "K": K,
             "ratio_refit": (w1**2 * V1 + (1 - w1) ** 2 * float(np.mean(V2))) / var_u,
@@ -195,8 +212,6 @@ def recall(problem: str, seeds: list[int], trials: int, optimise: bool) -> None:
     ``estimate --plan`` builds it). recall = (failures at level 0 after stage 1 + the
     failures stage 2's pi sums to) / all failures, averaged over the draws; beside it the
     fixed-p evaluation of the same run with its leads (``staged_trials``, 200 draws)."""
-    from bams_cli import benchmark as bm
-    from bams_cli import defaults, pipeline
     from bams_cli import stages as st
     from bams_cli.core import design as dz
     from bams_cli.core.evaluate import staged_trials
@@ -204,8 +219,7 @@ def recall(problem: str, seeds: list[int], trials: int, optimise: bool) -> None:
     from bams_cli.state.workspace import Workspace
 
     scratch, prob = _start(problem, "recall")
-    data, truth, gamma, K = prob.data, prob.truth, prob.gamma, prob.K
-    real_plan = pipeline.estimate_plan
+    truth, gamma, K = prob.truth, prob.gamma, prob.K
 
     OUT.mkdir(exist_ok=True)
     for seed, base in workspaces_before_estimate(problem, prob, seeds, scratch):
@@ -215,19 +229,13 @@ def recall(problem: str, seeds: list[int], trials: int, optimise: bool) -> None:
         t0 = time.perf_counter()
         for t in range(trials):
             root = scratch / f"trial-{seed}-{t}"
-            shutil.copytree(base, root)
-            plan = real_plan(root, samples=K, seed=1000 * seed + t, **bm.PLAN_DEFAULTS)
-            res = root / "stage-1-results.parquet"
-            pipeline.simulate(Path(plan["handoff"]), data / "truth.parquet", res)
-            pipeline.ingest_results(root, res)
-            fixed = None if optimise else root / "model.json"
-            pipeline.fit(root, fixed_hyperparameters=fixed, **bm.FIT_DEFAULTS)
-            ws2 = Workspace(root)
-            p2 = bm._column(root / "scores.parquet", "p_0").astype(float)
+            ws2, p2 = _stage1_refitted(
+                base, root, prob, K=K, seed=1000 * seed + t, optimise=optimise
+            )  # fmt: skip
             after1 = level0(ws2, ids)
             U2 = np.flatnonzero(~after1)
             post = dz.risk_posterior(st.mix_evidence(ws2, gamma)[0])
-            K2 = min((1 - defaults.STAGE1_SHARE) * K, U2.size)
+            K2 = min((1 - TWO_STAGES["stage1_share"]) * K, U2.size)
             pi2 = dz.choose_design(p2[U2], K=K2, posterior=post).pi
             got.append((int(fail[after1].sum()) + float(pi2[fail[U2]].sum())) / F)
             shutil.rmtree(root)
@@ -237,10 +245,10 @@ def recall(problem: str, seeds: list[int], trials: int, optimise: bool) -> None:
             scales=json.loads((base / "model.json").read_text())["hyperparameters"].get("scales")
             or (),
         )  # fmt: skip
-        share = facts["share"]
+        lead_share = facts["share"]
         fx = staged_trials(
             p, fail, K=K, known=known, n_trials=200, rng=np.random.default_rng(seed),
-            leads=lead_m, lead_share=share,
+            leads=lead_m, lead_share=lead_share, stages=2, share=0.5,
         )  # fmt: skip
         row = {
             "problem": problem, "seed": seed, "trials": trials, "K": K, "optimise": optimise,
