@@ -5,7 +5,7 @@
 
 Issue 12 asks the design's coverage over the suite in under a minute. For every run the
 benchmark saved (``runs.npz``: p_n after discovery, the known stratum, the open leads and
-their share of K, the truth), ``core.evaluate.staged_trials`` draws the default two-stage
+their share of K, the truth), ``core.evaluate.staged_trials`` draws the default staged
 design ``--trials`` times from the truth, as ``docs/suite/estimate_design.py`` does for the
 table, in one process. Prints the median wall and CPU time over ``--repeats`` passes, the
 load average, and the coverage it found per problem (all runs' draws pooled).

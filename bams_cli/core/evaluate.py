@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from bams_cli import defaults
-from bams_cli.core.design import certain_leads
+from bams_cli.core.design import RiskPosterior, certain_leads
 from bams_cli.core.estimate import DESIGNS, Design, RateEstimates, SamplePlan, _as_columns
 
 FloatArray = NDArray[np.float64]
@@ -368,9 +368,7 @@ def staged_trials(
     lead_share : float
         The leads' largest share of K (``core.design.lead_share`` of the study's evidence).
     stages : int
-        How many stages K is spent in (``estimate --plan --stages``), at least 2. Two run
-        the fast path (or the reference); more run ``_multi_stage_trials``, the reference's
-        loop over the stages.
+        How many stages K is spent in (``estimate --plan --stages``), at least 2.
 
     Returns
     -------
@@ -394,33 +392,25 @@ def staged_trials(
     # contend there (measured: twice the CPU time on 2 busy cores), and their split sums
     # make the last digits depend on the thread count. One thread: same numbers anywhere.
     with threadpool_limits(limits=1, user_api="blas"):
-        if stages > 2:
+        if reference:
             return _multi_stage_trials(
                 p, is_failure, K=K, known=known, share=share, stages=stages, prior=prior,
                 anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
             )  # fmt: skip
-        if reference:
-            return _multi_stage_trials(
-                p, is_failure, K=K, known=known, share=share, stages=2, prior=prior,
-                anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
-            )  # fmt: skip
         return _staged_trials_fast(
             p, is_failure, K=K, known=known, share=share, prior=prior, anchor_sd=anchor_sd,
-            confidence=confidence, n_trials=n_trials, rng=rng,
+            confidence=confidence, n_trials=n_trials, rng=rng, stages=stages,
         )  # fmt: skip
 
 
 @dataclass(frozen=True)
 class _Stage1:
-    """What every trial of ``staged_trials`` shares: U, the split of K, stage 1's design."""
+    """What every trial of ``staged_trials`` shares: U, K, stage 1's design."""
 
     N: int
     n1: int
     known_f: int
     K: float
-    K1: float
-    K2: float
-    weights: list[float]
     p1: FloatArray
     f1: NDArray[np.bool_]
     u1: FloatArray
@@ -432,24 +422,6 @@ class _Stage1:
     V1: float
     rate: float
     n_fail: int
-
-    def result(
-        self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
-        names: list[str], V2_mean: float, in_hand: FloatArray, unbiased: FloatArray,
-    ) -> StagedTrials:  # fmt: skip
-        """The trials' figures with the design's variance against uniform's; ``in_hand``:
-        each trial's failures in hand (``StagedTrials.recall`` before dividing by F);
-        ``unbiased``: each trial's p_hat before it was held between the failures found
-        and the cap."""
-        N, K, w = self.N, self.K, self.weights
-        var = (w[0] ** 2 * self.V1 + w[1] ** 2 * V2_mean) / N**2
-        var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
-        recall = in_hand / self.n_fail if self.n_fail > 0 else np.full(in_hand.shape, np.nan)
-        return StagedTrials(
-            p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, recall=recall,
-            var=var, var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
-            p_hat_unbiased=unbiased,
-        )  # fmt: skip
 
 
 def _stage1(
@@ -469,18 +441,17 @@ def _stage1(
     U1 = np.flatnonzero(~known_m)
     n1 = U1.size
     K = min(float(K), float(n1))
-    K1 = share * K
     p1, f1 = p[U1], fail[U1]
     u1 = dz.relative_risk(p1)
     # One sort of U by p_n serves every trial: stage 2's U is U minus stage 1's sample, and
     # dropping segments from a sorted list leaves it sorted (``choose_design``'s order).
     order1 = np.argsort(-p1, kind="stable")
     post1 = dz.risk_posterior([], prior=prior)
-    c1 = dz.choose_design(p1, K=K1, posterior=post1, order=order1)
+    c1 = dz.choose_design(p1, K=share * K, posterior=post1, order=order1)
     pi1 = c1.pi
     return _Stage1(
-        N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, K1=K1, K2=(1.0 - share) * K,
-        weights=dz.stage_weights([share, 1.0 - share], K, n1), p1=p1, f1=f1, u1=u1, norms1=dz.risk_norms(u1),
+        N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, p1=p1, f1=f1, u1=u1,
+        norms1=dz.risk_norms(u1),
         order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(post1.allowance_risk(p1), pi1),
         V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
         n_fail=int(fail.sum()),
@@ -505,7 +476,7 @@ def _multi_stage_trials(
     ``estimate_from_sample``, ``combine_stages``) over ``stages`` stages. Stage 1 spends
     ``share`` K, each later stage an equal part of the rest (as ``estimate --plan --stages``
     shares it), planned over what the stages before it left, from the evidence of all of
-    them. At two stages ``_staged_trials_fast`` gives its numbers to rounding
+    them. ``_staged_trials_fast`` gives its numbers to rounding at any number of stages
     (tests/core/test_design.py).
 
     var: sum_s w_s^2 E[V_s], V_s stage s's exact variance given the stages before it
@@ -657,28 +628,33 @@ def _staged_trials_fast(
     confidence: float,
     n_trials: int,
     rng: np.random.Generator,
+    stages: int = 2,
 ) -> StagedTrials:
-    """Two stages' ``_multi_stage_trials`` numbers from per-run precomputations.
+    """``_multi_stage_trials``' numbers from per-run precomputations, for any number of
+    stages.
 
-    Stage 2's design over U2 = U minus stage 1's sample needs no sort, exp or log per trial:
+    A later stage's design over U_s = U minus the earlier stages' samples needs no sort, exp
+    or log per trial:
 
-    * the posterior risk u^tau / mean_U2(u^tau) is p^tau / mean_U2(p^tau) whatever
-      mean_U2(p) is, so r = lam + sum_tau b_tau p^tau with p^tau computed once, and every
-      sum over U2 is a dot product with U2's indicator;
+    * the posterior risk u^tau / mean_Us(u^tau) is p^tau / mean_Us(p^tau) whatever
+      mean_Us(p) is, so r = lam + sum_tau b_tau p^tau with p^tau computed once, and every
+      sum over U_s is a dot product with U_s's indicator, or the last one's less the
+      sample;
     * each weighted candidate is pi = min(1, c g) (g = sqrt(r), or q of the p^alpha form):
-      its capped count m needs only the floor(K) + 1 segments of U2 with the largest p_n
-      (one sort of U serves every trial) and the sum of g over U2;
+      its capped count m needs only the floor(K_s) + 1 segments of U_s with the largest
+      p_n (one sort of U serves every trial and stage) and the sum of g over U_s;
     * its predicted variance sum_{pi < 1} r (1 - pi)/pi is sum_{j >= m} r_j / (c g_j) less
       sum_{j >= m} r_j: for the calibrated design T_m / c (r / g = g), for p^alpha one dot
       product; only the chosen design's pi is formed, for the draw;
     * a stage's estimate needs only its sampled failures, and ``combine_stages``'s interval
       is computed for every trial at once.
 
-    The draws are the reference's, from the same stream in the same order. A candidate
-    whose g is constant over U2 has the uniform design's pi and predicted variance exactly,
-    as in the reference (where a tie goes to uniform): so a p_n constant over U2 gives
-    uniform without a comparison that rounding could tip. Equal to ``_multi_stage_trials`` to
-    rounding (tests/core/test_design.py).
+    The draws are the reference's, from the same stream in the same order, and each
+    finished stage's evidence (``StageEvidence``) is formed as the reference forms it, so
+    the posteriors are its own. A candidate whose g is constant over U_s has the uniform
+    design's pi and predicted variance exactly, as in the reference (where a tie goes to
+    uniform): so a p_n constant over U_s gives uniform without a comparison that rounding
+    could tip. Equal to ``_multi_stage_trials`` to rounding (tests/core/test_design.py).
     """
     from bams_cli import defaults
     from bams_cli.core import design as dz
@@ -686,18 +662,18 @@ def _staged_trials_fast(
 
     share = defaults.STAGE1_SHARE if share is None else share
     prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    eps = defaults.DEFENSIVE
     st = _stage1(p, is_failure, K, known, share, prior)
-    if not (st.K > 0 and 0 < share < 1 and eps > 0):
+    if not (st.K > 0 and 0 < share < 1 and defaults.DEFENSIVE > 0):
         # Nothing to sample, or a single stage: the reference handles (or rejects) it.
         return _multi_stage_trials(
-            p, is_failure, K=K, known=known, share=share, stages=2, prior=prior,
+            p, is_failure, K=K, known=known, share=share, stages=stages, prior=prior,
             anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
-    N, n1, known_f, K1, K2, weights = st.N, st.n1, st.known_f, st.K1, st.K2, st.weights
-    p1, f1, u1, norms1, order1, pi1, wm1 = st.p1, st.f1, st.u1, st.norms1, st.order1, st.pi1, st.wm1
-    p_mean1 = float(p1.mean())
-    n_certain1 = int(np.count_nonzero(pi1 >= 1.0))
+    N, n1, known_f, K = st.N, st.n1, st.known_f, st.K
+    shares = [share, *([(1.0 - share) / (stages - 1)] * (stages - 1))]
+    weights = dz.stage_weights(shares, K, n1)
+    p1, f1 = st.p1, st.f1
+    n_certain1 = int(np.count_nonzero(st.pi1 >= 1.0))
     taus = np.asarray(dz.TAUS, dtype=np.float64)
     pos = p1 > 0
     # Rows: p^tau for each tau (the risk), p^alpha (the paper-form candidate), over U.
@@ -705,140 +681,181 @@ def _staged_trials_fast(
     for i, tau in enumerate(taus):
         powers[i] = p1**tau
     powers[-1, pos] = p1[pos] ** defaults.ALPHA
-    sums1 = powers.sum(axis=1)  # over U; a trial's sums over U2 drop its stage-1 sample
+    sums1 = powers.sum(axis=1)  # over U; a trial's sums over U_s drop the earlier samples
     n_pos1 = int(np.count_nonzero(pos))
-    last = order1[::-1]  # ascending p_n
-    est = np.empty((2, 4, n_trials))  # per stage: total, certain, v, w_allow
-    found2 = np.empty(n_trials)
-    cap2 = np.empty(n_trials)
-    lam = np.empty(n_trials)
-    V2 = np.empty(n_trials)
+    est = np.empty((stages, 4, n_trials))  # per stage: total, certain, v, w_allow
+    found_last = np.empty(n_trials)
+    cap_last = np.empty(n_trials)
+    lam = np.full(n_trials, np.nan)
+    V = np.zeros((n_trials, stages))
+    V[:, 0] = st.V1
     in_hand = np.empty(n_trials)
     names: list[str] = []
     for t in range(n_trials):
-        take1 = rng.random(n1) < pi1
-        s1 = np.flatnonzero(take1)
-        fs1 = f1[s1]
-        *est[0, :, t], _, _ = _stage_terms(
-            pi1[s1[fs1]], s1.size, n_certain1, n_unknown=n1, budget=K1, known=known_f,
-            w_model=wm1,
-        )  # fmt: skip
-        post = dz.risk_posterior(
-            [dz.StageEvidence(u1[s1], fs1, norms1, p_mean=p_mean1)],
-            prior=prior,
-            anchor_sd=anchor_sd,
-        )
-        lam[t] = post.lam_mean
-        kept = ~take1
-        kf = kept.astype(np.float64)
-        n2 = n1 - s1.size
-        K2t = min(K2, float(n2))
-        if K2t >= n2:
-            name, pi_u, wm2 = "uniform", np.ones(n1), math.nan
-        else:
-            # ``RiskPosterior.risk`` over U2 (kept), as lam + sum_tau b_tau p^tau.
-            w_tau = post.weights.sum(axis=1)
-            trust = post.weights @ (1.0 - post.lams)
-            gone = powers[:, s1].sum(axis=1)
-            # By difference, unless the sample holds over half of a sum (digits would go).
-            sums = sums1 - gone if np.all(gone <= 0.5 * sums1) else powers @ kf
-            coef = np.zeros(taus.size)
-            positive = n_pos1 > int(np.count_nonzero(pos[s1]))
-            for i in range(taus.size):
-                if w_tau[i] > 0:
-                    coef[i] = trust[i] / (sums[i] / n2) if positive else 0.0
-            r = coef @ powers[:-1] + (
-                post.lam_mean if positive else post.lam_mean + float(trust[w_tau > 0].sum())
-            )
-            top = min(n2 - 1, int(math.floor(K2t)))
-            head = order1[: top + 1 + s1.size]
-            head = head[kept[head]][: top + 1]  # U2's top + 1 largest p_n, descending
-            tail = last[: s1.size + 1]
-            low = int(tail[kept[tail]][0])  # U2's smallest p_n
-            R_all = float(r @ kf)
-            pu = K2t / n2
-            pv = {"uniform": R_all * (1.0 - pu) / pu}
-            scale: dict[str, tuple[float, float, float]] = {}
-            g = np.sqrt(r)
-            q = (
-                (1.0 - eps) * powers[-1] / float(sums[-1]) + eps / n2
-                if positive
-                else np.full(n1, 1.0 / n2)
-            )
-            cache: dict[str, FloatArray] = {}
-            rest_r = _sum_less(r, R_all, head, kf, cache)
-            flat = p1[head[0]] == p1[low]  # p_n constant over U2: every candidate is uniform
-            for cand, gg in (("calibrated", g), ("p^alpha", q)):
-                if flat:
-                    pv[cand] = pv["uniform"]
-                    continue
-                g_rest = _sum_less(gg, float(gg @ kf), head, kf, cache)
-                m, c = _capped(gg[head], g_rest, K2t)
-                r_m = rest_r + float(r[head[m:]].sum())
-                if cand == "calibrated":  # r / pi = g / c where pi < 1
-                    rq_m = g_rest + float(g[head[m:]].sum())
-                else:  # r / pi = (r / q) / c
-                    rq = r / q
-                    rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(
-                        rq[head[m:]].sum()
-                    )
-                pv[cand] = rq_m / c - r_m
-                scale[cand] = (c, float(gg[head[m - 1]]) if m else math.inf, r_m)
-            base = pv["uniform"]
-            pred = {k: (v / base if base > 0 else 1.0) for k, v in pv.items()}
-            name = min(pred, key=lambda k: (pred[k], k != "uniform"))
-            if name == "uniform":
-                pi_u = np.full(n1, pu)
-                mass = R_all
+        kept = np.ones(n1, bool)  # U_s over U
+        sums, n_pos, found, n_s = sums1, n_pos1, known_f, n1
+        evidence: list[dz.StageEvidence] = []
+        for s in range(stages):
+            K_s = min(shares[s] * K, float(n_s))
+            if s == 0:
+                name, pi_s, wm = st.name1, st.pi1, st.wm1
+                f_s, n_certain = f1, n_certain1
             else:
-                gg = g if name == "calibrated" else q
-                c, thr, mass = scale[name]  # mass: sum of r where pi < 1
-                pi_u = np.minimum(1.0, c * gg)
-                if thr < math.inf:
-                    pi_u[gg >= thr] = 1.0
-            # The allowance's risk (``RiskPosterior.allowance_risk`` over U2): lam at its
-            # upper quantile, the shapes as the posterior weighs them; u^tau / mean(u^tau)
-            # is p^tau / mean(p^tau), and all ones where p_n is 0 over U2.
-            lam_q = post.lam_quantile(defaults.RISK_MIX_UPPER)
-            shaped = np.zeros(n1)
-            for i in range(taus.size):
-                if w_tau[i] > 0:
-                    shaped += w_tau[i] * (powers[i] / (sums[i] / n2) if positive else 1.0)
-            r_q = lam_q + (1.0 - lam_q) * shaped
-            rand = kept & (pi_u > 0.0) & (pi_u < 1.0)
-            mass_q = float(r_q[rand].sum())
-            wm2 = (
-                float(r_q[rand] @ ((1.0 - pi_u[rand]) / pi_u[rand])) / mass_q
-                if mass_q > 0
-                else math.nan
-            )
-        pi2 = pi_u[kept]
-        f2 = f1[kept]
-        take2 = rng.random(n2) < pi2
-        *est[1, :, t], found2[t], cap2[t] = _stage_terms(
-            pi2[take2 & f2], int(np.count_nonzero(take2)), int(np.count_nonzero(pi2 >= 1.0)),
-            n_unknown=n2, budget=K2t, known=known_f + int(fs1.sum()), w_model=wm2,
-        )  # fmt: skip
-        pf = pi2[f2]
-        V2[t] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
-        in_hand[t] = known_f + int(fs1.sum()) + float(pf.sum())
-        names.append(name)
+                post = dz.risk_posterior(evidence, prior=prior, anchor_sd=anchor_sd)
+                lam[t] = post.lam_mean
+                name, pi_u, wm = _later_stage_design(
+                    post, p1, powers, sums, kept, n_s, K_s, positive=n_pos > 0, order=st.order1
+                )
+                pi_s, f_s = pi_u[kept], f1[kept]
+                n_certain = int(np.count_nonzero(pi_s >= 1.0))
+            take = rng.random(n_s) < pi_s
+            *est[s, :, t], found_s, cap_s = _stage_terms(
+                pi_s[take & f_s], int(np.count_nonzero(take)), n_certain, n_unknown=n_s,
+                budget=K_s, known=found, w_model=wm,
+            )  # fmt: skip
+            pf = pi_s[f_s]
+            if s:
+                V[t, s] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
+            if s == stages - 1:
+                found_last[t], cap_last[t] = found_s, cap_s
+                in_hand[t] = found + float(pf.sum())
+                names.append(name)
+                break
+            # The finished stage's evidence, formed as the reference forms it.
+            if s == 0:
+                us, norms, p_mean = st.u1, st.norms1, float(p1.mean())
+            else:
+                ps = p1[kept]
+                us = dz.relative_risk(ps)
+                norms, p_mean = dz.risk_norms(us), float(ps.mean())
+            evidence.append(dz.StageEvidence(us[take], f_s[take], norms, p_mean=p_mean))
+            found += int(f_s[take].sum())
+            gone_idx = np.flatnonzero(kept)[take] if s else np.flatnonzero(take)
+            kept[gone_idx] = False
+            n_s -= gone_idx.size
+            n_pos -= int(np.count_nonzero(pos[gone_idx]))
+            gone = powers[:, gone_idx].sum(axis=1)
+            # By difference, unless the sample holds over half of a sum (digits would go).
+            sums = sums - gone if np.all(gone <= 0.5 * sums) else powers @ kept.astype(np.float64)
     # ``combine_stages`` on every trial's stage figures, in its order of operations.
     Nf = float(N)
     w = np.asarray(weights, dtype=np.float64)
-    tot, cer, var, wal = est[:, 0], est[:, 1], est[:, 2], est[:, 3]
-    total = (0 + w[0] * (tot[0] / Nf) + w[1] * (tot[1] / Nf)) * Nf
-    certain = (0 + w[0] * (cer[0] / Nf) + w[1] * (cer[1] / Nf)) * Nf
-    v = (0 + w[0] ** 2 * (var[0] / Nf**2) + w[1] ** 2 * (var[1] / Nf**2)) * Nf**2
-    w_next = 0 + w[0] ** 2 * wal[0] + w[1] ** 2 * wal[1]
+    total, certain, v, w_next = (np.zeros(n_trials) for _ in range(4))
+    for s in range(stages):
+        total = total + w[s] * (est[s, 0] / Nf)
+        certain = certain + w[s] * (est[s, 1] / Nf)
+        v = v + w[s] ** 2 * (est[s, 2] / Nf**2)
+        w_next = w_next + w[s] ** 2 * est[s, 3]
+    total, certain, v = total * Nf, certain * Nf, v * Nf**2
     lo_r, hi_r = _gamma_interval(np.maximum(total - certain, 0.0), v, w_next, 1.0 - confidence)
     unbiased = total
-    total = np.minimum(np.maximum(total, found2), cap2 / Nf * Nf)
-    hi = np.minimum(np.maximum(certain + hi_r, total), cap2 / Nf * Nf)
-    lo = np.minimum(np.maximum(certain + lo_r, found2), np.minimum(total, hi))
-    return st.result(
-        total / Nf, lo / Nf, hi / Nf, lam, names, float(V2.mean()), in_hand, unbiased / Nf
+    cap = cap_last / Nf * Nf
+    total = np.minimum(np.maximum(total, found_last), cap)
+    hi = np.minimum(np.maximum(certain + hi_r, total), cap)
+    lo = np.minimum(np.maximum(certain + lo_r, found_last), np.minimum(total, hi))
+    var = float((w**2 * V.mean(axis=0)).sum()) / N**2
+    var_u = int(f1.sum()) * (n1 - K) / K / N**2
+    recall = in_hand / st.n_fail if st.n_fail > 0 else np.full(n_trials, np.nan)
+    return StagedTrials(
+        p_hat=total / Nf, ci_low=lo / Nf, ci_high=hi / Nf, lam=lam, stage2_design=names,
+        recall=recall, var=var, var_uniform=var_u, stage1_design=st.name1, rate=st.rate,
+        p_hat_unbiased=unbiased / Nf,
+    )  # fmt: skip
+
+
+def _later_stage_design(
+    post: RiskPosterior,
+    p1: FloatArray,
+    powers: FloatArray,
+    sums: FloatArray,
+    kept: NDArray[np.bool_],
+    n_s: int,
+    K_s: float,
+    *,
+    positive: bool,
+    order: NDArray[np.intp],
+) -> tuple[str, FloatArray, float]:
+    """A later stage's design over U_s (``kept``, over U) as ``choose_design`` picks it,
+    and the interval's allowance weight (``unseen_failure_weight``), from p_n's powers
+    over U (``powers``: p^tau per tau, then p^alpha) and their sums over U_s (``sums``).
+    ``positive``: some p_n over U_s is above 0; ``order``: U by p_n, descending. Returns
+    (design name, pi over U (read on ``kept``), allowance weight)."""
+    from bams_cli import defaults
+    from bams_cli.core import design as dz
+
+    n1 = p1.size
+    if K_s >= n_s:
+        return "uniform", np.ones(n1), math.nan
+    eps = defaults.DEFENSIVE
+    taus = np.asarray(dz.TAUS, dtype=np.float64)
+    kf = kept.astype(np.float64)
+    n_gone = n1 - n_s
+    # ``RiskPosterior.risk`` over U_s, as lam + sum_tau b_tau p^tau.
+    w_tau = post.weights.sum(axis=1)
+    trust = post.weights @ (1.0 - post.lams)
+    coef = np.zeros(taus.size)
+    for i in range(taus.size):
+        if w_tau[i] > 0:
+            coef[i] = trust[i] / (sums[i] / n_s) if positive else 0.0
+    r = coef @ powers[:-1] + (
+        post.lam_mean if positive else post.lam_mean + float(trust[w_tau > 0].sum())
     )
+    top = min(n_s - 1, int(math.floor(K_s)))
+    head = order[: top + 1 + n_gone]
+    head = head[kept[head]][: top + 1]  # U_s's top + 1 largest p_n, descending
+    tail = order[::-1][: n_gone + 1]
+    low = int(tail[kept[tail]][0])  # U_s's smallest p_n
+    R_all = float(r @ kf)
+    pu = K_s / n_s
+    pv = {"uniform": R_all * (1.0 - pu) / pu}
+    scale: dict[str, tuple[float, float, float]] = {}
+    g = np.sqrt(r)
+    q = (
+        (1.0 - eps) * powers[-1] / float(sums[-1]) + eps / n_s
+        if positive
+        else np.full(n1, 1.0 / n_s)
+    )
+    cache: dict[str, FloatArray] = {}
+    rest_r = _sum_less(r, R_all, head, kf, cache)
+    flat = p1[head[0]] == p1[low]  # p_n constant over U_s: every candidate is uniform
+    for cand, gg in (("calibrated", g), ("p^alpha", q)):
+        if flat:
+            pv[cand] = pv["uniform"]
+            continue
+        g_rest = _sum_less(gg, float(gg @ kf), head, kf, cache)
+        m, c = _capped(gg[head], g_rest, K_s)
+        r_m = rest_r + float(r[head[m:]].sum())
+        if cand == "calibrated":  # r / pi = g / c where pi < 1
+            rq_m = g_rest + float(g[head[m:]].sum())
+        else:  # r / pi = (r / q) / c
+            rq = r / q
+            rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(rq[head[m:]].sum())
+        pv[cand] = rq_m / c - r_m
+        scale[cand] = (c, float(gg[head[m - 1]]) if m else math.inf, r_m)
+    base = pv["uniform"]
+    pred = {k: (v / base if base > 0 else 1.0) for k, v in pv.items()}
+    name = min(pred, key=lambda k: (pred[k], k != "uniform"))
+    if name == "uniform":
+        pi_u = np.full(n1, pu)
+    else:
+        gg = g if name == "calibrated" else q
+        c, thr, _ = scale[name]
+        pi_u = np.minimum(1.0, c * gg)
+        if thr < math.inf:
+            pi_u[gg >= thr] = 1.0
+    # The allowance's risk (``RiskPosterior.allowance_risk`` over U_s): lam at its upper
+    # quantile, the shapes as the posterior weighs them; u^tau / mean(u^tau) is
+    # p^tau / mean(p^tau), and all ones where p_n is 0 over U_s.
+    lam_q = post.lam_quantile(defaults.RISK_MIX_UPPER)
+    shaped = np.zeros(n1)
+    for i in range(taus.size):
+        if w_tau[i] > 0:
+            shaped += w_tau[i] * (powers[i] / (sums[i] / n_s) if positive else 1.0)
+    r_q = lam_q + (1.0 - lam_q) * shaped
+    rand = kept & (pi_u > 0.0) & (pi_u < 1.0)
+    mass_q = float(r_q[rand].sum())
+    wm = float(r_q[rand] @ ((1.0 - pi_u[rand]) / pi_u[rand])) / mass_q if mass_q > 0 else math.nan
+    return name, pi_u, wm
 
 
 def exact_variance(

@@ -333,22 +333,25 @@ def test_staged_design_is_unbiased_and_its_variance_is_what_it_says(model, stage
     assert abs(res.p_hat.mean() - res.rate) < 3 * se
 
 
-def test_the_many_stage_loop_at_two_stages_is_the_two_stage_fast_path():
-    # _multi_stage_trials at stages=2 draws what the two-stage fast path draws, to
-    # rounding: its loop over the stages plans, draws and combines them the same way.
+@pytest.mark.parametrize("stages", [2, 3, 4])
+def test_the_fast_path_draws_what_the_many_stage_loop_draws(stages):
+    # _multi_stage_trials plans, draws and combines each stage through the tool's own
+    # functions; the fast path draws the same numbers, to rounding, at any number of stages.
     from bams_cli.core.evaluate import _multi_stage_trials, _staged_trials_fast
 
     rng = np.random.default_rng(4)
     p = rng.beta(0.3, 20, 2500)
     fail = rng.random(p.size) < np.clip(1.5 * p, 0, 1)
     known = rng.random(p.size) < 0.01
-    kw = {"K": 120.0, "known": known, "share": 0.5, "prior": None, "anchor_sd": 0.5,
+    kw = {"K": 120.0, "known": known, "share": 1.0 / stages, "prior": None, "anchor_sd": 0.5,
           "confidence": 0.9, "n_trials": 40}  # fmt: skip
-    a = _staged_trials_fast(p, fail, rng=np.random.default_rng(7), **kw)
-    b = _multi_stage_trials(p, fail, stages=2, rng=np.random.default_rng(7), **kw)
+    a = _staged_trials_fast(p, fail, stages=stages, rng=np.random.default_rng(7), **kw)
+    b = _multi_stage_trials(p, fail, stages=stages, rng=np.random.default_rng(7), **kw)
     for name in ("p_hat", "ci_low", "ci_high", "recall", "p_hat_unbiased", "lam"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-15)
     assert a.var == pytest.approx(b.var, rel=1e-9) and a.stage2_design == b.stage2_design
+    # The later stages' posteriors moved with the draws, and the estimates with them.
+    assert np.unique(a.lam).size > 10 and np.unique(a.p_hat).size > 20
     with pytest.raises(ValueError, match="two stages or more"):
         staged_trials(p, fail, K=120.0, n_trials=1, rng=rng, stages=1)
 
@@ -378,6 +381,7 @@ def _pool(rng, n, kind):
     return p
 
 
+@pytest.mark.parametrize("stages", [2, 3])
 @pytest.mark.parametrize(
     "kind, K, known_share, no_failures, share, anchor_sd",
     [
@@ -396,11 +400,11 @@ def _pool(rng, n, kind):
     ],
 )
 def test_staged_trials_fast_path_equals_the_tools_functions(
-    kind, K, known_share, no_failures, share, anchor_sd
+    kind, K, known_share, no_failures, share, anchor_sd, stages
 ):
     # The evaluation's fast path against the reference, which runs each trial through
     # choose_design, estimate_from_sample and combine_stages: the same draws (so the same
-    # stage-2 designs and lam, exactly) and the same numbers to 1e-12.
+    # later-stage designs and lam, exactly) and the same numbers to 1e-12.
     rng = np.random.default_rng(int(K) + len(kind))
     n = 2000
     p = _pool(rng, n, kind)
@@ -408,7 +412,7 @@ def test_staged_trials_fast_path_equals_the_tools_functions(
     known = np.zeros(n, bool)
     known[: int(known_share * n)] = True
     known = rng.permutation(known)
-    kw = dict(K=K, known=known, share=share, anchor_sd=anchor_sd, n_trials=25)
+    kw = dict(K=K, known=known, share=share, anchor_sd=anchor_sd, n_trials=25, stages=stages)
     fast = staged_trials(p, fail, rng=np.random.default_rng(5), **kw)
     ref = staged_trials(p, fail, rng=np.random.default_rng(5), reference=True, **kw)
     assert fast.stage2_design == ref.stage2_design
