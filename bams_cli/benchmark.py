@@ -1493,6 +1493,13 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
         # Per-seed lists as results.json holds them: an undefined value is null there.
         fitted, ratio = _defined(e.get("discrepancy_sd_fitted")), _defined(e.get("gp_rate_ratio"))
         disc, vd = _defined(e.get("discrepancy_sd_ratio")), _defined(e.get("per_seed_var_default"))
+        # The failures in hand after each run's one realised estimate (the refit between
+        # its stages included), over all of the pool's.
+        found = [
+            r["distinct_failures_found"] / st["failures"]
+            for r in e.get("realised_estimates") or []
+            if r and st.get("failures")
+        ]
         rows[s] = {
             "recall": e["recall"],
             "recall_se": e["recall_se"],
@@ -1500,6 +1507,10 @@ def suite_rows(result: dict[str, Any]) -> dict[str, Any]:
             "recall_staged_se": e.get("recall_staged_se"),
             "recall_default": e.get("recall_default"),
             "recall_default_se": e.get("recall_default_se"),
+            "recall_realised": float(np.mean(found)) if found else None,
+            "recall_realised_se": (
+                float(np.std(found, ddof=1) / math.sqrt(len(found))) if len(found) > 1 else None
+            ),
             "var_default": float(np.mean(vd)) if vd else None,
             "var_default_max": float(np.max(vd)) if vd else None,
             "screened_seeds": e.get("screened_seeds"),
@@ -1541,8 +1552,13 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "default estimate, mean ± SE over seeds: where `estimate --plan --screen auto` "
         f"screens (screened: seeds), the screened design ({SCREEN_TRIALS} screens per run, "
         "each refitted on its cheap results; docs/suite/screen_design.md), elsewhere the "
-        f"staged design (`estimate --plan` twice; {STAGED_TRIALS} draws per run from the "
-        "truth; docs/suite/estimate_design.md). var / uniform, default: the same design's "
+        f"staged design (`estimate --plan` once per stage; {STAGED_TRIALS} draws per run "
+        "from the truth, each later stage keeping stage 1's p_n; "
+        "docs/suite/estimate_design.md). recall, as run: the failures in hand after each "
+        "run's one realised estimate through the tool's path (`estimate --plan`, the "
+        "results ingested, `fit --fixed-hyperparameters` before each later stage, so each "
+        "stage is planned from a model conditioned on the last), mean ± SE over seeds, and "
+        "over plain MC's recall at the same cost. var / uniform, default: the same design's "
         "exact variance over a uniform Poisson design's of K level-0 runs, mean [max] over "
         "seeds. Recall and RV, p^alpha: the single-stage p^alpha design's "
         "(`--weighting p-alpha`, the paper's form), exact (see each problem's tables.md). "
@@ -1556,14 +1572,15 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
         "estimate mean(p_n) after the last batch over the true rate, mean [range].",
         "",
         "| problem | N | p | corr(f0, f1) | failures unseen at level 1 | strategy | seeds "
-        "| recall, default | var / uniform, default | screened | recall, p^alpha "
-        "| 100 RV, p^alpha | disc. sd fitted | true sd(f1 - f0) | fitted / true (within 2x) "
-        "| level-0 picks per batch | GP / p |",
-        "|" + " --- |" * 17,
+        "| recall, default | recall, as run (x MC) | var / uniform, default | screened "
+        "| recall, p^alpha | 100 RV, p^alpha | disc. sd fitted | true sd(f1 - f0) "
+        "| fitted / true (within 2x) | level-0 picks per batch | GP / p |",
+        "|" + " --- |" * 18,
     ]
     for problem, result in results.items():
         table = suite_rows(result)
         st = table["setup"]
+        mc = (table["strategies"].get("mc") or {}).get("recall_default")
         for i, (s, row) in enumerate(table["strategies"].items()):
             head = (
                 f"| {problem} | {st['pool_size']:,} | {st['rate']:.4f} | "
@@ -1594,10 +1611,13 @@ def render_suite(results: dict[str, dict[str, Any]]) -> str:
                 else "-"
             )
             screened = "-" if row.get("screened_seeds") is None else f"{row['screened_seeds']}"
+            as_run = _pm(row.get("recall_realised"), row.get("recall_realised_se"))
+            if row.get("recall_realised") is not None and mc:
+                as_run += f" ({row['recall_realised'] / mc:.1f}x)"
             lines.append(
                 f"{head} {NAMES[s]} | {st['seeds']} | "
                 f"{_pm(row.get('recall_default'), row.get('recall_default_se'))} | "
-                f"{var} | {screened} | "
+                f"{as_run} | {var} | {screened} | "
                 f"{_pm(row['recall'], row['recall_se'])} | "
                 f"{_pm(row['rv'], row['rv_se'], 2)} | {fitted} | "
                 f"{st['true_discrepancy_sd']:.3g} | {disc} | {level0} | {ratio} |"

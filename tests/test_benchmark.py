@@ -251,28 +251,42 @@ def test_a_suite_problem_runs_end_to_end_into_the_suite_table(tmp_path):
     # design; MCM-GP's is the screen where its fitted cheap level tracks level 0.
     assert mc["screened_seeds"] == 0 and mc["screens"] == [None]
     assert mc["per_seed_recall_default"] == mc["per_seed_recall_staged"]
-    assert mc["per_seed_var_default"][0] == pytest.approx(1.0, abs=0.35)  # uniform in 2 stages
+    assert mc["per_seed_var_default"][0] == pytest.approx(1.0, abs=0.35)  # uniform in every stage
     [screen] = gp["screens"]
     assert gp["screened_seeds"] == (screen is not None)
     if screen is not None:
         assert screen["share"] == defaults.SCREEN_HINT_SHARE and screen["trials"] == B.SCREEN_TRIALS
         assert gp["per_seed_recall_default"] == [screen["recall"]]
         assert gp["per_seed_var_default"] == [screen["var_ratio"]]
-    # The default design's recall, variance and screened seeds come first in a row, then
-    # p^alpha's.
+    # The default design's recall, as drawn and as run, its variance and screened seeds
+    # come first in a row, then p^alpha's.
     cells = [c.strip() for c in header.split("|")]
     at = cells.index("recall, default")
-    assert cells[at + 1 : at + 4] == ["var / uniform, default", "screened", "recall, p^alpha"]
+    assert cells[at + 1 : at + 5] == [
+        "recall, as run (x MC)", "var / uniform, default", "screened", "recall, p^alpha",
+    ]  # fmt: skip
     mc_row = next(line for line in md.splitlines() if "| MC |" in line).split("|")
     assert mc_row[at].strip().startswith(f"{mc['recall_default']:.3f}")
+    assert mc_row[at + 1].strip() == "-"  # plain MC runs no realised estimate
     var = mc["per_seed_var_default"][0]
-    assert mc_row[at + 1].strip() == f"{var:.2f} [{var:.2f}]" and mc_row[at + 2].strip() == "0"
-    assert mc_row[at + 3].strip().startswith(f"{mc['recall']:.3f}")
+    assert mc_row[at + 2].strip() == f"{var:.2f} [{var:.2f}]" and mc_row[at + 3].strip() == "0"
+    assert mc_row[at + 4].strip().startswith(f"{mc['recall']:.3f}")
+    # As run: the failures the realised estimate had in hand, over the pool's, and that
+    # over plain MC's recall.
+    [realised] = gp["realised_estimates"]
+    as_run = realised["distinct_failures_found"] / doc["setup"]["failures"]
+    gp_row = next(line for line in md.splitlines() if "| MCM-GP |" in line).split("|")
+    assert gp_row[at + 1].strip() == f"{as_run:.3f} ({as_run / mc['recall_default']:.1f}x)"
+    assert condensed_row(tmp_path, "mcm-gp")["recall_realised"] == pytest.approx(as_run)
     row = next(line for line in md.splitlines() if line.startswith("| gap_sim"))
     assert f"{fitted:.3g}" in row and "10 / 5 / 5" in md
     condensed = json.loads((tmp_path / "suite.json").read_text())
     assert set(condensed) == {"gap_sim"} and set(results) == {"gap_sim"}
     assert condensed["gap_sim"]["strategies"]["mc"]["gp_rate_ratio"] is None
+
+
+def condensed_row(folder, strategy):
+    return json.loads((folder / "suite.json").read_text())["gap_sim"]["strategies"][strategy]
 
 
 def test_staged_recall_is_the_staged_design_drawn_from_the_runs_own_model():
