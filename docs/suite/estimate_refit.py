@@ -2,7 +2,11 @@
 refitted on stage 1's level-0 results.
 
     .venv/bin/python docs/suite/estimate_refit.py run PROBLEM [--seeds 0-9] [--trials 8]
+    .venv/bin/python docs/suite/estimate_refit.py recall PROBLEM [--optimise]
+    .venv/bin/python docs/suite/estimate_refit.py stages PROBLEM [--stages S] [--share1 X] [--optimise]
     .venv/bin/python docs/suite/estimate_refit.py table
+
+(``stages`` without ``--stages`` and ``--share1``: the tool's default stages.)
 
 ``estimate_design.py`` draws the design a thousand times per run and keeps stage 1's p_n for
 stage 2, which the evaluation can afford; the tool refits between the stages
@@ -478,8 +482,13 @@ def main(argv: list[str]) -> None:
     if argv[:1] not in (["run"], ["recall"], ["stages"]) or len(argv) < 2:
         raise SystemExit(__doc__)
     if argv[:1] == ["stages"] and len(argv) >= 2:
-        n = int(argv[argv.index("--stages") + 1]) if "--stages" in argv else 2
-        sh = float(argv[argv.index("--share1") + 1]) if "--share1" in argv else 0.5
+        from bams_cli import defaults
+
+        # Without the flags, the tool's default stages.
+        n = int(argv[argv.index("--stages") + 1]) if "--stages" in argv else defaults.STAGES
+        sh = (
+            float(argv[argv.index("--share1") + 1]) if "--share1" in argv else defaults.STAGE1_SHARE
+        )
         staged_path(argv[1], *seeds_and_trials(argv, "0-9", 4), n, sh, "--optimise" in argv)
         return
     if argv[:1] == ["recall"] and len(argv) >= 2:
