@@ -855,6 +855,7 @@ def saved_run_trials(
     n_trials: int,
     uniform: bool = False,
     rng: np.random.Generator | None = None,
+    reference: bool = False,
 ) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
     """The default staged estimate design drawn ``n_trials`` times from the truth, for one
     run that ``run_benchmark(save_arrays=True)`` saved in ``problem_dir``: its final p_n
@@ -864,6 +865,7 @@ def saved_run_trials(
 
     Returns (``core.evaluate.StagedTrials``, is_failure, known, p, prior), the design's
     inputs for callers that measure more of it (docs/suite/estimate_design.py).
+    ``reference``: draw through the tool's own functions (``staged_trials``' reference).
     """
     from bams_cli.core.evaluate import staged_trials
 
@@ -880,7 +882,7 @@ def saved_run_trials(
         p, fail, K=float(z["K"]), known=known, n_trials=n_trials, prior=prior,
         rng=np.random.default_rng(seed) if rng is None else rng,
         leads=z.get(f"{strategy}-{seed}-leads") if modelled else None,
-        lead_share=defaults.LEAD_SHARE if share is None else float(share),
+        lead_share=defaults.LEAD_SHARE if share is None else float(share), reference=reference,
     )  # fmt: skip
     return t, fail, known, p, prior
 
