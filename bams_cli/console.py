@@ -534,6 +534,17 @@ def _stage_weights(w: Sequence[float] | None) -> str | None:
     return f"{' / '.join(f'{x:.3g}' for x in w)} in the combined estimate, fixed at stage 1"
 
 
+def _plan_budget(s: Mapping[str, Any]) -> str:
+    """A plan's K: this stage's expected level-0 runs, and the whole estimate's where it
+    runs in stages."""
+    if (s.get("stages") or 1) > 1:
+        return (
+            f"K {_num(s['samples_K'])} this stage, of {_num(s['series_K'])} over the "
+            f"estimate's {s['stages']} stages"
+        )
+    return f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate"
+
+
 def plan_summary(s: Mapping[str, Any]) -> None:
     head = (
         f"estimate plan {s['plan']} (stage {s['stage']} of {s['stages']}): "
@@ -542,7 +553,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
     facts(
         head,
         {
-            "budget": f"K {_num(s['samples_K'])} of {_num(s['series_K'])} for the estimate",
+            "budget": _plan_budget(s),
             "stage weights": _stage_weights(s.get("stage_weights")),
             "design": f"{s['design']}, weighting {s['weighting']}",
             "known stratum": f"{plural(s['known_stratum'], 'segment')} with a level-0 result",

@@ -927,3 +927,13 @@ def _simulate_batch(runner, ws, truth, number: int, tmp_path):
     ok(runner, "simulate", ws / "batches" / f"batch-{number:04d}.parquet", "--truth", truth,
        "-o", res)  # fmt: skip
     ok(runner, "ingest-results", "-w", ws, res)
+
+
+def test_a_staged_plan_says_its_k_is_this_stage_s_share_of_the_estimate_s():
+    # "K 153 of 444 for the estimate" read as if 444 were the pool; a stage says whose K.
+    from bams_cli.console import _plan_budget
+
+    staged = {"samples_K": 153.0, "series_K": 444.0, "stages": 3}
+    assert _plan_budget(staged) == "K 153 this stage, of 444 over the estimate's 3 stages"
+    one = {"samples_K": 200.0, "series_K": 200.0, "stages": 1}
+    assert _plan_budget(one) == "K 200 of 200 for the estimate"
