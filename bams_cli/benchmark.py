@@ -900,7 +900,7 @@ def _staged_design(
 
     GP strategies plan it from their p_n, under the prior on lam ``estimate --plan`` takes
     for their last fit (``core.design.risk_prior``); a strategy without a model (MC) from a
-    constant p_n, which makes both stages uniform. DS and CE have scores, not
+    constant p_n, which makes every stage uniform. DS and CE have scores, not
     probabilities: None.
     """
     from bams_cli.core.evaluate import staged_trials

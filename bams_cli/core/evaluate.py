@@ -340,7 +340,7 @@ def staged_trials(
     is_failure : bool array_like of shape (n_pool,)
         True level-0 outcomes.
     K : float
-        Total expected sample size over both stages, below |U|: at |U| or above,
+        Total expected sample size over all stages, below |U|: at |U| or above,
         ``estimate --plan`` plans one stage, a census, which this does not draw.
     known : bool array_like of shape (n_pool,), optional
         The known stratum after discovery.
@@ -443,7 +443,7 @@ def _stage1(
     K = min(float(K), float(n1))
     p1, f1 = p[U1], fail[U1]
     u1 = dz.relative_risk(p1)
-    # One sort of U by p_n serves every trial: stage 2's U is U minus stage 1's sample, and
+    # One sort of U by p_n serves every trial: a later stage's U is U minus the earlier samples, and
     # dropping segments from a sorted list leaves it sorted (``choose_design``'s order).
     order1 = np.argsort(-p1, kind="stable")
     post1 = dz.risk_posterior([], prior=prior)
@@ -505,11 +505,15 @@ def _multi_stage_trials(
         post: dz.RiskPosterior | None = None
         for s in range(stages):
             K_s = min(shares[s] * K, float(ps.size))
+            name = st.name1
             if s > 0:
                 post = dz.risk_posterior(evidence, prior=prior, anchor_sd=anchor_sd)
-                c = dz.choose_design(ps, K=K_s, posterior=post, order=order)
-                pi = c.pi
-                wm = dz.unseen_failure_weight(post.allowance_risk(ps), pi)
+                if ps.size:
+                    c = dz.choose_design(ps, K=K_s, posterior=post, order=order)
+                    name, pi = c.name, c.pi
+                    wm = dz.unseen_failure_weight(post.allowance_risk(ps), pi)
+                else:  # an earlier stage drew all of U: nothing is left to draw
+                    name, pi, wm = "uniform", np.ones(0), math.nan
             take = np.flatnonzero(rng.random(ps.size) < pi)
             ests.append(
                 estimate_from_sample(
@@ -528,7 +532,7 @@ def _multi_stage_trials(
             V[t, s] = float(np.where(pf >= 1.0, 0.0, (1.0 - pf) / np.maximum(pf, 1e-300)).sum())
             if s == stages - 1:
                 out["in_hand"][t] = found + float(pf.sum())
-                names.append(c.name if s > 0 else st.name1)
+                names.append(name)
                 break
             evidence.append(dz.StageEvidence(us[take], fs[take], norms, p_mean=float(ps.mean())))
             found += int(fs[take].sum())
@@ -809,6 +813,7 @@ def _later_stage_design(
     pu = K_s / n_s
     pv = {"uniform": R_all * (1.0 - pu) / pu}
     scale: dict[str, tuple[float, float, float]] = {}
+    capped: dict[str, int] = {}
     g = np.sqrt(r)
     q = (
         (1.0 - eps) * powers[-1] / float(sums[-1]) + eps / n_s
@@ -832,6 +837,13 @@ def _later_stage_design(
             rq_m = _sum_less(rq, float(rq @ kf), head, kf, cache) + float(rq[head[m:]].sum())
         pv[cand] = rq_m / c - r_m
         scale[cand] = (c, float(gg[head[m - 1]]) if m else math.inf, r_m)
+        capped[cand] = m
+    m = capped.get("calibrated", -1)
+    if m == capped.get("p^alpha") and m < head.size and p1[head[m]] == p1[low]:
+        # The same segments capped and p_n constant over the rest: the two designs are one
+        # (pi = 1 on the capped, the rest of K shared equally), and the reference's equal
+        # predicted variances give the first, calibrated; here rounding could tip them.
+        pv["p^alpha"] = pv["calibrated"]
     base = pv["uniform"]
     pred = {k: (v / base if base > 0 else 1.0) for k, v in pv.items()}
     name = min(pred, key=lambda k: (pred[k], k != "uniform"))

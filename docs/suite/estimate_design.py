@@ -62,7 +62,7 @@ def _one(args: tuple[str, str, str, int, int]) -> dict[str, Any]:
     warnings.simplefilter("ignore")
     K = float(np.load(Path(folder) / problem / "runs.npz")["K"])
     t0, c0 = time.perf_counter(), time.process_time()
-    # Plain MC and the uniform row (BAMS's discovery, p_n constant): both stages uniform.
+    # Plain MC and the uniform row (BAMS's discovery, p_n constant): every stage uniform.
     # The GP strategies' designs take the run's open leads at their evidence's share of K.
     r, fail, known, p, prior = saved_run_trials(
         Path(folder) / problem, "bams" if strategy == "uniform" else strategy, seed,

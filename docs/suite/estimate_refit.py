@@ -9,7 +9,7 @@ refitted on stage 1's level-0 results.
 (``stages`` without ``--stages`` and ``--share1``: the tool's default stages.)
 
 ``estimate_design.py`` draws the design a thousand times per run and keeps stage 1's p_n for
-stage 2, which the evaluation can afford; the tool refits between the stages
+every later stage, which the evaluation can afford; the tool refits between the stages
 (``estimate --plan`` refuses a stale model), and the refit sees stage 1's level-0 outcomes.
 Here, for every seed, the suite's protocol runs through the tool (``benchmark.run_one``: a
 random mixed batch of 10, two BAMS batches of 5) and stops where it would plan the estimate.
@@ -416,7 +416,7 @@ def _recall_lines() -> list[str]:
         "the discovery model's hyperparameters (fixed hyperparameters), or by the MAP search "
         "again (`--optimise`), as a plain `fit` between the stages does. Beside it the "
         "fixed-p evaluation of the same runs (stage 2 keeping stage 1's p_n, as the suite "
-        "table and `estimate_design.md` evaluate the default). 4 stage-1 draws per seed.",
+        "table and `estimate_design.md` evaluated the default then). 4 stage-1 draws per seed.",
         "",
         "| problem | seeds | recall, refit at fixed hyperparameters | recall, refit with the MAP search | recall, fixed p |",
         "| --- | --- | --- | --- | --- |",
@@ -480,8 +480,8 @@ def _stages_lines() -> list[str]:
         "",
         "A fourth stage moved recall by less than its SE on all three problems (weak_cheap "
         "+0.0017 ± 0.0038, digits +0.0023 ± 0.0051, rare_regions -0.0013 ± 0.0019) and the "
-        "variance by 0.005-0.04 of uniform's, down; going from two stages to three had moved weak_cheap's "
-        "recall by 6.6 SEs and rare_regions' by 1.8. So the default stays at three, a round "
+        "variance by 0.004-0.04 of uniform's, down; going from two stages to three had moved weak_cheap's "
+        "recall by 6.7 SEs and rare_regions' by 1.8. So the default stays at three, a round "
         "of simulation fewer for the study, and four stages are not the way to issue 11's "
         "2x on digits or 5x on rare_regions.",
     ]

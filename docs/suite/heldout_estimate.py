@@ -10,7 +10,7 @@ The estimate's defaults (the prior on lam, the calibration shapes, the stage-1 s
 with data seed 0. Here each problem is generated again with another data seed (another
 latent map, failure regions, bias; digits: another split and cheap model) and BAMS runs the
 suite's protocol on it, seeds 0-9, with the defaults as shipped. For every run
-``core.evaluate.staged_trials`` draws the default two-stage design 100 times from the truth
+``core.evaluate.staged_trials`` draws the default staged design 100 times from the truth
 (as ``docs/suite/estimate_design.py`` does on the suite) and records the design's variance
 against a uniform Poisson design of the same expected size, and the default 90% interval's
 coverage, misses below and above. Issue 12 asks for at most 1.2x uniform's variance on
@@ -232,7 +232,7 @@ def table() -> None:
         "",
         "`docs/suite/heldout_estimate.py run DATA_SEED` (its docstring says how): each suite "
         "problem generated again with another data seed, BAMS over seeds 0-9 with the shipped "
-        f"defaults, then {TRIALS} draws of the default two-stage design per run from the truth. "
+        f"defaults, then {TRIALS} draws of the default staged design per run from the truth. "
         "var / uniform: the design's variance over a uniform Poisson design's of the same "
         "expected size, mean [max] over seeds, and the seeds at or under 1.2x; coverage of the "
         "default 90% interval over all draws, and the shares of intervals wholly below and "

@@ -1,5 +1,5 @@
 """The Beta prior on lam (``defaults.RISK_MIX_PRIOR``) on the suite: variance against
-uniform and coverage of the default two-stage estimate design under other priors.
+uniform and coverage of the default staged estimate design under other priors.
 
     .venv/bin/python docs/suite/risk_prior.py "1,1;1,3;0.5,3" 0.5 30 [workers] \
         [--strategies bams,mcm-gp] [--anchor-sd 1.0] [--taus 0.5,1] [--arrays FOLDER]

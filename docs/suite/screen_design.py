@@ -23,7 +23,7 @@ over the variance of a uniform Poisson design of K level-0 runs (the shipped est
 comparison); recall = (failures known before the estimate + expected level-0 failures of
 phase 2) / all failures, the suite's recall at the same cost (the screen's cheap runs are
 paid out of K). "one stage": the estimate's design choice over U at K, no screen, on the
-same workspace (the shipped default runs it in two stages with a refit; its recall is the
+same workspace (the shipped default runs it in stages, three since 2026-11-29, with a refit; its recall is the
 same to within the seeds' spread, docs/suite/estimate_refit.md).
 
 ``run`` appends one JSON line per seed to docs/suite/screen_design/PROBLEM.jsonl; ``table``

@@ -16,7 +16,7 @@ of the level-0 signal's, where ``--screen auto`` screens), and
 ``defaults.RISK_MIX_PRIOR_WEAK_CHEAP`` elsewhere. This measures the staged design (the
 default where auto does not screen) under Beta(0.5, 1), Beta(1, 1) and Beta(1, 0.5) on
 every run whose model is above the threshold, drawn ``--trials`` times from the truth
-(``core.evaluate.staged_trials``, stage 2 keeping stage 1's p_n):
+(``core.evaluate.staged_trials``, each later stage keeping stage 1's p_n):
 
 * the suite's saved runs (both GP strategies), each run's discrepancy from its last fit
   (``results.json``'s ``hyperparameters_final``);

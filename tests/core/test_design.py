@@ -356,6 +356,27 @@ def test_the_fast_path_draws_what_the_many_stage_loop_draws(stages):
         staged_trials(p, fail, K=120.0, n_trials=1, rng=rng, stages=1)
 
 
+@pytest.mark.parametrize("seed, stages", [(1, 3), (3, 3), (7, 5), (186, 4), (214, 4)])
+def test_fast_path_and_reference_agree_near_a_census(seed, stages):
+    # K at or just under |U| in several stages. Where a stage draws all that is left, the
+    # next has nothing to draw (the reference had raised, "p must be a non-empty 1-d
+    # array": seeds 186 and 214 at four stages). Where p_n takes a few values, the capped
+    # segments and a flat rest make the calibrated and p^alpha designs one; both paths
+    # name it calibrated (the fast path's rounding had named it p^alpha: seeds 1, 3, 7).
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 300))
+    p = rng.choice([0.0, 0.01, 0.1, 0.5], n) if seed % 2 else rng.beta(0.3, 5, n)
+    fail = rng.random(n) < p
+    K = float(n) if seed % 3 == 0 else float(rng.uniform(0.97, 0.9999) * n)
+    kw = {"K": K, "n_trials": 10, "stages": stages}
+    ref = staged_trials(p, fail, rng=np.random.default_rng(seed), reference=True, **kw)
+    fast = staged_trials(p, fail, rng=np.random.default_rng(seed), **kw)
+    assert fast.stage2_design == ref.stage2_design
+    for name in ("p_hat", "ci_low", "ci_high", "recall", "p_hat_unbiased"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(ref, name), rtol=1e-9, atol=1e-15)
+    assert fast.var == pytest.approx(ref.var, rel=1e-9, abs=1e-300)
+
+
 def test_the_staged_design_near_a_census_is_as_precise_as_one_uniform_sample():
     # A model that says nothing (p_n flat: both stages uniform) and K = 0.9 of U: the
     # design the benchmark draws has one uniform sample's variance (the stages' weights,
