@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,6 +34,15 @@ def test_tiny_synthetic_run_writes_finite_tables(tmp_path, monkeypatch):
     real_select = pipeline.select
     monkeypatch.setattr(
         pipeline, "select", lambda *a, **kw: asked.append(kw["greedy"]) or real_select(*a, **kw)
+    )
+    fits = []  # (workspace folder, fixed hyperparameters given) for every fit
+    real_fit = pipeline.fit
+    monkeypatch.setattr(
+        pipeline,
+        "fit",
+        lambda root, **kw: (
+            fits.append((Path(root).name, kw.get("fixed_hyperparameters"))) or real_fit(root, **kw)
+        ),
     )
     res = run_benchmark(
         "toy2d",
@@ -71,6 +81,10 @@ def test_tiny_synthetic_run_writes_finite_tables(tmp_path, monkeypatch):
     assert realised["distinct_failures_found"] <= doc["setup"]["failures"]
     assert "interval covers p" in (tmp_path / "tables.md").read_text()
     assert not any(doc["mc"].get("realised_estimates", []))
+    # The run's own workspace is refitted as a study refits it, a plain fit, through the
+    # estimate too; only the screen's evaluation copies condition at fixed hyperparameters.
+    own = [fixed for name, fixed in fits if name.startswith("bas-")]
+    assert len(own) > PROTOCOLS["toy2d"].n_batches and not any(own)
     # BAS's first batch is level 0 only; its picks fill the budget.
     levels = doc["bas"]["picks_per_level"][0]
     assert levels[0] == [10, 0] and sum(levels[1]) == 5
