@@ -405,12 +405,15 @@ def staged_trials(
 
 @dataclass(frozen=True)
 class _Stage1:
-    """What every trial of ``staged_trials`` shares: U, K, stage 1's design."""
+    """What every trial of ``staged_trials`` shares: U, the split of K over the stages and
+    their weights, stage 1's design."""
 
     N: int
     n1: int
     known_f: int
     K: float
+    shares: list[float]
+    weights: FloatArray
     p1: FloatArray
     f1: NDArray[np.bool_]
     u1: FloatArray
@@ -423,6 +426,25 @@ class _Stage1:
     rate: float
     n_fail: int
 
+    def result(
+        self, p_hat: FloatArray, lo: FloatArray, hi: FloatArray, lam: FloatArray,
+        names: list[str], V: FloatArray, in_hand: FloatArray, unbiased: FloatArray,
+    ) -> StagedTrials:  # fmt: skip
+        """The trials' figures with the design's variance against uniform's. ``V``: each
+        trial's exact variance per stage given the stages before, (n_trials, stages);
+        ``in_hand``: each trial's failures in hand (``StagedTrials.recall`` before dividing
+        by F); ``unbiased``: each trial's p_hat before it was held between the failures
+        found and the cap."""
+        N, K = self.N, self.K
+        var = float((self.weights**2 * V.mean(axis=0)).sum()) / N**2
+        var_u = int(self.f1.sum()) * (self.n1 - K) / K / N**2 if K > 0 else math.inf
+        recall = in_hand / self.n_fail if self.n_fail > 0 else np.full(in_hand.shape, np.nan)
+        return StagedTrials(
+            p_hat=p_hat, ci_low=lo, ci_high=hi, lam=lam, stage2_design=names, recall=recall,
+            var=var, var_uniform=var_u, stage1_design=self.name1, rate=self.rate,
+            p_hat_unbiased=unbiased,
+        )  # fmt: skip
+
 
 def _stage1(
     p: ArrayLike,
@@ -431,6 +453,7 @@ def _stage1(
     known: ArrayLike | None,
     share: float,
     prior: tuple[float, float],
+    stages: int,
 ) -> _Stage1:
     from bams_cli.core import design as dz
 
@@ -449,8 +472,12 @@ def _stage1(
     post1 = dz.risk_posterior([], prior=prior)
     c1 = dz.choose_design(p1, K=share * K, posterior=post1, order=order1)
     pi1 = c1.pi
+    # Stage 1 spends ``share`` of K, each later stage an equal part of the rest.
+    shares = [share, *([(1.0 - share) / (stages - 1)] * (stages - 1))]
     return _Stage1(
-        N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, p1=p1, f1=f1, u1=u1,
+        N=N, n1=n1, known_f=int(fail[known_m].sum()), K=K, shares=shares,
+        weights=np.asarray(dz.stage_weights(shares, K, n1), dtype=np.float64), p1=p1, f1=f1,
+        u1=u1,
         norms1=dz.risk_norms(u1),
         order1=order1, name1=c1.name, pi1=pi1, wm1=dz.unseen_failure_weight(post1.allowance_risk(p1), pi1),
         V1=float(((1.0 - pi1[f1]) / pi1[f1]).sum()), rate=float(fail.mean()),
@@ -488,10 +515,8 @@ def _multi_stage_trials(
 
     share = defaults.STAGE1_SHARE if share is None else share
     prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    st = _stage1(p, is_failure, K, known, share, prior)
-    N, n1, known_f, K = st.N, st.n1, st.known_f, st.K
-    shares = [share, *([(1.0 - share) / (stages - 1)] * (stages - 1))]
-    weights = dz.stage_weights(shares, K, n1)
+    st = _stage1(p, is_failure, K, known, share, prior, stages)
+    N, known_f, K, shares = st.N, st.known_f, st.K, st.shares
     out = {k: np.empty(n_trials) for k in ("p_hat", "lo", "hi", "lam", "in_hand", "unbiased")}
     V = np.zeros((n_trials, stages))
     names: list[str] = []
@@ -543,19 +568,14 @@ def _multi_stage_trials(
             ps, fs = ps[rest], fs[rest]
             us = dz.relative_risk(ps)
             norms = dz.risk_norms(us)
-        comb = dz.combine_stages(ests, weights, n_pool=N)
+        comb = dz.combine_stages(ests, st.weights, n_pool=N)
         out["p_hat"][t], out["lo"][t], out["hi"][t] = comb.p_hat[0], comb.ci_low[0], comb.ci_high[0]
         assert comb.p_hat_unbiased is not None
         out["unbiased"][t] = comb.p_hat_unbiased[0]
         out["lam"][t] = post.lam_mean if post is not None else float("nan")
-    w = np.asarray(weights, dtype=np.float64)
-    var = float((w**2 * V.mean(axis=0)).sum()) / N**2
-    var_u = int(st.f1.sum()) * (n1 - K) / K / N**2 if K > 0 else math.inf
-    recall = out["in_hand"] / st.n_fail if st.n_fail > 0 else np.full(n_trials, np.nan)
-    return StagedTrials(
-        p_hat=out["p_hat"], ci_low=out["lo"], ci_high=out["hi"], lam=out["lam"],
-        stage2_design=names, recall=recall, var=var, var_uniform=var_u,
-        stage1_design=st.name1, rate=st.rate, p_hat_unbiased=out["unbiased"],
+    return st.result(
+        out["p_hat"], out["lo"], out["hi"], out["lam"], names, V, out["in_hand"],
+        out["unbiased"],
     )  # fmt: skip
 
 
@@ -666,17 +686,16 @@ def _staged_trials_fast(
 
     share = defaults.STAGE1_SHARE if share is None else share
     prior = defaults.RISK_MIX_PRIOR if prior is None else prior
-    st = _stage1(p, is_failure, K, known, share, prior)
+    st = _stage1(p, is_failure, K, known, share, prior, stages)
     if not (st.K > 0 and 0 < share < 1 and defaults.DEFENSIVE > 0):
         # Nothing to sample, or a single stage: the reference handles (or rejects) it.
         return _multi_stage_trials(
             p, is_failure, K=K, known=known, share=share, stages=stages, prior=prior,
             anchor_sd=anchor_sd, confidence=confidence, n_trials=n_trials, rng=rng,
         )  # fmt: skip
-    N, n1, known_f, K = st.N, st.n1, st.known_f, st.K
-    shares = [share, *([(1.0 - share) / (stages - 1)] * (stages - 1))]
-    weights = dz.stage_weights(shares, K, n1)
+    N, n1, known_f, K, shares = st.N, st.n1, st.known_f, st.K, st.shares
     p1, f1 = st.p1, st.f1
+    p_mean1 = float(p1.mean())
     n_certain1 = int(np.count_nonzero(st.pi1 >= 1.0))
     taus = np.asarray(dz.TAUS, dtype=np.float64)
     pos = p1 > 0
@@ -727,7 +746,7 @@ def _staged_trials_fast(
                 break
             # The finished stage's evidence, formed as the reference forms it.
             if s == 0:
-                us, norms, p_mean = st.u1, st.norms1, float(p1.mean())
+                us, norms, p_mean = st.u1, st.norms1, p_mean1
             else:
                 ps = p1[kept]
                 us = dz.relative_risk(ps)
@@ -743,7 +762,7 @@ def _staged_trials_fast(
             sums = sums - gone if np.all(gone <= 0.5 * sums) else powers @ kept.astype(np.float64)
     # ``combine_stages`` on every trial's stage figures, in its order of operations.
     Nf = float(N)
-    w = np.asarray(weights, dtype=np.float64)
+    w = st.weights
     total, certain, v, w_next = (np.zeros(n_trials) for _ in range(4))
     for s in range(stages):
         total = total + w[s] * (est[s, 0] / Nf)
@@ -757,14 +776,7 @@ def _staged_trials_fast(
     total = np.minimum(np.maximum(total, found_last), cap)
     hi = np.minimum(np.maximum(certain + hi_r, total), cap)
     lo = np.minimum(np.maximum(certain + lo_r, found_last), np.minimum(total, hi))
-    var = float((w**2 * V.mean(axis=0)).sum()) / N**2
-    var_u = int(f1.sum()) * (n1 - K) / K / N**2
-    recall = in_hand / st.n_fail if st.n_fail > 0 else np.full(n_trials, np.nan)
-    return StagedTrials(
-        p_hat=total / Nf, ci_low=lo / Nf, ci_high=hi / Nf, lam=lam, stage2_design=names,
-        recall=recall, var=var, var_uniform=var_u, stage1_design=st.name1, rate=st.rate,
-        p_hat_unbiased=unbiased / Nf,
-    )  # fmt: skip
+    return st.result(total / Nf, lo / Nf, hi / Nf, lam, names, V, in_hand, unbiased / Nf)
 
 
 def _later_stage_design(
