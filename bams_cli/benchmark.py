@@ -691,7 +691,7 @@ def screen_default(root: Path, truth_path: Path, *, K: float, seed: int) -> dict
         p, fail, K=K, cost=settings.costs[screening.SCREEN_LEVEL], share=float(share),
         refit=refit, known=seen[0], cheap_known=seen[1], n_trials=SCREEN_TRIALS,
         prior=screening.risk_prior(model, settings),
-        confirm_prior=screening.confirm_prior(model, settings), leads=leads,
+        confirm_prior=screening.confirm_prior(model, settings), leads=leads, cheap=cheap,
         rng=np.random.default_rng([seed, 2027]),
     )  # fmt: skip
     return {

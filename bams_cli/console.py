@@ -562,6 +562,7 @@ def plan_summary(s: Mapping[str, Any]) -> None:
             f"{_gamma(s.get('plan_gamma'))}, the largest, which the plan is drawn for",
             "trust in p_n": _trust(s.get("model_check")),
             "confirmation": _confirm_prior((s.get("screen") or {}).get("confirm_prior")),
+            "screen leads": _screen_leads(s.get("screen")),
             "hand-off": s["handoff"],
             "results template": s.get("results_template"),
         },
@@ -594,6 +595,16 @@ def _confirm_prior(prior: Any) -> str | None:
     return (
         f"pi2 within the screen planned under Beta({prior[0]:g}, {prior[1]:g}), as the "
         "screen recorded; the trust above prices the interval's allowance"
+    )
+
+
+def _screen_leads(screen: Mapping[str, Any] | None) -> str | None:
+    """A screen's confirmation: how many of its lowest cheap results it runs for certain."""
+    if not screen or screen.get("screen_leads") is None:
+        return None
+    return (
+        f"the screen's {plural(screen['screen_leads'], 'lowest cheap result')} confirmed "
+        f"with certainty, of {_num(screen['level0_budget'])} level-0 runs"
     )
 
 

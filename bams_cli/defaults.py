@@ -227,6 +227,15 @@ STAGES = 3
 SCREEN_HINT_DISCREPANCY = 0.3
 #: The share of K the suggested screen spends (the share measured there).
 SCREEN_HINT_SHARE = 0.3
+#: A screen's confirmation runs at level 0, with certainty, the screened segments whose
+#: cheap result is among the lowest SCREEN_LEAD_SHARE x K2 of the screen's (K2 the level-0
+#: runs left once the screen is paid; ``core.screen.screen_leads``), the open leads
+#: counted among them; the rest of K2 goes by the refitted model. Model-free: drawn from
+#: the truth with the rest spread uniformly, a screen of 0.3 of K confirming its lowest
+#: 0.5 K2 this way held at most 0.92x a uniform design's variance on every one of the 15
+#: suite and fresh problems, at 1.5x-3.0x its recall (0.3 K2: 0.90x, 0.7 K2: 1.08x;
+#: docs/suite/screen_frontier.md).
+SCREEN_LEAD_SHARE = 0.5
 #: ``estimate --plan --screen``'s default: "auto" screens SCREEN_HINT_SHARE of a new
 #: estimate's K where the fitted cheap level tracks level 0 (SCREEN_HINT_DISCREPANCY) and
 #: plans the staged design elsewhere; "off" never screens. Measured through the benchmark

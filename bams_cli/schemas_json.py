@@ -436,6 +436,9 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "cheap_runs": COUNT,
                         # open leads confirmed with certainty (pi1 = pi2 = 1)
                         "leads_certain": COUNT,
+                        # the screen's own leads: its lowest cheap results, confirmed
+                        # with certainty (``core.screen.screen_leads``)
+                        "screen_leads": COUNT,
                         "level0_budget": NUM,
                         # Beta(a, b) on lam that planned pi2, as the screen recorded it
                         "confirm_prior": array(NUM),

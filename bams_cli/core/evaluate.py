@@ -1019,6 +1019,8 @@ def screen_trials(
     prior: tuple[float, float] | None = None,
     confirm_prior: tuple[float, float] | None = None,
     leads: ArrayLike | None = None,
+    cheap: ArrayLike | None = None,
+    lead_share: float | None = None,
     n_trials: int,
     rng: np.random.Generator,
 ) -> ScreenTrials:
@@ -1059,6 +1061,12 @@ def screen_trials(
         The open leads the screen takes with certainty (pi1 = pi2 = 1, ``core.screen``),
         as ``pipeline.estimation.open_leads`` chooses them; they must hold a cheap result
         (``cheap_known``) and lie outside ``known``.
+    cheap : array_like of shape (n_pool,), optional
+        The cheap-level result each segment's screen run would return: the confirmation
+        takes the screen's lowest with certainty (``core.screen.screen_leads``, at
+        ``lead_share`` of K2), as ``estimate --plan`` does. Without it, no screen leads.
+    lead_share : float, optional
+        ``core.screen.screen_leads``'s share; default ``defaults.SCREEN_LEAD_SHARE``.
     n_trials : int
     rng : numpy.random.Generator
 
@@ -1089,6 +1097,7 @@ def screen_trials(
     if np.any(lead & (kn | ~have)):
         raise ValueError("a lead must have a cheap result and no level-0 one")
     lead_U = lead[U]
+    cheap_U = None if cheap is None else np.asarray(cheap, dtype=np.float64)[U]
     pi1 = sc.screen_design(p[U], K=K, cost=cost, share=share, posterior=posterior, leads=lead_U).pi
     recall = np.empty(n_trials)
     screened = np.empty(n_trials, np.int64)
@@ -1103,7 +1112,10 @@ def screen_trials(
         p2 = np.asarray(refit(U[s1]), dtype=np.float64)
         runs = int((~have[U[s1]]).sum())
         K2 = min(sc.confirm_budget(K, cost, runs), float(s1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm, leads=lead_U[s1]).pi
+        certain = lead_U[s1]
+        if cheap_U is not None:
+            certain = certain | sc.screen_leads(cheap_U[s1], K2, share=lead_share, taken=lead_U[s1])
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm, leads=certain).pi
         recall[t] = (in_hand + float(pi2[fU[s1]].sum())) / F
         v2[t] = sc.phase2_variance(fU[s1], pi1[s1], pi2)
     N2 = float(n) ** 2

@@ -51,6 +51,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from bams_cli import defaults
 from bams_cli.core.design import DesignChoice, RiskPosterior, choose_design, predicted_variance
 
 FloatArray = NDArray[np.float64]
@@ -176,6 +177,59 @@ def confirm_design(
     lead = _mask(leads, p2.size)
     n_lead = int(lead.sum())
     return _with_leads(p2, lead, confirm_size(K2, n_lead, p2.size) - n_lead, posterior)
+
+
+def screen_leads(
+    cheap: ArrayLike,
+    K2: float,
+    *,
+    share: float | None = None,
+    taken: ArrayLike | None = None,
+) -> NDArray[np.bool_]:
+    """The screen's own leads: the screened segments whose cheap result ranks among the
+    lowest ``share`` x K2 of the screen's, confirmed with certainty (pi2 = 1) beside the
+    open leads ``taken``, which count against the same share.
+
+    A model that reads the cheap level as weak shrinks each cheap run towards its
+    surroundings, so its p2 confirms a low cheap result little more often than any other;
+    the cheap result itself ranks failures far better than chance on every problem
+    measured (docs/suite/screen_frontier.md). The rule needs no model and no rate: the
+    ranking is fixed by phase 1's outcomes before phase 2 draws, so T stays unbiased.
+
+    Parameters
+    ----------
+    cheap : array_like of shape (n_screened,)
+        Each screened segment's cheap result (its mean where it has several); NaN where it
+        has none (its cheap run abandoned): never a lead.
+    K2 : float
+        The confirmation's level-0 budget (``confirm_budget``).
+    share : float, optional
+        The share of K2 the leads may take, in [0, 1); default
+        ``defaults.SCREEN_LEAD_SHARE``.
+    taken : bool array_like of shape (n_screened,), optional
+        The open leads already confirmed with certainty.
+
+    Returns
+    -------
+    bool ndarray of shape (n_screened,)
+        The screen's leads, none of them in ``taken``; ties at the cut are broken by
+        position, so the rule is a function of S1 and its cheap results alone.
+    """
+    share = defaults.SCREEN_LEAD_SHARE if share is None else float(share)
+    v = np.asarray(cheap, dtype=np.float64)
+    if v.ndim != 1:
+        raise ValueError(f"cheap must be 1-d, one result per screened segment, got {v.shape}")
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"the screen leads' share of K2 must lie in [0, 1), got {share!r}")
+    tk = _mask(taken, v.size)
+    out = np.zeros(v.size, bool)
+    room = int(math.floor(share * max(float(K2), 0.0) + 1e-9)) - int(tk.sum())
+    candidates = np.flatnonzero(np.isfinite(v) & ~tk)
+    if room <= 0 or candidates.size == 0:
+        return out
+    order = candidates[np.argsort(v[candidates], kind="stable")]
+    out[order[:room]] = True
+    return out
 
 
 def confirm_size(K2: float, n_lead: int, n_screened: int) -> float:

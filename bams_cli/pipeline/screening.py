@@ -161,28 +161,31 @@ def auto_share(
     model: dict[str, Any], settings: Settings, *, K: float, n_unknown: int, n_observations: int
 ) -> tuple[float | None, str]:
     """``--screen auto`` for a new estimate of budget ``K``: the share to screen (None: no
-    screen) and a note saying why. It screens where the fitted cheap-level discrepancy is
-    small (``screen_hint``'s rule) and a refit can condition on every cheap run of the
-    screen besides the log's ``n_observations`` (``refit_too_large``)."""
+    screen) and a note saying why. It screens wherever the study has a cheap level and a
+    refit can condition on every cheap run of the screen besides the log's
+    ``n_observations`` (``refit_too_large``). Where the fitted cheap-level discrepancy is
+    small (``screen_hint``'s rule) the refitted model ranks the screen well; elsewhere the
+    screen's own lowest cheap results, which its confirmation takes with certainty
+    (``core.screen.screen_leads``), are what the screen buys (docs/suite/screen_frontier.md)."""
     from bams_cli.core.screen import screen_size
 
     limit = defaults.SCREEN_HINT_DISCREPANCY
     ratio = _study_discrepancy(model, settings)
     if ratio is None:
         return None, "--screen auto: no screen (the model has no cheap level to screen with)"
-    if ratio >= limit:
-        return None, (
-            f"--screen auto: no screen; the model's cheap-level discrepancy sd is {ratio:.2f} "
-            f"of its level-0 signal's (screened below {limit:g}: where it was higher, the "
-            "screen had up to 1.68x the variance on the suite, docs/suite/screen_design.md); "
-            "the plan trusts p_n less there (prior Beta"
-            f"{defaults.RISK_MIX_PRIOR_WEAK_CHEAP} on the failure share it does not explain)"
-        )
     share = defaults.SCREEN_HINT_SHARE
     n_screen = screen_size(K, float(settings.costs[SCREEN_LEVEL]), share, n_unknown)
     too_large = refit_too_large(n_screen, n_observations)
     if too_large is not None:
         return None, too_large
+    if ratio >= limit:
+        return share, (
+            f"--screen auto: screening {share:g} of K; the model's cheap-level discrepancy sd "
+            f"is {ratio:.2f} of its level-0 signal's, so the confirmation runs the screen's "
+            f"lowest cheap results with certainty ({defaults.SCREEN_LEAD_SHARE:g} of its "
+            "level-0 runs) rather than trust the model's ranking of them "
+            "(docs/suite/screen_frontier.md)"
+        )
     return share, (
         f"--screen auto: screening {share:g} of K; the model's cheap-level discrepancy sd is "
         f"{ratio:.2f} of its level-0 signal's (under {limit:g}: the screen had 0.31 to 1.06 "
@@ -367,6 +370,20 @@ def draw_screen(
     }
 
 
+def cheap_results(ws: Workspace, ids: np.ndarray) -> np.ndarray:
+    """Each segment's cheap result (level ``SCREEN_LEVEL``) in the log, the mean of its
+    results where it has several; NaN where it has none."""
+    obs = (
+        ws.read_observations()
+        .filter(pl.col("fidelity") == SCREEN_LEVEL)
+        .group_by(SID)
+        .agg(pl.col("value").mean())
+    )
+    want = pl.DataFrame({SID: np.asarray(ids).astype(str), "_i": np.arange(len(ids))})
+    joined = want.join(obs, on=SID, how="left").sort("_i")
+    return joined["value"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+
+
 def read_screen(
     ws: Workspace, number: int, ids: np.ndarray
 ) -> tuple[pl.DataFrame, dict, np.ndarray]:
@@ -466,9 +483,13 @@ def confirm_screen(
     lead_U = ids_in(ids[U], np.asarray(smeta.get("lead_ids") or [], dtype=str))
     if np.any(lead_U & ~in_s1):
         raise WorkspaceError(f"{path}: a lead the screen took with certainty is not in it")
+    own = np.zeros(S1.size, bool)
     if S1.size:
         K2 = min(sc.confirm_budget(K, cost, int(smeta["cheap_runs"])), float(S1.size))
-        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm_posterior, leads=lead_U[in_s1]).pi
+        # The screen's own leads: its lowest cheap results, confirmed with certainty.
+        own = sc.screen_leads(cheap_results(ws, ids[S1]), K2, taken=lead_U[in_s1])
+        certain = lead_U[in_s1] | own
+        pi2 = sc.confirm_design(p2, K2=K2, posterior=confirm_posterior, leads=certain).pi
     else:  # an empty screen has nothing to confirm: T = 0, its conditional mean
         K2, pi2 = 0.0, np.zeros(0)
     drawn = draw_poisson(pi2, rng)
@@ -478,9 +499,13 @@ def confirm_screen(
     # "mean" allowance, ``core.screen.allowance_pi``; docs/suite/screen_design.md).
     # A lead is confirmed with certainty: no unseen failure hides there, and its pi2 of 1
     # is not what a screened segment of its risk gets. So both allowances are taken over
-    # U without the leads (an empty rest of S1 prices at pi1, as an empty screen does).
-    rest = ~lead_U
-    pi1_r, s1_r, pi2_r = pi1_U[rest], in_s1[rest], pi2[~lead_U[in_s1]]
+    # U without the leads, open or the screen's own (an empty rest of S1 prices at pi1, as
+    # an empty screen does).
+    certain_U = lead_U.copy()
+    certain_U[np.flatnonzero(in_s1)[own]] = True
+    rest = ~certain_U
+    pi1_r, s1_r, pi2_r = pi1_U[rest], in_s1[rest], pi2[~certain_U[in_s1]]
+    n_certain = int(certain_U.sum())
     w_model = []
     for g in range(p_all.shape[1]):
         risk = posterior.allowance_risk(p_all[U, g])[rest]
@@ -497,7 +522,7 @@ def confirm_screen(
         "pi": pi[drawn],
         # The runs the confirmation asks for on average: K2, or more where the open leads
         # alone use K2 up (``core.screen.confirm_size``).
-        "K2": sc.confirm_size(K2, int(lead_U.sum()), S1.size) if S1.size else 0.0,
+        "K2": sc.confirm_size(K2, n_certain, S1.size) if S1.size else 0.0,
         "w_model": w_model,
         "w_max": w_max,
         "predicted_vs_uniform": None if math.isnan(predicted) else round(predicted, 6),
@@ -512,6 +537,7 @@ def confirm_screen(
             "screened": int(S1.size),
             "cheap_runs": int(smeta["cheap_runs"]),
             "leads_certain": int(lead_U.sum()),
+            "screen_leads": int(own.sum()),
             "level0_budget": K2,
             "confirm_prior": [float(v) for v in confirm_posterior.prior],
             "seed": smeta.get("seed"),

@@ -48,6 +48,10 @@ SHARES = tuple(np.round(np.arange(0.05, 0.96, 0.05), 2))
 #: Fixed rules shown across every problem: (share s, lead threshold as m times the rate
 #: the study planned K for, K / 2N).
 RULES = ((0.3, 2), (0.3, 4), (0.4, 4), (0.6, 8), (0.8, 8))
+#: ... and the rule ``estimate --plan`` ships (``core.screen.screen_leads``), which needs no
+#: rate: share s, leads the lowest h K2 of S1's cheap values (K2 = (1 - s) K), i.e. the
+#: pool's lowest h (1 - s) c1 / s.
+LEAD_RULES = ((0.3, 0.3), (0.3, 0.5), (0.3, 0.7), (0.4, 0.5))
 FRESH_COST = 0.1
 K_FLOOR = 100.0
 
@@ -139,6 +143,11 @@ def run(fresh: Path | None, out: Path, command: str = "run") -> dict:
                 f0, f1, gamma, c1, K, s, float(np.quantile(f1, min(1.0, m * K / (2 * f0.size))))
             )
             row["rules"][f"{s}/{m}"] = None if r is None else {"recall": r[0], "var": r[1]}
+        row["lead_rules"] = {}
+        for s, h in LEAD_RULES:
+            q = min(1.0, h * (1 - s) * c1 / s)
+            r = design(f0, f1, gamma, c1, K, s, float(np.quantile(f1, q)))
+            row["lead_rules"][f"{s}/{h}"] = None if r is None else {"recall": r[0], "var": r[1]}
         rows.append(row)
     doc = {"rows": rows, "ratio": RATIO, "command": command, "seconds": round(time.time() - t0, 1)}
     out.mkdir(parents=True, exist_ok=True)
@@ -247,6 +256,28 @@ def table(doc: dict) -> str:
         out.append(
             f"| {r['problem']} | " + " | ".join(_x(r["rules"][f"{s}/{m}"]) for s, m in RULES) + " |"
         )
+    out += [
+        "",
+        "The rule `estimate --plan` ships (`core.screen.screen_leads`, no rate needed): "
+        "share s, leads the lowest h K2 of S1's cheap values, K2 = (1 - s) K the level-0 "
+        "runs left; the rest of K2 spread uniformly over S1 here (the tool spreads it by "
+        "the refitted model). Worst variance over the problems where it is feasible:",
+        "",
+        "| problem | " + " | ".join(f"s {s}, h {h}" for s, h in LEAD_RULES) + " |",
+        "| --- | " + " | ".join("---" for _ in LEAD_RULES) + " |",
+    ]
+    for r in rows:
+        out.append(
+            f"| {r['problem']} | "
+            + " | ".join(_x(r["lead_rules"][f"{s}/{h}"]) for s, h in LEAD_RULES)
+            + " |"
+        )
+    worst = []
+    for s, h in LEAD_RULES:
+        vs = [r["lead_rules"][f"{s}/{h}"] for r in rows]
+        vs = [v for v in vs if v]
+        worst.append(f"{max(v['var'] for v in vs):.2f} / {min(v['recall'] for v in vs):.1f}x")
+    out.append("| worst var / least recall | " + " | ".join(worst) + " |")
     out += [
         "",
         f"Command: `.venv/bin/python docs/suite/screen_frontier.py {doc['command']}` "
