@@ -965,8 +965,8 @@ def estimate(
             metavar="SHARE|auto|off",
             help="With --plan: spend SHARE of K on cheap-level runs of a sample first; "
             "after their results and a refit, the next --plan confirms within it at level "
-            "0. auto: 0.3 where the fitted cheap level tracks level 0, else the staged "
-            "plan; off: never \\[default: auto].",
+            "0, its lowest cheap results for certain. auto: 0.3 wherever the study has a "
+            "cheap level, else the staged plan; off: never \\[default: auto].",
         ),
     ] = None,
     plan_number: Annotated[
@@ -1023,15 +1023,17 @@ def estimate(
     --plan draws a stage's sample and writes its hand-off list; once its results are
     ingested, estimate (no --plan) computes the estimate for every configured gamma.
 
-    Unscreened, K is spent in stages (--stages, default 3): after each stage's results,
+    Unscreened (--screen off, or a study with one level), K is spent in stages
+    (--stages, default 3): after each stage's results,
     refit and run --plan again for the next, whose design rests on the model as checked
     against the outcomes so far. The stages' weights are fixed at stage 1, so the combined
     estimate stays unbiased.
 
-    Screened (--screen SHARE, or the default auto where the fitted cheap level tracks
-    level 0), the first --plan writes cheap-level runs of a sample as a batch
+    Screened (--screen SHARE, or the default auto wherever the study has a cheap level),
+    the first --plan writes cheap-level runs of a sample as a batch
     (batches/batch-NNNN.csv); after their results and a refit, --plan confirms within it
-    at level 0 (estimates/plan-NNNN-handoff.csv). Each --plan says which it drew.
+    at level 0 (estimates/plan-NNNN-handoff.csv), the screen's lowest cheap results with
+    certainty. Each --plan says which it drew.
 
     [bold]Example[/]: bams-cli estimate -w study --plan --samples 200
 

@@ -128,9 +128,9 @@ def estimate_plan(
         sample first (``bams_cli.pipeline.screening``); the next call, once their results
         are in and the model refitted, draws the level-0 confirmation. The summary is then
         the screen's (``screen_file``, ``batch``, ``handoff`` ...), not a plan's. "auto"
-        screens ``defaults.SCREEN_HINT_SHARE`` of a new estimate's K where the fitted
-        cheap-level discrepancy is under ``defaults.SCREEN_HINT_DISCREPANCY`` of the
-        level-0 signal, and otherwise plans as without it (it confirms an open screen and
+        screens ``defaults.SCREEN_HINT_SHARE`` of a new estimate's K wherever the study
+        has a cheap level and the refit can condition on the screen
+        (``screening.auto_share``), and otherwise plans as without it (it confirms an open screen and
         continues a staged estimate as a plain call does), saying which in a note; it
         plans without a screen where none can be drawn (a design other than poisson, or
         level-0 runs awaiting results beside --allow-pending). "off" or None: no screen.

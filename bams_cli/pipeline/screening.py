@@ -9,8 +9,9 @@ A screened estimate takes two ``estimate --plan`` calls (``core.screen`` holds t
    ``loop`` treat them as any batch. The screen itself, pi1 over the pool as it stood, is
    ``estimates/screen-NNNN.parquet``, named by the plan number its confirmation takes.
 2. Once the batch's results are in and the model refitted on them, the next ``estimate
-   --plan`` draws the confirmation: pi2 over S1 from the refitted p_n with what is left of
-   K, and a plan (``plan-NNNN``) whose sampled segments carry pi = pi1 pi2. ``estimate``
+   --plan`` draws the confirmation: pi2 = 1 on the screen's lowest cheap results
+   (``core.screen.screen_leads``) and the open leads, pi2 over the rest of S1 from the
+   refitted p_n with what is left of K, and a plan (``plan-NNNN``) whose sampled segments carry pi = pi1 pi2. ``estimate``
    then computes it as any one-stage plan: T = sum y / (pi1 pi2) is unbiased whatever the
    refit did, since pi2 is fixed before any level-0 outcome of the confirmation is seen.
 

@@ -168,6 +168,19 @@ def _vr(v) -> str:
     return "-" if v is None else f"{v['var']:.2f} ({v['recall']:.2f}x)"
 
 
+def _rule_table(rows: list[dict], key: str, rules, name: str) -> list[str]:  # noqa: ANN001
+    """One row per problem, one column per (share, parameter) rule."""
+    out = [
+        "| problem | " + " | ".join(f"s {s}, {name} {v}" for s, v in rules) + " |",
+        "| --- | " + " | ".join("---" for _ in rules) + " |",
+    ]
+    for r in rows:
+        out.append(
+            f"| {r['problem']} | " + " | ".join(_x(r[key][f"{s}/{v}"]) for s, v in rules) + " |"
+        )
+    return out
+
+
 def _shows(by: dict) -> list[str]:
     """What the share table shows, read off it."""
     rare = by["rare_regions"]["by_share_best"]
@@ -249,29 +262,15 @@ def table(doc: dict) -> str:
         "lies in the pool's lowest m K / 2N (m times the rate K was planned for); recall "
         "over uniform's / var over uniform's ('-': the leads alone cost more than K).",
         "",
-        "| problem | " + " | ".join(f"s {s}, m {m}" for s, m in RULES) + " |",
-        "| --- | " + " | ".join("---" for _ in RULES) + " |",
-    ]
-    for r in rows:
-        out.append(
-            f"| {r['problem']} | " + " | ".join(_x(r["rules"][f"{s}/{m}"]) for s, m in RULES) + " |"
-        )
-    out += [
+        *_rule_table(rows, "rules", RULES, "m"),
         "",
         "The rule `estimate --plan` ships (`core.screen.screen_leads`, no rate needed): "
         "share s, leads the lowest h K2 of S1's cheap values, K2 = (1 - s) K the level-0 "
         "runs left; the rest of K2 spread uniformly over S1 here (the tool spreads it by "
         "the refitted model). Worst variance over the problems where it is feasible:",
         "",
-        "| problem | " + " | ".join(f"s {s}, h {h}" for s, h in LEAD_RULES) + " |",
-        "| --- | " + " | ".join("---" for _ in LEAD_RULES) + " |",
+        *_rule_table(rows, "lead_rules", LEAD_RULES, "h"),
     ]
-    for r in rows:
-        out.append(
-            f"| {r['problem']} | "
-            + " | ".join(_x(r["lead_rules"][f"{s}/{h}"]) for s, h in LEAD_RULES)
-            + " |"
-        )
     worst = []
     for s, h in LEAD_RULES:
         vs = [r["lead_rules"][f"{s}/{h}"] for r in rows]

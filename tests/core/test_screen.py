@@ -231,6 +231,23 @@ def test_leads_are_screened_and_confirmed_with_certainty_and_the_rest_keeps_its_
         sc.confirm_design(p2, K2=8.0, posterior=prior, leads=l2[:5])
 
 
+def _phase2_moments(P1: float, s1: np.ndarray, pi2: np.ndarray, pi: np.ndarray):
+    """Given S1 (drawn with probability P1): every S2 enumerated, the sums over them of
+    P T, P T^2 and P v (v the Poisson variance estimate at pi = pi1 pi2)."""
+    mean = second = v_mean = 0.0
+    for bits2 in itertools.product((0, 1), repeat=s1.size):
+        in2 = np.array(bits2, dtype=bool)
+        P = P1 * float(np.prod(np.where(in2, pi2, 1.0 - pi2)))
+        if P == 0.0:
+            continue
+        y = FAIL[s1] & in2
+        T = float(np.sum(1.0 / pi[y]))
+        mean += P * T
+        second += P * T * T
+        v_mean += P * float(np.sum((1.0 - pi[y]) / pi[y] ** 2))
+    return mean, second, v_mean
+
+
 def test_the_screened_estimate_with_certain_leads_is_unbiased_by_enumeration():
     # Segments 0 and 5 are leads (5 fails at level 0 unseen by the cheap level's value
     # here, which the refit reads as a pass): pi1 = pi2 = 1 there, the rest as drawn.
@@ -249,16 +266,8 @@ def test_the_screened_estimate_with_certain_leads_is_unbiased_by_enumeration():
         pi2 = sc.confirm_design(p2, K2=K2, posterior=dz.risk_posterior([]), leads=lead[s1]).pi
         assert np.all(pi2[lead[s1]] == 1.0)
         pi = sc.confirmed_pi(pi1[s1], pi2)
-        for bits2 in itertools.product((0, 1), repeat=s1.size):
-            in2 = np.array(bits2, dtype=bool)
-            P = P1 * float(np.prod(np.where(in2, pi2, 1.0 - pi2)))
-            if P == 0.0:
-                continue
-            y = FAIL[s1] & in2
-            T = float(np.sum(1.0 / pi[y]))
-            mean += P * T
-            second += P * T * T
-            v_mean += P * float(np.sum((1.0 - pi[y]) / pi[y] ** 2))
+        m, s2, v = _phase2_moments(P1, s1, pi2, pi)
+        mean, second, v_mean = mean + m, second + s2, v_mean + v
     assert mean == pytest.approx(FAIL.sum(), abs=1e-10)
     assert v_mean == pytest.approx(second - mean**2, rel=1e-10)
 
@@ -426,16 +435,8 @@ def test_the_screened_estimate_with_its_own_leads_is_unbiased_by_enumeration():
             moved, float(np.abs(pi2 - sc.confirm_design(p2, K2=K2, posterior=post).pi).max())
         )
         pi = sc.confirmed_pi(PI1[s1], pi2)
-        for bits2 in itertools.product((0, 1), repeat=s1.size):
-            in2 = np.array(bits2, dtype=bool)
-            P = P1 * float(np.prod(np.where(in2, pi2, 1.0 - pi2)))
-            if P == 0.0:
-                continue
-            y = FAIL[s1] & in2
-            T = float(np.sum(1.0 / pi[y]))
-            mean += P * T
-            second += P * T * T
-            v_mean += P * float(np.sum((1.0 - pi[y]) / pi[y] ** 2))
+        m, s2, v = _phase2_moments(P1, s1, pi2, pi)
+        mean, second, v_mean = mean + m, second + s2, v_mean + v
     assert n_leads > 0 and moved > 0.2
     assert mean == pytest.approx(FAIL.sum(), abs=1e-10)
     assert v_mean == pytest.approx(second - mean**2, rel=1e-10)
