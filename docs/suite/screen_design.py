@@ -610,7 +610,7 @@ def table() -> None:
             "",
             "The same for the screen as `estimate --plan` draws it since 2026-11-30, when "
             "`--screen auto` began to screen every study with a cheap level "
-            "(`screen_design.py coverage PROBLEM --trials 4 --default`, the coverage "
+            "(`screen_design.py coverage PROBLEM --trials 4 --default [--strategy mcm-gp]`, the coverage "
             "docstring says how): the study's priors on lam from the seed's model, the "
             "screen's own lowest cheap results confirmed with certainty and left out of the "
             "allowance's stand-in. The three problems it did not screen before; 4 screens "
@@ -625,8 +625,12 @@ def table() -> None:
             "mean p_hat / rate |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
-        for problem, rows in dflt.items():
-            lines += _allowance_rows(f"| {problem} | {len(rows)} |", rows)
+        for strategy, kind in (
+            ("BAMS", "coverage-default-"),
+            ("MCM-GP", "coverage-default-mcm-gp-"),
+        ):
+            for problem, rows in _by_problem(kind).items():
+                lines += _allowance_rows(f"| {problem}, {strategy} | {len(rows)} |", rows)
     held = [
         (seed, problem, [json.loads(x) for x in path.read_text().splitlines() if x])
         for seed in (1, 2)
