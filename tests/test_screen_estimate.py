@@ -203,10 +203,10 @@ def test_a_screened_estimate_walks_screen_results_fit_confirm_results_estimate(f
     post = dz.risk_posterior([])
     p_cols = sorted((c for c in scores.columns if c.startswith("p_")), key=lambda c: int(c[2:]))
     assert len(pmeta["w_model"]) == len(p_cols) == 2
-    unk_lead = unk[SID].is_in(sorted(leads | own)).to_numpy()
+    unk_lead = unk[SID].is_in(sorted(leads)).to_numpy()
     for g, col in enumerate(p_cols):
-        # No unseen failure hides in a lead, open or the screen's own, confirmed with
-        # certainty.
+        # No unseen failure hides in an open lead, confirmed with certainty; the screen's
+        # own leads stay in the stand-in at their pi2 of 1.
         risk = np.where(unk_lead, 0.0, post.allowance_risk(unk[col].to_numpy()))
         stand_in = (risk[in_s1] * pi2).sum() / risk[in_s1].sum()
         allow = np.where(in_s1, 0.0, pi1_u * stand_in)

@@ -268,8 +268,8 @@ def coverage(
     2026-11-30: pi1 under the study's prior on lam and pi2 under its confirmation prior
     (``pipeline.screening.risk_prior``, ``confirm_prior``: the seed's fitted model), the
     screen's own lowest cheap results confirmed with certainty
-    (``core.screen.screen_leads``) and left out of the allowance's stand-in, as the tool
-    leaves them; the open leads of discovery are not taken (the tool takes them with
+    (``core.screen.screen_leads``) and kept in the allowance's stand-in at their pi2 of 1,
+    as the tool keeps them; the open leads of discovery are not taken (the tool takes them with
     certainty in both phases). Lines go to coverage-default-PROBLEM.jsonl."""
     from bams_cli.core import design as dz
     from bams_cli.core import screen as sc
@@ -302,13 +302,8 @@ def coverage(
             pi2 = sc.confirm_design(p2_all[s1], K2=K2, posterior=confirm, leads=own).pi
             counts = (rng.random((s1.size, draws)) < pi2[:, None]).astype(np.int64)
             allow = prior.allowance_risk(p2_all)
-            # The allowance's stand-in pi2 leaves the screen's own leads out (their pi2 of
-            # 1 is the rule's): a zero risk weight there (pi2 = 1 never sets the min).
-            allow_in = allow.copy()
-            allow_in[s1[own]] = 0.0
-            for how in ALLOWANCES:
-                pi_u = _allowance_pi(pi1, s1, pi2, allow_in, how)
-                wm = dz.unseen_failure_weight(allow_in, pi_u)
+            for how in ALLOWANCES:  # the screen's own leads in the stand-in, as the tool
+                wm = dz.unseen_failure_weight(allow, _allowance_pi(pi1, s1, pi2, allow, how))
                 est = estimate_from_sample(
                     sc.confirmed_pi(pi1[s1], pi2), fU[s1], design="poisson", n_pool=N,
                     n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk,
