@@ -695,7 +695,7 @@ over plain MC's at the same cost; the new column): cancer 1.8x, classif 1.5x, sc
 1.0x, veryrare 7.3x, hview 2.1x, against the design's 1.5x, 1.1x, 1.1x, 4.2x and 2.2x
 drawn with stage 1's p_n kept. Rerun 2026-11-30 (runs 00:45-01:57 at 1f89bb4, where
 --screen auto screens every study with a cheap level and the screen's confirmation runs
-its own lowest cheap results with certainty; table 01:57-02:14 at 6c98805; common not
+its own lowest cheap results with certainty; table 01:57-02:14 at 40d2457; common not
 rerun, its row as before): every run of the eight screened (before: ties, braking, 7 of
 8 blind, 3 of 8 veryrare). The design drawn from the truth (4 screens per run), against
 the row before: cancer 0.898 -> 0.348 of uniform's variance and recall 1.5x -> 2.7x plain
