@@ -220,12 +220,16 @@ LEAD_SCALE_LIMIT = 1.5
 #: rare_regions 0.99 [1.03] and 2.1x against 0.99 [1.05] and 1.6x; digits, whose stages
 #: see a failure or none, 0.99 [1.06] and 1.8x against 1.00 [1.06] and 1.9x.
 STAGES = 3
-#: ``estimate --plan`` suggests a screen (``--screen``) where the fitted model's
-#: discrepancy-plus-cheap-noise sd is under this share of its level-0 signal sd: on the
-#: suite the screen never had more than 1.06x the unscreened design's variance there, and
-#: up to 1.68x where the cheap level was weaker (docs/suite/screen_design.md, fourth table).
+#: Where the fitted model's discrepancy-plus-cheap-noise sd is under this share of its
+#: level-0 signal sd the cheap level tracks level 0: the screen's pi2 trusts the refitted
+#: p_n (RISK_MIX_PRIOR_CONFIRM), and an unscreened plan (--screen off) notes that a screen
+#: would pay. At or above it the priors on lam trust p_n less (RISK_MIX_PRIOR_WEAK_CHEAP).
+#: A screen confirmed by the refitted p_n alone had at most 1.06x the unscreened design's
+#: variance below it on the suite, and up to 1.68x above it (docs/suite/screen_design.md,
+#: fourth table); the screen's own leads (SCREEN_LEAD_SHARE) removed that cost.
 SCREEN_HINT_DISCREPANCY = 0.3
-#: The share of K the suggested screen spends (the share measured there).
+#: The share of K a screen spends under --screen auto, and the suggested one (the share
+#: measured there; 0.4 was worse on braking, ties and blind, README).
 SCREEN_HINT_SHARE = 0.3
 #: A screen's confirmation runs at level 0, with certainty, the screened segments whose
 #: cheap result is among the lowest SCREEN_LEAD_SHARE x K2 of the screen's (K2 the level-0
@@ -237,9 +241,12 @@ SCREEN_HINT_SHARE = 0.3
 #: docs/suite/screen_frontier.md).
 SCREEN_LEAD_SHARE = 0.5
 #: ``estimate --plan --screen``'s default: "auto" screens SCREEN_HINT_SHARE of a new
-#: estimate's K where the fitted cheap level tracks level 0 (SCREEN_HINT_DISCREPANCY) and
-#: plans the staged design elsewhere; "off" never screens. Measured through the benchmark
-#: on the suite (README, "Defaults, and why"; docs/suite/screen_design.md).
+#: estimate's K wherever the study has a cheap level and a refit can condition on the
+#: screen (``pipeline.screening.auto_share``), and plans the staged design elsewhere; "off"
+#: never screens. Measured through the benchmark on the suite (README, "Defaults, and
+#: why"; docs/reproduction/suite: weak_cheap, digits and rare_regions, staged until
+#: 2026-11-30, went from 1.3x, 1.8x and 1.7x plain MC's recall to 2.1x, 3.5x and 2.3x, at
+#: 0.86, 0.56 and 0.50 of uniform's variance).
 SCREEN = "auto"
 #: Stage 1's share of K: an equal part (each stage spends K / STAGES).
 STAGE1_SHARE = 1.0 / 3.0
@@ -265,22 +272,23 @@ RISK_MIX_PRIOR = (0.5, 1.0)
 #: on rare_regions), so stage 2 is drawn at the prior too. An estimate keeps the prior of
 #: its first step (a stage, a screen) to its last. Measured on every run at or above that
 #: threshold (docs/suite/weak_cheap_prior.md; held out: every run of weak_cheap, digits and
-#: rare_regions, which auto screened on no seed): the worst seed's
+#: rare_regions, which auto did not screen until 2026-11-30): the worst seed's
 #: variance over uniform's fell from 1.16 to 1.07 on the suite, from 1.22 to 1.08 on
 #: held-out instances and from 1.19 to 1.09 on a real-data problem written after the
 #: defaults (cancer), at the same coverage; a model that ranked well there (one run of a
-#: problem whose cheap level is blind to one failure mode) went from 0.26 to 0.36.
+#: problem whose cheap level is blind to one failure mode) went from 0.26 to 0.36. Since
+#: auto screens them, it plans their screen's pi1 and pi2 (suite: 0.86, 0.56 and 0.50 of
+#: uniform's variance; coverage 0.935-1.000, docs/suite/screen_design.md).
 RISK_MIX_PRIOR_WEAK_CHEAP = (1.0, 0.5)
 
 #: The prior on lam of a screen's level-0 confirmation (pi2 over S1,
 #: ``core.design.confirm_prior``) where the fitted cheap level tracks level 0 (its
-#: discrepancy sd under SCREEN_HINT_DISCREPANCY of the level-0 signal's, which is where
-#: ``--screen auto`` screens): Beta(0.1, 10), mean 0.01, trusting the refitted p_n almost
+#: discrepancy sd under SCREEN_HINT_DISCREPANCY of the level-0 signal's): Beta(0.1, 10), mean 0.01, trusting the refitted p_n almost
 #: wholly. After the screen every segment of S1 has its own cheap run, so p_n there is
 #: close to a measurement, not a prediction from distant level-0 runs; a failure the
 #: refit misses is one its cheap level misses too. The screen's pi1 and the interval's
 #: allowance keep the study's prior (RISK_MIX_PRIOR). Where the cheap level does not track
-#: level 0 (an explicit --screen), the confirmation keeps RISK_MIX_PRIOR_WEAK_CHEAP.
+#: level 0, the confirmation keeps RISK_MIX_PRIOR_WEAK_CHEAP.
 #: Chosen against Beta(0.5, 1) and Beta(0.25, 4) (docs/suite/screen_confirm_prior.md):
 #: against Beta(0.5, 1) the mean variance over uniform's fell on every problem measured
 #: (toy2d 0.035 -> 0.021, gap_sim 0.40 -> 0.34, av_like's held-out data seed 2 0.31 -> 0.19;
