@@ -599,8 +599,11 @@ def table() -> None:
         ]
         for problem, rows in cov_rows.items():
             lines += _allowance_rows(f"| {problem} | {len(rows)} |", rows)
-    dflt = _by_problem("coverage-default-")
-    if dflt:
+    dflt = {
+        "BAMS": _by_problem("coverage-default-"),
+        "MCM-GP": _by_problem("coverage-default-mcm-gp-"),
+    }
+    if any(dflt.values()):
         lines += [
             "",
             "The same for the screen as `estimate --plan` draws it since 2026-11-30, when "
@@ -622,11 +625,8 @@ def table() -> None:
             "mean p_hat / rate |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |",
         ]
-        for strategy, kind in (
-            ("BAMS", "coverage-default-"),
-            ("MCM-GP", "coverage-default-mcm-gp-"),
-        ):
-            for problem, rows in _by_problem(kind).items():
+        for strategy, by in dflt.items():
+            for problem, rows in by.items():
                 lines += _allowance_rows(f"| {problem}, {strategy} | {len(rows)} |", rows)
     held = [
         (seed, problem, [json.loads(x) for x in path.read_text().splitlines() if x])

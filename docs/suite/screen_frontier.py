@@ -75,25 +75,41 @@ def design(f0, f1, gamma: float, c1: float, K: float, share: float, t: float):
     return float(pi[fail].mean()) / (K / N), var / uniform, pi2
 
 
-def frontier(f0, f1, gamma, c1, K, ratio=RATIO, shares=SHARES):
-    """The largest recall over (share, threshold) at variance <= ratio x uniform's."""
+def grid(f0, f1, gamma, c1, K) -> dict:
+    """(recall, var) of every (share, threshold quantile) of the search, once per problem
+    (None where infeasible)."""
+    cuts = {q: float(np.quantile(f1, q)) for q in QUANTILES}
+    out = {}
+    for s in SHARES:
+        for q, t in cuts.items():
+            r = design(f0, f1, gamma, c1, K, float(s), t)
+            out[float(s), q] = None if r is None else (r[0], r[1])
+    return out
+
+
+def frontier(g: dict, ratio: float = RATIO, shares=SHARES):  # noqa: ANN001
+    """The largest recall over the grid's (share, threshold) at variance <= ratio x
+    uniform's, over ``shares``."""
     best = None
-    for s in shares:
-        for q in QUANTILES:
-            r = design(f0, f1, gamma, c1, K, float(s), float(np.quantile(f1, q)))
-            if r and r[1] <= ratio and (best is None or r[0] > best["recall"]):
-                best = {"share": float(s), "q": q, "recall": r[0], "var": r[1]}
+    for (s, q), r in g.items():
+        if s in shares and r and r[1] <= ratio and (best is None or r[0] > best["recall"]):
+            best = {"share": s, "q": q, "recall": r[0], "var": r[1]}
     return best
 
 
-def least_variance(f0, f1, gamma, c1, K, share):
-    """The least variance over thresholds at a fixed share, and the recall there."""
+def least_variance(g: dict, share: float):
+    """The least variance over the grid's thresholds at a fixed share, and the recall there."""
     out = None
-    for q in QUANTILES:
-        r = design(f0, f1, gamma, c1, K, share, float(np.quantile(f1, q)))
-        if r and (out is None or r[1] < out["var"]):
+    for (s, q), r in g.items():
+        if s == share and r and (out is None or r[1] < out["var"]):
             out = {"q": q, "recall": r[0], "var": r[1]}
     return out
+
+
+def _at_quantile(f0, f1, gamma, c1, K, share: float, q: float):  # noqa: ANN001
+    """A fixed rule's (recall, var) as a dict, the threshold the pool's q-quantile of f1."""
+    r = design(f0, f1, gamma, c1, K, share, float(np.quantile(f1, min(1.0, q))))
+    return None if r is None else {"recall": r[0], "var": r[1]}
 
 
 def problems(fresh: Path | None):
@@ -122,6 +138,7 @@ def run(fresh: Path | None, out: Path, command: str = "run") -> dict:
     rows = []
     for name, f0, f1, gamma, c1, K in problems(fresh):
         fail = f0 <= gamma
+        g = grid(f0, f1, gamma, c1, K)
         row = {
             "problem": name,
             "suite": name in SUITE,
@@ -130,24 +147,20 @@ def run(fresh: Path | None, out: Path, command: str = "run") -> dict:
             "K": K,
             "c1": c1,
             "seen": float(np.mean(f1[fail] <= gamma)),
-            "frontier": frontier(f0, f1, gamma, c1, K),
-            "frontier_any_var": frontier(f0, f1, gamma, c1, K, ratio=np.inf),
-            "by_share": {str(s): least_variance(f0, f1, gamma, c1, K, float(s)) for s in SHARES},
-            "by_share_best": {
-                str(s): frontier(f0, f1, gamma, c1, K, shares=(float(s),)) for s in SHARES
+            "frontier": frontier(g),
+            "frontier_any_var": frontier(g, ratio=np.inf),
+            "by_share": {str(x): least_variance(g, float(x)) for x in SHARES},
+            "by_share_best": {str(x): frontier(g, shares=(float(x),)) for x in SHARES},
+            # m times the rate K was planned for; h K2 of S1 (K2 = (1 - s) K).
+            "rules": {
+                f"{x}/{m}": _at_quantile(f0, f1, gamma, c1, K, x, m * K / (2 * f0.size))
+                for x, m in RULES
             },
-            "rules": {},
+            "lead_rules": {
+                f"{x}/{h}": _at_quantile(f0, f1, gamma, c1, K, x, h * (1 - x) * c1 / x)
+                for x, h in LEAD_RULES
+            },
         }
-        for s, m in RULES:
-            r = design(
-                f0, f1, gamma, c1, K, s, float(np.quantile(f1, min(1.0, m * K / (2 * f0.size))))
-            )
-            row["rules"][f"{s}/{m}"] = None if r is None else {"recall": r[0], "var": r[1]}
-        row["lead_rules"] = {}
-        for s, h in LEAD_RULES:
-            q = min(1.0, h * (1 - s) * c1 / s)
-            r = design(f0, f1, gamma, c1, K, s, float(np.quantile(f1, q)))
-            row["lead_rules"][f"{s}/{h}"] = None if r is None else {"recall": r[0], "var": r[1]}
         rows.append(row)
     doc = {"rows": rows, "ratio": RATIO, "command": command, "seconds": round(time.time() - t0, 1)}
     out.mkdir(parents=True, exist_ok=True)
