@@ -246,7 +246,10 @@ SCREEN_LEAD_SHARE = 0.5
 #: never screens. Measured through the benchmark on the suite (README, "Defaults, and
 #: why"; docs/reproduction/suite: weak_cheap, digits and rare_regions, staged until
 #: 2026-11-30, went from 1.3x, 1.8x and 1.7x plain MC's recall to 2.1x, 3.5x and 2.3x, at
-#: 0.86, 0.56 and 0.50 of uniform's variance).
+#: 0.86, 0.56 and 0.50 of uniform's variance). Its cost: where the cheap level is
+#: unrelated to level 0 the screen's leads are a random share of S1, and the design had
+#: 1.59-2.62 times a uniform one's variance (staged: 0.68-1.05), with nothing before the
+#: screen to tell it from a weak level that pays (docs/suite/unrelated_cheap.md).
 SCREEN = "auto"
 #: Stage 1's share of K: an equal part (each stage spends K / STAGES).
 STAGE1_SHARE = 1.0 / 3.0

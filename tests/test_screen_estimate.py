@@ -478,6 +478,8 @@ def test_screen_auto_screens_wherever_the_study_has_a_cheap_level(fitted, tmp_pa
     assert out["screen_share"] == defaults.SCREEN_HINT_SHARE
     (note,) = [n for n in out["notes"] if n.startswith("--screen auto: screening 0.3 of K")]
     assert "0.80 of its level-0 signal's" in note and "lowest cheap results" in note
+    # ... and that a cheap level unrelated to level 0 would make it cost, and the way out.
+    assert "unrelated to level 0" in note and "--screen off" in note
     assert out["risk_prior"] == list(defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
     assert out["confirm_prior"] == list(defaults.RISK_MIX_PRIOR_WEAK_CHEAP)
     # A study with one level has nothing to screen with: the staged plan, and why.

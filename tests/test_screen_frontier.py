@@ -67,3 +67,43 @@ def test_recall_never_exceeds_the_screens_share_over_its_cost():
 def test_leads_that_cost_more_than_K_make_no_design():
     f0 = np.linspace(-1, 1, 100)
     assert sf.design(f0, f0, 0.0, 0.1, 5.0, 0.5, 10.0) is None
+
+
+def test_a_screen_on_an_unrelated_cheap_level_costs_what_the_closed_form_says():
+    """With f1 independent of f0 the leads are a random L of S1's A segments, so a failure
+    is confirmed at pi1 with chance L/A and at pi1 pi2 otherwise, pi2 = (K2 - L)/(A - L):
+    Var / uniform ~ (K/A) (1 + (A - L)(A - K2) / (A (K2 - L))), about 2.2 at the shipped
+    share 0.3 and lead share 0.5 with cheap runs at 0.1 (docs/suite/unrelated_cheap.md).
+    The design with leads taken at random must cost that, and more than without leads."""
+    rng = np.random.default_rng(3)
+    n, c1, s, h = 400_000, 0.1, 0.3, 0.5
+    f0 = rng.standard_normal(n)
+    gamma = float(np.quantile(f0, 0.01))
+    f1 = rng.permutation(f0)
+    K = 2.0 * float(np.sum(f0 <= gamma))
+    A, K2 = s * K / c1, (1 - s) * K
+    L = h * K2
+    r = sf._at_quantile(f0, f1, gamma, c1, K, s, h * (1 - s) * c1 / s)  # L leads in S1
+    closed = (K / A) * (1 + (A - L) * (A - K2) / (A * (K2 - L)))
+    assert closed == pytest.approx(2.2, abs=0.1)
+    assert r["var"] == pytest.approx(closed, rel=0.05)
+    no_leads = sf.design(f0, f1, gamma, c1, K, s, -np.inf)
+    assert no_leads[1] == pytest.approx(K / K2, rel=0.05)  # 1 / (1 - s): the cheap runs' cost
+    assert r["var"] > 1.4 * no_leads[1]
+
+
+def test_the_unrelated_cheap_levels_are_what_they_say():
+    path = Path(__file__).resolve().parents[1] / "docs" / "suite" / "unrelated_cheap.py"
+    spec = importlib.util.spec_from_file_location("unrelated_cheap", path)
+    assert spec and spec.loader
+    uc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(uc)
+    f0 = np.random.default_rng(0).gamma(2.0, 3.0, 50_000)
+    perm = uc.cheap_variant(f0, "perm", np.random.default_rng(1))
+    assert np.array_equal(np.sort(perm), np.sort(f0))
+    assert abs(np.corrcoef(f0, perm)[0, 1]) < 0.02
+    c30 = uc.cheap_variant(f0, "c30", np.random.default_rng(1))
+    assert np.corrcoef(f0, c30)[0, 1] == pytest.approx(0.3, abs=0.02)
+    assert c30.std() == pytest.approx(f0.std(), rel=0.02)
+    with pytest.raises(ValueError, match="unknown variant"):
+        uc.cheap_variant(f0, "c50", np.random.default_rng(1))

@@ -167,7 +167,12 @@ def auto_share(
     ``n_observations`` (``refit_too_large``). Where the fitted cheap-level discrepancy is
     small (``screen_hint``'s rule) the refitted model ranks the screen well; elsewhere the
     screen's own lowest cheap results, which its confirmation takes with certainty
-    (``core.screen.screen_leads``), are what the screen buys (docs/suite/screen_frontier.md)."""
+    (``core.screen.screen_leads``), are what the screen buys (docs/suite/screen_frontier.md).
+    Where the cheap level is unrelated to level 0 those leads are a random share of the
+    screen taken with certainty, and the design has about twice a uniform one's variance
+    (docs/suite/unrelated_cheap.md); no evidence the study holds before the screen (its
+    pairs, the fitted discrepancy) tells that level apart from a weak one that pays, so
+    the note says so and ``--screen off`` is the user's."""
     from bams_cli.core.screen import screen_size
 
     limit = defaults.SCREEN_HINT_DISCREPANCY
@@ -185,7 +190,10 @@ def auto_share(
             f"is {ratio:.2f} of its level-0 signal's, so the confirmation runs the screen's "
             f"lowest cheap results with certainty ({defaults.SCREEN_LEAD_SHARE:g} of its "
             "level-0 runs) rather than trust the model's ranking of them "
-            "(docs/suite/screen_frontier.md)"
+            "(docs/suite/screen_frontier.md); a cheap level unrelated to level 0 makes "
+            "this screen cost about twice a uniform design's variance, and nothing before "
+            "it tells the two apart: if yours is, plan with --screen off "
+            "(docs/suite/unrelated_cheap.md)"
         )
     return share, (
         f"--screen auto: screening {share:g} of K; the model's cheap-level discrepancy sd is "
