@@ -169,14 +169,20 @@ def _seed_states(su: Setup, seeds: list[int]) -> Iterator[tuple[int, Path, SeedS
     shutil.rmtree(su.scratch, ignore_errors=True)
 
 
-def _refit_on_screen(base: Path, root: Path, st: SeedState, s1: np.ndarray) -> np.ndarray:
+def _refit_on_screen(
+    base: Path, root: Path, st: SeedState, s1: np.ndarray, have: np.ndarray | None = None
+) -> np.ndarray:
     """p_0 over U from a copy of ``base`` refitted with S1's cheap-level results (positions
-    in U), at the discovery model's hyperparameters; the copy is removed."""
+    in U), at the discovery model's hyperparameters; the copy is removed. ``have`` (bool
+    over the pool): segments whose cheap result is in the log already, not run again (as
+    ``estimate --plan`` screens them)."""
     from bams_cli import benchmark as bm
     from bams_cli import pipeline
 
     shutil.copytree(base, root)
     sel = st.U[s1]
+    if have is not None:
+        sel = sel[~have[sel]]
     _append_cheap(root, st.ids[sel], st.cheap[sel], st.next_batch)
     pipeline.fit(root, fixed_hyperparameters=root / "model.json", **bm.FIT_DEFAULTS)
     p = bm._column(root / "scores.parquet", "p_0").astype(float)[st.U]
@@ -269,12 +275,15 @@ def coverage(
     (``pipeline.screening.risk_prior``, ``confirm_prior``: the seed's fitted model), the
     screen's own lowest cheap results confirmed with certainty
     (``core.screen.screen_leads``) and kept in the allowance's stand-in at their pi2 of 1,
-    as the tool keeps them; the open leads of discovery are not taken (the tool takes them with
-    certainty in both phases). Lines go to coverage-default-PROBLEM.jsonl."""
+    as the tool keeps them; discovery's open leads taken with certainty in both phases
+    (``pipeline.estimation.open_leads``, as ``benchmark.screen_default`` takes them, since
+    2026-11-30; before, they were not) and segments with a cheap result already not run
+    again, so they cost nothing. Lines go to coverage-default-PROBLEM.jsonl."""
     from bams_cli.core import design as dz
     from bams_cli.core import screen as sc
     from bams_cli.core.estimate import estimate_from_sample
     from bams_cli.pipeline import screening
+    from bams_cli.pipeline.estimation import open_leads
     from bams_cli.state.workspace import Workspace
 
     su = _setup(problem, "cov")
@@ -283,27 +292,48 @@ def coverage(
         U, fU, N, Fk = st.U, st.fU, st.ids.size, st.Fk
         rate = st.F / N
         confirm = prior
+        lead_U = np.zeros(U.size, bool)
+        have = None
         if default:
             ws = Workspace(base)
             model, settings = ws.read_model(), ws.require_initialised()
             prior = dz.risk_posterior([], prior=screening.risk_prior(model, settings))
             confirm = dz.risk_posterior([], prior=screening.confirm_prior(model, settings))
-        pi1 = sc.screen_design(st.p[U], K=K, cost=c, share=COVERAGE_SHARE, posterior=prior).pi
+            obs = ws.read_observations()
+            have = np.isin(st.ids, obs.filter(obs["fidelity"] == 1)["segment_id"].to_numpy())
+            leads, _ = open_leads(
+                ws, st.ids, st.p, st.known, su.prob.gamma, ws.pending(),
+                K=sc.lead_budget(K, COVERAGE_SHARE),
+                scales=model["hyperparameters"].get("scales") or (),
+            )  # fmt: skip
+            lead_U = leads[U]
+        pi1 = sc.screen_design(
+            st.p[U], K=K, cost=c, share=COVERAGE_SHARE, posterior=prior, leads=lead_U
+        ).pi
         rng = np.random.default_rng(seed * 100 + 11)
         tally = {h: np.zeros(5) for h in ALLOWANCES}  # hits, below, above, width, p_hat
         for t in range(trials):
             s1 = np.flatnonzero(rng.random(U.size) < pi1)
-            p2_all = _refit_on_screen(base, su.scratch / f"cov-{seed}-{t}", st, s1)
+            p2_all = _refit_on_screen(base, su.scratch / f"cov-{seed}-{t}", st, s1, have)
             # An empty screen has an empty confirmation: T = 0 in every draw.
-            K2 = min(sc.confirm_budget(K, c, s1.size), float(s1.size)) if s1.size else K
-            own = np.zeros(s1.size, bool)
+            runs = s1.size if have is None else int((~have[U[s1]]).sum())
+            K2 = min(sc.confirm_budget(K, c, runs), float(s1.size)) if s1.size else K
+            own = lead_U[s1]
             if default and s1.size:
-                own = sc.screen_leads(st.cheap[U][s1], K2)
+                own = own | sc.screen_leads(st.cheap[U][s1], K2, taken=lead_U[s1])
             pi2 = sc.confirm_design(p2_all[s1], K2=K2, posterior=confirm, leads=own).pi
             counts = (rng.random((s1.size, draws)) < pi2[:, None]).astype(np.int64)
             allow = prior.allowance_risk(p2_all)
-            for how in ALLOWANCES:  # the screen's own leads in the stand-in, as the tool
-                wm = dz.unseen_failure_weight(allow, _allowance_pi(pi1, s1, pi2, allow, how))
+            # Over U without the open leads (no unseen failure hides in one), the screen's
+            # own leads in the stand-in: as the tool prices it (``pipeline.screening``).
+            rest = ~lead_U
+            in_s1 = np.zeros(U.size, bool)
+            in_s1[s1] = True
+            s1_r, pi2_r, allow_r = np.flatnonzero(in_s1[rest]), pi2[rest[s1]], allow[rest]
+            for how in ALLOWANCES:
+                wm = dz.unseen_failure_weight(
+                    allow_r, _allowance_pi(pi1[rest], s1_r, pi2_r, allow_r, how)
+                )
                 est = estimate_from_sample(
                     sc.confirmed_pi(pi1[s1], pi2), fU[s1], design="poisson", n_pool=N,
                     n_unknown=U.size, budget=K2, counts=counts, known_failures=Fk,
