@@ -281,7 +281,7 @@ RISK_MIX_PRIOR = (0.5, 1.0)
 #: defaults (cancer), at the same coverage; a model that ranked well there (one run of a
 #: problem whose cheap level is blind to one failure mode) went from 0.26 to 0.36. Since
 #: auto screens them, it plans their screen's pi1 and pi2 (suite: 0.86, 0.56 and 0.50 of
-#: uniform's variance; coverage 0.935-1.000, docs/suite/screen_design.md).
+#: uniform's variance; coverage 0.956-1.000, docs/suite/screen_design.md).
 RISK_MIX_PRIOR_WEAK_CHEAP = (1.0, 0.5)
 
 #: The prior on lam of a screen's level-0 confirmation (pi2 over S1,
