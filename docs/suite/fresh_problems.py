@@ -560,6 +560,11 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
                 # in hand after its estimate, over all of the pool's.
                 "run_recall_over_mc": e["distinct_failures_found"] / int(fail.sum()) / mc,
                 "discrepancy_fitted_over_true": disc,
+                # The staged design whether or not the run screened: what --screen off
+                # would have planned (unrelated_cheap.py sets it beside the screen's).
+                "staged_var_over_uniform": t.var / t.var_uniform if t.var_uniform > 0 else None,
+                "staged_coverage": t.coverage,
+                "staged_recall_over_mc": float(t.recall.mean()) / mc,
             }
         )  # fmt: skip
     return {"problem": problem, "n_pool": N, "rate": rate, "runs": runs}

@@ -150,67 +150,45 @@ def _pairs(ws: Path) -> tuple[int, float]:
 
 
 def evaluate(out: Path, problem: str, trials: int) -> list[dict]:
+    """fresh_problems.py's evaluation of each run (the screened design at ``trials``
+    screens, the staged one, the realised interval), with the model-free screen and what
+    the study could see before the screen beside it."""
     import polars as pl
     import screen_frontier as sf
-    from fresh_problems import DISCOVERY_COST, _series_K
+    from fresh_problems import _evaluate
 
     from bams_cli import benchmark, defaults
-    from bams_cli.benchmark import fit_prior, screen_default
-    from bams_cli.core.design import lead_share
-    from bams_cli.core.evaluate import staged_trials
-    from bams_cli.pipeline._handoff import cheap_failures, lead_evidence
     from bams_cli.pipeline.screening import cheap_level_discrepancy
-    from bams_cli.state.workspace import Workspace
 
     truth = pl.read_parquet(out / problem / "truth.parquet")
+    f0, f1 = truth["value_0"].to_numpy(), truth["value_1"].to_numpy()
     gamma = float((out / problem / "gamma").read_text())
-    benchmark.SCREEN_TRIALS = trials
+    benchmark.SCREEN_TRIALS = trials  # read by benchmark.screen_default at each call
+    s = defaults.SCREEN_HINT_SHARE
     rows = []
-    for path in sorted((out / "runs").glob(f"{problem}-s*.estimate.json")):
-        ws = path.with_name(path.name.removesuffix(".estimate.json"))
-        kept = ws.with_name(f"{ws.name}.after-batch-3")
-        doc = json.loads(path.read_text())
-        ids = pl.read_parquet(kept / "segments.parquet", columns=["segment_id"])["segment_id"]
-        levels = ids.to_frame().join(truth, on="segment_id", how="left")
-        f0, f1 = levels["value_0"].to_numpy(), levels["value_1"].to_numpy()
-        fail = f0 <= gamma
-        K = _series_K(ws, doc)
-        model = json.loads((kept / "model.json").read_text())
-        p = pl.read_parquet(kept / "scores.parquet")["p_0"].to_numpy()
-        obs = pl.read_parquet(kept / "observations.parquet").filter(pl.col("fidelity") == 0)
-        known = ids.is_in(obs["segment_id"].implode()).to_numpy()
-        w = Workspace(kept)
-        scales = model["hyperparameters"].get("scales") or ()
-        cheap = cheap_failures(w, ids.to_numpy(), gamma, scales)
-        share = lead_share(*lead_evidence(w, ids.to_numpy(), cheap, gamma))
-        t = staged_trials(
-            p, fail, K=K, known=known, n_trials=1000,
-            prior=fit_prior(model.get("hyperparameters")),
-            rng=np.random.default_rng(7), leads=cheap & ~known, lead_share=share,
-        )  # fmt: skip
-        seed = int(ws.name.rsplit("-s", 1)[1])
-        sd = screen_default(kept, out / problem / "truth.parquet", K=K, seed=seed)
-        s = defaults.SCREEN_HINT_SHARE
+    for r in _evaluate(out, problem)["runs"]:
+        kept = out / "runs" / f"{r['run']}.after-batch-3"
         free = sf._at_quantile(
-            f0, f1, gamma, sf.FRESH_COST, K, s,
+            f0, f1, gamma, sf.FRESH_COST, r["K"], s,
             defaults.SCREEN_LEAD_SHARE * (1 - s) * sf.FRESH_COST / s,
         )  # fmt: skip
         n_pairs, rho = _pairs(kept)
-        mc = min(1.0, (DISCOVERY_COST + K) / fail.size)
+        screened = r["screened"]
         rows.append(
             {
-                "run": ws.name, "K": K, "pairs": n_pairs, "pairs_spearman": rho,
-                "fitted_discrepancy_ratio": cheap_level_discrepancy(model),
-                "screened": sd is not None,
-                "screen_var": sd["var_ratio"] if sd else None,
-                "screen_recall_over_mc": sd["recall"] / mc if sd else None,
-                "staged_var": float(t.var / t.var_uniform), "staged_coverage": float(t.coverage),
-                "staged_recall_over_mc": float(t.recall.mean()) / mc,
-                "model_free_var": free["var"] if free else None,
-                "run_p_hat_over_rate": float(doc["estimates"][0]["p_hat"] / fail.mean()),
-                "run_covers": bool(
-                    doc["estimates"][0]["ci_low"] <= fail.mean() <= doc["estimates"][0]["ci_high"]
+                "run": r["run"], "K": r["K"], "pairs": n_pairs, "pairs_spearman": rho,
+                "fitted_discrepancy_ratio": cheap_level_discrepancy(
+                    json.loads((kept / "model.json").read_text())
                 ),
+                "screened": screened,
+                "screen_var": r["design_var_over_uniform"] if screened else None,
+                "screen_recall_over_mc": r["recall_over_mc"] if screened else None,
+                "staged_var": r["staged_var_over_uniform"],
+                "staged_coverage": r["staged_coverage"],
+                "staged_recall_over_mc": r["staged_recall_over_mc"],
+                "model_free_var": free["var"] if free else None,
+                "run_p_hat_over_rate": r["p_hat_over_rate"],
+                "run_covers": bool(r["covers"]),
             }
         )  # fmt: skip
         print(json.dumps(rows[-1]), flush=True)
