@@ -571,163 +571,404 @@ def _evaluate(out: Path, problem: str) -> dict[str, object]:
 
 
 #: What the tables show, as measured when they were made.
-NOTES = """Measured 2026-11-28 (runs 03:22-03:40, repeat 03:40-03:49) at 88703ab, the
-defaults as shipped (the prior on lam follows the fitted cheap level since 2026-11-27). All
-32 runs' intervals held the true rate. Against the runs of 2026-11-27 at 42801af (one prior
-on lam): cancer's intervals 7 -> 8 of 8 holding the rate, its design 0.914 [1.193] -> 0.899
-[1.083] of uniform's variance, recall 1.4x -> 1.3x plain MC; ties the same (screened);
-blind 0.192 [0.263] -> 0.204 [0.362], its one unscreened run (seed 5) trusting p_n less
-(0.26 -> 0.36; the screened seven 0.18 on average), recall 7.4x -> 7.2x. classif is new
-(the problem a new user built): no run screened (cheap level corr 0.49), all 8 intervals
-held the rate, the design stayed at uniform's variance (1.020 [1.049]) with coverage 0.963,
-but recall is 0.9x plain MC (0.8x-1.4x): the cheap level ranks failures in its lowest tail
-(the lowest 1% of f1 fail at 16x the rate) and explains little of f0 elsewhere (R^2 0.21
-on the asinh scale, with a fitted slope), the model reads it as weak, and discovery's
-11-15 level-0 runs (plain MC's 20) found 2 failures in all 8 runs, both confirming
-cheap-level leads (2 of the 16 leads confirmed). The screened path drawn 20 times from blind seed 4's
-workspace (the refit in every draw): p_hat 1.020 ± 0.020 of the rate, all 20 intervals
-holding it. braking added 2026-11-28 (runs 06:58-07:17 at fdd8bdd, the other four
-problems' rows as measured before): --screen auto screened all 8 runs (the cheap level
-tracks level 0 globally, corr 0.999), all 8 intervals held the rate, the design had 0.250
-[0.372] of uniform's variance and recall 12.5x plain MC, though the cheap level misses 39%
-of the failures. But the fitted discrepancy after batch 3 is 1.6-5.3 times the pool's
-sd(f1 - f0), outside issue 11's factor 2 on most runs, on the side that trusts the cheap
-level less: the discrepancy is heteroscedastic (sd 2.85 m over the pool, 5.6 m with a mean
-of +8.8 m where |f0| < 20 m), batch 1's six or seven pairs show sd 3.0-8.9 m, and one
-stationary discrepancy kernel cannot hold both; after the estimate, with about 400 pairs,
-fit's check warns that level 1 differs from level 0 more than the model allows near the
-pairs it has (seed 0: sd 5.87 against the model's 3.74). The screened path drawn 12 times from
-braking seed 3's workspace (07:20-07:33): p_hat 0.980 ± 0.057 of the rate, all 12
-intervals holding it, 1.35 times the rate wide. scattered added 2026-11-28 (runs 23:10-23:14
-at c16750b, the other problems' rows as measured before): 103 failures in 20 small pockets
-and on isolated segments, the cheap level (corr 0.69) seeing 54% of them. No run screened;
-all 8 intervals held the rate, the design stayed at uniform's variance (1.041 [1.072]) with
-coverage 0.985 (misses 0.000 below, 0.015 above), and the discrepancy after batch 3 was
-within a factor 2 on every run (0.70-1.22). But the model saw no failure to rank by: its
-expected failures put K at the floor of 100 level-0 runs (0.5 failures expected at the
-rate), five runs found none and reported 0 with an upper limit of 0.031 (6 times the
-rate), three found one and reported 0.011-0.012 [0.0006, 0.053]; and recall is 0.8x plain
-MC, since discovery spent part of its cost on cheap runs (50-110 of them) that confirmed
-nothing at level 0. Rerun 2026-11-29 for the three problems whose runs screen (braking, ties,
-blind; runs 07:02-07:24 at 77ee35f, table 07:25-07:34), once the screen's confirmation
-planned pi2 under Beta(0.1, 10) (docs/suite/screen_confirm_prior.md); discovery is the same,
-so the discrepancy columns are unchanged. The design's variance over uniform's fell: ties
-0.131 [0.340] -> 0.103 [0.276], blind 0.204 -> 0.183 (worst 0.362 both), braking 0.250
-[0.372] -> 0.185 [0.302]; recall over plain MC rose: 18.1x -> 19.2x, 7.2x -> 8.6x, 12.5x ->
-13.8x. 23 of the 24 realised intervals held the rate. The other, ties seed 0, lay wholly
-below it: its screen's S1 held 102 of the 204 unknown failures (107.8 expected) but missed
-the ones at small pi1 (a tenth of them at 0.06-0.07), so E[T | S1] was 0.77 of the rate,
-1.75 of phase 1's sds low; the confirmation took 99 of the 102, p_hat 0.68 of the rate,
-and its variance estimate, resting on the failures S1 drew, gave a relative se of 8%
-against phase 1's 13%: the upper limit 0.0068 missed 0.00687. The same S1 under the former
-prior would have carried phase 2's spread into the interval. Drawn from the truth, the
-screened design's intervals lay wholly below the rate less often under the new prior (ties
-0.001 -> 0.000, braking 0.042 -> 0.018 of draws, docs/suite/screen_confirm_prior.md), so
-this run is a phase-1 tail draw, not a measured shift; an interval that allows for phase
-1's unseen low-pi1 failures better is not built. Why braking's fitted discrepancy is 1.6-5.3
-times the pool's sd (read 2026-11-29 from the 8 runs' workspaces after batch 3): each run
-has 6 or 7 pairs, 5 or 6 from the random first batch, far from failure (f0 > 20 m), whose
-differences have sd 0.7-1.8 m, and one or two from a cheap-level lead that batch 2 or 3
-confirmed at a failure, whose difference is 10-25 m. The fit (4.6-15.2 m, the pairs' sd
-3.0-8.9 m) follows that pair. Over the pool, f1 - f0 has mean 3.2 m and sd 2.7 m far from
-failure but mean 8.8 m and sd 5.6 m where |f0| < 20 m (RMS 7.9 m about the far mean, which
-the offset takes), and mean 14.2 m, sd 7.6 m at the failures themselves. One stationary
-discrepancy cannot hold both; the fit holds the region where failure is decided, and the
-pool's sd (2.85 m) is the wrong yardstick there. A discrepancy whose scale grows near
-failure (heteroscedastic in x or in f0) is what issue 11's factor 2 would need here; it is
-not built. veryrare and common added 2026-11-29 (veryrare's runs 08:58-09:04 at 0fe6d36;
-common's 09:11-09:34 at fa7a036, after the stage weights changed; the other rows as
-measured before). veryrare: all 8 intervals held the rate; discovery found one failure on
-three seeds and none on the rest, the default K was its floor (100, or 70-71 level-0 runs
-after a screen's cheap ones), and the interval reached 22-33 times the rate, about what
-100 uniform runs that see nothing can say (3.0/K): the plan warned that no level-0
-failure had checked the model's rate. Two seeds screened; the staged ones' designs sat at
-0.88-0.98 of uniform's variance with coverage 0.99. Seed 1's fitted discrepancy is 0.33
-of the truth, on the side that trusts the cheap level: its 7 pairs showed differences of
-sd 0.064 against the pool's 0.189 (a chi-square tail of about 0.005), and the model
-follows its pairs. common: the default K (5 x the model's rate, which it put at 0.05-0.21
-against 0.06) was 2,275-9,989 of 10,000 segments, which the plan now says in one line. At
-such K the stages' former weights (their shares of K) were the wrong ones: stage 2 samples
-most of what stage 1 left, and a quarter of stage 1's variance stayed in the sum. Drawn
-from the truth (stage 2 keeping stage 1's p_n), the design had 1.148 [3.067] of a
-uniform design's variance at 0fe6d36 (0.5 / 0.5) and 0.424 [0.815] with the weights
-inverse to each stage's uniform variance (``core.design.stage_weights``: 0.07 / 0.93 at
-K = 0.93 |U|); the realised runs, with the refit between the stages, reported relative
-se 0.06%-4.8% (median 1.4%) against 1.6%-5.3% (median 2.3%) for the same seeds run at
-0fe6d36, and 7 of 8 intervals held the rate both times (seed 6 above it). The suite's
-designs moved in the third decimal (docs/suite/estimate_design.md). common's cheap level
-is the true one scaled by 2.5: the model's discrepancy is additive (f1 = f0 + b + alpha),
-so it sees a level whose differences have sd 1.76 against level 0's 1.09, fits a
-discrepancy 1.5-3.1 times even that, --screen auto never screens, and the design gains
-nothing from a cheap level with corr 0.99. A scale per cheap level (f1 = rho f0 + b +
-alpha, Kennedy and O'Hagan's form) is what would use it; it is not built. cancer rerun
-2026-11-29 (09:53-10:00 at 1ccb757, the new stage weights: 0.45 / 0.55 at its K of
-100-219 on 569 segments; the same draws as before, since the weights change only how
-the stages combine): its design 0.899 [1.083] -> 0.875 [1.067] of uniform's variance,
-coverage 0.938 both, intervals wholly below the rate 0.030 -> 0.029 of draws; the
-realised intervals 8 -> 7 of 8 holding the rate: seed 4, whose 98 estimate runs sampled
-one failure where uniform sampling expects five (p_hat 0.26 of the rate both times), now
-reports [0.0035, 0.0486] against 0.0510 (under the shares' weights its upper limit had
-reached the rate). A tail draw of the design, whose below-misses are 3.6% of draws
-for that seed (3.9% under the old weights): were the 98 runs a uniform sample, Clopper and
-Pearson's exact 90% interval for one failure in them would end at 0.047 of the unknown
-segments, about 0.047 of the pool with the known failure, below the rate too. common rerun 2026-11-29 (12:51-13:18 at d8123ba, the cheap level's scale in the model, docs/suite/level_scale.md; table 13:18-13:26): after batch 3 seven runs' pairs (7 each, slopes 2.50-2.65, correlation 0.991-0.999) showed a scale, cutting the sd of their differences by 4.7-13.9, and the fit took it (rho 2.42-2.57), so the level's discrepancy came to 0.08-0.15 of level 0's signal and --screen auto screened those 7 (none before). The design's variance over uniform's fell from 0.424 [0.815] to 0.134 [0.663] (the screened seven 0.017-0.098), recall over plain MC rose from 1.3x to 2.6x (1.6x-3.8x on the screened seven), and the fitted discrepancy, now set beside the pool's sd(f1 - rho f0) at the fitted rho, is 1.40-2.06 of the truth (1.53-3.12 of sd(f1 - f0) before). 7 of 8 intervals held the rate; the other, seed 6, lay above it as before (p_hat 1.045 of the rate), the one run that did not screen: its 8 pairs (correlation 0.986) cut the sd by 3.75, under the gate's 4, so its model after batch 3 stayed additive (discrepancy 3.2 times level 0's signal); unscreened, it ran no more cheap runs, and its model stayed additive to the end. hview added and cancer rerun 2026-11-29 (runs 15:15-15:24 at 2f6bbce, whose staged estimate samples the open cheap-level leads with certainty, pipeline.estimation.open_leads; table 15:25-15:32 at 5a9c1eb): hview (a 64-d view of a 12-d latent, rate 0.5%, the cheap level blind to one of three failure modes) is a problem the model after batch 3 barely ranks (p_n's AUC over the pool 0.50-0.67 on the first 8 runs, at b4b1a2e; its mean p_n 0.02-0.85 of the rate on the three runs read): no run screened, the default K sat at its floor of 100 on 6 runs, the design stayed at uniform's variance (0.987 [1.032]) with coverage 0.982 and no miss below, all 8 intervals held the rate (five found at most the failure discovery had, p_hat 0.00-0.01 of the rate with upper limits about 3/K), the discrepancy was within 2x on every run (0.74-1.56), and recall was 2.2x plain MC's on average (0.8x-4.2x; 1.4x without the leads on the b4b1a2e runs, where the model put p_n 0.01 or less on leads that failed at level 0 and 0-7 leads were open per run). cancer, with the leads (3-18 per run before, 11 on seed 1): recall over plain MC 1.3x -> 1.5x (lowest 0.9x -> 1.0x), the design 0.875 [1.067] -> 0.901 [1.079] of uniform's variance, coverage 0.938 -> 0.947, misses below 0.029 -> 0.022 of draws; discovery is not the same runs (the code moved since 1ccb757), so the discrepancy column (0.99 / 1.54 / 1.91) moved too. 7 of 8 realised intervals held the rate; seed 1's lay below it ([0.0334, 0.0399] against 0.0510): its stage 1 sampled 11 leads (7 failures) with certainty and 0 failures in its 105 other draws, where about 4 were expected, so stage 1's variance estimate rested on no sampled failure, the checked model was trusted more for stage 2 (lam 0.65 -> 0.30), and the weighted sum (0.0289) fell below the 19 failures found; the design drawn from the truth puts that seed's intervals wholly below the rate in 3.1% of draws. Taking the leads out of U makes a stage-1 draw with no failure among the rest likelier; yet on these same 8 runs drawn 1,000 times each with and without the leads (a throwaway loop over staged_trials), coverage was 0.930 -> 0.947 and misses below 0.035 -> 0.022 of draws (on the 1ccb757 runs 0.938 -> 0.940, 0.029 -> 0.028; hview 0.984 -> 0.982, none below; the suite's digits 0.968 -> 0.969, none below, weak_cheap 0.932 -> 0.928, below 0.031 -> 0.034): this run is a tail draw, not a shift. common rerun 2026-11-29 (14:30-14:50 at 52d0223, the scale's prior centred on the pairs' slope and the data standardised in level 0's units; evaluated at 2f6bbce; docs/suite/level_scale.md): 7 of 8 screened as before, the design 0.134 [0.663] -> 0.148 [0.654] of uniform's variance, recall 2.6x -> 3.0x plain MC, 7 of 8 intervals holding the rate (seed 6 above, as before), the discrepancy 1.40 / 1.64 / 2.06 -> 0.51 / 1.39 / 2.26 of the truth. classif, scattered
-and veryrare rerun 2026-11-29 (runs 16:44-16:58 at 0177348, whose staged estimate samples
-the open leads with certainty; classif again 17:05-17:17 at ec7e794, where the leads'
-share of K follows the study's evidence, core.design.lead_share; tables at ec7e794; cancer
-and hview re-evaluated there, the same to the digit). classif's leads failed at level 0
-7 times in 109 over the 8 runs, at a K of 0.2-1.2 failures of U per run (the model put
-the rate near 0 on 6 runs, so K sat at its floor of 100): a lead taken with certainty
-took a run from segments that failed more often than it did, and half of K in leads
-raised the design's variance to 1.169 [1.323] of uniform's (1.020 [1.049] without
-leads). Under the evidence rule (6 runs' discovery had run 3-5 leads at level 0, none
-failing, so a tenth of K) it is 1.126 [1.187]; recall over plain MC 0.9x -> 1.1x; 7 of 8
-realised intervals held the rate, the other (seed 6) above it. scattered: 0-1 leads per
-run, recall 0.8x -> 1.0x, the design 1.035 [1.051]. veryrare: 3 of 8 runs screened (2
-before; discovery is not the same runs), the design 0.713 [1.033], recall 4.3x plain MC
-(0.0x on seed 5, whose screens confirmed none of the 39 failures), all 8 intervals
-holding the rate. cancer, classif, scattered, veryrare and hview rerun 2026-11-29 (runs
-21:52-22:15 at 20bc836, the estimate in three stages of a third of K, the default since
-907d1d3; table at the commit that added the runs' recall column): discovery is the same
-runs, so the discrepancy column is unchanged. The runs' intervals: 37 of 40 held the rate
-and none lay below it (cancer 7 -> 8 of 8, its seed 1 no longer below; classif 7 -> 6,
-both misses above; scattered 8 -> 7, the miss above; veryrare and hview 8 of 8 both
-times). The design drawn from the truth (later stages keeping stage 1's p_n) moved in the
-third decimal (cancer 0.901 -> 0.898 of uniform's variance, classif 1.126 -> 1.123,
-scattered 1.035 -> 1.033), its misses below the rate the same. Recall as the runs went
-(the failures in hand after each run's estimate, its refits between the stages included,
-over plain MC's at the same cost; the new column): cancer 1.8x, classif 1.5x, scattered
-1.0x, veryrare 7.3x, hview 2.1x, against the design's 1.5x, 1.1x, 1.1x, 4.2x and 2.2x
-drawn with stage 1's p_n kept. Rerun 2026-11-30 (runs 00:45-01:57 at 1f89bb4, where
---screen auto screens every study with a cheap level and the screen's confirmation runs
-its own lowest cheap results with certainty; table 01:57-02:14 at 40d2457; common not
-rerun, its row as before): every run of the eight screened (before: ties, braking, 7 of
-8 blind, 3 of 8 veryrare). The design drawn from the truth (4 screens per run), against
-the row before: cancer 0.898 -> 0.348 of uniform's variance and recall 1.5x -> 2.7x plain
-MC's, classif 1.123 -> 1.006 and 1.1x -> 2.1x, scattered 1.033 -> 1.058 and 1.1x -> 1.8x,
-hview 0.987 -> 0.321 and 2.2x -> 3.5x, veryrare 0.714 -> 0.309 and 4.2x -> 5.2x, and the
-three that screened before ties 0.103 -> 0.059, blind 0.183 -> 0.140, braking 0.185 ->
-0.080, their recall within a tenth. Two problems' worst runs lie above uniform's variance:
-classif 1.72, scattered 2.16 (4 screens each; a failure that the screen holds outside its
-leads, confirmed at a small pi2, is a heavy-tailed term); their means are 1.01 and 1.06.
-As the runs went: cancer 2.7x, classif 2.7x, scattered 3.8x (0.0x on one run), hview
-5.2x, veryrare 5.2x, ties 19.3x, blind 9.6x, braking 14.7x. The runs' intervals: 63 of 64
-held the rate, none below it (ties seed 0 above; classif 6 -> 8 of 8, scattered 7 -> 8),
-though they were computed with the screen's own leads left out of the allowance's
-stand-in, as 1f89bb4 did, so their upper limits are higher than the tool's since
+NOTES = """## Where things stand
+
+The latest measurement the history below reports for each problem:
+
+- 2026-11-30 rerun (runs 00:45-01:57 at 1f89bb4, table 01:57-02:14 at 40d2457), every problem
+  but common: every run of the eight screened. The design drawn from the truth (4 screens per
+  run), variance over uniform's: cancer 0.348, classif 1.006, scattered 1.058, hview 0.321,
+  veryrare 0.309, ties 0.059, blind 0.140, braking 0.080.
+- 2026-11-30 rerun, recall over plain MC's, the design's: cancer 2.7x, classif 2.1x, scattered
+  1.8x, hview 3.5x, veryrare 5.2x (ties, blind and braking: their recall within a tenth). As
+  the runs went: cancer 2.7x, classif 2.7x, scattered 3.8x (0.0x on one run), hview 5.2x,
+  veryrare 5.2x, ties 19.3x, blind 9.6x, braking 14.7x.
+- 2026-11-30 rerun, the runs' intervals: 63 of 64 held the rate, none below it (ties seed 0
+  above). They were computed with the screen's own leads left out of the allowance's
+  stand-in, as 1f89bb4 did, so their upper limits are higher than the tool's since.
+- 2026-11-30, the two worst runs read again: scattered's (2.16 at 4 screens) are the 4
+  screens' noise (at 6 screens each its 8 runs had 0.34-1.81 of uniform's variance, mean
+  0.89); classif's are not (at 40 screens its seeds 3 and 7 had 1.36 and 1.40). classif's
+  screened design has 1.0-1.4 times uniform's variance per run.
+- common, 2026-11-29 rerun (14:30-14:50 at 52d0223, evaluated at 2f6bbce; not rerun on
+  2026-11-30): 7 of 8 screened, the design 0.148 [0.654] of uniform's variance, recall 3.0x
+  plain MC, 7 of 8 intervals holding the rate (seed 6 above), the discrepancy 0.51 / 1.39 /
+  2.26 of the truth.
+
+## History of the measurements
+
+### 2026-11-28: the defaults as shipped
+
+Measured 2026-11-28 (runs 03:22-03:40, repeat 03:40-03:49) at 88703ab, the defaults as
+shipped (the prior on lam follows the fitted cheap level since 2026-11-27). All 32 runs'
+intervals held the true rate.
+
+Against the runs of 2026-11-27 at 42801af (one prior on lam):
+
+- cancer: its intervals 7 -> 8 of 8 holding the rate; its design 0.914 [1.193] -> 0.899
+  [1.083] of uniform's variance; recall 1.4x -> 1.3x plain MC.
+- ties: the same (screened).
+- blind: 0.192 [0.263] -> 0.204 [0.362], its one unscreened run (seed 5) trusting p_n less
+  (0.26 -> 0.36; the screened seven 0.18 on average); recall 7.4x -> 7.2x.
+
+classif is new (the problem a new user built). No run screened (cheap level corr 0.49). All
+8 intervals held the rate. The design stayed at uniform's variance (1.020 [1.049]) with
+coverage 0.963, but recall is 0.9x plain MC (0.8x-1.4x):
+
+- the cheap level ranks failures in its lowest tail (the lowest 1% of f1 fail at 16x the
+  rate) and explains little of f0 elsewhere (R^2 0.21 on the asinh scale, with a fitted
+  slope);
+- the model reads it as weak;
+- and discovery's 11-15 level-0 runs (plain MC's 20) found 2 failures in all 8 runs, both
+  confirming cheap-level leads (2 of the 16 leads confirmed).
+
+The screened path drawn 20 times from blind seed 4's workspace (the refit in every draw):
+p_hat 1.020 ± 0.020 of the rate, all 20 intervals holding it.
+
+### 2026-11-28: braking added
+
+Runs 06:58-07:17 at fdd8bdd; the other four problems' rows as measured before.
+
+- --screen auto screened all 8 runs (the cheap level tracks level 0 globally, corr 0.999).
+- All 8 intervals held the rate.
+- The design had 0.250 [0.372] of uniform's variance and recall 12.5x plain MC, though the
+  cheap level misses 39% of the failures.
+
+But the fitted discrepancy after batch 3 is 1.6-5.3 times the pool's sd(f1 - f0), outside
+issue 11's factor 2 on most runs, on the side that trusts the cheap level less:
+
+- the discrepancy is heteroscedastic (sd 2.85 m over the pool, 5.6 m with a mean of +8.8 m
+  where |f0| < 20 m);
+- batch 1's six or seven pairs show sd 3.0-8.9 m;
+- and one stationary discrepancy kernel cannot hold both.
+
+After the estimate, with about 400 pairs, fit's check warns that level 1 differs from level 0
+more than the model allows near the pairs it has (seed 0: sd 5.87 against the model's 3.74).
+
+The screened path drawn 12 times from braking seed 3's workspace (07:20-07:33): p_hat 0.980 ±
+0.057 of the rate, all 12 intervals holding it, 1.35 times the rate wide.
+
+### 2026-11-28: scattered added
+
+Runs 23:10-23:14 at c16750b; the other problems' rows as measured before. 103 failures in 20
+small pockets and on isolated segments, the cheap level (corr 0.69) seeing 54% of them.
+
+- No run screened.
+- All 8 intervals held the rate.
+- The design stayed at uniform's variance (1.041 [1.072]) with coverage 0.985 (misses 0.000
+  below, 0.015 above).
+- The discrepancy after batch 3 was within a factor 2 on every run (0.70-1.22).
+
+But the model saw no failure to rank by: its expected failures put K at the floor of 100
+level-0 runs (0.5 failures expected at the rate). Five runs found none and reported 0 with an
+upper limit of 0.031 (6 times the rate). Three found one and reported 0.011-0.012 [0.0006,
+0.053].
+
+Recall is 0.8x plain MC, since discovery spent part of its cost on cheap runs (50-110 of
+them) that confirmed nothing at level 0.
+
+### 2026-11-29: braking, ties and blind rerun with the screen's new confirmation prior
+
+Rerun 2026-11-29 for the three problems whose runs screen (braking, ties, blind; runs
+07:02-07:24 at 77ee35f, table 07:25-07:34), once the screen's confirmation planned pi2 under
+Beta(0.1, 10) (docs/suite/screen_confirm_prior.md). Discovery is the same, so the
+discrepancy columns are unchanged.
+
+The design's variance over uniform's fell; recall over plain MC rose:
+
+| problem | design: var / uniform | recall / plain MC |
+| --- | --- | --- |
+| ties | 0.131 [0.340] -> 0.103 [0.276] | 18.1x -> 19.2x |
+| blind | 0.204 -> 0.183 (worst 0.362 both) | 7.2x -> 8.6x |
+| braking | 0.250 [0.372] -> 0.185 [0.302] | 12.5x -> 13.8x |
+
+23 of the 24 realised intervals held the rate. The other, ties seed 0, lay wholly below it:
+
+- its screen's S1 held 102 of the 204 unknown failures (107.8 expected) but missed the ones
+  at small pi1 (a tenth of them at 0.06-0.07), so E[T | S1] was 0.77 of the rate, 1.75 of
+  phase 1's sds low;
+- the confirmation took 99 of the 102, p_hat 0.68 of the rate;
+- and its variance estimate, resting on the failures S1 drew, gave a relative se of 8%
+  against phase 1's 13%: the upper limit 0.0068 missed 0.00687.
+
+The same S1 under the former prior would have carried phase 2's spread into the interval.
+
+Drawn from the truth, the screened design's intervals lay wholly below the rate less often
+under the new prior (ties 0.001 -> 0.000, braking 0.042 -> 0.018 of draws,
+docs/suite/screen_confirm_prior.md), so this run is a phase-1 tail draw, not a measured
+shift. An interval that allows for phase 1's unseen low-pi1 failures better is not built.
+
+### 2026-11-29: why braking's fitted discrepancy is 1.6-5.3 times the pool's sd
+
+Read 2026-11-29 from the 8 runs' workspaces after batch 3. Each run has 6 or 7 pairs:
+
+- 5 or 6 from the random first batch, far from failure (f0 > 20 m), whose differences have
+  sd 0.7-1.8 m;
+- and one or two from a cheap-level lead that batch 2 or 3 confirmed at a failure, whose
+  difference is 10-25 m.
+
+The fit (4.6-15.2 m, the pairs' sd 3.0-8.9 m) follows that pair. Over the pool, f1 - f0 has:
+
+- mean 3.2 m and sd 2.7 m far from failure;
+- but mean 8.8 m and sd 5.6 m where |f0| < 20 m (RMS 7.9 m about the far mean, which the
+  offset takes);
+- and mean 14.2 m, sd 7.6 m at the failures themselves.
+
+One stationary discrepancy cannot hold both; the fit holds the region where failure is
+decided, and the pool's sd (2.85 m) is the wrong yardstick there. A discrepancy whose scale
+grows near failure (heteroscedastic in x or in f0) is what issue 11's factor 2 would need
+here; it is not built.
+
+### 2026-11-29: veryrare and common added
+
+veryrare's runs 08:58-09:04 at 0fe6d36; common's 09:11-09:34 at fa7a036, after the stage
+weights changed; the other rows as measured before.
+
+veryrare: all 8 intervals held the rate.
+
+- Discovery found one failure on three seeds and none on the rest.
+- The default K was its floor (100, or 70-71 level-0 runs after a screen's cheap ones).
+- The interval reached 22-33 times the rate, about what 100 uniform runs that see nothing
+  can say (3.0/K): the plan warned that no level-0 failure had checked the model's rate.
+- Two seeds screened; the staged ones' designs sat at 0.88-0.98 of uniform's variance with
+  coverage 0.99.
+- Seed 1's fitted discrepancy is 0.33 of the truth, on the side that trusts the cheap level:
+  its 7 pairs showed differences of sd 0.064 against the pool's 0.189 (a chi-square tail of
+  about 0.005), and the model follows its pairs.
+
+common: the default K (5 x the model's rate, which it put at 0.05-0.21 against 0.06) was
+2,275-9,989 of 10,000 segments, which the plan now says in one line.
+
+At such K the stages' former weights (their shares of K) were the wrong ones: stage 2 samples
+most of what stage 1 left, and a quarter of stage 1's variance stayed in the sum. Drawn from
+the truth (stage 2 keeping stage 1's p_n), the design had:
+
+- 1.148 [3.067] of a uniform design's variance at 0fe6d36 (0.5 / 0.5);
+- and 0.424 [0.815] with the weights inverse to each stage's uniform variance
+  (``core.design.stage_weights``: 0.07 / 0.93 at K = 0.93 |U|).
+
+The realised runs, with the refit between the stages, reported relative se 0.06%-4.8% (median
+1.4%) against 1.6%-5.3% (median 2.3%) for the same seeds run at 0fe6d36, and 7 of 8
+intervals held the rate both times (seed 6 above it). The suite's designs moved in the third
+decimal (docs/suite/estimate_design.md).
+
+common's cheap level is the true one scaled by 2.5: the model's discrepancy is additive (f1 =
+f0 + b + alpha), so it sees a level whose differences have sd 1.76 against level 0's 1.09,
+fits a discrepancy 1.5-3.1 times even that, --screen auto never screens, and the design gains
+nothing from a cheap level with corr 0.99. A scale per cheap level (f1 = rho f0 + b + alpha,
+Kennedy and O'Hagan's form) is what would use it; it is not built.
+
+### 2026-11-29: cancer rerun with the new stage weights
+
+Runs 09:53-10:00 at 1ccb757, the new stage weights: 0.45 / 0.55 at its K of 100-219 on 569
+segments. The same draws as before, since the weights change only how the stages combine.
+
+- Its design 0.899 [1.083] -> 0.875 [1.067] of uniform's variance, coverage 0.938 both,
+  intervals wholly below the rate 0.030 -> 0.029 of draws.
+- The realised intervals 8 -> 7 of 8 holding the rate.
+
+Seed 4, whose 98 estimate runs sampled one failure where uniform sampling expects five (p_hat
+0.26 of the rate both times), now reports [0.0035, 0.0486] against 0.0510 (under the shares'
+weights its upper limit had reached the rate).
+
+A tail draw of the design, whose below-misses are 3.6% of draws for that seed (3.9% under the
+old weights): were the 98 runs a uniform sample, Clopper and Pearson's exact 90% interval for
+one failure in them would end at 0.047 of the unknown segments, about 0.047 of the pool with
+the known failure, below the rate too.
+
+### 2026-11-29: common rerun with the cheap level's scale in the model
+
+Runs 12:51-13:18 at d8123ba, the cheap level's scale in the model (docs/suite/level_scale.md);
+table 13:18-13:26.
+
+After batch 3 seven runs' pairs (7 each, slopes 2.50-2.65, correlation 0.991-0.999) showed a
+scale, cutting the sd of their differences by 4.7-13.9, and the fit took it (rho 2.42-2.57).
+So the level's discrepancy came to 0.08-0.15 of level 0's signal and --screen auto screened
+those 7 (none before).
+
+- The design's variance over uniform's fell from 0.424 [0.815] to 0.134 [0.663] (the
+  screened seven 0.017-0.098).
+- Recall over plain MC rose from 1.3x to 2.6x (1.6x-3.8x on the screened seven).
+- The fitted discrepancy, now set beside the pool's sd(f1 - rho f0) at the fitted rho, is
+  1.40-2.06 of the truth (1.53-3.12 of sd(f1 - f0) before).
+
+7 of 8 intervals held the rate. The other, seed 6, lay above it as before (p_hat 1.045 of the
+rate), the one run that did not screen: its 8 pairs (correlation 0.986) cut the sd by 3.75,
+under the gate's 4, so its model after batch 3 stayed additive (discrepancy 3.2 times level
+0's signal); unscreened, it ran no more cheap runs, and its model stayed additive to the end.
+
+### 2026-11-29: hview added, cancer rerun with the open leads
+
+Runs 15:15-15:24 at 2f6bbce, whose staged estimate samples the open cheap-level leads with
+certainty, pipeline.estimation.open_leads; table 15:25-15:32 at 5a9c1eb.
+
+hview (a 64-d view of a 12-d latent, rate 0.5%, the cheap level blind to one of three failure
+modes) is a problem the model after batch 3 barely ranks (p_n's AUC over the pool 0.50-0.67
+on the first 8 runs, at b4b1a2e; its mean p_n 0.02-0.85 of the rate on the three runs read):
+
+- no run screened, the default K sat at its floor of 100 on 6 runs;
+- the design stayed at uniform's variance (0.987 [1.032]) with coverage 0.982 and no miss
+  below;
+- all 8 intervals held the rate (five found at most the failure discovery had, p_hat
+  0.00-0.01 of the rate with upper limits about 3/K);
+- the discrepancy was within 2x on every run (0.74-1.56);
+- and recall was 2.2x plain MC's on average (0.8x-4.2x; 1.4x without the leads on the
+  b4b1a2e runs, where the model put p_n 0.01 or less on leads that failed at level 0 and 0-7
+  leads were open per run).
+
+cancer, with the leads (3-18 per run before, 11 on seed 1):
+
+- recall over plain MC 1.3x -> 1.5x (lowest 0.9x -> 1.0x);
+- the design 0.875 [1.067] -> 0.901 [1.079] of uniform's variance;
+- coverage 0.938 -> 0.947;
+- misses below 0.029 -> 0.022 of draws.
+
+Discovery is not the same runs (the code moved since 1ccb757), so the discrepancy column
+(0.99 / 1.54 / 1.91) moved too.
+
+7 of 8 realised intervals held the rate; seed 1's lay below it ([0.0334, 0.0399] against
+0.0510). Its stage 1 sampled 11 leads (7 failures) with certainty and 0 failures in its 105
+other draws, where about 4 were expected. So stage 1's variance estimate rested on no sampled
+failure, the checked model was trusted more for stage 2 (lam 0.65 -> 0.30), and the weighted
+sum (0.0289) fell below the 19 failures found.
+
+The design drawn from the truth puts that seed's intervals wholly below the rate in 3.1% of
+draws.
+
+Taking the leads out of U makes a stage-1 draw with no failure among the rest likelier. Yet
+on these same 8 runs drawn 1,000 times each with and without the leads (a throwaway loop over
+staged_trials), coverage was 0.930 -> 0.947 and misses below 0.035 -> 0.022 of draws:
+
+- on the 1ccb757 runs 0.938 -> 0.940, 0.029 -> 0.028;
+- hview 0.984 -> 0.982, none below;
+- the suite's digits 0.968 -> 0.969, none below;
+- weak_cheap 0.932 -> 0.928, below 0.031 -> 0.034.
+
+This run is a tail draw, not a shift.
+
+### 2026-11-29: common rerun with the scale's prior centred on the pairs' slope
+
+Runs 14:30-14:50 at 52d0223, the scale's prior centred on the pairs' slope and the data
+standardised in level 0's units; evaluated at 2f6bbce; docs/suite/level_scale.md.
+
+- 7 of 8 screened as before.
+- The design 0.134 [0.663] -> 0.148 [0.654] of uniform's variance.
+- Recall 2.6x -> 3.0x plain MC.
+- 7 of 8 intervals holding the rate (seed 6 above, as before).
+- The discrepancy 1.40 / 1.64 / 2.06 -> 0.51 / 1.39 / 2.26 of the truth.
+
+### 2026-11-29: classif, scattered and veryrare rerun with the open leads
+
+Runs 16:44-16:58 at 0177348, whose staged estimate samples the open leads with certainty;
+classif again 17:05-17:17 at ec7e794, where the leads' share of K follows the study's
+evidence, core.design.lead_share; tables at ec7e794; cancer and hview re-evaluated there,
+the same to the digit.
+
+classif's leads failed at level 0 7 times in 109 over the 8 runs, at a K of 0.2-1.2 failures
+of U per run (the model put the rate near 0 on 6 runs, so K sat at its floor of 100): a lead
+taken with certainty took a run from segments that failed more often than it did, and half of
+K in leads raised the design's variance to 1.169 [1.323] of uniform's (1.020 [1.049] without
+leads).
+
+Under the evidence rule (6 runs' discovery had run 3-5 leads at level 0, none failing, so a
+tenth of K) it is 1.126 [1.187]; recall over plain MC 0.9x -> 1.1x; 7 of 8 realised intervals
+held the rate, the other (seed 6) above it.
+
+scattered: 0-1 leads per run, recall 0.8x -> 1.0x, the design 1.035 [1.051].
+
+veryrare: 3 of 8 runs screened (2 before; discovery is not the same runs), the design 0.713
+[1.033], recall 4.3x plain MC (0.0x on seed 5, whose screens confirmed none of the 39
+failures), all 8 intervals holding the rate.
+
+### 2026-11-29: five problems rerun with the estimate in three stages
+
+cancer, classif, scattered, veryrare and hview rerun 2026-11-29 (runs 21:52-22:15 at 20bc836,
+the estimate in three stages of a third of K, the default since 907d1d3; table at the commit
+that added the runs' recall column). Discovery is the same runs, so the discrepancy column is
+unchanged.
+
+The runs' intervals: 37 of 40 held the rate and none lay below it. The design drawn from the
+truth (later stages keeping stage 1's p_n) moved in the third decimal, its misses below the
+rate the same. Recall as the runs went is the new column: the failures in hand after each
+run's estimate, its refits between the stages included, over plain MC's at the same cost;
+beside it, the design's, drawn with stage 1's p_n kept.
+
+| problem | intervals holding the rate | design: var / uniform | runs' recall | design's recall |
+| --- | --- | --- | --- | --- |
+| cancer | 7 -> 8 of 8, its seed 1 no longer below | 0.901 -> 0.898 | 1.8x | 1.5x |
+| classif | 7 -> 6, both misses above | 1.126 -> 1.123 | 1.5x | 1.1x |
+| scattered | 8 -> 7, the miss above | 1.035 -> 1.033 | 1.0x | 1.1x |
+| veryrare | 8 of 8 both times | | 7.3x | 4.2x |
+| hview | 8 of 8 both times | | 2.1x | 2.2x |
+
+### 2026-11-30: every study with a cheap level screens
+
+Rerun 2026-11-30 (runs 00:45-01:57 at 1f89bb4, where --screen auto screens every study with
+a cheap level and the screen's confirmation runs its own lowest cheap results with
+certainty; table 01:57-02:14 at 40d2457; common not rerun, its row as before).
+
+Every run of the eight screened (before: ties, braking, 7 of 8 blind, 3 of 8 veryrare). The
+design drawn from the truth (4 screens per run), against the row before, and recall as the
+runs went:
+
+| problem | design: var / uniform | design: recall / plain MC's | recall as the runs went |
+| --- | --- | --- | --- |
+| cancer | 0.898 -> 0.348 | 1.5x -> 2.7x | 2.7x |
+| classif | 1.123 -> 1.006 | 1.1x -> 2.1x | 2.7x |
+| scattered | 1.033 -> 1.058 | 1.1x -> 1.8x | 3.8x (0.0x on one run) |
+| hview | 0.987 -> 0.321 | 2.2x -> 3.5x | 5.2x |
+| veryrare | 0.714 -> 0.309 | 4.2x -> 5.2x | 5.2x |
+| ties (screened before) | 0.103 -> 0.059 | within a tenth | 19.3x |
+| blind (screened before) | 0.183 -> 0.140 | within a tenth | 9.6x |
+| braking (screened before) | 0.185 -> 0.080 | within a tenth | 14.7x |
+
+Two problems' worst runs lie above uniform's variance: classif 1.72, scattered 2.16 (4
+screens each; a failure that the screen holds outside its leads, confirmed at a small pi2, is
+a heavy-tailed term); their means are 1.01 and 1.06.
+
+The runs' intervals: 63 of 64 held the rate, none below it (ties seed 0 above; classif 6 -> 8
+of 8, scattered 7 -> 8). But they were computed with the screen's own leads left out of the
+allowance's stand-in, as 1f89bb4 did, so their upper limits are higher than the tool's since
 (docs/suite/screen_design.md: with them in, weak_cheap's coverage 0.972 -> 0.935).
+
+### 2026-11-30: the two worst runs read again
+
 Those two worst runs read again 2026-11-30 (more screens per run drawn from the kept
 workspaces, each refitted on its true cheap values, as ``benchmark.screen_default`` draws
-them): scattered's are the 4 screens' noise. At 6 screens each its 8 runs had 0.34-1.81 of
-uniform's variance, mean 0.89: phase 1 gives 0.34 on every run, and phase 2 is a failure
-or two outside the screen's leads per screen, each weighing 1/(pi1^2 pi2), so a run's mean
-over a few screens swings. classif's are not: at 40 screens its seeds 3 and 7 had 1.36
-and 1.40 (1.25 and 1.72 at 4). There the screen's leads held about 60% of S1's failures;
-the rest were confirmed at pi1 pi2 of about 0.35 K / N, three times a uniform design's
-weight. Mixing the non-leads' pi2 with a uniform one (a share of 0.25 to 1) moved that by
-0.05 at most, since the refitted model's pi2 there was already nearly flat (0.11-0.15).
-So classif's screened design has 1.0-1.4 times uniform's variance per run: issue 12's
-1.2x holds on its mean over runs, not on each run."""
+them).
+
+scattered's are the 4 screens' noise. At 6 screens each its 8 runs had 0.34-1.81 of
+uniform's variance, mean 0.89: phase 1 gives 0.34 on every run, and phase 2 is a failure or
+two outside the screen's leads per screen, each weighing 1/(pi1^2 pi2), so a run's mean over
+a few screens swings.
+
+classif's are not: at 40 screens its seeds 3 and 7 had 1.36 and 1.40 (1.25 and 1.72 at 4).
+There the screen's leads held about 60% of S1's failures; the rest were confirmed at pi1 pi2
+of about 0.35 K / N, three times a uniform design's weight. Mixing the non-leads' pi2 with a
+uniform one (a share of 0.25 to 1) moved that by 0.05 at most, since the refitted model's
+pi2 there was already nearly flat (0.11-0.15).
+
+So classif's screened design has 1.0-1.4 times uniform's variance per run: issue 12's 1.2x
+holds on its mean over runs, not on each run."""
+
+
+def _markdown(text: str) -> str:
+    """NOTES as Markdown: blank lines part the blocks; a block's wrapped lines are joined into
+    one, but a table keeps its rows and a list its items, one a line."""
+    blocks = []
+    for block in text.strip().split("\n\n"):
+        rows = block.split("\n")
+        if rows[0].startswith("|"):
+            blocks.append(block)
+            continue
+        lines: list[str] = []
+        for row in rows:
+            if not lines or row.startswith("- "):
+                lines.append(row)
+            else:
+                lines[-1] += " " + row.strip()
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
 
 
 def table(out: Path) -> None:
@@ -801,7 +1042,7 @@ def table(out: Path) -> None:
             "| --- | --- | --- | --- | --- | --- |",
             *reps,
         ]
-    lines += ["", NOTES.replace("\n", " ")]
+    lines += ["", _markdown(NOTES)]
     (HERE / "fresh_problems.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
