@@ -185,5 +185,6 @@ def test_the_stages_run_in_order_carry_a_study_to_its_report(tmp_path):
     estimate = json.loads((sim / "estimate.json").read_text())
     doc = json.loads((tmp_path / "study" / "estimates" / "estimate-0002.json").read_text())
     assert doc["design"] == "staged" and doc["staging"]["plans"] == [1, 2]
+    assert doc["staging"]["stages_done"] == doc["staging"]["stages"] == 2  # the whole estimate
     assert estimate["estimates"][0]["p_hat"] == doc["estimates"][0]["p_hat"] >= 0
     assert (tmp_path / "study" / "report" / "summary.md").exists()

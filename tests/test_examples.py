@@ -66,6 +66,8 @@ def test_the_example_makefile_runs_resumes_and_is_then_up_to_date(tmp_path):
     doc = json.loads((study / "estimates" / "estimate-0002.json").read_text())
     assert doc["estimates"][0]["p_hat"] >= 0
     assert doc["design"] == "staged" and doc["staging"]["plans"] == [1, 2]
+    # Every stage it planned: the estimate is whole, not "stage 2 of 3 only".
+    assert doc["staging"]["stages_done"] == doc["staging"]["stages"] == 2
     assert (study / "report" / "summary.md").exists()
 
     # Finished: nothing to do, and every target is up to date.
