@@ -129,7 +129,7 @@ def model_checks(checks: Mapping[str, Any], transform: Mapping[str, Any] | None 
     if loo["n"]:
         of = int(loo.get("of") or loo["n"])
         runs = (
-            f"{loo['n']} level-0 runs"
+            plural(loo["n"], "level-0 run")
             if of <= loo["n"]
             else (f"{loo['n']} of the {of:,} level-0 runs (a random sample)")
         )
@@ -212,6 +212,8 @@ def estimate_lines(e: Mapping[str, Any]) -> None:
     ``estimate (plan 2): gamma 0.56: p_hat 0.012, 90% interval [0.0009, 0.074]``."""
     done, planned = e.get("stages_done", 1), e.get("stages", 1)
     of = f", stage {done} of {planned} only" if done < planned else ""
+    if e.get("out_of_date"):  # a result it read was replaced since: `estimate` again
+        of += ", out of date"
     for row in e["estimates"]:
         rate = (
             f"p_hat between {row['p_hat_low']:.4g} and {row['p_hat_high']:.4g} (abandoned "
@@ -413,10 +415,11 @@ def ingest_summary(s: Mapping[str, Any]) -> None:
         for lv, n in (s.get("by_fidelity") or {}).items()
     )
     active = s.get("log_active", s["log_rows"])
-    replaced = s["log_rows"] - active
+    # Rows superseded by --replace, this time or before: inactive, kept in the log.
+    kept = s["log_rows"] - active
     facts(
         f"ingested {plural(s['ingested'], 'result')} into {s['observations']} "
-        f"({plural(active, 'row')} now{f', beside {replaced} replaced' if replaced else ''})",
+        f"({plural(active, 'row')} now{f', {kept} superseded kept beside them' if kept else ''})",
         {
             "by level": by_level,
             "replaced": s["replaced"] or None,

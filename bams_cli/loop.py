@@ -519,6 +519,8 @@ def _next_step(
             return ("estimate --plan", "plan", plans[-1] + 1)
         if not (ws.estimates_dir / f"estimate-{plans[-1]:04d}.json").exists():
             return ("estimate", "plan", plans[-1])
+        if ws.estimate_out_of_date(plans[-1]):  # a result it read was replaced since
+            return ("estimate", "plan", plans[-1])
     if not _model_fresh(ws) and ws.read_observations().height:
         # Last, the model of every result (after --batches 1 too: the next `select`,
         # `report` and `status` read it).

@@ -959,7 +959,13 @@ def render_markdown(summary: dict[str, Any]) -> str:
     lines.append(
         f"Pool of {s['study']['pool_size']} segments; {len(s['batches'])} "
         f"batch{'' if len(s['batches']) == 1 else 'es'}; "
-        f"{spent['count']} simulations costing {spent['cost']:g} level-0 runs."
+        f"{spent['count']} simulations costing {spent['cost']:g} level-0 runs"
+        + (
+            f" ({spent['superseded']} of those results superseded by a later "
+            "`ingest-results --replace`, kept in the log)."
+            if spent.get("superseded")
+            else "."
+        )
     )
     lines.append("")
     lines += [spend_line(s), ""]

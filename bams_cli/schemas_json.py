@@ -182,7 +182,7 @@ LATEST_ESTIMATE: Schema = obj(
             )
         ),
     },
-    {"stages_done": INT, "stages": INT},
+    {"stages_done": INT, "stages": INT, "out_of_date": BOOL},
 )
 
 #: ``ingest-results`` and ``abandon``: the batches and plans partly answered, and the list
@@ -503,6 +503,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                 "gp": array(GP_ROW),
                 "gp_model": STR,
                 "notes": array(STR),
+                # what it read from the log; `status` and `report` compare it with now
+                "inputs_hash": STR,
                 "estimate_file": PATH,
                 "earlier_estimate": nullable(
                     obj({"file": PATH}, {"confidence": nullable(NUM), "interval": nullable(STR)})
@@ -613,6 +615,7 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         {
                             "kind": {
                                 "enum": [
+                                    "outdated_estimate",
                                     "stale_estimate",
                                     "stale_model",
                                     "no_model",
@@ -641,6 +644,8 @@ _OUTPUTS: dict[str, tuple[str, Schema]] = {
                         "per_level": mapping(obj({"count": COUNT, "cost": NUM}), "level number"),
                         "count": COUNT,
                         "cost": NUM,
+                        # of count: results --replace superseded, kept in the log
+                        "superseded": COUNT,
                     }
                 ),
                 "model": nullable(

@@ -246,6 +246,15 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     }
 
 
+def _estimate_out_of_date(ws: Workspace, k: int) -> bool:
+    """``Workspace.estimate_out_of_date``, False where the file cannot be read (status
+    reads what it can; ``report`` names a damaged file)."""
+    try:
+        return ws.estimate_out_of_date(k)
+    except (StaleStateError, SchemaError, OSError):
+        return False
+
+
 def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
     """The newest estimate file's headline (``status --json`` ``latest_estimate``, ``loop
     --json`` ``estimate``): ``plan``, ``file``, ``stages_done``, ``stages`` and per gamma
@@ -267,6 +276,8 @@ def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
         "file": str(path),
         "stages_done": staging.get("stages_done", 1),
         "stages": staging.get("stages", 1),
+        # A result it read was replaced or abandoned since (``Workspace.estimate_out_of_date``).
+        "out_of_date": _estimate_out_of_date(ws, int(path.stem[len("estimate-") :])),
         "estimates": [
             {k: e.get(k) for k in keys} | {k: e[k] for k in ranged if e.get(k) is not None}
             for e in doc["estimates"]
@@ -431,6 +442,14 @@ def _next_step(
         if plans[-1]["estimate"] is None:
             cmd = f"bams-cli estimate -w {w}"
             return step("estimate", cmd, f"estimate plan {k} has all its results: run `{cmd}`")
+        if _estimate_out_of_date(ws, k):
+            cmd = f"bams-cli estimate -w {w}"
+            return step(
+                "estimate",
+                cmd,
+                f"plan {k}'s estimate is out of date: results it rests on were replaced or "
+                f"abandoned since it was computed; run `{cmd}` again (the earlier one is kept)",
+            )
         if stale:
             return step("fit", fit, f"{why_fit}; run `{fit}` so the report shows the current model")
         report = ws.report_dir / "summary.json"

@@ -114,11 +114,17 @@ def test_conflict_needs_replace_and_keeps_history(ws, runner, tmp_path):
     assert full.filter(full["active"])["value"].to_list() == [9.0]
     # The summary counts the rows fit and status count ("2 rows now" beside their 1 said).
     assert " ".join(r.stdout.split()).startswith(
-        f"ingested 1 result into {ws / 'observations.parquet'} (1 row now, beside 1 replaced)"
+        f"ingested 1 result into {ws / 'observations.parquet'} (1 row now, 1 superseded kept "
+        "beside them)"
     )
+    assert "replaced 1" in " ".join(r.stdout.split())
     again = _results(tmp_path / "c.parquet", [(IDS[0], 0, 9.5)])
     out = json.loads(ok(runner, "ingest-results", "-w", ws, again, "--replace", "--json").stdout)
     assert (out["log_rows"], out["log_active"]) == (3, 1)
+    # A later ingest that replaces nothing says so: the superseded rows are the log's.
+    new = _results(tmp_path / "d.parquet", [(IDS[1], 0, 2.0)])
+    text = " ".join(ok(runner, "ingest-results", "-w", ws, new).stdout.split())
+    assert "(2 rows now, 2 superseded kept beside them)" in text and "replaced" not in text
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shlex
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -245,6 +246,20 @@ def estimate_plan(
         and prev.stage < prev.stages
         and st.plan_complete(ws, prev.number)
     )
+    if (
+        prev is not None
+        and not continuing
+        and prev.stage >= prev.stages
+        and not ws.estimate_path(prev.number).exists()
+        and st.plan_complete(ws, prev.number)
+    ):
+        # The earlier estimate's results are all in and nobody computed it: a new plan
+        # does not replace it, and the user may have meant `estimate`, not `--plan`.
+        warnings.append(
+            f"plan {prev.number} has all its results but its estimate was never computed: "
+            f"`bams-cli estimate -w {shlex.quote(str(ws.root))} --plan-number {prev.number}` "
+            f"computes it; this plan, {number}, starts a new estimate beside it"
+        )
     # A screen drawn for this plan number and not dropped (--new-series) is confirmed
     # first, whatever series came before it; --screen starts a new estimate.
     open_screen = screening.screen_path(ws, number).exists() and not new_series
@@ -1185,6 +1200,9 @@ def estimate_compute(
         "gp": gp_rows,
         "gp_model": "current" if model["fresh"] else "as of the plan",
         "notes": [],  # below: they speak of the estimate as reported
+        # What it read from the log: a result replaced or abandoned since makes it out of
+        # date (``status``, ``report``; ``Workspace.estimate_inputs_hash``).
+        "inputs_hash": ws.estimate_inputs_hash([k.number for k in series]),
     }
     # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
     worst = abandon.bound_estimates(

@@ -126,6 +126,9 @@ def report(
         "per_level": per_level,
         "count": int(log.height),
         "cost": _cost(sum(v["cost"] for v in per_level.values())),
+        # Every result delivered counts, a corrected one too (it may have been run again);
+        # the headline says how many of them a later --replace superseded.
+        "superseded": int(log.height - active.height),
     }
 
     model_doc = None
@@ -225,6 +228,17 @@ def report(
         gp_rows = doc["gp"]
         # Next to the headline: discovery that went on after the estimate's sample was drawn.
         notices[:0] = _report_estimate_age(ws, max(made_of), list(frames), active)
+        if ws.estimate_out_of_date(shown_plan):
+            notices[:0] = [
+                {
+                    "kind": "outdated_estimate",
+                    "severity": "warning",
+                    "text": f"The estimate shown is out of date: results of "
+                    f"plan{'s' if len(made_of) > 1 else ''} {', '.join(map(str, made_of))} it rests on were replaced or abandoned "
+                    f"after it was computed; `bams-cli estimate -w {shlex.quote(str(ws.root))}` "
+                    "computes it from the results the log holds now.",
+                }
+            ]
     elif scores is not None:
         from bams_cli.core.estimate import gp_estimate
 

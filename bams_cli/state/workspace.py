@@ -176,6 +176,40 @@ class Workspace:
             digest.update(f"{sid}\x1f{lvl}\x1f{val!r}\x1e".encode())
         return digest.hexdigest()[:16]
 
+    def estimate_inputs_hash(self, plans: list[int]) -> str:
+        """Content hash of what an estimate of these plans reads from the log: the active
+        level-0 value (or none) of every segment each plan holds, sampled and known, and
+        which of them were abandoned for it. ``estimate`` records it; ``status`` and
+        ``report`` compare it with the log's now, so an estimate whose results were
+        replaced or abandoned since is not shown as current."""
+        obs = self.read_observations().filter(pl.col("fidelity") == 0)
+        obs = obs.select(schemas.SEGMENT_ID, "value")
+        gone = self.read_abandoned().filter(pl.col("fidelity") == 0)
+        digest = hashlib.sha256()
+        for k in plans:
+            path = self.estimates_dir / f"plan-{k:04d}.parquet"
+            held = pl.from_arrow(read_state(path, columns=[schemas.SEGMENT_ID]))
+            assert isinstance(held, pl.DataFrame)
+            rows = held.join(obs, on=schemas.SEGMENT_ID, how="left").sort(schemas.SEGMENT_ID)
+            for sid, val in rows.iter_rows():
+                digest.update(f"{k}\x1f{sid}\x1f{val!r}\x1e".encode())
+            lost = gone.filter(pl.col("plan") == k)[schemas.SEGMENT_ID].unique().sort()
+            names = "\x1f".join(map(str, lost.to_list()))
+            digest.update(f"{k}\x1d{names}\x1e".encode())
+        return digest.hexdigest()[:16]
+
+    def estimate_out_of_date(self, k: int) -> bool:
+        """Whether plan ``k``'s computed estimate read results the log no longer holds (one
+        replaced with ``ingest-results --replace``, or abandoned, since): its recorded
+        ``inputs_hash`` against ``estimate_inputs_hash`` now. False for an estimate written
+        before the record."""
+        doc = self.read_estimate(k)
+        recorded = doc.get("inputs_hash")
+        if not isinstance(recorded, str):
+            return False
+        plans = (doc.get("staging") or {}).get("plans") or [k]
+        return recorded != self.estimate_inputs_hash([int(p) for p in plans])
+
     # ---- batches -------------------------------------------------------------------------
     def batch_numbers(self) -> list[int]:
         if not self.batches_dir.is_dir():
