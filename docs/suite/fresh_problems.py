@@ -717,7 +717,10 @@ The fit (4.6-15.2 m, the pairs' sd 3.0-8.9 m) follows that pair. Over the pool, 
 One stationary discrepancy cannot hold both; the fit holds the region where failure is
 decided, and the pool's sd (2.85 m) is the wrong yardstick there. A discrepancy whose scale
 grows near failure (heteroscedastic in x or in f0) is what issue 11's factor 2 would need
-here; it is not built.
+here; it is not built. (2026-11-30, docs/suite/theta0_capacity.md: part of the excess is
+theta0's one kernel, which leaves 14-18 m of the cheap level unexplained for the
+discrepancy to take; with theta0 as two kernels a sketch of the model halves it, median
+4.48 -> 2.48, and what is left tracks the difference at each run's deepest pair.)
 
 ### 2026-11-29: veryrare and common added
 
