@@ -626,9 +626,14 @@ def _run(
         out = pipeline.estimate_plan(root, samples=opts.samples, screen=screen, wait=wait)
         record["to_simulate"] = out["cheap_runs"] if "screen_file" in out else out["to_simulate"]
     elif name == "estimate":
+        # An estimate computed again (a result it read was replaced since) keeps the
+        # --failed-as bounds it was computed with.
+        bounds = opts.abandon_failed
+        if number is not None and Workspace(root).estimate_path(number).exists():
+            earlier = Workspace(root).read_estimate(number).get("abandoned") or {}
+            bounds = bounds or earlier.get("failed_as") == "bounds"
         out = pipeline.estimate_compute(
-            root, plan_number=number, failed_as="bounds" if opts.abandon_failed else None,
-            wait=wait,
+            root, plan_number=number, failed_as="bounds" if bounds else None, wait=wait,
         )  # fmt: skip
         record["estimate_file"] = out["estimate_file"]
     if on_warning is not None:

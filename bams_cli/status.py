@@ -251,7 +251,7 @@ def _estimate_out_of_date(ws: Workspace, k: int) -> bool:
     reads what it can; ``report`` names a damaged file)."""
     try:
         return ws.estimate_out_of_date(k)
-    except (StaleStateError, SchemaError, OSError):
+    except (StaleStateError, SchemaError, OSError, ValueError, TypeError, KeyError):
         return False
 
 
@@ -443,7 +443,7 @@ def _next_step(
             cmd = f"bams-cli estimate -w {w}"
             return step("estimate", cmd, f"estimate plan {k} has all its results: run `{cmd}`")
         if _estimate_out_of_date(ws, k):
-            cmd = f"bams-cli estimate -w {w}"
+            cmd = ws.estimate_again(k)
             return step(
                 "estimate",
                 cmd,

@@ -255,10 +255,14 @@ def estimate_plan(
     ):
         # The earlier estimate's results are all in and nobody computed it: a new plan
         # does not replace it, and the user may have meant `estimate`, not `--plan`.
+        lost = ws.abandoned_open("plan", prev.number).height
+        bounds = " --failed-as bounds" if lost else ""
         warnings.append(
-            f"plan {prev.number} has all its results but its estimate was never computed: "
-            f"`bams-cli estimate -w {shlex.quote(str(ws.root))} --plan-number {prev.number}` "
-            f"computes it; this plan, {number}, starts a new estimate beside it"
+            f"plan {prev.number} has all its results"
+            + (f" (or abandoned: {lost})" if lost else "")
+            + " but its estimate was never computed: `bams-cli estimate -w "
+            f"{shlex.quote(str(ws.root))} --plan-number {prev.number}{bounds}` computes it; "
+            f"this plan, {number}, starts a new estimate beside it"
         )
     # A screen drawn for this plan number and not dropped (--new-series) is confirmed
     # first, whatever series came before it; --screen starts a new estimate.
@@ -1202,7 +1206,9 @@ def estimate_compute(
         "notes": [],  # below: they speak of the estimate as reported
         # What it read from the log: a result replaced or abandoned since makes it out of
         # date (``status``, ``report``; ``Workspace.estimate_inputs_hash``).
-        "inputs_hash": ws.estimate_inputs_hash([k.number for k in series]),
+        "inputs_hash": ws.estimate_inputs_hash(
+            [k.number for k in series], [float(g) for g in gammas]
+        ),
     }
     # Hook: with failed_as="bounds", the worst case over abandoned segments (bams_cli.abandon).
     worst = abandon.bound_estimates(

@@ -229,14 +229,15 @@ def report(
         # Next to the headline: discovery that went on after the estimate's sample was drawn.
         notices[:0] = _report_estimate_age(ws, max(made_of), list(frames), active)
         if ws.estimate_out_of_date(shown_plan):
+            plans_word = "plans" if len(made_of) > 1 else "plan"
             notices[:0] = [
                 {
                     "kind": "outdated_estimate",
                     "severity": "warning",
-                    "text": f"The estimate shown is out of date: results of "
-                    f"plan{'s' if len(made_of) > 1 else ''} {', '.join(map(str, made_of))} it rests on were replaced or abandoned "
-                    f"after it was computed; `bams-cli estimate -w {shlex.quote(str(ws.root))}` "
-                    "computes it from the results the log holds now.",
+                    "text": f"The estimate shown is out of date: results of {plans_word} "
+                    f"{', '.join(map(str, made_of))} it rests on were replaced or abandoned "
+                    f"after it was computed; `{ws.estimate_again(shown_plan)}` computes it "
+                    "from the results the log holds now.",
                 }
             ]
     elif scores is not None:
