@@ -59,6 +59,26 @@ def plan_numbers(ws: Workspace) -> list[int]:
     return sorted(out)
 
 
+def estimate_again(ws: Workspace, k: int, doc: dict[str, Any] | None = None) -> str:
+    """The command that computes plan ``k``'s estimate (``doc``, read when not given) again
+    as it was computed: its ``--failed-as bounds``, ``--confidence`` and ``--interval``
+    kept, and ``--plan-number`` where ``k`` is not the latest plan."""
+    import shlex
+
+    doc = ws.read_estimate(k) if doc is None else doc
+    parts = [f"bams-cli estimate -w {shlex.quote(str(ws.root))}"]
+    if k != (plan_numbers(ws) or [k])[-1]:
+        parts.append(f"--plan-number {k}")
+    if (doc.get("abandoned") or {}).get("failed_as") == "bounds":
+        parts.append("--failed-as bounds")
+    confidence = doc["estimates"][0].get("confidence")
+    if isinstance(confidence, (int, float)) and confidence != 0.9:
+        parts.append(f"--confidence {confidence:g}")
+    if doc.get("interval", "gamma") != "gamma":
+        parts.append(f"--interval {doc['interval']}")
+    return " ".join(parts)
+
+
 def plan_info(ws: Workspace, number: int) -> PlanInfo:
     """Series, stage and weights of plan ``number``; a plan without them is its own series."""
     meta = read_metadata_json(ws.estimates_dir / f"plan-{number:04d}.parquet")

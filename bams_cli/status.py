@@ -28,7 +28,7 @@ import polars as pl
 from bams_cli import defaults
 from bams_cli.errors import EXIT_OK, EXIT_PENDING, SchemaError, StaleStateError
 from bams_cli.settings import Settings
-from bams_cli.stages import plan_numbers
+from bams_cli.stages import estimate_again, plan_numbers
 from bams_cli.state import schemas
 from bams_cli.state.handoff import handoff_path
 from bams_cli.state.io import JOURNAL_NAME, read_metadata, read_metadata_json, recovered_note
@@ -104,8 +104,9 @@ def status(root: Path) -> dict[str, Any]:
     latest = latest_estimate(ws)
     estimating = _estimating(ws, plans, batches)
     step = _next_step(
-        ws, settings, has_pool, batches, plans, model, estimating, has_results=obs.height > 0
-    )
+        ws, settings, has_pool, batches, plans, model, estimating, has_results=obs.height > 0,
+        out_of_date=bool(latest and latest["out_of_date"]),
+    )  # fmt: skip
     waiting = step["step"] == "ingest-results"
     if not has_pool:
         phase = "setup"
@@ -246,11 +247,11 @@ def _model(ws: Workspace, obs: pl.DataFrame) -> dict[str, Any] | None:
     }
 
 
-def _estimate_out_of_date(ws: Workspace, k: int) -> bool:
+def _estimate_out_of_date(ws: Workspace, k: int, doc: dict[str, Any]) -> bool:
     """``Workspace.estimate_out_of_date``, False where the file cannot be read (status
     reads what it can; ``report`` names a damaged file)."""
     try:
-        return ws.estimate_out_of_date(k)
+        return ws.estimate_out_of_date(k, doc)
     except (StaleStateError, SchemaError, OSError, ValueError, TypeError, KeyError):
         return False
 
@@ -276,8 +277,8 @@ def latest_estimate(ws: Workspace) -> dict[str, Any] | None:
         "file": str(path),
         "stages_done": staging.get("stages_done", 1),
         "stages": staging.get("stages", 1),
-        # A result it read was replaced or abandoned since (``Workspace.estimate_out_of_date``).
-        "out_of_date": _estimate_out_of_date(ws, int(path.stem[len("estimate-") :])),
+        # An outcome it read changed since (``Workspace.estimate_out_of_date``).
+        "out_of_date": _estimate_out_of_date(ws, int(path.stem[len("estimate-") :]), doc),
         "estimates": [
             {k: e.get(k) for k in keys} | {k: e[k] for k in ranged if e.get(k) is not None}
             for e in doc["estimates"]
@@ -332,10 +333,12 @@ def _next_step(
     model: dict[str, Any] | None,
     estimating: bool,
     has_results: bool = True,
+    out_of_date: bool = False,
 ) -> dict[str, Any]:
     """The step the loop needs next: ``step`` (a command name, or "done"), the exact
     ``command``, ``text`` saying why, for a person, and ``alternatives``, the other
-    commands that text names."""
+    commands that text names. ``out_of_date``: the newest estimate (``latest_estimate``)
+    read outcomes the log no longer holds."""
     w = shlex.quote(str(ws.root))
     new_plan = {"step": "estimate", "command": f"bams-cli estimate -w {w} --plan"}
 
@@ -442,13 +445,14 @@ def _next_step(
         if plans[-1]["estimate"] is None:
             cmd = f"bams-cli estimate -w {w}"
             return step("estimate", cmd, f"estimate plan {k} has all its results: run `{cmd}`")
-        if _estimate_out_of_date(ws, k):
-            cmd = ws.estimate_again(k)
+        if out_of_date:  # the newest estimate is plan k's, the latest plan's
+            cmd = estimate_again(ws, k)
             return step(
                 "estimate",
                 cmd,
-                f"plan {k}'s estimate is out of date: results it rests on were replaced or "
-                f"abandoned since it was computed; run `{cmd}` again (the earlier one is kept)",
+                f"plan {k}'s estimate is out of date: results it rests on changed since it "
+                "was computed (a result corrected across a gamma, or an abandoned run "
+                f"simulated after all); run `{cmd}` again (the earlier one is kept)",
             )
         if stale:
             return step("fit", fit, f"{why_fit}; run `{fit}` so the report shows the current model")

@@ -23,6 +23,7 @@ from bams_cli.errors import (
 from bams_cli.pipeline._common import SID, locked, plan_numbers, read_scores
 from bams_cli.pipeline.estimation import design_note
 from bams_cli.pipeline.initialise import settings_summary
+from bams_cli.stages import estimate_again
 from bams_cli.state import schemas
 from bams_cli.state.io import (
     read_metadata,
@@ -228,16 +229,17 @@ def report(
         gp_rows = doc["gp"]
         # Next to the headline: discovery that went on after the estimate's sample was drawn.
         notices[:0] = _report_estimate_age(ws, max(made_of), list(frames), active)
-        if ws.estimate_out_of_date(shown_plan):
+        if ws.estimate_out_of_date(shown_plan, doc):
             plans_word = "plans" if len(made_of) > 1 else "plan"
             notices[:0] = [
                 {
                     "kind": "outdated_estimate",
                     "severity": "warning",
                     "text": f"The estimate shown is out of date: results of {plans_word} "
-                    f"{', '.join(map(str, made_of))} it rests on were replaced or abandoned "
-                    f"after it was computed; `{ws.estimate_again(shown_plan)}` computes it "
-                    "from the results the log holds now.",
+                    f"{', '.join(map(str, made_of))} it rests on changed after it was "
+                    "computed (a result corrected across a gamma, or an abandoned run "
+                    f"simulated after all); `{estimate_again(ws, shown_plan, doc)}` computes "
+                    "it from the results the log holds now.",
                 }
             ]
     elif scores is not None:

@@ -179,13 +179,13 @@ class Workspace:
     def estimate_inputs_hash(self, plans: list[int], gammas: list[float]) -> str:
         """Content hash of what an estimate of these plans at these gammas reads from the
         log: whether each segment a plan holds (sampled and known) has a level-0 result,
-        and whether it fails at each gamma, and which were abandoned for the plan.
-        ``estimate`` records it; ``status`` and ``report`` compare it with the log's now, so
-        an estimate whose results were replaced or abandoned since is not shown as current
-        (a value corrected on the same side of every gamma changes nothing it computes)."""
+        and whether it fails at each gamma. ``estimate`` records it; ``status`` and
+        ``report`` compare it with the log's now, so an estimate whose results were
+        corrected across a gamma since, or whose abandoned runs were simulated after all,
+        is not shown as current (a value corrected on the same side of every gamma changes
+        nothing it computes; a run with a result cannot be abandoned)."""
         obs = self.read_observations().filter(pl.col("fidelity") == 0)
         obs = obs.select(schemas.SEGMENT_ID, "value")
-        gone = self.read_abandoned().filter(pl.col("fidelity") == 0)
         g = np.asarray(gammas, dtype=np.float64)
         digest = hashlib.sha256()
         digest.update(f"{[float(x) for x in g]!r}\x1e".encode())
@@ -194,24 +194,21 @@ class Workspace:
             held = pl.from_arrow(read_state(path, columns=[schemas.SEGMENT_ID]))
             assert isinstance(held, pl.DataFrame)
             rows = held.join(obs, on=schemas.SEGMENT_ID, how="left").sort(schemas.SEGMENT_ID)
-            values = rows["value"].to_numpy()
-            seen = ~np.isnan(values.astype(np.float64))
+            values = rows["value"].to_numpy()  # NaN where there is no result
+            seen = ~np.isnan(values)
             fails = (values[:, None] <= g[None, :]) & seen[:, None]
             for sid, has, row in zip(rows[schemas.SEGMENT_ID].to_list(), seen, fails, strict=True):
                 outcome = "".join("1" if f else "0" for f in row) if has else "-"
                 digest.update(f"{k}\x1f{sid}\x1f{outcome}\x1e".encode())
-            lost = gone.filter(pl.col("plan") == k)[schemas.SEGMENT_ID].unique().sort()
-            names = "\x1f".join(map(str, lost.to_list()))
-            digest.update(f"{k}\x1d{names}\x1e".encode())
         return digest.hexdigest()[:16]
 
-    def estimate_out_of_date(self, k: int) -> bool:
-        """Whether plan ``k``'s computed estimate read results the log no longer holds (one
-        replaced with ``ingest-results --replace`` across a gamma, or abandoned, since):
-        its recorded ``inputs_hash`` against ``estimate_inputs_hash`` now. False for an
-        estimate written before the record; a ``StaleStateError`` naming the file where its
-        plans or gammas are not what ``estimate`` writes."""
-        doc = self.read_estimate(k)
+    def estimate_out_of_date(self, k: int, doc: dict[str, Any] | None = None) -> bool:
+        """Whether plan ``k``'s computed estimate (``doc``, read when not given) read
+        outcomes the log no longer holds: its recorded ``inputs_hash`` against
+        ``estimate_inputs_hash`` now. False for an estimate written before the record; a
+        ``StaleStateError`` naming the file where its plans or gammas are not what
+        ``estimate`` writes."""
+        doc = self.read_estimate(k) if doc is None else doc
         recorded = doc.get("inputs_hash")
         if not isinstance(recorded, str):
             return False
@@ -225,25 +222,6 @@ class Workspace:
                 f"--plan-number {k}` to write it again"
             )
         return recorded != self.estimate_inputs_hash(plans, gammas)
-
-    def estimate_again(self, k: int) -> str:
-        """The command that computes plan ``k``'s estimate again as it was computed: its
-        ``--failed-as bounds``, ``--confidence`` and ``--interval`` kept, and
-        ``--plan-number`` where ``k`` is not the latest plan."""
-        doc = self.read_estimate(k)
-        parts = [f"bams-cli estimate -w {shlex.quote(str(self.root))}"]
-        numbers = [int(p.stem[5:]) for p in self.estimates_dir.glob("plan-[0-9]*.parquet")
-                   if p.stem[5:].isdigit()]  # fmt: skip
-        if numbers and k != max(numbers):
-            parts.append(f"--plan-number {k}")
-        if (doc.get("abandoned") or {}).get("failed_as") == "bounds":
-            parts.append("--failed-as bounds")
-        confidence = doc["estimates"][0].get("confidence")
-        if isinstance(confidence, (int, float)) and confidence != 0.9:
-            parts.append(f"--confidence {confidence:g}")
-        if doc.get("interval", "gamma") != "gamma":
-            parts.append(f"--interval {doc['interval']}")
-        return " ".join(parts)
 
     # ---- batches -------------------------------------------------------------------------
     def batch_numbers(self) -> list[int]:
